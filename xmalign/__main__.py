@@ -1,0 +1,3 @@
+from xmalign.cli import main
+
+main()

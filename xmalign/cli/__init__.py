@@ -1,0 +1,39 @@
+"""The ``xmalign`` command line: wires the core, the drivers and the simulator together.
+
+Each command lives in its own module with a ``register(app)`` function. Any
+:class:`~xmalign.errors.XmalignError` becomes one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from xmalign.cli import identify
+from xmalign.cli.common import error_console
+from xmalign.errors import XmalignError
+
+app = typer.Typer(
+    name="xmalign",
+    help="Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+for command_module in (identify,):
+    command_module.register(app)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except XmalignError as error:
+        error_console.print(f"xmalign: error: {error}", markup=False, highlight=False)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

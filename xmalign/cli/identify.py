@@ -1,0 +1,7 @@
+"""``xmalign identify`` (being written)."""
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    pass

@@ -1,0 +1,54 @@
+"""The one exception hierarchy of xmalign.
+
+Every error that a user can cause or a device can raise derives from
+:class:`XmalignError`; the CLI turns it into one line on stderr and exit code 2.
+Subclasses also inherit the matching built-in so that generic handlers work.
+Device faults (the device answered and said no) are kept apart from transport
+failures (the device did not answer).
+"""
+
+from __future__ import annotations
+
+
+class XmalignError(Exception):
+    """Base class of every xmalign error."""
+
+
+class InputError(XmalignError, ValueError):
+    """Bad user input: a file, key, option or value that cannot be used."""
+
+
+class FormatError(InputError):
+    """A file whose format, version or syntax xmalign does not know."""
+
+
+class GeometryError(XmalignError, ValueError):
+    """A setup whose geometry cannot give a result (degenerate, out of reach)."""
+
+
+class OutOfRangeError(XmalignError, ValueError):
+    """A target outside a travel, an axis range or an instrument range."""
+
+
+class DeviceError(XmalignError):
+    """A device answered and reported a fault (drive fault, beam lost, refused move)."""
+
+
+class BeamLostError(DeviceError):
+    """The interferometer lost its beam (a channel left its range)."""
+
+
+class DriveFaultError(DeviceError):
+    """A positioning-unit axis or CNC reported a fault."""
+
+
+class TransportError(XmalignError, ConnectionError):
+    """A device did not answer: connection refused, dropped or corrupted."""
+
+
+class DeviceTimeoutError(TransportError, TimeoutError):
+    """A device did not answer or did not finish in time."""
+
+
+class HeartbeatError(DeviceTimeoutError):
+    """The heartbeat watchdog of a device expired."""

@@ -1,0 +1,158 @@
+"""The machine description (YAML) of FORMATS.md, validated with pydantic.
+
+Besides the keys of the spec, two optional sections are xmalign's own
+(documented in docs/formats-notes.md): ``uncertainty`` (the a-priori
+uncertainties identification and planning use) and ``measurement`` (target
+spacing, runs, dwell and stand-off for ``xmalign program``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from xmalign.errors import InputError
+from xmalign.formats.common import validate
+from xmalign.geometry import Vec
+
+AXES = ("X", "Y", "Z")
+CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
+
+Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Feeds(_Strict):
+    rapid: Positive
+    measure: Positive
+
+
+class LaunchUnitGuess(_Strict):
+    position_mm: Vector3
+
+
+class InterferometerRanges(_Strict):
+    max_range_mm: Positive = 4000.0
+    straightness_range_um: Positive = 250.0
+    angle_range_urad: Positive = 500.0
+
+
+class Uncertainty(_Strict):
+    """Standard uncertainties (k = 1) of what identification is built from."""
+
+    encoder_urad: Positive = 10.0
+    machine_position_um: Positive = 20.0
+    unit_kinematics_um: Positive = 10.0
+    encoder_zero_offset_urad: Positive = 100.0
+    distance_um: Positive = 20.0
+    straightness_um: Positive = 2.0
+
+
+class Measurement(_Strict):
+    """How ``xmalign program`` lays out the measuring lines."""
+
+    target_spacing_mm: Annotated[float, Field(gt=0, le=200)] = 100.0
+    runs: Annotated[int, Field(ge=1, le=5)] = 2
+    bidirectional: bool = True
+    dwell_s: Annotated[float, Field(ge=0)] = 2.0
+    overrun_mm: Annotated[float, Field(ge=0)] = 5.0
+    standoff_mm: Annotated[float, Field(ge=0)] = 150.0
+    irregular_spacing: bool = False
+
+
+class Machine(_Strict):
+    """A machine tool as xmalign sees it; lengths mm, angles as named."""
+
+    name: str
+    chain: str
+    travel_mm: dict[Literal["X", "Y", "Z"], Annotated[list[float], Field(min_length=2, max_length=2)]]
+    feed_mm_min: Feeds
+    controller: Literal["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"]
+    receiver_offset_mm: Vector3
+    spindle_angle_deg: float = 0.0
+    launch_unit: LaunchUnitGuess | None = None
+    interferometer: InterferometerRanges = InterferometerRanges()
+    uncertainty: Uncertainty = Uncertainty()
+    measurement: Measurement = Measurement()
+
+    @field_validator("chain")
+    @classmethod
+    def _chain_is_valid(cls, chain: str) -> str:
+        letters = chain.upper()
+        if sorted(letters) != sorted("FXYZ"):
+            raise ValueError(f"'{chain}' must name F, X, Y and Z once each, e.g. FYXZ or XFYZ")
+        return letters
+
+    @field_validator("travel_mm")
+    @classmethod
+    def _travel_is_valid(cls, travel: dict[str, list[float]]) -> dict[str, list[float]]:
+        missing = [axis for axis in AXES if axis not in travel]
+        if missing:
+            raise ValueError(f"axis {', '.join(missing)} missing")
+        for axis, (low, high) in travel.items():
+            if not (math.isfinite(low) and math.isfinite(high) and low < high):
+                raise ValueError(f"{axis}: [{low}, {high}] must be finite with min < max")
+        return travel
+
+    @property
+    def travel_min_mm(self) -> Vec:
+        """Lower travel limits ``[X, Y, Z]``, shape (3,)."""
+        return np.array([self.travel_mm[a][0] for a in AXES], dtype=float)
+
+    @property
+    def travel_max_mm(self) -> Vec:
+        """Upper travel limits ``[X, Y, Z]``, shape (3,)."""
+        return np.array([self.travel_mm[a][1] for a in AXES], dtype=float)
+
+    @property
+    def spindle_angle_rad(self) -> float:
+        return math.radians(self.spindle_angle_deg)
+
+    @property
+    def receiver_offset(self) -> Vec:
+        """Receiver offset in the spindle frame, mm, shape (3,)."""
+        return np.asarray(self.receiver_offset_mm, dtype=float)
+
+    def within_travel(self, machine_mm: np.ndarray, tol_mm: float = 1e-6) -> np.ndarray:
+        """True where CNC points (..., 3) lie inside the travel limits."""
+        p = np.asarray(machine_mm, dtype=float)
+        return np.all(
+            (p >= self.travel_min_mm - tol_mm) & (p <= self.travel_max_mm + tol_mm), axis=-1
+        )
+
+
+def parse_machine(data: object, source: str = "<machine>") -> Machine:
+    """Validate a machine mapping; raises InputError naming ``source`` and the key."""
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: expected a YAML mapping of machine keys")
+    return validate(Machine, data, source)
+
+
+def load_machine(path: str | Path) -> Machine:
+    """Read and validate a machine YAML file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise InputError(f"{path}: cannot read machine file ({error.strerror})") from error
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise InputError(f"{path}:{where} not valid YAML") from error
+    return parse_machine(data, str(path))
+
+
+def default_machine_path() -> Path:
+    """The reference machine shipped with xmalign (examples/fyxz.yaml)."""
+    return Path(__file__).resolve().parent / "data" / "fyxz.yaml"

@@ -1,0 +1,149 @@
+"""Role interfaces (``typing.Protocol``) that drivers and the simulator implement.
+
+The core and the orchestration code only ever talk to these roles, so a real
+unit on Modbus, a CiA 402 node and a simulated unit are interchangeable. All
+angles are radians, lengths mm, times seconds. Methods that wait take a
+timeout and raise :class:`xmalign.errors.DeviceTimeoutError` when it runs out.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from xmalign.geometry import Vec
+
+CHANNELS = (
+    "linear_um",
+    "straightness_v_um",
+    "straightness_w_um",
+    "angle_u_urad",
+    "angle_v_urad",
+    "angle_w_urad",
+)
+
+
+@dataclass(frozen=True)
+class InterferometerReading:
+    """One six-channel reading at the receiver cp, in the line frame (CONVENTIONS.md).
+
+    ``channels`` holds the six values in the order of :data:`CHANNELS`
+    (um and urad); ``beam_ok`` is False when any channel is out of range.
+    """
+
+    time_s: float
+    channels: Vec
+    beam_ok: bool = True
+
+    def channel(self, name: str) -> float:
+        return float(self.channels[CHANNELS.index(name)])
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """Time source: wall time for hardware, simulated time for the simulator."""
+
+    def now(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+class WallClock:
+    """The real clock."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(max(0.0, seconds))
+
+
+@runtime_checkable
+class RotaryAxis(Protocol):
+    """One rotary axis of a positioning unit."""
+
+    name: str
+
+    def position_rad(self) -> float:
+        """Reported (encoder) angle."""
+        ...
+
+    def move_to(self, angle_rad: float) -> None:
+        """Release the brake and start a move to a reported angle; returns at once."""
+        ...
+
+    def wait_in_position(self, timeout_s: float) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def lock(self) -> None:
+        """Stop and apply the brake."""
+        ...
+
+    def is_locked(self) -> bool: ...
+
+
+@runtime_checkable
+class PositioningUnit(Protocol):
+    """A launch (2 axes) or receiver (3 axes) positioning unit."""
+
+    kind: Literal["launch", "receiver"]
+
+    @property
+    def axes(self) -> tuple[RotaryAxis, ...]: ...
+
+    def angles_rad(self) -> Vec:
+        """Reported angles of all axes, shape (2,) or (3,)."""
+        ...
+
+    def move_to(self, angles_rad: Vec, timeout_s: float) -> None:
+        """Move all axes to reported angles and wait until they are in position."""
+        ...
+
+    def lock(self) -> None:
+        """Stop every axis and apply the brakes."""
+        ...
+
+
+@runtime_checkable
+class Interferometer(Protocol):
+    """A six-channel interferometer (XM-60 class)."""
+
+    def read(self) -> InterferometerReading: ...
+
+    def average(self, duration_s: float) -> InterferometerReading:
+        """Mean of the readings over ``duration_s``; ``beam_ok`` only if all were."""
+        ...
+
+
+@runtime_checkable
+class MachinePositionSource(Protocol):
+    """Where the machine's tool point is (CNC coordinates)."""
+
+    def position_mm(self) -> Vec:
+        """Current CNC tool point, shape (3,)."""
+        ...
+
+    def is_standstill(self) -> bool: ...
+
+
+@runtime_checkable
+class MachineMover(MachinePositionSource, Protocol):
+    """A machine that xmalign may command (the simulated CNC, or an operator prompt)."""
+
+    def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
+        """Move the tool point and return when it stands still there."""
+        ...
+
+
+def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading:
+    """Average of readings (time of the last one); ``beam_ok`` only if all were."""
+    channels = np.mean([r.channels for r in readings], axis=0)
+    return InterferometerReading(
+        time_s=readings[-1].time_s,
+        channels=channels,
+        beam_ok=all(r.beam_ok for r in readings),
+    )
