@@ -110,7 +110,17 @@ class PositioningUnit(Protocol):
 
 @runtime_checkable
 class Interferometer(Protocol):
-    """A six-channel interferometer (XM-60 class)."""
+    """A six-channel interferometer (XM-60 class).
+
+    ``read`` gives the raw channels: ``linear_um`` is the displacement along the
+    beam since the last :meth:`zero` (actual, not an error: the run step
+    subtracts the commanded displacement), the other five as in CONVENTIONS.md
+    in the frame of the beam (``u`` along the beam from the launch unit).
+    """
+
+    def zero(self) -> None:
+        """Set the linear displacement datum at the present receiver position."""
+        ...
 
     def read(self) -> InterferometerReading: ...
 

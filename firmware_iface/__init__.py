@@ -1,0 +1,1 @@
+"""Drivers: how commands reach the positioning units, the interferometer and the CNC."""

@@ -1,0 +1,74 @@
+"""The register map of REGISTERS.md, loaded from ``registers.yaml`` (one source for driver and sim)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntFlag
+from functools import cache
+from pathlib import Path
+
+import yaml
+
+REGISTER_MAP_PATH = Path(__file__).with_name("registers.yaml")
+
+
+@dataclass(frozen=True)
+class Register:
+    """One register: 0-based ``address``, ``type`` (uint16, uint32, int32) and ``access``."""
+
+    name: str
+    address: int
+    type: str
+    access: str
+
+    @property
+    def width(self) -> int:
+        """Number of 16-bit registers the value occupies."""
+        return 1 if self.type == "uint16" else 2
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    device: dict[str, Register]
+    axis_stride: int
+    axis_registers: dict[str, Register]
+    fault_codes: dict[int, str]
+    heartbeat_period_s: float
+    watchdog_timeout_s: float
+    device_types: dict[str, int]
+
+    def axis(self, n: int, name: str) -> Register:
+        """Register ``name`` of axis ``n`` (1-based), with its absolute address."""
+        reg = self.axis_registers[name]
+        return Register(f"axis{n}.{name}", self.axis_stride * n + reg.address, reg.type, reg.access)
+
+    def fault_text(self, code: int) -> str:
+        return self.fault_codes.get(code, f"unknown fault code {code}")
+
+
+def _bits(name: str, mapping: dict[str, int]) -> type[IntFlag]:
+    return IntFlag(name, {key.upper(): 1 << bit for key, bit in mapping.items()})
+
+
+@cache
+def load_register_map(path: Path = REGISTER_MAP_PATH) -> RegisterMap:
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    block = data["axis_block"]
+    return RegisterMap(
+        device={k: Register(k, v["address"], v["type"], v["access"]) for k, v in data["device"].items()},
+        axis_stride=block["base_stride"],
+        axis_registers={
+            k: Register(k, v["offset"], v["type"], v["access"]) for k, v in block["registers"].items()
+        },
+        fault_codes={int(k): v for k, v in data["fault_codes"].items()},
+        heartbeat_period_s=data["watchdog"]["heartbeat_period_ms"] / 1000.0,
+        watchdog_timeout_s=data["watchdog"]["timeout_ms"] / 1000.0,
+        device_types=data["device_types"],
+    )
+
+
+_RAW = yaml.safe_load(REGISTER_MAP_PATH.read_text(encoding="utf-8"))
+#: Bits of an axis's control register (ENABLE, UNLOCK, START, STOP, FAULT_RESET, HOME, TRACK).
+Control = _bits("Control", _RAW["control_bits"])
+#: Bits of an axis's status register (ENABLED, IN_POSITION, MOVING, FAULT, LOCKED, HOMED, ...).
+Status = _bits("Status", _RAW["status_bits"])
