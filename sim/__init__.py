@@ -1,0 +1,1 @@
+"""Virtual machine tool, positioning units, interferometer and CNC behind xmalign's roles."""
