@@ -55,6 +55,11 @@ class Uncertainty(_Strict):
     encoder_zero_offset_urad: Positive = 100.0
     distance_um: Positive = 20.0
     straightness_um: Positive = 2.0
+    # interferometer channels, used by ``xmalign post`` to weight and propagate (GUM)
+    channel_linear_um: Positive = 0.5
+    channel_straightness_um: Positive = 1.0
+    channel_angle_urad: Positive = 1.0
+    channel_roll_urad: Positive = 2.5
 
 
 class Measurement(_Strict):
@@ -67,6 +72,9 @@ class Measurement(_Strict):
     overrun_mm: Annotated[float, Field(ge=0)] = 5.0
     standoff_mm: Annotated[float, Field(ge=0)] = 150.0
     irregular_spacing: bool = False
+    min_line_mm: Annotated[float, Field(gt=0)] = 100.0
+    straightness_allowance_um: Annotated[float, Field(ge=0)] = 50.0
+    angle_allowance_urad: Annotated[float, Field(ge=0)] = 100.0
 
 
 class Machine(_Strict):
