@@ -25,12 +25,16 @@ class UnitImperfections:
         (axes that do not intersect): the beam leaves / enters there.
     backlash_rad : float
         Belt backlash: lost motion on a reversal of each axis.
+    beam_misalignment_rad : ndarray, shape (2,)
+        Launch: the beam's tilt about the head's y and z axes relative to the head's
+        x axis. Receiver: the same tilt of its optical axis (seen as angle constants).
     """
 
     encoder_noise_rad: float = 0.0
     zero_offsets_rad: Vec = field(default_factory=lambda: np.zeros(3))
     axis_offset_mm: Vec = field(default_factory=lambda: np.zeros(3))
     backlash_rad: float = 0.0
+    beam_misalignment_rad: Vec = field(default_factory=lambda: np.zeros(2))
 
     @classmethod
     def random(
@@ -41,6 +45,7 @@ class UnitImperfections:
         zero_offset_rad: float = 60e-6,
         axis_offset_mm: float = 0.010,
         backlash_rad: float = 0.0,
+        beam_misalignment_rad: float = 20e-6,
     ) -> UnitImperfections:
         """Imperfections drawn with the given standard deviations."""
         return cls(
@@ -48,4 +53,5 @@ class UnitImperfections:
             zero_offsets_rad=rng.normal(0.0, zero_offset_rad, n_axes),
             axis_offset_mm=rng.normal(0.0, axis_offset_mm, 3),
             backlash_rad=backlash_rad,
+            beam_misalignment_rad=rng.normal(0.0, beam_misalignment_rad, 2),
         )

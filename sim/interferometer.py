@@ -1,0 +1,170 @@
+"""The simulated six-channel interferometer (XM-60 class) of CONVENTIONS.md.
+
+The reading follows from the true geometry: the launch head's beam (unit
+angles, zero offsets, axis offset, beam misalignment), the receiver carried by
+the virtual machine's actual tool pose, and the CNC position. Channels are in
+the beam's line frame (``xmalign.geometry.line_frame`` of the beam direction):
+``linear_um`` is the displacement along the beam since :meth:`zero`,
+straightness the receiver's optical centre relative to the beam, angles the
+receiver's rotation relative to the launch head (zero when the units face each
+other with roll 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+
+from sim.machine import VirtualMachine
+from sim.units import SimUnit
+from xmalign.errors import InputError
+from xmalign.geometry import Vec, line_frame, rot_z
+from xmalign.machine import InterferometerRanges
+from xmalign.roles import Clock, InterferometerReading, MachinePositionSource, mean_reading
+
+UM_PER_MM = 1000.0
+URAD_PER_RAD = 1e6
+#: The receiver faces the launch head: its frame is the head's turned half a turn about z.
+_FACING = rot_z(np.pi)
+
+
+@dataclass(frozen=True)
+class InterferometerNoise:
+    """Standard deviation of one sample per channel (XM-60 class; docs/conventions-notes.md)."""
+
+    linear_um: float = 0.02
+    straightness_um: float = 0.2
+    angle_urad: float = 0.1
+    roll_urad: float = 0.5
+
+    def sigmas(self) -> Vec:
+        """Per channel, in the order of :data:`xmalign.roles.CHANNELS`, shape (6,)."""
+        s = self.straightness_um
+        a = self.angle_urad
+        return np.array([self.linear_um, s, s, self.roll_urad, a, a])
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """True, noise-free state: channels (6,) with the full distance in ``linear``, beam status."""
+
+    distance_mm: float
+    channels: Vec
+    beam_ok: bool
+
+
+class SimInterferometer:
+    """``Interferometer`` role on the simulated units, machine and CNC.
+
+    Parameters
+    ----------
+    launch, receiver : SimUnit
+    machine : VirtualMachine
+    position : MachinePositionSource
+        Where the CNC is (the simulated CNC).
+    launch2mcs_mm : array_like, shape (3,)
+        True launch cp in the MCS, mm.
+    gamma_rad : float
+        True launch azimuth.
+    clock : Clock, optional
+        Defaults to the launch unit's clock.
+    ranges : InterferometerRanges, optional
+        Defaults to the machine file's ``interferometer`` section.
+    noise : InterferometerNoise, optional
+    rate_hz : float
+        Sample rate of the stream that :meth:`average` uses.
+    seed : int, optional
+    """
+
+    def __init__(
+        self,
+        launch: SimUnit,
+        receiver: SimUnit,
+        machine: VirtualMachine,
+        position: MachinePositionSource,
+        launch2mcs_mm: ArrayLike,
+        gamma_rad: float,
+        clock: Clock | None = None,
+        ranges: InterferometerRanges | None = None,
+        noise: InterferometerNoise | None = None,
+        rate_hz: float = 50.0,
+        seed: int | None = None,
+    ) -> None:
+        if launch.kind != "launch" or receiver.kind != "receiver":
+            raise InputError("SimInterferometer needs a launch unit and a receiver unit")
+        self.launch = launch
+        self.receiver = receiver
+        self.machine = machine
+        self.position = position
+        self.launch2mcs_mm = np.asarray(launch2mcs_mm, dtype=float)
+        self.gamma_rad = float(gamma_rad)
+        self.clock = clock or launch.clock
+        self.ranges = ranges or machine.machine.interferometer
+        self.noise = noise or InterferometerNoise()
+        self.rate_hz = rate_hz
+        self._rng = np.random.default_rng(seed)
+        self._datum_mm = 0.0
+
+    def geometry(self) -> Geometry:
+        """The noise-free reading now."""
+        setup = self.machine.machine
+        head = self.launch.head_rotation(rot_z(self.gamma_rad))
+        origin = self.launch.optical_centre(self.launch2mcs_mm, head)
+        offset = rot_z(setup.spindle_angle_rad) @ setup.receiver_offset
+        cp, tool_rotation = self.machine.tool_pose(self.position.position_mm(), offset)
+        mount = Rotation.from_rotvec(tool_rotation).as_matrix() @ rot_z(setup.spindle_angle_rad)
+        receiver = self.receiver.head_rotation(mount)
+        centre = self.receiver.optical_centre(cp, receiver)
+        frame = line_frame(head[:, 0])
+        along, across_v, across_w = frame @ (centre - origin)
+        relative = Rotation.from_matrix(head.T @ receiver @ _FACING.T).as_rotvec()
+        angles = frame @ (head @ relative)
+        channels = np.concatenate([[along, across_v, across_w], angles * URAD_PER_RAD])
+        channels[:3] *= UM_PER_MM
+        return Geometry(float(along), channels, self._in_range(float(along), channels))
+
+    def _in_range(self, along_mm: float, channels: Vec) -> bool:
+        r = self.ranges
+        return bool(
+            0.0 < along_mm <= r.max_range_mm
+            and np.hypot(channels[1], channels[2]) <= r.straightness_range_um
+            and np.all(np.abs(channels[3:]) <= r.angle_range_urad)
+        )
+
+    def zero(self) -> None:
+        """Set the linear datum at the receiver's present position."""
+        self._datum_mm = self.geometry().distance_mm
+
+    def _reading(self, geometry: Geometry, noise: Vec, time_s: float) -> InterferometerReading:
+        channels = geometry.channels + noise
+        channels[0] -= self._datum_mm * UM_PER_MM
+        return InterferometerReading(time_s=time_s, channels=channels, beam_ok=geometry.beam_ok)
+
+    def read(self) -> InterferometerReading:
+        noise = self._rng.normal(0.0, self.noise.sigmas())
+        return self._reading(self.geometry(), noise, self.clock.now())
+
+    def average(self, duration_s: float) -> InterferometerReading:
+        """Mean of the samples streamed over ``duration_s`` (advances the clock).
+
+        While the machine and both units stand still the geometry is computed
+        once and only the noise differs between samples.
+        """
+        n = max(1, round(duration_s * self.rate_hz))
+        period_s = 1.0 / self.rate_hz
+        if self._standstill():
+            geometry = self.geometry()
+            self.clock.sleep(n * period_s)
+            noise = self._rng.normal(0.0, self.noise.sigmas(), (n, 6)).mean(axis=0)
+            return self._reading(geometry, noise, self.clock.now())
+        readings = []
+        for _ in range(n):
+            self.clock.sleep(period_s)
+            readings.append(self.read())
+        return mean_reading(readings)
+
+    def _standstill(self) -> bool:
+        return self.position.is_standstill() and self.launch.is_still() and self.receiver.is_still()
