@@ -69,14 +69,8 @@ class IdentificationUncertainty:
 
     @property
     def position_mm(self) -> float:
-        """Per-axis uncertainty of where the beam really runs between the two cps."""
-        return float(
-            np.sqrt(
-                self.machine_position_mm**2
-                + 2.0 * self.unit_kinematics_mm**2
-                + self.straightness_mm**2
-            )
-        )
+        """Per-axis uncertainty of where the receiver cp really is at one alignment."""
+        return float(np.hypot(self.machine_position_mm, self.straightness_mm))
 
 
 # Columns of the per-alignment input array: reported angles (rad), beam point (mm), distance (mm).
@@ -131,6 +125,11 @@ def input_sigmas(u: IdentificationUncertainty) -> Vec:
     """Standard uncertainty of each input column, shape (8,)."""
     p = u.position_mm
     return np.array([u.encoder_rad] * 4 + [p, p, p, u.distance_mm])
+
+
+def systematic_sigmas(u: IdentificationUncertainty) -> Vec:
+    """Standard uncertainty of the zero offsets and optical-centre offsets, shape (9,)."""
+    return np.array([u.zero_offset_rad] * 3 + [u.unit_kinematics_mm] * 6)
 
 
 @dataclass
@@ -200,40 +199,67 @@ class IdentificationResult:
 
 # ------------------------------------------------------------------ residual models
 #
-# Every method is a residual function r(theta, inputs, offsets) -> (n, k): theta the
-# parameters, inputs the (n, 8) array above and offsets (3,) the true encoder zero
-# offsets c2, c3, c4 beyond those estimated. The estimate minimises the (whitened)
-# residuals; its covariance follows from the implicit-function theorem,
-# d theta / d inputs = -(J^T J)^-1 J^T dr/d inputs, with the stated input uncertainties.
+# Every method is a residual function r(theta, inputs, systematics) -> (n, k): theta the
+# parameters, inputs the (n, 8) array above and systematics (9,) what is common to all
+# alignments and not estimated, nominally zero: the encoder zero offsets c2, c3, c4
+# beyond those estimated, and the optical centres' offsets from the cps in the launch
+# and receiver head frames (axes that do not intersect). The estimate minimises the
+# (whitened) residuals; its covariance follows from the implicit-function theorem,
+# d theta / d z = -(J^T J)^-1 J^T dr/dz, with the stated uncertainties of every z.
 
 ResidualFn = Callable[[Vec, Vec, Vec], Vec]
+C2, C3, C4 = 0, 1, 2
+LAUNCH_CENTRE = slice(3, 6)
+RECEIVER_CENTRE = slice(6, 9)
+N_SYSTEMATICS = 9
 
 
-def _beam_from_receiver(inputs: Vec, offsets: Vec, spindle_angle_rad: float) -> Vec:
+def _head_to_mcs(azimuth: Vec, elevation: Vec, vector_head: Vec) -> Vec:
+    """``Rz(az)·Ry(-el)·vector`` for arrays of angles (n,) and one vector (3,), (n, 3)."""
+    if not np.any(vector_head):
+        return np.zeros((len(azimuth), 3))
+    ca, sa, ce, se = np.cos(azimuth), np.sin(azimuth), np.cos(elevation), np.sin(elevation)
+    x_axis = np.stack([ca * ce, sa * ce, se], axis=-1)
+    y_axis = np.stack([-sa, ca, np.zeros_like(ca)], axis=-1)
+    z_axis = np.stack([-ca * se, -sa * se, ce], axis=-1)
+    return vector_head[0] * x_axis + vector_head[1] * y_axis + vector_head[2] * z_axis
+
+
+def _optical_points(
+    theta: Vec, inputs: Vec, systematics: Vec, spindle_angle_rad: float
+) -> tuple[Vec, Vec]:
+    """Launch optical centre and beam point at the receiver, (n, 3) each, mm."""
+    launch = theta[:3] + _head_to_mcs(
+        theta[3] + inputs[:, PHI1], inputs[:, PHI2], systematics[LAUNCH_CENTRE]
+    )
+    receiver = inputs[:, BX:DIST] + _head_to_mcs(
+        spindle_angle_rad + inputs[:, PHI3], inputs[:, PHI4], systematics[RECEIVER_CENTRE]
+    )
+    return launch, receiver
+
+
+def _beam_from_receiver(inputs: Vec, systematics: Vec, spindle_angle_rad: float) -> Vec:
     """Beam direction launch -> receiver from the receiver encoders (true angles), (n, 3)."""
     return -receiver_axis(
-        spindle_angle_rad, inputs[:, PHI3] + offsets[1], inputs[:, PHI4] + offsets[2]
+        spindle_angle_rad, inputs[:, PHI3] + systematics[C3], inputs[:, PHI4] + systematics[C4]
     )
-
-
-def _launch_beam(gamma: float, inputs: Vec, offsets: Vec) -> Vec:
-    return launch_direction(gamma, inputs[:, PHI1], inputs[:, PHI2] + offsets[0])
 
 
 def _joint_residuals(estimated: tuple[str, ...], obs: Observations) -> ResidualFn:
     """Angle and distance residuals of the joint model, (n, 5)."""
     slots = [OFFSET_NAMES.index(name) for name in estimated]
 
-    def residuals(theta: Vec, inputs: Vec, offsets: Vec) -> Vec:
-        c = offsets.copy()
+    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
+        c = systematics[:3].copy()
         c[slots] += theta[4:]
-        e = inputs[:, BX:DIST] - theta[:3]
+        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
+        e = receiver - launch
         azimuth, elevation = azimuth_elevation(e)
         r = np.empty((len(inputs), 5))
         r[:, 0] = wrap_angle(inputs[:, PHI1] - azimuth + theta[3])
-        r[:, 1] = inputs[:, PHI2] + c[0] - elevation
-        r[:, 2] = wrap_angle(inputs[:, PHI3] + c[1] - azimuth - np.pi + obs.spindle_angle_rad)
-        r[:, 3] = inputs[:, PHI4] + c[2] + elevation
+        r[:, 1] = inputs[:, PHI2] + c[C2] - elevation
+        r[:, 2] = wrap_angle(inputs[:, PHI3] + c[C3] - azimuth - np.pi + obs.spindle_angle_rad)
+        r[:, 3] = inputs[:, PHI4] + c[C4] + elevation
         r[:, 4] = np.where(obs.has_distance, inputs[:, DIST] - np.linalg.norm(e, axis=1), 0.0)
         return r
 
@@ -243,9 +269,10 @@ def _joint_residuals(estimated: tuple[str, ...], obs: Observations) -> ResidualF
 def _intersection_residuals(obs: Observations) -> ResidualFn:
     """Perpendicular miss of the launch cp from each receiver beam line, and gamma, (n, 4)."""
 
-    def residuals(theta: Vec, inputs: Vec, offsets: Vec) -> Vec:
-        d = _beam_from_receiver(inputs, offsets, obs.spindle_angle_rad)
-        miss = theta[:3] - inputs[:, BX:DIST]
+    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
+        d = _beam_from_receiver(inputs, systematics, obs.spindle_angle_rad)
+        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
+        miss = launch - receiver
         perpendicular = miss - np.sum(miss * d, axis=1, keepdims=True) * d
         azimuth, _ = azimuth_elevation(d)
         gamma = wrap_angle(azimuth - inputs[:, PHI1] - theta[3])
@@ -257,13 +284,13 @@ def _intersection_residuals(obs: Observations) -> ResidualFn:
 def _distance_residuals(obs: Observations) -> ResidualFn:
     """Both chains of the closed loop with known distances, mm, (n, 6)."""
 
-    def residuals(theta: Vec, inputs: Vec, offsets: Vec) -> Vec:
+    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
         length = inputs[:, DIST, None]
-        beam_point = inputs[:, BX:DIST]
-        d_receiver = _beam_from_receiver(inputs, offsets, obs.spindle_angle_rad)
-        d_launch = _launch_beam(theta[3], inputs, offsets)
-        receiver_chain = beam_point - length * d_receiver - theta[:3]
-        launch_chain = theta[:3] + length * d_launch - beam_point
+        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
+        d_receiver = _beam_from_receiver(inputs, systematics, obs.spindle_angle_rad)
+        d_launch = launch_direction(theta[3], inputs[:, PHI1], inputs[:, PHI2] + systematics[C2])
+        receiver_chain = receiver - length * d_receiver - launch
+        launch_chain = launch + length * d_launch - receiver
         return np.column_stack([receiver_chain, launch_chain])
 
     return residuals
@@ -273,23 +300,29 @@ def _distance_residuals(obs: Observations) -> ResidualFn:
 
 _THETA_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-7, 1e-7, 1e-7, 1e-7])
 _INPUT_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-7, 1e-4, 1e-4, 1e-4, 1e-4])
-_OFFSET_STEP = 1e-7
+_SYSTEMATIC_STEP = np.array([1e-7] * 3 + [1e-4] * 6)
+_NO_SYSTEMATICS = np.zeros(N_SYSTEMATICS)
 
 
-def _theta_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec, offsets: Vec) -> Vec:
-    """d r / d theta by central differences, (n, k, p)."""
+def _central_difference(f: Callable[[Vec], Vec], x: Vec, steps: Vec) -> Vec:
+    """Derivatives of f (any shape) w.r.t. each entry of the vector x, stacked last."""
     columns = []
-    for j in range(len(theta)):
-        h = np.zeros_like(theta)
-        h[j] = _THETA_STEP[j]
-        columns.append(
-            (fn(theta + h, inputs, offsets) - fn(theta - h, inputs, offsets)) / (2 * h[j])
-        )
+    for j, step in enumerate(steps):
+        h = np.zeros_like(x)
+        h[j] = step
+        columns.append((f(x + h) - f(x - h)) / (2 * step))
     return np.stack(columns, axis=-1)
 
 
-def _input_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec, offsets: Vec) -> tuple[Vec, Vec]:
-    """d r_i / d inputs_i, (n, k, 8), and d r / d offsets, (n, k, 3).
+def _theta_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
+    """d r / d theta, (n, k, p)."""
+    return _central_difference(
+        lambda t: fn(t, inputs, _NO_SYSTEMATICS), theta, _THETA_STEP[: len(theta)]
+    )
+
+
+def _input_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
+    """d r_i / d inputs_i, (n, k, 8).
 
     Alignment i's residuals depend only on its own inputs, so one column of
     every alignment is differentiated at once.
@@ -298,17 +331,15 @@ def _input_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec, offsets: Vec) -> tu
     for j in range(N_INPUTS):
         h = np.zeros_like(inputs)
         h[:, j] = _INPUT_STEP[j]
-        per_input.append(
-            (fn(theta, inputs + h, offsets) - fn(theta, inputs - h, offsets)) / (2 * _INPUT_STEP[j])
-        )
-    per_offset = []
-    for j in range(3):
-        h = np.zeros(3)
-        h[j] = _OFFSET_STEP
-        per_offset.append(
-            (fn(theta, inputs, offsets + h) - fn(theta, inputs, offsets - h)) / (2 * _OFFSET_STEP)
-        )
-    return np.stack(per_input, axis=-1), np.stack(per_offset, axis=-1)
+        plus = fn(theta, inputs + h, _NO_SYSTEMATICS)
+        minus = fn(theta, inputs - h, _NO_SYSTEMATICS)
+        per_input.append((plus - minus) / (2 * _INPUT_STEP[j]))
+    return np.stack(per_input, axis=-1)
+
+
+def _systematic_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
+    """d r / d systematics, (n, k, 9)."""
+    return _central_difference(lambda z: fn(theta, inputs, z), _NO_SYSTEMATICS, _SYSTEMATIC_STEP)
 
 
 def _residual_covariances(jz: Vec, sigma_inputs: Vec) -> Vec:
@@ -335,16 +366,15 @@ def _gauss_newton(
     fn: ResidualFn, theta0: Vec, inputs: Vec, weights: Vec, max_iterations: int = 60
 ) -> _Fit:
     """Minimise sum |W_i r_i|^2 by Gauss-Newton with step halving."""
-    zero = np.zeros(3)
 
     def whitened(theta: Vec) -> Vec:
-        return np.einsum("nij,nj->ni", weights, fn(theta, inputs, zero))
+        return np.einsum("nij,nj->ni", weights, fn(theta, inputs, _NO_SYSTEMATICS))
 
     theta = np.asarray(theta0, dtype=float).copy()
     r = whitened(theta)
     cost = float(np.sum(r**2))
     for _ in range(max_iterations):
-        j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs, zero))
+        j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
         jf = j.reshape(-1, len(theta))
         step, *_ = np.linalg.lstsq(jf, -r.ravel(), rcond=None)
         for _ in range(30):
@@ -362,15 +392,15 @@ def _gauss_newton(
         cost = cost_new
         if converged:
             break
-    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs, zero))
+    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
     return _Fit(theta, j, r)
 
 
 @dataclass
 class _Propagation:
-    covariance: Vec  # (p, p), all inputs and offsets
+    covariance: Vec  # (p, p), all inputs and systematics
     per_alignment: Vec  # (n, p, p)
-    from_offsets: Vec  # (p, p)
+    from_systematics: Vec  # (p, p)
 
 
 def _propagate(
@@ -378,16 +408,19 @@ def _propagate(
 ) -> _Propagation:
     """Covariance of theta from the input and offset uncertainties (implicit function)."""
     p = len(fit.theta)
-    jz, jc = _input_jacobian(fn, fit.theta, inputs, np.zeros(3))
+    jz = _input_jacobian(fn, fit.theta, inputs)
+    jc = _systematic_jacobian(fn, fit.theta, inputs)
     jf = fit.jacobian.reshape(-1, p)
     hessian_inv = np.linalg.pinv(jf.T @ jf)
     # G_i = -H^-1 J_i^T W_i dr_i/dz_i, per alignment (p, 8)
     g_inputs = -np.einsum("pq,nkq,nkl,nlj->npj", hessian_inv, fit.jacobian, weights, jz)
     sigma = input_sigmas(u)
     per_alignment = np.einsum("npj,j,nqj->npq", g_inputs, sigma**2, g_inputs)
-    g_offsets = -hessian_inv @ np.einsum("nkq,nkl,nlj->qj", fit.jacobian, weights, jc)
-    from_offsets = g_offsets @ np.diag(np.full(3, u.zero_offset_rad**2)) @ g_offsets.T
-    return _Propagation(per_alignment.sum(axis=0) + from_offsets, per_alignment, from_offsets)
+    g_systematic = -hessian_inv @ np.einsum("nkq,nkl,nlj->qj", fit.jacobian, weights, jc)
+    from_systematics = g_systematic @ np.diag(systematic_sigmas(u) ** 2) @ g_systematic.T
+    return _Propagation(
+        per_alignment.sum(axis=0) + from_systematics, per_alignment, from_systematics
+    )
 
 
 # ------------------------------------------------------------------------ estimators
@@ -411,7 +444,7 @@ def _circular_mean(angles: Vec) -> float:
 
 def _intersection_estimate(obs: Observations) -> Vec:
     """The seed paper's estimate: nearest point to the beam lines, mean azimuth offset."""
-    d = _beam_from_receiver(obs.inputs, np.zeros(3), obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
     position = _nearest_point_to_lines(obs.inputs[:, BX:DIST], d)
     azimuth, _ = azimuth_elevation(d)
     return np.append(position, _circular_mean(azimuth - obs.inputs[:, PHI1]))
@@ -426,7 +459,7 @@ def _unit_weights(n: int, k: int) -> Vec:
 
 
 def _distance_start(obs: Observations) -> Vec:
-    d = _beam_from_receiver(obs.inputs, np.zeros(3), obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
     launch_cps = obs.inputs[:, BX:DIST] - obs.inputs[:, DIST, None] * d
     position = launch_cps.mean(axis=0)
     azimuth, _ = azimuth_elevation(obs.inputs[:, BX:DIST] - position)
@@ -436,16 +469,13 @@ def _distance_start(obs: Observations) -> Vec:
 def _joint_weights(
     fn: ResidualFn, theta: Vec, obs: Observations, u: IdentificationUncertainty
 ) -> Vec:
-    jz, _ = _input_jacobian(fn, theta, obs.inputs, np.zeros(3))
+    jz = _input_jacobian(fn, theta, obs.inputs)
     return _whitening(_residual_covariances(jz, input_sigmas(u)))
 
 
-def _scaled_information(
-    fn: ResidualFn, theta: Vec, obs: Observations, u: IdentificationUncertainty
-) -> Vec:
-    """Whitened normal matrix, (p, p)."""
-    weights = _joint_weights(fn, theta, obs, u)
-    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, obs.inputs, np.zeros(3)))
+def _information(fn: ResidualFn, theta: Vec, inputs: Vec, weights: Vec) -> Vec:
+    """Whitened normal matrix J^T J, (p, p)."""
+    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
     jf = j.reshape(-1, len(theta))
     return jf.T @ jf
 
@@ -460,8 +490,9 @@ def _select_offsets(
     obs: Observations, start: Vec, u: IdentificationUncertainty
 ) -> tuple[tuple[str, ...], dict[str, str]]:
     """The encoder offsets the alignments can separate from the pose (rank and information test)."""
+    weights = _joint_weights(_joint_residuals((), obs), start, obs, u)
     values, _ = _relative_conditioning(
-        _scaled_information(_joint_residuals((), obs), start, obs, u)
+        _information(_joint_residuals((), obs), start, obs.inputs, weights)
     )
     if values[0] < 1e-10 * values[-1]:
         raise GeometryError(
@@ -472,7 +503,8 @@ def _select_offsets(
     reasons: dict[str, str] = {}
     while candidates:
         theta = np.concatenate([start, np.zeros(len(candidates))])
-        information = _scaled_information(_joint_residuals(tuple(candidates), obs), theta, obs, u)
+        fn = _joint_residuals(tuple(candidates), obs)
+        information = _information(fn, theta, obs.inputs, weights)
         values, vectors = _relative_conditioning(information)
         if values[0] < 1e-9 * values[-1]:
             worst = int(np.argmax(np.abs(vectors[4:, 0])))
@@ -506,8 +538,8 @@ def _normalized_residuals(
     fn: ResidualFn, theta: Vec, obs: Observations, u: IdentificationUncertainty
 ) -> tuple[Vec, Vec]:
     """Per alignment: residual quadratic form with its predicted covariance, and its rank."""
-    r = fn(theta, obs.inputs, np.zeros(3))
-    jz, _ = _input_jacobian(fn, theta, obs.inputs, np.zeros(3))
+    r = fn(theta, obs.inputs, _NO_SYSTEMATICS)
+    jz = _input_jacobian(fn, theta, obs.inputs)
     cov = _residual_covariances(jz, input_sigmas(u))
     pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)
     quadratic = np.einsum("ni,nij,nj->n", r, pinv, r)
@@ -522,7 +554,7 @@ def _solve(
         fn = _intersection_residuals(obs)
         fit = _Fit(_intersection_estimate(obs), np.empty(0), np.empty(0))
         weights = _unit_weights(obs.n, 4)
-        fit.jacobian = _theta_jacobian(fn, fit.theta, obs.inputs, np.zeros(3))
+        fit.jacobian = _theta_jacobian(fn, fit.theta, obs.inputs)
     elif method == "distance":
         fn = _distance_residuals(obs)
         weights = _unit_weights(obs.n, 6)
@@ -692,7 +724,7 @@ def _assemble(
 
 
 def _widest_beam_angle_deg(obs: Observations) -> float:
-    d = _beam_from_receiver(obs.inputs, np.zeros(3), obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
     cosines = np.clip(d @ d.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cosines.min())))
 
@@ -710,7 +742,8 @@ def _geometry_warnings(
         )
     if obs.n < 4:
         warnings.append(
-            f"only {obs.n} alignments: a bad alignment cannot be detected; take at least 4 (6-8 recommended)"
+            f"only {obs.n} alignments: a bad alignment cannot be detected; "
+            "take at least 4 (6-8 recommended)"
         )
     widest = _widest_beam_angle_deg(obs)
     if widest < _NEAR_PARALLEL_DEG:
@@ -725,7 +758,8 @@ def _geometry_warnings(
         )
         warnings.append(
             f"weak geometry: the position is uncertain to ±{2 * np.sqrt(values[-1]):.3f} mm (k=2) "
-            f"along {direction_.tolist()}; add alignments that view the launch unit across that direction"
+            f"along {direction_.tolist()}; add alignments that view the launch unit "
+            "across that direction"
         )
     if result.covariance_scale > 1.0:
         warnings.append(

@@ -1,0 +1,94 @@
+"""Benchmark of the identification methods over simulated sessions.
+
+Run: python tests/benchmarks/bench_identify.py [--sessions 200] [--seed 1]
+
+Each session: the reference machine, a random launch pose near the machine
+file's guess, 8 alignments at spread positions (jittered), realistic unit
+imperfections (encoder noise 10 urad, zero offsets 60 urad, axis offsets
+10 um, machine positioning 20 um, distance noise 20 um). Prints, per method,
+the RMS position and gamma errors, the coverage of the reported 95 % region
+of (x, y, z, gamma) and the median / max solve time, then checks the targets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from scipy import stats
+
+from sim.identification import SessionImperfections, simulate_session, spread_positions
+from xmalign.geometry import wrap_angle
+from xmalign.identify import METHODS, identify
+from xmalign.machine import default_machine_path, load_machine
+
+
+def run(n_sessions: int, seed: int) -> dict[str, dict[str, float]]:
+    machine = load_machine(default_machine_path())
+    rng = np.random.default_rng(seed)
+    guess = np.array(machine.launch_unit.position_mm)
+    limit95 = stats.chi2.ppf(0.95, 4)
+    errors = {m: [] for m in METHODS}
+    gammas = {m: [] for m in METHODS}
+    covered = {m: 0 for m in METHODS}
+    times = {m: [] for m in METHODS}
+    for _ in range(n_sessions):
+        launch = guess + rng.uniform([-100, -100, -50], [100, 100, 50])
+        gamma = rng.uniform(-np.pi, np.pi)
+        imperfections = SessionImperfections.realistic(rng)
+        truth = imperfections.truth(launch, gamma)
+        positions = spread_positions(machine, 8) + rng.uniform(-30, 30, (8, 3))
+        positions = np.clip(positions, machine.travel_min_mm, machine.travel_max_mm)
+        session = simulate_session(
+            positions, truth, machine.receiver_offset, machine.spindle_angle_rad, imperfections, rng
+        )
+        for method in METHODS:
+            start = time.perf_counter()
+            result = identify(session, method)
+            times[method].append(time.perf_counter() - start)
+            delta = np.append(result.position_mm - launch, wrap_angle(result.gamma_rad - gamma))
+            errors[method].append(np.linalg.norm(delta[:3]))
+            gammas[method].append(delta[3])
+            covered[method] += float(delta @ np.linalg.solve(result.covariance, delta)) <= limit95
+    return {
+        m: {
+            "rms_position_um": float(np.sqrt(np.mean(np.square(errors[m]))) * 1e3),
+            "rms_gamma_urad": float(np.sqrt(np.mean(np.square(gammas[m]))) * 1e6),
+            "coverage_95": covered[m] / n_sessions,
+            "median_solve_ms": float(np.median(times[m]) * 1e3),
+            "max_solve_ms": float(np.max(times[m]) * 1e3),
+        }
+        for m in METHODS
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sessions", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    figures = run(args.sessions, args.seed)
+    print(f"{args.sessions} sessions of 8 alignments, seed {args.seed}")
+    print(f"{'method':<13}{'RMS pos um':>11}{'RMS gamma urad':>16}{'cover 95%':>11}{'median ms':>11}{'max ms':>9}")
+    for method, f in figures.items():
+        print(
+            f"{method:<13}{f['rms_position_um']:>11.1f}{f['rms_gamma_urad']:>16.1f}"
+            f"{f['coverage_95']:>11.3f}{f['median_solve_ms']:>11.2f}{f['max_solve_ms']:>9.2f}"
+        )
+    joint, baseline = figures["joint"], figures["intersection"]
+    checks = {
+        "joint RMS position <= 0.5 x intersection": joint["rms_position_um"]
+        <= 0.5 * baseline["rms_position_um"],
+        "joint RMS position <= 40 um": joint["rms_position_um"] <= 40,
+        "joint RMS gamma <= 30 urad": joint["rms_gamma_urad"] <= 30,
+        "joint coverage within 90-99 %": 0.90 <= joint["coverage_95"] <= 0.99,
+        "joint median solve <= 20 ms": joint["median_solve_ms"] <= 20,
+    }
+    for name, ok in checks.items():
+        print(f"{'PASS' if ok else 'FAIL'}  {name}")
+    raise SystemExit(0 if all(checks.values()) else 1)
+
+
+if __name__ == "__main__":
+    main()
