@@ -34,8 +34,8 @@ class Dialect(ABC):
         """Program start: name, metric, absolute, feed per minute."""
 
     @abstractmethod
-    def end(self) -> list[str]:
-        """Program end."""
+    def end(self, retract_mm: Mapping[str, float]) -> list[str]:
+        """Rapid retract to ``retract_mm`` and program end."""
 
     @abstractmethod
     def comment(self, text: str) -> str: ...

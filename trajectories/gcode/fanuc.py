@@ -19,8 +19,8 @@ class IsoDialect(Dialect):
     def begin(self) -> list[str]:
         return ["%", f"O1000 ({plain_text(self.program_name)})", "G21 G90 G94 G17"]
 
-    def end(self) -> list[str]:
-        return ["M30", "%"]
+    def end(self, retract_mm: Mapping[str, float]) -> list[str]:
+        return [self.rapid(retract_mm), "M30", "%"]
 
     def comment(self, text: str) -> str:
         return f"({plain_text(text)})"

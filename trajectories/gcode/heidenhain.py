@@ -24,8 +24,9 @@ class HeidenhainDialect(Dialect):
     def begin(self) -> list[str]:
         return [f"BEGIN PGM {self._pgm} MM"]
 
-    def end(self) -> list[str]:
-        return ["M30", f"END PGM {self._pgm} MM"]
+    def end(self, retract_mm: Mapping[str, float]) -> list[str]:
+        # The TNC ends a program with M2/M30 on the last positioning block.
+        return [f"{self.rapid(retract_mm)} M30", f"END PGM {self._pgm} MM"]
 
     def comment(self, text: str) -> str:
         return f"; {plain_text(text)}"

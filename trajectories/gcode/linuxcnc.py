@@ -17,8 +17,8 @@ class LinuxCncDialect(Dialect):
     def begin(self) -> list[str]:
         return ["%", f"({plain_text(self.program_name)})", "G21 G90 G94 G17"]
 
-    def end(self) -> list[str]:
-        return ["M2", "%"]
+    def end(self, retract_mm: Mapping[str, float]) -> list[str]:
+        return [self.rapid(retract_mm), "M2", "%"]
 
     def comment(self, text: str) -> str:
         return f"({plain_text(text)})"

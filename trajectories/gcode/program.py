@@ -32,8 +32,8 @@ def _axes(point_mm: Vec) -> dict[str, float]:
 
 def angles_message(line: PlanLine) -> str:
     """Operator message with the reported unit angles of a line, degrees."""
-    launch = " ".join(f"{v:.4f}" for v in np.degrees(line.launch_rad))
-    receiver = " ".join(f"{v:.4f}" for v in np.degrees(line.receiver_rad))
+    launch = " ".join(f"{round(v, 4) + 0.0:.4f}" for v in np.degrees(line.launch_rad))
+    receiver = " ".join(f"{round(v, 4) + 0.0:.4f}" for v in np.degrees(line.receiver_rad))
     return f"LINE {line.id}: LAUNCH DEG {launch} RECEIVER DEG {receiver}"
 
 
@@ -119,5 +119,5 @@ def write_program(plan: Plan, machine: Machine, dialect: Dialect) -> str:
     ]
     for line in plan.lines:
         blocks.extend(_line_blocks(dialect, line, machine, machine.measurement.overrun_mm))
-    blocks.extend(dialect.end())
+    blocks.extend(dialect.end({"Z": float(machine.travel_max_mm[2])}))
     return dialect.render(blocks)

@@ -18,8 +18,8 @@ class SinumerikDialect(Dialect):
     def begin(self) -> list[str]:
         return [f"; {plain_text(self.program_name)}", "G71 G90 G94 G17"]
 
-    def end(self) -> list[str]:
-        return ["MSG()", "M30"]
+    def end(self, retract_mm: Mapping[str, float]) -> list[str]:
+        return [self.rapid(retract_mm), "MSG()", "M30"]
 
     def comment(self, text: str) -> str:
         return f"; {plain_text(text)}"
