@@ -1,0 +1,410 @@
+"""Modbus driver of the positioning-unit firmware interface (REGISTERS.md).
+
+The driver (:class:`ModbusUnit`, :class:`ModbusAxis`) talks to a
+:class:`RegisterTransport`: anything that reads and writes holding registers.
+:class:`ModbusTransport` is the real one (pymodbus, TCP or RTU) with timeouts,
+retries and reconnect; a simulated unit's register API serves in-process
+tests unchanged. Every error names the device.
+
+The heartbeat is written from :meth:`ModbusUnit.beat`, which every driver call
+and every wait loop invokes, so it keeps pace with simulated time too; for
+hardware, :meth:`ModbusUnit.start_heartbeat` adds a background thread that
+beats while the host is busy elsewhere (e.g. waiting for the operator).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+from firmware_iface.register_map import Control, Register, RegisterMap, Status, load_register_map
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    DriveFaultError,
+    HeartbeatError,
+    OutOfRangeError,
+    TransportError,
+    XmalignError,
+)
+from xmalign.geometry import Vec
+from xmalign.roles import Clock, WallClock
+
+#: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
+ILLEGAL_DATA_VALUE = 3
+#: Fault code of REGISTERS' firmware documentation for an expired heartbeat watchdog.
+HEARTBEAT_FAULT = 4
+#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+FIRST_AXIS = {"launch": 1, "receiver": 3}
+_UINT16 = 1 << 16
+_UINT32 = 1 << 32
+
+
+class RegisterTransport(Protocol):
+    """Holding-register access to one device (Modbus, or a simulated unit in-process)."""
+
+    def read_registers(self, address: int, count: int) -> list[int]: ...
+
+    def write_registers(self, address: int, values: Sequence[int]) -> None: ...
+
+
+def encode(register: Register, value: int) -> list[int]:
+    """Register words of ``value`` (32-bit values high word first)."""
+    if register.width == 1:
+        return [value % _UINT16]
+    raw = value % _UINT32
+    return [raw >> 16, raw & 0xFFFF]
+
+
+def decode(register: Register, words: Sequence[int]) -> int:
+    """Integer value of a register from its words (int32 sign-extended)."""
+    if register.width == 1:
+        return int(words[0])
+    raw = (int(words[0]) << 16) | int(words[1])
+    if register.type == "int32" and raw >= 1 << 31:
+        raw -= _UINT32
+    return raw
+
+
+class ModbusTransport:
+    """A pymodbus client with reconnect and retries; errors name ``device_name``.
+
+    Parameters
+    ----------
+    client : ModbusTcpClient or ModbusSerialClient
+        Not yet connected; the transport connects on first use and after a drop.
+    device_name : str
+        How errors name the device, e.g. ``"launch unit at 10.0.0.5:502"``.
+    device_id : int
+        Modbus unit / slave id.
+    retries : int
+        Extra attempts (each after a reconnect) before a TransportError.
+    """
+
+    def __init__(
+        self, client: ModbusTcpClient | ModbusSerialClient, device_name: str,
+        device_id: int = 1, retries: int = 2,
+    ) -> None:
+        self.client = client
+        self.device_name = device_name
+        self.device_id = device_id
+        self.retries = retries
+        self._lock = threading.Lock()
+
+    def read_registers(self, address: int, count: int) -> list[int]:
+        response = self._call("read", address, lambda c: c.read_holding_registers(
+            address, count=count, device_id=self.device_id))
+        return list(response.registers)
+
+    def write_registers(self, address: int, values: Sequence[int]) -> None:
+        self._call("write", address, lambda c: c.write_registers(
+            address, list(values), device_id=self.device_id))
+
+    def close(self) -> None:
+        with self._lock:
+            self.client.close()
+
+    def _call(self, verb: str, address: int, request: Callable[[Any], Any]) -> Any:
+        with self._lock:
+            last: Exception | None = None
+            for _ in range(self.retries + 1):
+                try:
+                    if not self.client.connected and not self.client.connect():
+                        raise TransportError(f"cannot connect to the {self.device_name}")
+                    response = request(self.client)
+                except (ModbusException, OSError, TransportError) as error:
+                    last = error
+                    self.client.close()
+                    continue
+                if response.isError():
+                    raise self._refusal(verb, address, response)
+                return response
+        raise TransportError(
+            f"lost the connection to the {self.device_name} ({verb} at register {address}: {last})"
+        ) from last
+
+    def _refusal(self, verb: str, address: int, response: object) -> XmalignError:
+        code = getattr(response, "exception_code", None)
+        if code == ILLEGAL_DATA_VALUE:
+            return OutOfRangeError(
+                f"the {self.device_name} refused the {verb} at register {address}:"
+                " value out of range"
+            )
+        return DeviceError(
+            f"the {self.device_name} answered the {verb} at register {address}"
+            f" with Modbus exception {code}"
+        )
+
+
+def tcp_transport(
+    host: str, port: int, device_name: str, device_id: int = 1, timeout_s: float = 1.0,
+    retries: int = 2,
+) -> ModbusTransport:
+    """Transport over Modbus TCP."""
+    client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0, reconnect_delay=0)
+    return ModbusTransport(client, f"{device_name} at {host}:{port}", device_id, retries)
+
+
+def rtu_transport(
+    serial_port: str, device_name: str, baudrate: int = 115200, device_id: int = 1,
+    timeout_s: float = 1.0, retries: int = 2,
+) -> ModbusTransport:
+    """Transport over Modbus RTU on a serial line."""
+    client = ModbusSerialClient(
+        serial_port, baudrate=baudrate, timeout=timeout_s, retries=0, reconnect_delay=0
+    )
+    return ModbusTransport(client, f"{device_name} on {serial_port}", device_id, retries)
+
+
+class ModbusAxis:
+    """One axis (1-based ``number``) of a :class:`ModbusUnit`; implements ``RotaryAxis``."""
+
+    def __init__(self, unit: ModbusUnit, number: int, name: str) -> None:
+        self.unit = unit
+        self.number = number
+        self.name = name
+
+    @property
+    def label(self) -> str:
+        return f"axis {self.name} of the {self.unit.device_name}"
+
+    def position_rad(self) -> float:
+        return self.unit.counts_to_rad(self.unit.read(self.number, "actual"))
+
+    def status(self) -> Status:
+        return Status(self.unit.read(self.number, "status"))
+
+    def move_to(self, angle_rad: float) -> None:
+        counts = self.unit.rad_to_counts(angle_rad)
+        try:
+            self.unit.write(self.number, "target", counts)
+        except OutOfRangeError as error:
+            raise OutOfRangeError(
+                f"{self.label}: target {math.degrees(angle_rad):.4f} deg is out of its range"
+            ) from error
+        self._control(Control.ENABLE | Control.UNLOCK)
+        self._control(Control.ENABLE | Control.UNLOCK | Control.START)
+
+    def wait_in_position(self, timeout_s: float) -> None:
+        clock = self.unit.clock
+        deadline = clock.now() + timeout_s
+        while True:
+            status = self.check()
+            if Status.IN_POSITION in status and Status.MOVING not in status:
+                return
+            if clock.now() >= deadline:
+                raise DeviceTimeoutError(
+                    f"{self.label} did not reach its target in {timeout_s:g} s"
+                )
+            clock.sleep(self.unit.poll_s)
+
+    def check(self) -> Status:
+        """Status of the axis; raises the axis's fault as a DriveFaultError or HeartbeatError."""
+        status = self.status()
+        if Status.FAULT in status:
+            code = self.unit.read(self.number, "fault_code")
+            text = self.unit.register_map.fault_text(code)
+            if code == HEARTBEAT_FAULT:
+                raise HeartbeatError(
+                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
+                )
+            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+        return status
+
+    def stop(self) -> None:
+        self._control(Control.ENABLE | Control.UNLOCK | Control.STOP)
+
+    def lock(self) -> None:
+        self._control(Control.ENABLE | Control.STOP)
+
+    def is_locked(self) -> bool:
+        return Status.LOCKED in self.status()
+
+    def enable(self) -> None:
+        self._control(Control.ENABLE)
+
+    def reset_fault(self) -> None:
+        self._control(Control.ENABLE | Control.FAULT_RESET)
+        self._control(Control.ENABLE)
+
+    def home(self) -> None:
+        """Start homing; wait with :meth:`wait_homed`."""
+        self._control(Control.ENABLE | Control.UNLOCK)
+        self._control(Control.ENABLE | Control.UNLOCK | Control.HOME)
+
+    def wait_homed(self, timeout_s: float) -> None:
+        clock = self.unit.clock
+        deadline = clock.now() + timeout_s
+        while Status.HOMED not in self.check():
+            if clock.now() >= deadline:
+                raise DeviceTimeoutError(f"{self.label} did not finish homing in {timeout_s:g} s")
+            clock.sleep(self.unit.poll_s)
+
+    def set_velocity_limit(self, rad_s: float) -> None:
+        self.unit.write(self.number, "velocity_limit", self.unit.rad_to_counts(rad_s))
+
+    def _control(self, bits: Control) -> None:
+        self.unit.write(self.number, "control", int(bits))
+
+
+class ModbusUnit:
+    """A positioning unit behind a register transport; implements ``PositioningUnit``.
+
+    Parameters
+    ----------
+    transport : RegisterTransport
+        Modbus (:func:`tcp_transport`, :func:`rtu_transport`) or a simulated unit.
+    device_name : str
+        Name used in messages; defaults to the transport's ``device_name``.
+    expected_kind : {"launch", "receiver"}, optional
+        Refuse a device of the other kind (a swapped cable or address).
+    clock : Clock
+        Time source of the waits (simulated time for an in-process simulated unit).
+    poll_s : float
+        Period of the status polls while waiting.
+    """
+
+    def __init__(
+        self, transport: RegisterTransport, device_name: str | None = None,
+        expected_kind: Literal["launch", "receiver"] | None = None,
+        clock: Clock | None = None, poll_s: float = 0.01,
+        register_map: RegisterMap | None = None,
+    ) -> None:
+        self.transport = transport
+        self.device_name = device_name or getattr(transport, "device_name", "positioning unit")
+        self.clock = clock or WallClock()
+        self.poll_s = poll_s
+        self.register_map = register_map or load_register_map()
+        self._heartbeat_value = 0
+        self._last_beat_s = -math.inf
+        self._heartbeat_thread: threading.Thread | None = None
+        self._heartbeat_stop = threading.Event()
+        self._heartbeat_failure: Exception | None = None
+        kinds = {code: kind for kind, code in self.register_map.device_types.items()}
+        device_type = self._read_device("device_type")
+        if device_type not in kinds:
+            raise DeviceError(
+                f"the {self.device_name} reports an unknown device type {device_type}"
+            )
+        self.kind: Literal["launch", "receiver"] = kinds[device_type]
+        if expected_kind is not None and self.kind != expected_kind:
+            raise DeviceError(
+                f"the {self.device_name} is a {self.kind} unit, expected a {expected_kind} unit"
+            )
+        self.counts_per_rev = self._read_device("counts_per_rev")
+        self.firmware_version = self._read_device("firmware_version")
+        n_axes = self._read_device("axis_count")
+        first = FIRST_AXIS[self.kind]
+        self._axes = tuple(ModbusAxis(self, n, f"a{first + n - 1}") for n in range(1, n_axes + 1))
+
+    @property
+    def axes(self) -> tuple[ModbusAxis, ...]:
+        return self._axes
+
+    # --- conversions and register access -------------------------------------------------
+    def counts_to_rad(self, counts: int) -> float:
+        return 2.0 * math.pi * counts / self.counts_per_rev
+
+    def rad_to_counts(self, angle_rad: float) -> int:
+        return round(angle_rad * self.counts_per_rev / (2.0 * math.pi))
+
+    def read(self, axis: int, name: str) -> int:
+        self.beat()
+        register = self.register_map.axis(axis, name)
+        return decode(register, self.transport.read_registers(register.address, register.width))
+
+    def write(self, axis: int, name: str, value: int) -> None:
+        self.beat()
+        register = self.register_map.axis(axis, name)
+        self.transport.write_registers(register.address, encode(register, value))
+
+    def _read_device(self, name: str) -> int:
+        register = self.register_map.device[name]
+        return decode(register, self.transport.read_registers(register.address, register.width))
+
+    # --- heartbeat ------------------------------------------------------------------------
+    def beat(self) -> None:
+        """Change the heartbeat register if half a heartbeat period has passed."""
+        if self._heartbeat_failure is not None:
+            raise HeartbeatError(
+                f"the heartbeat to the {self.device_name} stalled: {self._heartbeat_failure}"
+            ) from self._heartbeat_failure
+        now = self.clock.now()
+        if now - self._last_beat_s < self.register_map.heartbeat_period_s / 2.0:
+            return
+        self._last_beat_s = now
+        self._heartbeat_value = (self._heartbeat_value + 1) % _UINT16
+        register = self.register_map.device["heartbeat"]
+        self.transport.write_registers(register.address, [self._heartbeat_value])
+
+    def start_heartbeat(self) -> None:
+        """Beat from a background thread (wall time) until :meth:`stop_heartbeat`."""
+        if self._heartbeat_thread is not None:
+            return
+        self._heartbeat_stop.clear()
+        self._heartbeat_thread = threading.Thread(
+            target=self._heartbeat_loop, name=f"heartbeat {self.device_name}", daemon=True
+        )
+        self._heartbeat_thread.start()
+
+    def stop_heartbeat(self) -> None:
+        if self._heartbeat_thread is None:
+            return
+        self._heartbeat_stop.set()
+        self._heartbeat_thread.join()
+        self._heartbeat_thread = None
+
+    def _heartbeat_loop(self) -> None:
+        period_s = self.register_map.heartbeat_period_s / 4.0
+        while not self._heartbeat_stop.wait(period_s):
+            try:
+                self.beat()
+            except XmalignError as error:
+                self._heartbeat_failure = error
+                return
+
+    # --- unit operations ------------------------------------------------------------------
+    def angles_rad(self) -> Vec:
+        return np.array([axis.position_rad() for axis in self._axes])
+
+    def enable(self) -> None:
+        for axis in self._axes:
+            axis.enable()
+
+    def reset_faults(self) -> None:
+        for axis in self._axes:
+            axis.reset_fault()
+
+    def home(self, timeout_s: float) -> None:
+        """Home every axis and wait until all report homed."""
+        for axis in self._axes:
+            axis.home()
+        for axis in self._axes:
+            axis.wait_homed(timeout_s)
+
+    def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
+        angles = np.asarray(angles_rad, dtype=float)
+        if angles.shape != (len(self._axes),):
+            raise ValueError(f"{self.device_name}: expected {len(self._axes)} angles")
+        for axis, angle in zip(self._axes, angles, strict=True):
+            axis.move_to(float(angle))
+        for axis in self._axes:
+            axis.wait_in_position(timeout_s)
+
+    def lock(self) -> None:
+        for axis in self._axes:
+            axis.lock()
+
+    def close(self) -> None:
+        """Stop the heartbeat thread and close the transport (axes are left as they are)."""
+        self.stop_heartbeat()
+        close = getattr(self.transport, "close", None)
+        if close is not None:
+            close()

@@ -1,0 +1,327 @@
+"""Aligning the launch and receiver units to each other (pure control logic on roles).
+
+Two modes, as in the positioning-unit design (seed 002, section 2.2):
+
+* **manual**: the operator jogs single axes from the terminal until every beam
+  is in range (:func:`parse_jog`, :func:`jog`, :func:`range_used`);
+* **automatic fine alignment** (:func:`fine_align`): each unit axis gets a
+  position loop fed by one interferometer channel, and the loops drive the
+  five non-linear channels to zero.
+
+Channel-to-axis mapping (derived in docs/conventions-notes.md, "Alignment")::
+
+    a1 (launch azimuth)     -> straightness_v   sv = -l·cos(e)·dphi1
+    a2 (launch elevation)   -> straightness_w   sw = -l·dphi2
+    a3 (receiver azimuth)   -> angle_w          aw = cos(e)·(dphi3 - dphi1)
+    a4 (receiver elevation) -> angle_v          av = dphi4 + dphi2
+    a5 (receiver roll)      -> angle_u          au = sin(e)·(dphi3 - dphi1) - dphi5
+
+with ``l`` the cp-to-cp distance and ``e`` the beam elevation. The launch axes
+also turn the launch frame, so they move the angle channels as well; the loops
+are decoupled by solving this (triangular) sensitivity matrix for the step,
+and the distance ``l``, which scales the straightness loops, is re-estimated
+from every step's response.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError, OutOfRangeError
+from xmalign.geometry import Vec
+from xmalign.roles import (
+    CHANNELS,
+    Clock,
+    Interferometer,
+    InterferometerReading,
+    PositioningUnit,
+    RotaryAxis,
+)
+
+#: The five channels fine alignment drives to zero, in the order of the unit axes a1..a5.
+ALIGNED_CHANNELS = (
+    "straightness_v_um",
+    "straightness_w_um",
+    "angle_w_urad",
+    "angle_v_urad",
+    "angle_u_urad",
+)
+_CHANNEL_INDEX = [CHANNELS.index(name) for name in ALIGNED_CHANNELS]
+#: Accepted range of the running distance estimate, mm (an XM-60 reaches 4 m).
+_DISTANCE_LIMITS_MM = (20.0, 10000.0)
+#: Smallest predicted beam motion of a launch step that re-estimates the distance, um.
+_MIN_PROBE_UM = 20.0
+
+
+def sensitivity(elevation_rad: float, distance_mm: float, n_axes: int = 5) -> Vec:
+    """Response of the aligned channels to small axis moves.
+
+    Parameters
+    ----------
+    elevation_rad : float
+        Elevation of the beam (launch axis a2 angle).
+    distance_mm : float
+        cp-to-cp distance ``l``.
+    n_axes : int
+        5 with the receiver roll a5, 4 without it (then ``angle_u`` is not aligned).
+
+    Returns
+    -------
+    ndarray, shape (n_axes, n_axes)
+        Rows :data:`ALIGNED_CHANNELS` (um or urad), columns axes a1..a5, per urad.
+    """
+    c, s = math.cos(elevation_rad), math.sin(elevation_rad)
+    l_um_per_urad = distance_mm * 1e-3
+    matrix = np.array([
+        [-l_um_per_urad * c, 0.0, 0.0, 0.0, 0.0],
+        [0.0, -l_um_per_urad, 0.0, 0.0, 0.0],
+        [-c, 0.0, c, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 1.0, 0.0],
+        [-s, 0.0, s, 0.0, -1.0],
+    ])
+    return matrix[:n_axes, :n_axes]
+
+
+def aligned_error(reading: InterferometerReading, n_axes: int = 5) -> Vec:
+    """The channels fine alignment drives to zero, in :data:`ALIGNED_CHANNELS` order, (n_axes,)."""
+    return np.asarray(reading.channels, dtype=float)[_CHANNEL_INDEX[:n_axes]]
+
+
+@dataclass(frozen=True)
+class FineAlignmentSettings:
+    """Convergence criteria and loop parameters of :func:`fine_align`.
+
+    Attributes
+    ----------
+    straightness_tol_um, angle_tol_urad : float
+        Converged when every straightness and angle channel is within these.
+    timeout_s : float
+        Give up after this long (clock time) with a DeviceTimeoutError.
+    gain : float
+        Fraction of the computed correction applied per step (0 < gain <= 1).
+    average_s : float
+        Interferometer averaging per step.
+    settle_s : float
+        Wait after a move before reading (vibration of the units).
+    max_step_urad : float
+        Largest correction of one axis in one step.
+    move_timeout_s : float
+        Timeout of each unit move.
+    align_roll : bool
+        Also drive ``angle_u`` to zero with the receiver roll a5.
+    """
+
+    straightness_tol_um: float = 1.0
+    angle_tol_urad: float = 3.0
+    timeout_s: float = 5.0
+    gain: float = 0.9
+    average_s: float = 0.05
+    settle_s: float = 0.02
+    max_step_urad: float = 5000.0
+    move_timeout_s: float = 2.0
+    align_roll: bool = True
+
+
+@dataclass(frozen=True)
+class AlignmentStep:
+    """One iteration: reading time, the aligned channels (um, urad) and the distance estimate."""
+
+    time_s: float
+    error: Vec
+    distance_mm: float
+
+
+@dataclass
+class FineAlignmentResult:
+    """Outcome of :func:`fine_align`: the last reading, unit angles (rad) and the history."""
+
+    reading: InterferometerReading
+    launch_rad: Vec
+    receiver_rad: Vec
+    distance_mm: float
+    elapsed_s: float
+    steps: list[AlignmentStep] = field(default_factory=list)
+
+    @property
+    def straightness_um(self) -> Vec:
+        """Residual ``[sv, sw]``, shape (2,)."""
+        return aligned_error(self.reading)[:2]
+
+
+def is_converged(error: Vec, settings: FineAlignmentSettings) -> bool:
+    """Whether the aligned channels (straightness first) are within the tolerances."""
+    return bool(
+        np.all(np.abs(error[:2]) <= settings.straightness_tol_um)
+        and np.all(np.abs(error[2:]) <= settings.angle_tol_urad)
+    )
+
+
+def _describe(error: Vec) -> str:
+    names = [n.removesuffix("_um").removesuffix("_urad") for n in ALIGNED_CHANNELS]
+    units = ["um", "um", "urad", "urad", "urad"]
+    return ", ".join(f"{n} {v:+.1f} {u}" for n, v, u in zip(names, error, units, strict=False))
+
+
+def _read(interferometer: Interferometer, settings: FineAlignmentSettings) -> InterferometerReading:
+    reading = interferometer.average(settings.average_s)
+    if not reading.beam_ok:
+        raise BeamLostError(
+            "the beam was lost during fine alignment; jog the units until every beam is"
+            " in range (xmalign align --manual) and start again"
+        )
+    return reading
+
+
+def _updated_distance(
+    distance_mm: float, elevation_rad: float, step_urad: Vec, straightness_change_um: Vec
+) -> float:
+    """Least-squares distance from one launch step (commanded, urad) and the straightness response.
+
+    Only steps that should move the beam by at least :data:`_MIN_PROBE_UM` are
+    used, so that noise and the small cross-talk of the receiver's optical-centre
+    offset do not corrupt the estimate.
+    """
+    lever = np.array([math.cos(elevation_rad) * step_urad[0], step_urad[1]])
+    if np.linalg.norm(lever) * distance_mm * 1e-3 < _MIN_PROBE_UM:
+        return distance_mm
+    estimate = -1e3 * float(straightness_change_um @ lever) / float(lever @ lever)
+    low, high = _DISTANCE_LIMITS_MM
+    return estimate if low <= estimate <= high else distance_mm
+
+
+def fine_align(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    distance_mm: float,
+    settings: FineAlignmentSettings | None = None,
+    on_step: Callable[[AlignmentStep], None] | None = None,
+) -> FineAlignmentResult:
+    """Drive straightness and angles to zero with position loops on the unit axes.
+
+    Each step reads the interferometer (averaged), computes the correction of
+    every axis from the decoupled channel loops, and moves the units by it.
+    The axes are left unlocked where they stopped; the caller locks them
+    (:func:`xmalign.safety.units_locked_on_exit`).
+
+    Parameters
+    ----------
+    launch, receiver : PositioningUnit
+        Launch unit (a1, a2) and receiver unit (a3, a4[, a5]).
+    interferometer : Interferometer
+        Reads in the beam's frame.
+    clock : Clock
+        Time of the timeout (simulated time in the simulator).
+    distance_mm : float
+        First guess of the cp-to-cp distance; refined from the responses.
+    settings : FineAlignmentSettings, optional
+    on_step : callable, optional
+        Called with each :class:`AlignmentStep` (progress display).
+
+    Raises
+    ------
+    BeamLostError
+        A beam left its range.
+    DeviceTimeoutError
+        Not converged within ``settings.timeout_s``; the message gives the residuals.
+    """
+    settings = settings or FineAlignmentSettings()
+    n_axes = 5 if settings.align_roll and len(receiver.axes) >= 3 else 4
+    start_s = clock.now()
+    setpoint = np.concatenate([launch.angles_rad(), receiver.angles_rad()[: n_axes - 2]])
+    steps: list[AlignmentStep] = []
+    last_step: tuple[Vec, Vec] | None = None  # (commanded launch step urad, error before it)
+    while True:
+        reading = _read(interferometer, settings)
+        error = aligned_error(reading, n_axes)
+        elevation = float(setpoint[1])
+        if last_step is not None:
+            distance_mm = _updated_distance(
+                distance_mm, elevation, last_step[0], error[:2] - last_step[1][:2]
+            )
+        step = AlignmentStep(time_s=reading.time_s, error=error, distance_mm=distance_mm)
+        steps.append(step)
+        if on_step is not None:
+            on_step(step)
+        if is_converged(error, settings):
+            return FineAlignmentResult(
+                reading=reading, launch_rad=launch.angles_rad(), receiver_rad=receiver.angles_rad(),
+                distance_mm=distance_mm, elapsed_s=clock.now() - start_s, steps=steps,
+            )
+        if clock.now() - start_s >= settings.timeout_s:
+            raise DeviceTimeoutError(
+                f"fine alignment did not converge in {settings.timeout_s:g} s ({_describe(error)})"
+            )
+        correction_urad = np.linalg.solve(sensitivity(elevation, distance_mm, n_axes), -error)
+        correction_urad = np.clip(settings.gain * correction_urad, -settings.max_step_urad,
+                                  settings.max_step_urad)
+        last_step = (correction_urad[:2], error)
+        setpoint = setpoint + correction_urad * 1e-6
+        _move_units(launch, receiver, setpoint, settings.move_timeout_s)
+        clock.sleep(settings.settle_s)
+
+
+def _move_units(
+    launch: PositioningUnit, receiver: PositioningUnit, setpoint_rad: Vec, timeout_s: float
+) -> None:
+    axes: list[RotaryAxis] = [*launch.axes, *receiver.axes][: len(setpoint_rad)]
+    for axis, angle in zip(axes, setpoint_rad, strict=True):
+        axis.move_to(float(angle))
+    for axis in axes:
+        axis.wait_in_position(timeout_s)
+
+
+# --- manual mode ----------------------------------------------------------------------------
+
+_JOG_PATTERN = re.compile(r"^\s*a([1-5])\s+([+-]?\d+(?:\.\d*)?|[+-]?\.\d+)\s*$", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class JogCommand:
+    """Move axis ``axis`` (1..5, CONVENTIONS.md numbering) by ``step_rad``."""
+
+    axis: int
+    step_rad: float
+
+
+def parse_jog(text: str) -> JogCommand:
+    """Parse ``"a<n> <step_deg>"`` as typed by the operator, e.g. ``"a2 -0.01"``."""
+    match = _JOG_PATTERN.match(text)
+    if match is None:
+        raise InputError(
+            f"jog command {text.strip()!r}: expected an axis a1..a5 and a step in degrees,"
+            " e.g. 'a2 -0.01'"
+        )
+    return JogCommand(axis=int(match.group(1)), step_rad=math.radians(float(match.group(2))))
+
+
+def unit_axis(launch: PositioningUnit, receiver: PositioningUnit, axis: int) -> RotaryAxis:
+    """Axis ``a<axis>``: a1, a2 on the launch unit, a3, a4, a5 on the receiver."""
+    axes = [*launch.axes, *receiver.axes]
+    if not 1 <= axis <= len(axes):
+        raise OutOfRangeError(f"there is no axis a{axis} (these units have a1..a{len(axes)})")
+    return axes[axis - 1]
+
+
+def jog(
+    launch: PositioningUnit, receiver: PositioningUnit, command: JogCommand, timeout_s: float
+) -> float:
+    """Move one axis by the command's step and wait; returns its new reported angle, rad."""
+    axis = unit_axis(launch, receiver, command.axis)
+    axis.move_to(axis.position_rad() + command.step_rad)
+    axis.wait_in_position(timeout_s)
+    return axis.position_rad()
+
+
+def range_used(
+    reading: InterferometerReading, straightness_range_um: float, angle_range_urad: float
+) -> Vec:
+    """Fraction of its range each aligned channel uses (1 = at the edge), shape (5,)."""
+    ranges = np.array([straightness_range_um] * 2 + [angle_range_urad] * 3)
+    return np.abs(aligned_error(reading)) / ranges

@@ -1,0 +1,244 @@
+"""The identification routine: align the units at several machine positions and record them.
+
+For each identification position the routine moves the machine (a
+``MachineMover``: the simulated CNC, or an operator prompt that asks for the
+move and the displayed position), coarse-points the units at the angles
+predicted from a pose guess, fine-aligns them on the interferometer, locks
+them, reads the encoders and appends the alignment to the session file at
+once. Started again with the same session file it resumes after the last
+recorded position. Solving the session is :func:`xmalign.identify.identify`'s
+job. Only roles are used here (core code).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from xmalign.alignment import FineAlignmentSettings, fine_align
+from xmalign.errors import GeometryError, InputError, OutOfRangeError
+from xmalign.formats.session import Alignment, Session, read_session, write_session
+from xmalign.geometry import Vec, azimuth_elevation
+from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
+from xmalign.machine import Machine
+from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit
+from xmalign.safety import units_locked_on_exit
+
+#: A recorded alignment this close to a position (CNC or operator readout) counts as done, mm.
+SAME_POSITION_MM = 0.5
+#: Distance assumed by the first fine alignment when no pose guess gives one, mm.
+DEFAULT_DISTANCE_MM = 1000.0
+
+
+@dataclass(frozen=True)
+class PoseGuess:
+    """What is known of the launch pose before identification.
+
+    ``gamma_rad`` may be unknown (None): the machine file only guesses the
+    position; the routine then estimates gamma from the first alignment.
+    """
+
+    launch2mcs_mm: Vec
+    gamma_rad: float | None = None
+    offsets: EncoderOffsets = field(default_factory=EncoderOffsets)
+
+
+Stage = Literal["skipped", "moving", "pointing", "manual", "aligning", "recorded"]
+
+
+@dataclass(frozen=True)
+class RoutineEvent:
+    """Progress of the routine: position ``index`` of ``total`` reached ``stage``."""
+
+    index: int
+    total: int
+    stage: Stage
+    machine_mm: Vec
+
+
+@dataclass
+class RoutineDevices:
+    """The roles the routine drives."""
+
+    mover: MachineMover
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+
+
+def open_session(path: Path, machine: Machine) -> Session:
+    """The session recorded so far in ``path``, or a new empty one for the machine.
+
+    Raises InputError when an existing file was taken with another receiver
+    offset or spindle angle (its alignments would not fit this setup).
+    """
+    if not path.exists():
+        return Session(receiver_offset_mm=machine.receiver_offset.copy(),
+                       spindle_angle_rad=machine.spindle_angle_rad)
+    session = read_session(path)
+    if not np.allclose(session.receiver_offset_mm, machine.receiver_offset, atol=1e-6):
+        raise InputError(
+            f"{path}: key 'receiver_offset_mm' {list(session.receiver_offset_mm)} differs from the"
+            f" machine file's {machine.receiver_offset_mm}; start a new session file"
+        )
+    if not math.isclose(session.spindle_angle_rad, machine.spindle_angle_rad, abs_tol=1e-9):
+        raise InputError(
+            f"{path}: key 'spindle_angle_deg' differs from the machine file's"
+            f" {machine.spindle_angle_deg}; start a new session file"
+        )
+    return session
+
+
+def is_recorded(session: Session, machine_mm: Vec) -> bool:
+    """Whether the session already holds an alignment at this machine position."""
+    return any(
+        np.linalg.norm(a.machine_mm - machine_mm) <= SAME_POSITION_MM for a in session.alignments
+    )
+
+
+def gamma_from_alignments(launch2mcs_mm: Vec, session: Session) -> float:
+    """Launch azimuth from recorded alignments and a launch position (circular mean), rad."""
+    gammas = []
+    for a in session.alignments:
+        cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+        azimuth, _ = azimuth_elevation(cp - launch2mcs_mm)
+        gammas.append(float(azimuth) - a.launch_rad[0])
+    return float(np.angle(np.mean(np.exp(1j * np.array(gammas)))))
+
+
+def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None:
+    if guess is None or guess.gamma_rad is not None:
+        return guess
+    if not session.alignments:
+        return None
+    return replace(guess, gamma_rad=gamma_from_alignments(guess.launch2mcs_mm, session))
+
+
+def _point_units(
+    guess: PoseGuess, cp_mm: Vec, session: Session, devices: RoutineDevices, timeout_s: float
+) -> float:
+    """Move both units to the angles predicted by the guess; returns the predicted distance."""
+    predicted = aligned_angles(guess.launch2mcs_mm, float(guess.gamma_rad), cp_mm,
+                               session.spindle_angle_rad, guess.offsets)
+    receiver_now = devices.receiver.angles_rad()
+    receiver_target = predicted.receiver_rad[: len(receiver_now)]
+    devices.launch.move_to(predicted.launch_rad, timeout_s)
+    devices.receiver.move_to(receiver_target, timeout_s)
+    return predicted.distance_mm
+
+
+def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual_um: Vec) -> None:
+    devices.launch.lock()
+    devices.receiver.lock()
+    receiver = devices.receiver.angles_rad()
+    session.alignments.append(Alignment(
+        machine_mm=machine_mm,
+        launch_rad=devices.launch.angles_rad(),
+        receiver_rad=np.concatenate([receiver, np.zeros(3 - len(receiver))]),
+        straightness_um=residual_um,
+    ))
+
+
+def run_identification(
+    positions_mm: ArrayLike,
+    machine: Machine,
+    devices: RoutineDevices,
+    session_path: str | Path,
+    guess: PoseGuess | None = None,
+    settings: FineAlignmentSettings | None = None,
+    manual_align: Callable[[], None] | None = None,
+    refine_guess: Callable[[Session], PoseGuess | None] | None = None,
+    on_event: Callable[[RoutineEvent], None] | None = None,
+    unit_timeout_s: float = 30.0,
+) -> Session:
+    """Align the units at each position and record every alignment as it is taken.
+
+    Parameters
+    ----------
+    positions_mm : array_like, shape (N, 3)
+        CNC tool points to align at, in order.
+    machine : Machine
+        Travel, feeds, receiver offset and spindle angle.
+    devices : RoutineDevices
+        Machine mover, launch and receiver units, interferometer and clock.
+    session_path : str or Path
+        Session file; written after every alignment, resumed from if it exists.
+    guess : PoseGuess, optional
+        Prior launch pose for coarse pointing (e.g. the machine file's ``launch_unit``).
+    settings : FineAlignmentSettings, optional
+    manual_align : callable, optional
+        Lets the operator jog the units into range; used where no guess can point
+        them and whenever a beam is out of range before fine alignment.
+    refine_guess : callable, optional
+        Given the session so far, a better guess (e.g. a quick identification).
+    on_event : callable, optional
+        Progress callback.
+    unit_timeout_s : float
+        Timeout of each coarse unit move.
+
+    Returns
+    -------
+    Session
+        All alignments, the earlier recorded ones first.
+
+    Raises
+    ------
+    OutOfRangeError
+        A position outside the machine's travel (checked before anything moves).
+    GeometryError
+        Neither a guess nor an operator can point the units.
+    """
+    positions = np.atleast_2d(np.asarray(positions_mm, dtype=float))
+    outside = np.flatnonzero(~machine.within_travel(positions))
+    if outside.size:
+        raise OutOfRangeError(
+            f"identification position {outside[0] + 1} {positions[outside[0]].tolist()} mm is"
+            " outside the machine's travel"
+        )
+    path = Path(session_path)
+    session = open_session(path, machine)
+    distance_mm = DEFAULT_DISTANCE_MM
+    with units_locked_on_exit(devices.launch, devices.receiver):
+        for index, target in enumerate(positions, start=1):
+            def event(stage: Stage, where: Vec, index: int = index) -> None:
+                if on_event is not None:
+                    on_event(RoutineEvent(index, len(positions), stage, where))
+
+            if is_recorded(session, target):
+                event("skipped", target)
+                continue
+            event("moving", target)
+            devices.mover.move_to(target, machine.feed_mm_min.rapid)
+            machine_mm = np.asarray(devices.mover.position_mm(), dtype=float)
+            cp_mm = receiver_cp(machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+            usable = _usable_guess(guess, session)
+            if usable is not None:
+                event("pointing", machine_mm)
+                distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
+            if usable is None or not devices.interferometer.read().beam_ok:
+                if manual_align is None:
+                    raise GeometryError(
+                        f"cannot point the units at identification position {index}: no pose"
+                        " guess and no operator to align them (give launch_unit in the machine"
+                        " file or align manually)"
+                    )
+                event("manual", machine_mm)
+                manual_align()
+            event("aligning", machine_mm)
+            result = fine_align(devices.launch, devices.receiver, devices.interferometer,
+                                devices.clock, distance_mm, settings)
+            distance_mm = result.distance_mm
+            _record(session, machine_mm, devices, result.straightness_um)
+            write_session(path, session)
+            event("recorded", machine_mm)
+            if refine_guess is not None:
+                guess = refine_guess(session) or guess
+    return session
+
