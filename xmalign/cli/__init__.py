@@ -11,6 +11,7 @@ import sys
 import typer
 
 from xmalign.cli import identify
+from xmalign.cli import sim as sim_command
 from xmalign.cli.common import error_console
 from xmalign.errors import XmalignError
 
@@ -22,7 +23,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-for command_module in (identify,):
+for command_module in (identify, sim_command):
     command_module.register(app)
 
 

@@ -1,0 +1,1 @@
+"""The simulated devices served over the real protocols (Modbus TCP, CANopen, serial pty)."""

@@ -1,0 +1,122 @@
+"""The measurement rows of one plan line, as arrays, checked against the plan."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from xmalign.errors import InputError
+from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.plan import Plan, PlanLine
+from xmalign.geometry import Vec
+from xmalign.rigid_body import AXES
+
+UM_PER_MM = 1e3
+URAD_PER_RAD = 1e6
+#: Scale of each channel from file units (um, urad) to mm and rad.
+CHANNEL_TO_SI = np.array([1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-6])
+#: A commanded point farther than this from its plan target is refused.
+POINT_TOLERANCE_MM = 0.01
+_PARALLEL = 1.0 - 1e-9
+
+
+@dataclass
+class LineData:
+    """Every captured point of one line.
+
+    Attributes
+    ----------
+    line : PlanLine
+    run : ndarray of int, shape (N,)
+    sign : ndarray of float, shape (N,)
+        +1 for the ``+`` pass, -1 for the ``-`` pass.
+    index : ndarray of int, shape (N,)
+        Target index in the plan.
+    distance_mm : ndarray, shape (N,)
+        Target distance from the line start along u.
+    machine_mm : ndarray, shape (N, 3)
+        Commanded CNC tool point.
+    channels : ndarray, shape (N, 6)
+        Channels in mm and rad (linear, straightness v, w, angle u, v, w).
+    """
+
+    line: PlanLine
+    run: np.ndarray
+    sign: Vec
+    index: np.ndarray
+    distance_mm: Vec
+    machine_mm: Vec
+    channels: Vec
+
+    @property
+    def frame(self) -> Vec:
+        """Rows u, v, w of the line frame, shape (3, 3)."""
+        return self.line.frame
+
+    @property
+    def bidirectional(self) -> bool:
+        return bool(np.any(self.sign > 0) and np.any(self.sign < 0))
+
+    def axis(self) -> str | None:
+        """The axis the line is parallel to, or None for a diagonal."""
+        u = self.frame[0]
+        for i, name in enumerate(AXES):
+            if abs(u[i]) >= _PARALLEL:
+                return name
+        return None
+
+    def moving_axes(self) -> list[str]:
+        """Axes whose coordinate changes along the line."""
+        return [name for i, name in enumerate(AXES) if abs(self.frame[0][i]) > 1e-9]
+
+
+def _line_data(line: PlanLine, rows: list[MeasurementRow], source: str) -> LineData:
+    index = np.array([row.index for row in rows])
+    if np.any((index < 0) | (index >= len(line.targets_mm))):
+        bad = rows[int(np.argmax((index < 0) | (index >= len(line.targets_mm))))]
+        raise InputError(
+            f"{source}: line {line.id} run {bad.run}: target index {bad.index} is not in the"
+            f" plan ({len(line.targets_mm)} targets)"
+        )
+    machine = np.array([row.machine_mm for row in rows])
+    expected = line.target_points_mm()[index]
+    off = np.linalg.norm(machine - expected, axis=1)
+    if np.any(off > POINT_TOLERANCE_MM):
+        bad = rows[int(np.argmax(off))]
+        raise InputError(
+            f"{source}: line {line.id} run {bad.run} index {bad.index}: commanded point"
+            f" {np.round(bad.machine_mm, 3).tolist()} is {off.max():.3f} mm off the plan target"
+        )
+    return LineData(
+        line=line,
+        run=np.array([row.run for row in rows]),
+        sign=np.array([1.0 if row.direction == "+" else -1.0 for row in rows]),
+        index=index,
+        distance_mm=line.targets_mm[index],
+        machine_mm=machine,
+        channels=np.array([row.channels for row in rows]) * CHANNEL_TO_SI,
+    )
+
+
+def group_by_line(plan: Plan, rows: list[MeasurementRow], source: str) -> list[LineData]:
+    """The rows of every plan line that has data, in plan order.
+
+    Raises
+    ------
+    InputError
+        A row names a line the plan does not have, a target index outside the
+        plan, or a commanded point off its plan target; or no row at all.
+    """
+    known = {line.id for line in plan.lines}
+    by_line: dict[str, list[MeasurementRow]] = {line.id: [] for line in plan.lines}
+    for row in rows:
+        if row.line not in known:
+            raise InputError(
+                f"{source}: line '{row.line}' (run {row.run}, index {row.index}) is not in the"
+                f" plan (lines {', '.join(sorted(known))})"
+            )
+        by_line[row.line].append(row)
+    if not rows:
+        raise InputError(f"{source}: no measurement rows")
+    return [_line_data(line, by_line[line.id], source) for line in plan.lines if by_line[line.id]]

@@ -1,0 +1,125 @@
+"""What the setup puts into the channels, as nuisance parameters of the fit.
+
+Per line (CONVENTIONS.md, "Raw readings carry the setup"):
+
+- straightness v and w: an offset and a slope along the line (the beam is not
+  parallel to the line: the alignment slope);
+- angles u, v, w: a constant each (mounting of the receiver and launch head);
+- linear: a constant per run (dead path, and the run's own zero).
+
+Each term is a column of the design matrix; its estimate is reported, not
+subtracted beforehand, so that it is fitted together with the error tables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from xmalign.geometry import Vec
+from xmalign.post.lines import LineData
+
+N_CHANNELS = 6
+_LINEAR, _STRAIGHT_V, _STRAIGHT_W = 0, 1, 2
+#: Slopes are fitted per metre of travel, which keeps the columns well scaled.
+_MM_PER_M = 1000.0
+
+
+@dataclass
+class SetupTerms:
+    """The setup terms of one line, in file units.
+
+    Attributes
+    ----------
+    line_id : str
+    straightness_offset_um : ndarray, shape (2,)
+        Offset of straightness v and w at the line start.
+    straightness_slope_urad : ndarray, shape (2,)
+        Beam misalignment: slope of straightness v and w along the line.
+    angle_offset_urad : ndarray, shape (3,)
+        Constants of angle u, v, w.
+    linear_offset_um : dict of int to float
+        Constant of the linear channel, per run.
+    """
+
+    line_id: str
+    straightness_offset_um: Vec
+    straightness_slope_urad: Vec
+    angle_offset_urad: Vec
+    linear_offset_um: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass
+class Triplets:
+    """Sparse matrix entries being collected (rows, columns, values)."""
+
+    rows: list[np.ndarray] = field(default_factory=list)
+    cols: list[np.ndarray] = field(default_factory=list)
+    vals: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, rows: np.ndarray, cols: np.ndarray | int, vals: np.ndarray | float) -> None:
+        rows = np.asarray(rows)
+        self.rows.append(rows)
+        self.cols.append(np.broadcast_to(cols, rows.shape).copy())
+        self.vals.append(np.broadcast_to(np.asarray(vals, dtype=float), rows.shape).copy())
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return np.concatenate(self.rows), np.concatenate(self.cols), np.concatenate(self.vals)
+
+
+@dataclass
+class _LineLayout:
+    line_id: str
+    first_column: int
+    runs: list[int]
+
+
+class SetupLayout:
+    """Columns of the setup terms of every line, from ``first_column`` on.
+
+    Column order per line: straightness offsets (v, w), slopes (v, w), angle
+    offsets (u, v, w), then one linear offset per run.
+    """
+
+    def __init__(self, lines: list[LineData], first_column: int) -> None:
+        self._layouts: list[_LineLayout] = []
+        column = first_column
+        for data in lines:
+            runs = sorted({int(r) for r in data.run})
+            self._layouts.append(_LineLayout(data.line.id, column, runs))
+            column += 7 + len(runs)
+        self.first_column = first_column
+        self.n_columns = column - first_column
+
+    def add_columns(self, lines: list[LineData], first_rows: list[int], out: Triplets) -> None:
+        """Add the setup columns of each line (its rows start at ``first_rows[i]``)."""
+        for data, layout, first_row in zip(lines, self._layouts, first_rows, strict=True):
+            point_rows = first_row + N_CHANNELS * np.arange(len(data.run))
+            c = layout.first_column
+            for k in (0, 1):
+                channel_rows = point_rows + _STRAIGHT_V + k
+                out.add(channel_rows, c + k, 1.0)
+                out.add(channel_rows, c + 2 + k, data.distance_mm / _MM_PER_M)
+            for k in range(3):
+                out.add(point_rows + 3 + k, c + 4 + k, 1.0)
+            for i, run in enumerate(layout.runs):
+                out.add(point_rows[data.run == run] + _LINEAR, c + 7 + i, 1.0)
+
+    def unpack(self, x: Vec) -> list[SetupTerms]:
+        """The fitted setup terms from the solution vector (mm, rad, mm/m) in file units."""
+        terms = []
+        for layout in self._layouts:
+            p = x[layout.first_column : layout.first_column + 7 + len(layout.runs)]
+            terms.append(
+                SetupTerms(
+                    line_id=layout.line_id,
+                    straightness_offset_um=p[0:2] * 1e3,
+                    straightness_slope_urad=p[2:4] * 1e3,
+                    angle_offset_urad=p[4:7] * 1e6,
+                    linear_offset_um={
+                        run: float(v) * 1e3 for run, v in zip(layout.runs, p[7:], strict=True)
+                    },
+                )
+            )
+        return terms

@@ -1,0 +1,354 @@
+"""The 18 error tables and 3 squareness errors from all lines in one weighted fit.
+
+Follows seed 000 (Montavon et al.): every error motion is a linear B-spline
+(triangular basis functions, its Eq. 8-10) over the compensation points, so the
+channels are linear in the table values (its Eq. 12-14). The sensitivities come
+from the rigid-body model of CONVENTIONS.md through
+:meth:`xmalign.rigid_body.Chain.lever_arms` (``d(dp)/d(eps_K) = -[r_K]x``) and
+:func:`xmalign.rigid_body.squareness_deviation`. The setup terms of
+:mod:`xmalign.post.setup_terms` are nuisance columns of the same system. The
+system is weighted with the channel standard uncertainties (its Eq. 19-21) and
+the covariance of the table values propagated from them (its Eq. 22, GUM).
+
+Table conventions (CONVENTIONS.md) are imposed by leaving columns out: the
+positioning and angular tables have no value at their first compensation point,
+the straightness tables none at their first and last; these are exactly the
+directions the six lines cannot see (a rigid motion of the whole machine and
+the angle offsets that trade with squareness).
+
+With data in both directions every table gets a second set of columns, the
+half reversal ``h``: an axis moving forward sees ``mean + h``, moving backward
+``mean - h``, standing still ``mean``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+from scipy.interpolate import BSpline
+
+from xmalign.errors import GeometryError, InputError
+from xmalign.formats.error_tables import ErrorTableSet, Table
+from xmalign.geometry import Vec
+from xmalign.post.lines import LineData
+from xmalign.post.setup_terms import N_CHANNELS, SetupLayout, SetupTerms, Triplets
+from xmalign.rigid_body import (
+    AXES,
+    AXIS_INDEX,
+    ROTATION_NAMES,
+    SQUARENESS_NAMES,
+    TRANSLATION_NAMES,
+    Chain,
+    squareness_deviation,
+)
+
+#: Expansion factor of the expanded uncertainty.
+K_EXPANSION = 2.0
+#: Cholesky pivots below this (columns scaled to unit norm) mean a parameter the lines
+#: cannot determine.
+_RANK_TOLERANCE = 1e-10
+_KNOT_DECIMALS = 6
+
+
+def error_names(axis: str) -> tuple[str, ...]:
+    """The six error motion names of an axis in column order (EX, EY, EZ, EA, EB, EC)."""
+    return (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis])
+
+
+def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
+    """Compensation points of each axis: the targets of its axis lines, projected on it.
+
+    Raises
+    ------
+    InputError
+        An axis has no line parallel to it.
+    """
+    points: dict[str, list[float]] = {axis: [] for axis in AXES}
+    for data in lines:
+        axis = data.axis()
+        if axis is not None:
+            points[axis].extend(data.line.target_points_mm()[:, AXIS_INDEX[axis]])
+    missing = [axis for axis in AXES if len(points[axis]) < 2]
+    if missing:
+        raise InputError(
+            f"the measurement has no line along {', '.join(missing)}: post needs one line per"
+            " axis (and the three face diagonals for the squareness)"
+        )
+    return {axis: np.unique(np.round(p, _KNOT_DECIMALS)) for axis, p in points.items()}
+
+
+def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
+    """Triangular (degree-1 B-spline) basis at positions, held constant outside the knots.
+
+    Returns
+    -------
+    scipy.sparse.coo_matrix, shape (N, M)
+        ``B[i, m]`` weight of the value at knot ``m`` for position ``i``.
+    """
+    t = np.concatenate([[knots_mm[0]], knots_mm, [knots_mm[-1]]])
+    x = np.clip(position_mm, knots_mm[0], knots_mm[-1])
+    return BSpline.design_matrix(x, t, 1).tocoo()
+
+
+def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
+    """Knots of one mean table that get a column (table conventions of CONVENTIONS.md)."""
+    free = np.ones(n_knots, dtype=bool)
+    free[0] = False
+    if error < 3 and error != AXIS_INDEX[axis]:
+        free[-1] = False
+    return free
+
+
+class ParameterLayout:
+    """Column numbers of the table values: ``column[axis][kind][error, knot]`` (-1 if fixed).
+
+    ``kind`` is ``"mean"`` or ``"half"`` (the half reversal, only with bidirectional
+    data). Squareness columns come last.
+    """
+
+    def __init__(self, knots: dict[str, Vec], bidirectional_axes: set[str]) -> None:
+        self.knots = knots
+        self.column: dict[str, dict[str, np.ndarray]] = {}
+        n = 0
+        for axis in AXES:
+            m = len(knots[axis])
+            self.column[axis] = {}
+            for kind in ("mean", "half") if axis in bidirectional_axes else ("mean",):
+                columns = np.full((6, m), -1)
+                for error in range(6):
+                    free = _gauge_free(axis, error, m) if kind == "mean" else np.ones(m, bool)
+                    columns[error, free] = n + np.arange(free.sum())
+                    n += int(free.sum())
+                self.column[axis][kind] = columns
+        self.squareness_columns = n + np.arange(3)
+        self.n_columns = n + 3
+
+    def describe(self, column: int) -> str:
+        """A person's name for a column (for error messages)."""
+        if column in self.squareness_columns:
+            return SQUARENESS_NAMES[column - self.squareness_columns[0]]
+        for axis, kinds in self.column.items():
+            for kind, columns in kinds.items():
+                hit = np.argwhere(columns == column)
+                if len(hit):
+                    error, knot = hit[0]
+                    what = "" if kind == "mean" else " reversal"
+                    position = self.knots[axis][knot]
+                    return f"{error_names(axis)[error]}{what} at {position:g} mm"
+        return f"column {column}"
+
+
+def _sensitivities(frame: Vec, arms_mm: Vec) -> Vec:
+    """d(channels)/d(delta, eps) of one axis at N points, shape (N, 6, 6)."""
+    n = len(arms_mm)
+    g = np.zeros((n, 6, 6))
+    g[:, 0:3, 0:3] = frame
+    g[:, 3:6, 3:6] = frame
+    for c in range(3):
+        # f . (eps x r) = eps . (r x f)
+        g[:, c, 3:6] = np.cross(arms_mm, frame[c])
+    return g
+
+
+def _add_axis_columns(
+    data: LineData,
+    first_row: int,
+    axis: str,
+    arms_mm: Vec,
+    layout: ParameterLayout,
+    out: Triplets,
+) -> None:
+    basis = hat_basis(layout.knots[axis], data.machine_mm[:, AXIS_INDEX[axis]])
+    g = _sensitivities(data.frame, arms_mm)[basis.row]
+    u_component = data.frame[0][AXIS_INDEX[axis]]
+    moving = abs(u_component) > 1e-9
+    factors = {"mean": np.ones(len(basis.row))}
+    if moving and "half" in layout.column[axis]:
+        factors["half"] = data.sign[basis.row] * np.sign(u_component)
+    for kind, factor in factors.items():
+        columns = layout.column[axis][kind][:, basis.col]
+        for error in range(6):
+            keep = columns[error] >= 0
+            for channel in range(6 if error >= 3 else 3):
+                out.add(
+                    first_row + N_CHANNELS * basis.row[keep] + channel,
+                    columns[error][keep],
+                    (g[:, channel, error] * basis.data * factor)[keep],
+                )
+
+
+def _add_squareness_columns(
+    data: LineData, first_row: int, layout: ParameterLayout, out: Triplets
+) -> None:
+    rows = first_row + N_CHANNELS * np.arange(len(data.run))
+    for s, column in enumerate(layout.squareness_columns):
+        dp = squareness_deviation(data.machine_mm, np.eye(3)[s]) @ data.frame.T
+        for channel in range(3):
+            out.add(rows + channel, column, dp[:, channel])
+
+
+@dataclass
+class TableFit:
+    """Result of the fit.
+
+    Attributes
+    ----------
+    tables : ErrorTableSet
+        Values and u95 (k = 2) in mm / rad; mean tables always, ``+``/``-`` with
+        bidirectional data.
+    setup : list of SetupTerms
+        The fitted setup terms of every line.
+    residual_rms : dict of str to ndarray, shape (6,)
+        RMS residual of each channel per line, um / urad.
+    sigma0 : float
+        Square root of the a-posteriori variance factor (1 when the channel
+        uncertainties describe the scatter).
+    n_observations, n_parameters : int
+    """
+
+    tables: ErrorTableSet
+    setup: list[SetupTerms]
+    residual_rms: dict[str, Vec]
+    sigma0: float
+    n_observations: int
+    n_parameters: int
+
+
+def _factorise(normal: Vec, layout: ParameterLayout) -> tuple[Vec, bool]:
+    try:
+        factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
+    except np.linalg.LinAlgError as error:
+        raise GeometryError(
+            "the lines cannot separate the errors (singular system); measure the three axis"
+            " lines and the three face diagonals"
+        ) from error
+    pivots = np.diag(factor[0]) ** 2
+    weak = np.flatnonzero(pivots < _RANK_TOLERANCE * pivots.max())
+    if len(weak):
+        raise GeometryError(
+            f"the lines cannot determine {layout.describe(int(weak[0]))}"
+            f" ({len(weak)} undetermined parameters); measure the three axis lines and the"
+            " three face diagonals"
+        )
+    return factor
+
+
+def fit_error_tables(
+    lines: list[LineData], chain: Chain, tool_offset_mm: Vec, channel_sigma: Vec
+) -> TableFit:
+    """Weighted least-squares fit of the error tables, squareness and setup terms.
+
+    Parameters
+    ----------
+    lines : list of LineData
+        Channels in mm / rad.
+    chain : Chain
+    tool_offset_mm : ndarray, shape (3,)
+        Receiver cp from the CNC tool point in the MCS (receiver offset turned by
+        the spindle angle), mm: the lever arms include it, which removes the Abbe
+        offsets; the tables are for ``t = 0``.
+    channel_sigma : ndarray, shape (6,)
+        Standard uncertainty of each channel, mm / rad.
+    """
+    knots = compensation_points(lines)
+    bidirectional = {
+        axis for data in lines if data.bidirectional for axis in data.moving_axes()
+    }
+    layout = ParameterLayout(knots, bidirectional)
+    setup = SetupLayout(lines, layout.n_columns)
+    first_rows = list(np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines[:-1]]))
+    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
+    triplets = Triplets()
+    for data, first_row in zip(lines, first_rows, strict=True):
+        arms = chain.lever_arms(data.machine_mm, tool_offset_mm)
+        for axis in AXES:
+            _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
+        _add_squareness_columns(data, first_row, layout, triplets)
+    setup.add_columns(lines, first_rows, triplets)
+
+    n_columns = layout.n_columns + setup.n_columns
+    weights = np.tile(1.0 / np.asarray(channel_sigma, dtype=float), n_rows // N_CHANNELS)
+    rows, cols, vals = triplets.arrays()
+    design = scipy.sparse.csr_matrix(
+        (vals * weights[rows], (rows, cols)), shape=(n_rows, n_columns)
+    )
+    observed = np.concatenate([d.channels.ravel() for d in lines]) * weights
+    norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
+    if np.any(norms == 0):
+        raise GeometryError(
+            f"no measurement sees {layout.describe(int(np.argmin(norms)))}; measure the three"
+            " axis lines and the three face diagonals"
+        )
+    scaled = design @ scipy.sparse.diags(1.0 / norms)
+    factor = _factorise((scaled.T @ scaled).toarray(), layout)
+    solution_scaled = scipy.linalg.cho_solve(factor, scaled.T @ observed)
+    residual = observed - scaled @ solution_scaled
+    dof = max(n_rows - n_columns, 1)
+    sigma0 = float(np.sqrt(residual @ residual / dof))
+    covariance = scipy.linalg.cho_solve(factor, np.eye(n_columns)) / np.outer(norms, norms)
+    covariance *= max(1.0, sigma0**2)
+    solution = solution_scaled / norms
+    return TableFit(
+        tables=_tables(layout, solution, covariance),
+        setup=setup.unpack(solution),
+        residual_rms=_residual_rms(lines, first_rows, residual / weights),
+        sigma0=sigma0,
+        n_observations=n_rows,
+        n_parameters=n_columns,
+    )
+
+
+def _values(columns: np.ndarray, solution: Vec, covariance: Vec) -> tuple[Vec, Vec]:
+    """Values and covariance of one table (fixed knots are exactly 0)."""
+    free = columns >= 0
+    values = np.zeros(len(columns))
+    values[free] = solution[columns[free]]
+    cov = np.zeros((len(columns), len(columns)))
+    cov[np.ix_(free, free)] = covariance[np.ix_(columns[free], columns[free])]
+    return values, cov
+
+
+def _cross_covariance(a: np.ndarray, b: np.ndarray, covariance: Vec) -> Vec:
+    """Diagonal of cov(table a, table b) knot by knot."""
+    both = (a >= 0) & (b >= 0)
+    out = np.zeros(len(a))
+    out[both] = covariance[a[both], b[both]]
+    return out
+
+
+def _tables(layout: ParameterLayout, solution: Vec, covariance: Vec) -> ErrorTableSet:
+    result = ErrorTableSet()
+    for axis in AXES:
+        positions = layout.knots[axis]
+        kinds = layout.column[axis]
+        for error, name in enumerate(error_names(axis)):
+            mean, cov_mean = _values(kinds["mean"][error], solution, covariance)
+            var_mean = np.diag(cov_mean)
+            result.tables[name] = Table(positions, mean, K_EXPANSION * np.sqrt(var_mean))
+            if "half" not in kinds:
+                continue
+            half, cov_half = _values(kinds["half"][error], solution, covariance)
+            cross = _cross_covariance(kinds["mean"][error], kinds["half"][error], covariance)
+            for sign, suffix in ((1.0, "+"), (-1.0, "-")):
+                variance = np.maximum(var_mean + np.diag(cov_half) + 2 * sign * cross, 0.0)
+                result.tables[name + suffix] = Table(
+                    positions, mean + sign * half, K_EXPANSION * np.sqrt(variance)
+                )
+    for name, column in zip(SQUARENESS_NAMES, layout.squareness_columns, strict=True):
+        result.squareness[name] = (
+            float(solution[column]),
+            float(K_EXPANSION * np.sqrt(covariance[column, column])),
+        )
+    return result
+
+
+def _residual_rms(lines: list[LineData], first_rows: list[int], residual: Vec) -> dict[str, Vec]:
+    scale = np.array([1e3, 1e3, 1e3, 1e6, 1e6, 1e6])
+    out = {}
+    for data, first_row in zip(lines, first_rows, strict=True):
+        part = residual[first_row : first_row + N_CHANNELS * len(data.run)].reshape(-1, 6)
+        out[data.line.id] = np.sqrt(np.mean(part**2, axis=0)) * scale
+    return out
