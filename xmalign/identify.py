@@ -404,9 +404,17 @@ class _Propagation:
 
 
 def _propagate(
-    fn: ResidualFn, fit: _Fit, inputs: Vec, weights: Vec, u: IdentificationUncertainty
+    fn: ResidualFn,
+    fit: _Fit,
+    inputs: Vec,
+    weights: Vec,
+    u: IdentificationUncertainty,
+    estimated: tuple[str, ...] = (),
 ) -> _Propagation:
-    """Covariance of theta from the input and offset uncertainties (implicit function)."""
+    """Covariance of theta from the input and systematic uncertainties (implicit function).
+
+    Offsets in ``estimated`` are parameters, not systematics, and carry no prior.
+    """
     p = len(fit.theta)
     jz = _input_jacobian(fn, fit.theta, inputs)
     jc = _systematic_jacobian(fn, fit.theta, inputs)
@@ -417,7 +425,9 @@ def _propagate(
     sigma = input_sigmas(u)
     per_alignment = np.einsum("npj,j,nqj->npq", g_inputs, sigma**2, g_inputs)
     g_systematic = -hessian_inv @ np.einsum("nkq,nkl,nlj->qj", fit.jacobian, weights, jc)
-    from_systematics = g_systematic @ np.diag(systematic_sigmas(u) ** 2) @ g_systematic.T
+    sigma_systematic = systematic_sigmas(u)
+    sigma_systematic[[OFFSET_NAMES.index(name) for name in estimated]] = 0.0
+    from_systematics = g_systematic @ np.diag(sigma_systematic**2) @ g_systematic.T
     return _Propagation(
         per_alignment.sum(axis=0) + from_systematics, per_alignment, from_systematics
     )
@@ -564,7 +574,7 @@ def _solve(
         theta0 = np.concatenate([_intersection_estimate(obs), np.zeros(len(estimated))])
         weights = _joint_weights(fn, theta0, obs, u)
         fit = _gauss_newton(fn, theta0, obs.inputs, weights)
-    propagation = _propagate(fn, fit, obs.inputs, weights, u)
+    propagation = _propagate(fn, fit, obs.inputs, weights, u, estimated)
     quadratic, rank = _normalized_residuals(fn, fit.theta, obs, u)
     dof = int(rank.sum()) - len(fit.theta)
     return _Solution(

@@ -70,7 +70,8 @@ def main() -> None:
     args = parser.parse_args()
     figures = run(args.sessions, args.seed)
     print(f"{args.sessions} sessions of 8 alignments, seed {args.seed}")
-    print(f"{'method':<13}{'RMS pos um':>11}{'RMS gamma urad':>16}{'cover 95%':>11}{'median ms':>11}{'max ms':>9}")
+    header = ("RMS pos um", 11), ("RMS gamma urad", 16), ("cover 95%", 11), ("median ms", 11)
+    print(f"{'method':<13}" + "".join(f"{name:>{width}}" for name, width in header) + "   max ms")
     for method, f in figures.items():
         print(
             f"{method:<13}{f['rms_position_um']:>11.1f}{f['rms_gamma_urad']:>16.1f}"

@@ -11,8 +11,8 @@ import sys
 import typer
 
 from xmalign.cli import identify
+from xmalign.cli import program as program_command
 from xmalign.cli import sim as sim_command
-from xmalign.cli.common import error_console
 from xmalign.errors import XmalignError
 
 app = typer.Typer(
@@ -23,7 +23,13 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-for command_module in (identify, sim_command):
+
+@app.callback()
+def _root() -> None:
+    """Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units."""
+
+
+for command_module in (identify, sim_command, program_command):
     command_module.register(app)
 
 
@@ -32,7 +38,8 @@ def main() -> None:
     try:
         app()
     except XmalignError as error:
-        error_console.print(f"xmalign: error: {error}", markup=False, highlight=False)
+        # plain write: one line however narrow the terminal (rich would wrap it)
+        sys.stderr.write(f"xmalign: error: {error}\n")
         sys.exit(2)
 
 

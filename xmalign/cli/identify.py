@@ -1,7 +1,185 @@
-"""``xmalign identify`` (being written)."""
+"""``xmalign identify``: the launch unit's pose from an identification session."""
 
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
 import typer
+from rich.table import Table
+
+from xmalign.cli.common import console, machine_or_default
+from xmalign.errors import InputError
+from xmalign.formats.pose import write_pose
+from xmalign.formats.session import Session, read_session, write_session
+from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
+from xmalign.machine import Machine
+
+
+def _uncertainty(
+    machine: Machine | None, overrides: dict[str, float | None]
+) -> IdentificationUncertainty:
+    base = (
+        IdentificationUncertainty.from_machine(machine.uncertainty)
+        if machine is not None
+        else IdentificationUncertainty()
+    )
+    scale = {
+        "encoder_rad": 1e-6,
+        "machine_position_mm": 1e-3,
+        "unit_kinematics_mm": 1e-3,
+        "zero_offset_rad": 1e-6,
+        "distance_mm": 1e-3,
+    }
+    changes = {k: v * scale[k] for k, v in overrides.items() if v is not None}
+    for key, value in changes.items():
+        if value <= 0:
+            raise InputError(f"option for {key}: the uncertainty must be positive")
+    return IdentificationUncertainty(**{**base.__dict__, **changes})
+
+
+def print_result(result: IdentificationResult, session: Session, truth: dict | None = None) -> None:
+    """A readable summary: pose with U (k=2), offsets, per-alignment contributions, warnings."""
+    sigma = np.sqrt(np.diag(result.covariance))
+    title = (
+        f"Launch-unit pose ({result.method}, {result.n_used} of {len(session.alignments)} "
+        f"alignments, chi2/dof = {result.chi2:.1f}/{result.dof})"
+    )
+    pose = Table(title=title, title_justify="left")
+    pose.add_column("")
+    pose.add_column("identified", justify="right")
+    pose.add_column("U (k=2)", justify="right")
+    if truth is not None:
+        pose.add_column("truth", justify="right")
+        pose.add_column("error", justify="right")
+    for k, axis in enumerate("xyz"):
+        row = [f"{axis} mm", f"{result.position_mm[k]:.4f}", f"±{2 * sigma[k] * 1e3:.1f} µm"]
+        if truth is not None:
+            error_um = (result.position_mm[k] - truth["position_mm"][k]) * 1e3
+            row += [f"{truth['position_mm'][k]:.4f}", f"{error_um:+.1f} µm"]
+        pose.add_row(*row)
+    row = ["gamma °", f"{math.degrees(result.gamma_rad):.6f}", f"±{2 * sigma[3] * 1e6:.1f} µrad"]
+    if truth is not None:
+        error_urad = math.remainder(result.gamma_rad - truth["gamma_rad"], math.tau) * 1e6
+        row += [f"{math.degrees(truth['gamma_rad']):.6f}", f"{error_urad:+.1f} µrad"]
+    pose.add_row(*row)
+    for k, (name, value) in enumerate(result.offsets_rad.items()):
+        row = [f"{name} µrad", f"{value * 1e6:.1f}"]
+        row.append(f"±{2 * np.sqrt(result.offsets_covariance[k, k]) * 1e6:.1f}")
+        if truth is not None:
+            row += [
+                f"{truth['offsets'][name] * 1e6:.1f}",
+                f"{(value - truth['offsets'][name]) * 1e6:+.1f}",
+            ]
+        pose.add_row(*row)
+    console.print(pose)
+    for name, reason in result.offsets_not_estimated.items():
+        console.print(f"{name} not estimated: {reason}", markup=False)
+    console.print(f"RMS beam miss {result.residual_rms_um:.1f} µm", markup=False)
+    contributions = Table(title="What each alignment contributes", title_justify="left")
+    for header in ("#", "machine mm", "position var %", "gamma var %", "residual / σ"):
+        contributions.add_column(header, justify="right")
+    for report, alignment in zip(result.alignments, session.alignments, strict=True):
+        machine = ", ".join(f"{v:.0f}" for v in alignment.machine_mm)
+        if report.excluded:
+            contributions.add_row(str(report.index + 1), machine, "-", "-", "rejected")
+            continue
+        contributions.add_row(
+            str(report.index + 1),
+            machine,
+            f"{report.share_position * 100:.0f}",
+            f"{report.share_gamma * 100:.0f}",
+            f"{report.normalized_residual:.2f}",
+        )
+    console.print(contributions)
+    for warning in result.warnings:
+        console.print(f"warning: {warning}", style="yellow", markup=False)
+
+
+def _simulated_session(machine: Machine, alignments: int, seed: int) -> tuple[Session, dict]:
+    from sim.identification import SessionImperfections, simulate_session, spread_positions
+
+    rng = np.random.default_rng(seed)
+    guess = np.array(machine.launch_unit.position_mm if machine.launch_unit else [0.0, 0.0, 0.0])
+    launch = guess + rng.uniform(-20, 20, 3)
+    gamma = float(rng.uniform(-math.pi, math.pi))
+    imperfections = SessionImperfections.realistic(rng)
+    truth = imperfections.truth(launch, gamma)
+    session = simulate_session(
+        spread_positions(machine, alignments),
+        truth,
+        machine.receiver_offset,
+        machine.spindle_angle_rad,
+        imperfections,
+        rng,
+    )
+    offsets = {"c2": truth.offsets.c2, "c3": truth.offsets.c3, "c4": truth.offsets.c4}
+    return session, {"position_mm": launch, "gamma_rad": gamma, "offsets": offsets}
+
+
+def identify_command(
+    input: Annotated[
+        Path | None, typer.Option("--input", help="Identification session JSON.")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="Write the launch-pose JSON here.")] = None,
+    method: Annotated[str, typer.Option(help=f"One of {', '.join(METHODS)}.")] = "joint",
+    sim: Annotated[
+        bool, typer.Option("--sim", help="Simulate a session on the virtual machine.")
+    ] = False,
+    machine: Annotated[
+        Path | None, typer.Option(help="Machine YAML (uncertainty defaults; --sim machine).")
+    ] = None,
+    alignments: Annotated[int, typer.Option(min=2, help="Alignments to simulate.")] = 8,
+    seed: Annotated[int, typer.Option(help="Seed of the simulation.")] = 1,
+    session_out: Annotated[
+        Path | None, typer.Option(help="With --sim: also write the simulated session.")
+    ] = None,
+    encoder_urad: Annotated[float | None, typer.Option(help="Encoder noise, µrad (k=1).")] = None,
+    machine_position_um: Annotated[
+        float | None, typer.Option(help="Machine positioning uncertainty, µm (k=1).")
+    ] = None,
+    unit_kinematics_um: Annotated[
+        float | None, typer.Option(help="Units' optical-centre uncertainty, µm (k=1).")
+    ] = None,
+    zero_offset_urad: Annotated[
+        float | None, typer.Option(help="Encoder zero-offset uncertainty, µrad (k=1).")
+    ] = None,
+    distance_um: Annotated[
+        float | None, typer.Option(help="Distance uncertainty, µm (k=1).")
+    ] = None,
+) -> None:
+    """Identify the launch unit's pose (position and azimuth) from aligned units."""
+    if method not in METHODS:
+        raise InputError(f"--method: unknown method '{method}' (choose {', '.join(METHODS)})")
+    if sim == (input is not None):
+        raise InputError("give either --input SESSION.json or --sim")
+    machine_model = machine_or_default(machine) if (sim or machine is not None) else None
+    uncertainty = _uncertainty(
+        machine_model,
+        {
+            "encoder_rad": encoder_urad,
+            "machine_position_mm": machine_position_um,
+            "unit_kinematics_mm": unit_kinematics_um,
+            "zero_offset_rad": zero_offset_urad,
+            "distance_mm": distance_um,
+        },
+    )
+    truth = None
+    if sim:
+        session, truth = _simulated_session(machine_model, alignments, seed)
+        source = "simulated session"
+        if session_out is not None:
+            write_session(session_out, session)
+    else:
+        session, source = read_session(input), str(input)
+    result = identify(session, method, uncertainty, source)
+    print_result(result, session, truth)
+    if out is not None:
+        write_pose(out, result.to_pose())
+        console.print(f"pose written to {out}", markup=False)
 
 
 def register(app: typer.Typer) -> None:
-    pass
+    app.command("identify")(identify_command)

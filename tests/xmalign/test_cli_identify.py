@@ -1,0 +1,48 @@
+import json
+
+from conftest import assert_one_line_error, run_cli
+
+from xmalign.formats.pose import read_pose
+
+
+def test_simulated_identification_prints_pose_and_truth(tmp_path):
+    pose_path, session_path = tmp_path / "pose.json", tmp_path / "session.json"
+    result = run_cli(
+        "identify", "--sim", "--out", str(pose_path), "--session-out", str(session_path)
+    )
+    assert result.returncode == 0, result.stderr
+    assert "truth" in result.stdout and "gamma" in result.stdout
+    pose = read_pose(pose_path)
+    assert pose.method == "joint" and pose.n_alignments == 8
+    again = run_cli("identify", "--input", str(session_path), "--method", "intersection")
+    assert again.returncode == 0, again.stderr
+    assert "intersection" in again.stdout
+
+
+def test_malformed_session_is_one_line(tmp_path):
+    path = tmp_path / "session.json"
+    path.write_text('{"format": "xmalign.identify-session/1", "alignments": [')
+    assert_one_line_error(run_cli("identify", "--input", str(path)), str(path), "not valid JSON")
+
+
+def test_unknown_version_is_one_line(tmp_path):
+    path = tmp_path / "session.json"
+    path.write_text(json.dumps({"format": "xmalign.identify-session/9", "alignments": []}))
+    assert_one_line_error(run_cli("identify", "--input", str(path)), "version '9'")
+
+
+def test_too_few_alignments_is_one_line(tmp_path):
+    session = tmp_path / "session.json"
+    run_cli("identify", "--sim", "--alignments", "2", "--session-out", str(session))
+    data = json.loads(session.read_text())
+    data["alignments"] = data["alignments"][:1]
+    session.write_text(json.dumps(data))
+    assert_one_line_error(run_cli("identify", "--input", str(session)), "at least 2 alignments")
+
+
+def test_unknown_method_and_missing_input(tmp_path):
+    assert_one_line_error(run_cli("identify", "--sim", "--method", "magic"), "magic")
+    assert_one_line_error(run_cli("identify"), "--input")
+    assert_one_line_error(
+        run_cli("identify", "--input", str(tmp_path / "missing.json")), "missing.json"
+    )
