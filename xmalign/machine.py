@@ -25,6 +25,7 @@ CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
 
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Positive = Annotated[float, Field(gt=0)]
+TravelRange = Annotated[list[float], Field(min_length=2, max_length=2)]
 
 
 class _Strict(BaseModel):
@@ -82,7 +83,7 @@ class Machine(_Strict):
 
     name: str
     chain: str
-    travel_mm: dict[Literal["X", "Y", "Z"], Annotated[list[float], Field(min_length=2, max_length=2)]]
+    travel_mm: dict[Literal["X", "Y", "Z"], TravelRange]
     feed_mm_min: Feeds
     controller: Literal["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"]
     receiver_offset_mm: Vector3
