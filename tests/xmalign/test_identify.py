@@ -12,7 +12,7 @@ from xmalign.geometry import wrap_angle
 from xmalign.identify import METHODS, identify
 
 
-def _noise_free_session(rng, machine, spindle_angle, receiver_offset, offsets=np.zeros(3)):
+def _noise_free_session(rng, machine, spindle_angle, receiver_offset, offsets=(0.0, 0.0, 0.0)):
     launch = np.array(machine.launch_unit.position_mm) + rng.uniform(-200, 200, 3)
     gamma = rng.uniform(-math.pi, math.pi)
     imperfections = SessionImperfections(
