@@ -1,0 +1,150 @@
+"""``xmalign program`` and ``xmalign plan-identify``: plan the measurement, write G-code."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from trajectories.gcode import DIALECTS
+from trajectories.gcode.program import write_program
+from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.planner import MeasurementPlan, plan_measurement
+from xmalign.cli.common import console, error_console, machine_or_default
+from xmalign.errors import GeometryError, InputError
+from xmalign.formats.common import atomic_write_text, write_json
+from xmalign.formats.plan import write_plan
+from xmalign.formats.pose import read_pose
+from xmalign.machine import Machine
+
+#: G-code dialect of each controller of the machine file.
+CONTROLLER_DIALECTS = {
+    "sinumerik": "sinumerik",
+    "fanuc": "iso",
+    "heidenhain": "heidenhain",
+    "linuxcnc": "linuxcnc",
+}
+DESIGN_FORMAT = "xmalign.identify-design/1"
+
+MachineOption = Annotated[
+    Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
+]
+
+
+def resolve_dialect(machine: Machine, dialect: str | None) -> str:
+    """The dialect asked for, or the machine controller's; InputError if there is none."""
+    if dialect is not None:
+        if dialect not in DIALECTS:
+            raise InputError(f"--dialect '{dialect}' is not known (known: {', '.join(DIALECTS)})")
+        return dialect
+    if machine.controller not in CONTROLLER_DIALECTS:
+        raise InputError(
+            f"controller '{machine.controller}' has no G-code dialect of its own;"
+            f" choose one with --dialect ({', '.join(DIALECTS)})"
+        )
+    return CONTROLLER_DIALECTS[machine.controller]
+
+
+def _plan_table(measurement: MeasurementPlan) -> Table:
+    table = Table(title="Measuring lines, 95 % beam envelope / limit")
+    for column in ("line", "mm", "%", "n", "launch deg", "receiver deg", "um", "urad", ""):
+        table.add_column(column, justify="left" if column in ("line", "") else "right")
+    for planned in measurement.lines:
+        line, envelope = planned.line, planned.envelope
+        table.add_row(
+            line.id,
+            f"{planned.layout.length_mm:.0f}",
+            f"{100 * planned.layout.coverage:.0f}",
+            str(len(line.targets_mm)),
+            " ".join(f"{v:.2f}" for v in np.degrees(line.launch_rad)),
+            " ".join(f"{v:.2f}" for v in np.degrees(line.receiver_rad[:2])),
+            f"{np.max(envelope.lateral_95_um):.0f}/{envelope.straightness_limit_um:.0f}",
+            f"{envelope.angle_95_urad:.0f}/{envelope.angle_limit_urad:.0f}",
+            "ok" if envelope.within else "[yellow]warn[/]",
+        )
+    return table
+
+
+def program(
+    pose: Annotated[Path, typer.Option("--pose", help="Launch pose from xmalign identify.")],
+    machine: MachineOption = None,
+    plan_out: Annotated[
+        Path | None, typer.Option("--plan-out", help="Write the measurement plan (JSON).")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Write the G-code here instead of stdout.")
+    ] = None,
+    dialect: Annotated[
+        str | None,
+        typer.Option(help=f"G-code dialect ({', '.join(DIALECTS)}); default from the controller."),
+    ] = None,
+    strict: Annotated[
+        bool, typer.Option(help="Refuse, instead of warn, when an envelope leaves the range.")
+    ] = False,
+) -> None:
+    """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code."""
+    machine_model = machine_or_default(machine)
+    dialect_name = resolve_dialect(machine_model, dialect)
+    measurement = plan_measurement(machine_model, read_pose(pose))
+    error_console.print(_plan_table(measurement))
+    for planned in measurement.lines:
+        if "note" in planned.line.extra:
+            error_console.print(f"note: line {planned.line.id}: {planned.line.extra['note']}")
+    if measurement.warnings and strict:
+        raise GeometryError(measurement.warnings[0])
+    for warning in measurement.warnings:
+        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+    text = write_program(measurement.plan, machine_model, DIALECTS[dialect_name]())
+    if plan_out is not None:
+        write_plan(plan_out, measurement.plan)
+    if out is not None:
+        atomic_write_text(out, text)
+    else:
+        sys.stdout.write(text)
+
+
+def _design_table(design: IdentificationDesign) -> Table:
+    table = Table(title="Identification positions (CNC tool point)")
+    for column in ("#", "X mm", "Y mm", "Z mm"):
+        table.add_column(column, justify="right")
+    for index, point in enumerate(design.machine_mm, start=1):
+        table.add_row(str(index), *(f"{v:.1f}" for v in point))
+    return table
+
+
+def plan_identify(
+    machine: MachineOption = None,
+    count: Annotated[int, typer.Option("--count", help="Number of alignments.")] = 6,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Write the positions and predictions (JSON).")
+    ] = None,
+) -> None:
+    """Propose machine positions for identification that minimise the pose uncertainty."""
+    machine_model = machine_or_default(machine)
+    with error_console.status("optimising the identification positions"):
+        design = design_identification(machine_model, count)
+    std = design.std
+    console.print(_design_table(design))
+    console.print(
+        f"predicted standard uncertainty: x {1e3 * std[0]:.1f} um, y {1e3 * std[1]:.1f} um,"
+        f" z {1e3 * std[2]:.1f} um, gamma {1e6 * std[3]:.1f} urad"
+    )
+    if out is not None:
+        write_json(
+            out,
+            {
+                "format": DESIGN_FORMAT,
+                "machine": machine_model.name,
+                "machine_mm": design.machine_mm.tolist(),
+                "predicted_covariance": design.pose_covariance.tolist(),
+            },
+        )
+
+
+def register(app: typer.Typer) -> None:
+    app.command("program")(program)
+    app.command("plan-identify")(plan_identify)
