@@ -8,7 +8,6 @@
   takes it from another source, e.g. a file, once the operator confirms).
 * :class:`FilePositions` reads the position from a text file that the CNC or
   another program keeps up to date (last line ``x y z`` in mm).
-* :class:`FixedPosition`: a machine standing at a known position.
 
 A network source only has to implement ``MachinePositionSource``
 (``position_mm``, ``is_standstill``) to plug into the same places.
@@ -48,19 +47,6 @@ def parse_position(text: str) -> Vec | None:
 def _format(position_mm: ArrayLike) -> str:
     x, y, z = np.asarray(position_mm, dtype=float)
     return f"X{x:.3f} Y{y:.3f} Z{z:.3f}"
-
-
-class FixedPosition:
-    """A machine standing at a known position (``MachinePositionSource``)."""
-
-    def __init__(self, position_mm: ArrayLike) -> None:
-        self._position_mm = np.asarray(position_mm, dtype=float)
-
-    def position_mm(self) -> Vec:
-        return self._position_mm.copy()
-
-    def is_standstill(self) -> bool:
-        return True
 
 
 class FilePositions:

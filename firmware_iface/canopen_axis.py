@@ -1,0 +1,271 @@
+"""CiA 402 driver (canopen on python-can) for positioning-unit axes, one node per axis.
+
+The object dictionary is ``cia402_axis.eds`` beside this file; the node
+behaviour is docs/canopen-axis.md. The driver takes a connected
+``canopen.Network`` (transport apart from driver: a socketcan, PCAN, virtual
+or udp_multicast bus are interchangeable) and uses SDOs only, so it needs no
+PDO configuration:
+
+* profile position moves (``0x6060`` = 1) with the new-set-point handshake;
+* cyclic synchronous velocity (``0x6060`` = 9) for tracking (:meth:`CanopenAxis.run_at`);
+* homing (``0x6060`` = 6), fault reset, and locking = *switched on* (brake applied).
+
+The host heartbeat (CAN id ``0x77F``) that the nodes' watchdog consumes is
+produced by :class:`CanopenUnit` while it is open.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Literal, TypeVar
+
+import can
+import canopen
+import numpy as np
+from numpy.typing import ArrayLike
+
+from firmware_iface.register_map import load_register_map
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    DriveFaultError,
+    HeartbeatError,
+    OutOfRangeError,
+    TransportError,
+)
+from xmalign.geometry import Vec
+from xmalign.roles import Clock, WallClock
+
+EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
+
+CONTROLWORD, STATUSWORD, MODE = 0x6040, 0x6041, 0x6060
+TARGET_POSITION, POSITION_ACTUAL, TARGET_VELOCITY = 0x607A, 0x6064, 0x60FF
+PROFILE_VELOCITY, ERROR_CODE, ENCODER_RESOLUTION = 0x6081, 0x603F, 0x608F
+
+MODE_PROFILE_POSITION, MODE_HOMING, MODE_CSV = 1, 6, 9
+SHUTDOWN, SWITCH_ON, ENABLE_OPERATION = 0x06, 0x07, 0x0F
+NEW_SET_POINT, HALT, FAULT_RESET = 0x10, 0x100, 0x80
+FAULT, TARGET_REACHED, SET_POINT_ACK = 0x08, 0x400, 0x1000
+#: Statusword mask and value of *operation enabled* (the only state with the brake released).
+STATE_MASK, OPERATION_ENABLED = 0x6F, 0x27
+#: SDO abort code "value range of parameter exceeded": the node refuses a target.
+ABORT_VALUE_RANGE = 0x06090030
+#: ``0x603F`` holds ``FAULT_CODE_BASE + fault code`` of registers.yaml.
+FAULT_CODE_BASE = 0xFF00
+HEARTBEAT_FAULT = 4
+#: The host's heartbeat: node 127, state operational, every 100 ms (the nodes allow 500 ms).
+HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S = 0x77F, b"\x05", 0.1
+#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+FIRST_AXIS = {"launch": 1, "receiver": 3}
+
+T = TypeVar("T")
+
+
+class CanopenAxis:
+    """One CiA 402 node as a ``RotaryAxis`` (reported angles in rad).
+
+    Parameters
+    ----------
+    node : canopen.RemoteNode
+        The node, added to a connected network with the EDS.
+    name : str
+        Axis name of CONVENTIONS.md (``a1`` .. ``a5``).
+    device_name : str
+        Unit name for messages, e.g. ``"launch unit on can0"``.
+    clock : Clock
+        Time source of the waits.
+    """
+
+    def __init__(self, node: canopen.RemoteNode, name: str, device_name: str,
+                 clock: Clock | None = None, poll_s: float = 0.01) -> None:
+        self.node = node
+        self.name = name
+        self.label = f"axis {name} (CANopen node {node.id}) of the {device_name}"
+        self.clock = clock or WallClock()
+        self.poll_s = poll_s
+        self._mode: int | None = None
+        self.counts_per_rev = int(self._sdo(lambda: node.sdo[ENCODER_RESOLUTION][1].raw, "read"))
+
+    # --- SDO access with errors that name the axis ----------------------------------------
+    def _sdo(self, action: Callable[[], T], verb: str) -> T:
+        try:
+            return action()
+        except canopen.SdoAbortedError as error:
+            if error.code == ABORT_VALUE_RANGE:
+                raise OutOfRangeError(f"{self.label} refused the value: out of range") from error
+            raise DeviceError(f"{self.label} refused the {verb}: {error}") from error
+        except canopen.SdoCommunicationError as error:
+            raise DeviceTimeoutError(f"{self.label} did not answer ({verb}: {error})") from error
+        except (can.CanError, OSError) as error:
+            raise TransportError(f"lost the CAN bus of {self.label}: {error}") from error
+
+    def _read(self, index: int) -> int:
+        return int(self._sdo(lambda: self.node.sdo[index].raw, f"read of 0x{index:04X}"))
+
+    def _write(self, index: int, value: int) -> None:
+        def write() -> None:
+            self.node.sdo[index].raw = value
+
+        self._sdo(write, f"write of 0x{index:04X}")
+
+    def _set_mode(self, mode: int) -> None:
+        if self._mode != mode:
+            self._write(MODE, mode)
+            self._mode = mode
+
+    def counts_to_rad(self, counts: int) -> float:
+        return 2.0 * math.pi * counts / self.counts_per_rev
+
+    def rad_to_counts(self, angle_rad: float) -> int:
+        return round(angle_rad * self.counts_per_rev / (2.0 * math.pi))
+
+    # --- RotaryAxis ------------------------------------------------------------------------
+    def position_rad(self) -> float:
+        return self.counts_to_rad(self._read(POSITION_ACTUAL))
+
+    def statusword(self) -> int:
+        """The statusword; raises the node's fault as DriveFaultError or HeartbeatError."""
+        status = self._read(STATUSWORD)
+        if status & FAULT:
+            code = self._read(ERROR_CODE) - FAULT_CODE_BASE
+            text = load_register_map().fault_text(code)
+            if code == HEARTBEAT_FAULT:
+                raise HeartbeatError(
+                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
+                )
+            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+        return status
+
+    def move_to(self, angle_rad: float) -> None:
+        """Profile-position move to a reported angle (returns once the node accepted it)."""
+        self._set_mode(MODE_PROFILE_POSITION)
+        try:
+            self._write(TARGET_POSITION, self.rad_to_counts(angle_rad))
+        except OutOfRangeError as error:
+            raise OutOfRangeError(
+                f"{self.label}: target {math.degrees(angle_rad):.4f} deg is out of its range"
+            ) from error
+        self._write(CONTROLWORD, ENABLE_OPERATION)
+        self._write(CONTROLWORD, ENABLE_OPERATION | NEW_SET_POINT)
+        self._wait_for(SET_POINT_ACK, 1.0, "acknowledge the new target")
+        self._write(CONTROLWORD, ENABLE_OPERATION)
+
+    def wait_in_position(self, timeout_s: float) -> None:
+        self._wait_for(TARGET_REACHED, timeout_s, "reach its target")
+
+    def _wait_for(self, bit: int, timeout_s: float, what: str) -> None:
+        deadline = self.clock.now() + timeout_s
+        while not self.statusword() & bit:
+            if self.clock.now() >= deadline:
+                raise DeviceTimeoutError(f"{self.label} did not {what} in {timeout_s:g} s")
+            self.clock.sleep(self.poll_s)
+
+    def stop(self) -> None:
+        self._write(CONTROLWORD, ENABLE_OPERATION | HALT)
+
+    def lock(self) -> None:
+        """Stop and apply the brake (*disable operation* -> switched on)."""
+        self._write(CONTROLWORD, SWITCH_ON)
+
+    def is_locked(self) -> bool:
+        return (self._read(STATUSWORD) & STATE_MASK) != OPERATION_ENABLED
+
+    # --- beyond the role -------------------------------------------------------------------
+    def enable(self) -> None:
+        """Shutdown, then switch on: enabled with the brake applied."""
+        self._write(CONTROLWORD, SHUTDOWN)
+        self._write(CONTROLWORD, SWITCH_ON)
+
+    def reset_fault(self) -> None:
+        self._write(CONTROLWORD, 0)
+        self._write(CONTROLWORD, FAULT_RESET)
+        self.enable()
+
+    def home(self, timeout_s: float) -> None:
+        """Home on the current position (method of the EDS) and wait until attained."""
+        self._set_mode(MODE_HOMING)
+        self._write(CONTROLWORD, ENABLE_OPERATION)
+        self._write(CONTROLWORD, ENABLE_OPERATION | NEW_SET_POINT)
+        self._wait_for(SET_POINT_ACK, timeout_s, "finish homing")
+        self._write(CONTROLWORD, ENABLE_OPERATION)
+
+    def run_at(self, velocity_rad_s: float) -> None:
+        """Cyclic synchronous velocity: run at ``velocity_rad_s`` until :meth:`stop`/:meth:`lock`.
+
+        For tracking, call it every control cycle with the new velocity command.
+        """
+        self._set_mode(MODE_CSV)
+        self._write(TARGET_VELOCITY, self.rad_to_counts(velocity_rad_s))
+        self._write(CONTROLWORD, ENABLE_OPERATION)
+
+
+class CanopenUnit:
+    """A positioning unit made of CiA 402 axis nodes; implements ``PositioningUnit``.
+
+    Parameters
+    ----------
+    network : canopen.Network
+        Connected network.
+    kind : {"launch", "receiver"}
+    node_ids : sequence of int
+        Node of each axis in order (default: the axis numbers, docs/canopen-axis.md).
+    device_name : str
+        Name for messages, e.g. ``"launch unit on can0"``.
+    heartbeat : bool
+        Produce the host heartbeat on the network while the unit is open.
+    """
+
+    def __init__(self, network: canopen.Network, kind: Literal["launch", "receiver"],
+                 node_ids: Sequence[int] | None = None, device_name: str | None = None,
+                 clock: Clock | None = None, heartbeat: bool = True) -> None:
+        self.kind = kind
+        self.device_name = device_name or f"{kind} unit"
+        first = FIRST_AXIS[kind]
+        ids = list(node_ids) if node_ids is not None else [first, first + 1, first + 2][
+            : 2 if kind == "launch" else 3]
+        self.network = network
+        self._heartbeat_task = (
+            network.send_periodic(HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S)
+            if heartbeat else None
+        )
+        self._axes = tuple(
+            CanopenAxis(network.add_node(node_id, str(EDS_PATH)), f"a{first + i}",
+                        self.device_name, clock)
+            for i, node_id in enumerate(ids)
+        )
+
+    @property
+    def axes(self) -> tuple[CanopenAxis, ...]:
+        return self._axes
+
+    def angles_rad(self) -> Vec:
+        return np.array([axis.position_rad() for axis in self._axes])
+
+    def enable(self) -> None:
+        for axis in self._axes:
+            axis.enable()
+
+    def reset_faults(self) -> None:
+        for axis in self._axes:
+            axis.reset_fault()
+
+    def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
+        angles = np.asarray(angles_rad, dtype=float)
+        if angles.shape != (len(self._axes),):
+            raise ValueError(f"{self.device_name}: expected {len(self._axes)} angles")
+        for axis, angle in zip(self._axes, angles, strict=True):
+            axis.move_to(float(angle))
+        for axis in self._axes:
+            axis.wait_in_position(timeout_s)
+
+    def lock(self) -> None:
+        for axis in self._axes:
+            axis.lock()
+
+    def close(self) -> None:
+        """Stop producing the heartbeat (the nodes lock themselves 500 ms later)."""
+        if self._heartbeat_task is not None:
+            self._heartbeat_task.stop()
+            self._heartbeat_task = None

@@ -1,0 +1,245 @@
+"""The hardware configuration ``units.yaml`` of ``--live`` runs, and opening what it names.
+
+    format: xmalign.units/1
+    launch:                        # one positioning unit: Modbus TCP, Modbus RTU or CANopen
+      transport: modbus-tcp
+      host: 192.168.10.11
+      port: 502                    # default 502
+      device_id: 1                 # default 1
+    receiver:
+      transport: canopen
+      interface: socketcan         # python-can interface
+      channel: can0
+      bitrate: 500000              # default 500000
+      node_ids: [3, 4, 5]          # default: the axis numbers a3, a4, a5
+    interferometer:
+      port: /dev/ttyUSB0           # or a pyserial URL (socket://host:port)
+      baudrate: 115200             # default 115200
+      rate_hz: 50                  # default 50
+      # replay: recorded.csv       # instead of port: play back a recorded stream
+    machine_position:
+      source: prompt               # prompt (operator types it) or file
+      # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
+    timeouts:
+      io_s: 1.0                    # one request to a device
+      move_s: 30.0                 # one unit move
+
+A Modbus RTU unit has ``transport: modbus-rtu``, ``serial_port`` and
+``baudrate``. Every error names the file and the key (exit code 2).
+See docs/hardware.md and examples/units.yaml.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import can
+import canopen
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from firmware_iface.canopen_axis import CanopenUnit
+from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
+from firmware_iface.machine_position import FilePositions, OperatorPrompt
+from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
+from xmalign.errors import InputError, TransportError
+from xmalign.formats.common import check_format, validate
+from xmalign.machine import Machine
+from xmalign.roles import Interferometer, MachineMover, PositioningUnit
+
+UNITS_FORMAT = "xmalign.units/1"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ModbusTcpUnit(_Strict):
+    transport: Literal["modbus-tcp"]
+    host: str
+    port: Annotated[int, Field(ge=1, le=65535)] = 502
+    device_id: Annotated[int, Field(ge=0, le=247)] = 1
+
+
+class ModbusRtuUnit(_Strict):
+    transport: Literal["modbus-rtu"]
+    serial_port: str
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    device_id: Annotated[int, Field(ge=1, le=247)] = 1
+
+
+class CanopenUnitConfig(_Strict):
+    transport: Literal["canopen"]
+    interface: str = "socketcan"
+    channel: str
+    bitrate: Annotated[int, Field(gt=0)] = 500000
+    node_ids: list[Annotated[int, Field(ge=1, le=127)]] | None = None
+
+
+UnitConfig = Annotated[
+    ModbusTcpUnit | ModbusRtuUnit | CanopenUnitConfig, Field(discriminator="transport")
+]
+
+
+class InterferometerConfig(_Strict):
+    port: str | None = None
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    rate_hz: Annotated[float, Field(ge=1, le=1000)] = 50.0
+    replay: Path | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> InterferometerConfig:
+        if (self.port is None) == (self.replay is None):
+            raise ValueError("give exactly one of 'port' and 'replay'")
+        return self
+
+
+class MachinePositionConfig(_Strict):
+    source: Literal["prompt", "file"] = "prompt"
+    file: Path | None = None
+
+    @model_validator(mode="after")
+    def _file_given(self) -> MachinePositionConfig:
+        if (self.source == "file") != (self.file is not None):
+            raise ValueError("'file' is required with source: file, and only then")
+        return self
+
+
+class Timeouts(_Strict):
+    io_s: Annotated[float, Field(gt=0)] = 1.0
+    move_s: Annotated[float, Field(gt=0)] = 30.0
+
+
+class UnitsConfig(_Strict):
+    """The whole ``units.yaml``."""
+
+    format: str
+    launch: UnitConfig
+    receiver: UnitConfig
+    interferometer: InterferometerConfig
+    machine_position: MachinePositionConfig = MachinePositionConfig()
+    timeouts: Timeouts = Timeouts()
+
+
+def parse_units_config(data: object, source: str, base_dir: Path | None = None) -> UnitsConfig:
+    """Validate a decoded ``units.yaml``; relative file paths are taken from ``base_dir``."""
+    if not isinstance(data, dict):
+        raise InputError(f"{source}: expected a YAML mapping of configuration keys")
+    check_format(data.get("format"), UNITS_FORMAT, source)
+    config = validate(UnitsConfig, data, source)
+    if base_dir is None:
+        return config
+    return config.model_copy(update={
+        "interferometer": config.interferometer.model_copy(update={
+            "replay": _resolve(config.interferometer.replay, base_dir)}),
+        "machine_position": config.machine_position.model_copy(update={
+            "file": _resolve(config.machine_position.file, base_dir)}),
+    })
+
+
+def _resolve(path: Path | None, base_dir: Path) -> Path | None:
+    return None if path is None else base_dir / path
+
+
+def load_units_config(path: str | Path) -> UnitsConfig:
+    """Read and validate a ``units.yaml``; errors name the file and the key."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise InputError(f"{path}: cannot read ({error.strerror})") from error
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise InputError(f"{path}: not valid YAML{where}") from error
+    return parse_units_config(data, str(path), path.parent)
+
+
+@dataclass
+class LiveDevices:
+    """The devices a ``units.yaml`` names, opened; :meth:`close` releases them."""
+
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    mover: MachineMover
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
+        for close in reversed(self.closers):
+            close()
+
+
+def _open_unit(
+    config: UnitConfig, kind: Literal["launch", "receiver"], timeouts: Timeouts,
+    networks: dict[tuple[str, str], canopen.Network], closers: list[Callable[[], None]],
+) -> PositioningUnit:
+    name = f"{kind} unit"
+    if isinstance(config, CanopenUnitConfig):
+        key = (config.interface, config.channel)
+        if key not in networks:
+            network = canopen.Network()
+            try:
+                network.connect(interface=config.interface, channel=config.channel,
+                                bitrate=config.bitrate)
+            except (can.CanError, OSError, ValueError) as error:
+                raise TransportError(
+                    f"cannot open the CAN bus {config.channel} ({config.interface}): {error}"
+                ) from error
+            networks[key] = network
+            closers.append(network.disconnect)
+        unit = CanopenUnit(networks[key], kind, config.node_ids, f"{name} on {config.channel}")
+        closers.append(unit.close)
+        return unit
+    if isinstance(config, ModbusTcpUnit):
+        transport = tcp_transport(config.host, config.port, name, config.device_id, timeouts.io_s)
+    else:
+        transport = rtu_transport(config.serial_port, name, config.baudrate, config.device_id,
+                                  timeouts.io_s)
+    closers.append(transport.close)
+    modbus_unit = ModbusUnit(transport, expected_kind=kind)
+    modbus_unit.start_heartbeat()
+    closers.append(modbus_unit.stop_heartbeat)
+    return modbus_unit
+
+
+def _open_interferometer(
+    config: InterferometerConfig, timeouts: Timeouts, closers: list[Callable[[], None]]
+) -> Interferometer:
+    if config.replay is not None:
+        return ReplayInterferometer(config.replay)
+    connection = open_serial(str(config.port), config.baudrate, timeouts.io_s)
+    closers.append(connection.close)
+    interferometer = SerialInterferometer(connection, f"interferometer on {config.port}")
+    interferometer.set_rate(config.rate_hz)
+    return interferometer
+
+
+def open_devices(
+    config: UnitsConfig, machine: Machine, ask: Callable[[str], str] = input,
+    tell: Callable[[str], None] = print,
+) -> LiveDevices:
+    """Open both units, the interferometer and the machine-position source of ``config``.
+
+    Anything opened before a failure is closed again before the error propagates.
+    """
+    closers: list[Callable[[], None]] = []
+    networks: dict[tuple[str, str], canopen.Network] = {}
+    try:
+        launch = _open_unit(config.launch, "launch", config.timeouts, networks, closers)
+        receiver = _open_unit(config.receiver, "receiver", config.timeouts, networks, closers)
+        interferometer = _open_interferometer(config.interferometer, config.timeouts, closers)
+    except BaseException:
+        for close in reversed(closers):
+            close()
+        raise
+    source = config.machine_position
+    mover = OperatorPrompt(machine, ask, tell,
+                           FilePositions(source.file) if source.file is not None else None)
+    return LiveDevices(launch, receiver, interferometer, mover, closers)
