@@ -14,7 +14,6 @@ from firmware_iface.modbus import ModbusUnit, decode, encode, tcp_transport
 from firmware_iface.register_map import load_register_map
 from sim.clock import SimClock
 from sim.units import SimUnit
-from tests.firmware_iface.conftest import free_port
 from xmalign.errors import (
     DeviceError,
     DriveFaultError,
@@ -112,8 +111,8 @@ def test_tcp_round_trip_move_and_lock(served_launch) -> None:  # noqa: ANN001
         unit.close()
 
 
-def test_connection_refused_names_the_device() -> None:
-    transport = tcp_transport("127.0.0.1", free_port(), "launch unit", timeout_s=0.2, retries=1)
+def test_connection_refused_names_the_device(free_port: int) -> None:
+    transport = tcp_transport("127.0.0.1", free_port, "launch unit", timeout_s=0.2, retries=1)
     with pytest.raises(TransportError, match="launch unit at 127.0.0.1:.*"):
         ModbusUnit(transport)
 
