@@ -76,10 +76,10 @@ def _line_blocks(
     points = line.target_points_mm()
     u = line.frame[0]
     before, after = points[0] - overrun_mm * u, points[-1] + overrun_mm * u
-    for label, point in (("pre-position", before), ("overrun end", after)):
-        _check_travel(line, label, point, machine)
     for index, point in enumerate(points):
         _check_travel(line, f"target {index + 1}", point, machine)
+    for label, point in (("pre-position", before), ("overrun end", after)):
+        _check_travel(line, label, point, machine)
     yield dialect.message(angles_message(line))
     yield dialect.comment(f"line {line.id}: approach")
     yield dialect.rapid({"Z": safe_z})

@@ -1,0 +1,141 @@
+"""G-code: LinuxCNC's own interpreter, syntax rules from the controller manuals,
+and a round trip through the simulated CNC for every dialect."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from sim.clock import SimClock
+from sim.cnc import SimulatedCnc
+from trajectories.gcode import DIALECTS
+from trajectories.gcode.program import write_program
+from trajectories.planner import plan_measurement
+from xmalign.errors import OutOfRangeError
+
+GCODE_RESOLUTION_MM = 0.5e-3 + 1e-9
+
+
+@pytest.fixture
+def plan(machine, pose):
+    return plan_measurement(machine, pose).plan
+
+
+def expected_dwell_points(plan) -> np.ndarray:
+    points = []
+    for line in plan.lines:
+        targets = line.target_points_mm()
+        for _ in range(line.runs):
+            points.extend(targets)
+            if line.bidirectional:
+                points.extend(targets[::-1])
+    return np.array(points)
+
+
+@pytest.mark.skipif(shutil.which("rs274") is None, reason="LinuxCNC's rs274 is not on PATH")
+def test_linuxcnc_program_passes_rs274_and_dwells_at_every_target(tmp_path, machine, plan):
+    path = tmp_path / "run.ngc"
+    path.write_text(write_program(plan, machine, DIALECTS["linuxcnc"]()))
+    result = subprocess.run(
+        ["rs274", "-g", str(path)], stdin=subprocess.DEVNULL, capture_output=True,
+        text=True, timeout=60,
+    )
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr
+    canon = result.stdout
+    assert "PROGRAM_END()" in canon
+    feeds = [
+        np.array([float(v) for v in m.groups()])
+        for m in re.finditer(r"STRAIGHT_FEED\(([-\d.]+), ([-\d.]+), ([-\d.]+),", canon)
+    ]
+    dwell_blocks = re.findall(r"DWELL\(2\.0000\)", canon)
+    expected = expected_dwell_points(plan)
+    assert len(dwell_blocks) == len(expected)
+    lines = canon.splitlines()
+    dwell_points = []
+    last = None
+    for text in lines:
+        move = re.search(r"STRAIGHT_FEED\(([-\d.]+), ([-\d.]+), ([-\d.]+),", text)
+        if move:
+            last = np.array([float(v) for v in move.groups()])
+        if "DWELL(" in text:
+            dwell_points.append(last)
+    np.testing.assert_allclose(np.array(dwell_points), expected, rtol=0, atol=GCODE_RESOLUTION_MM)
+    assert len(feeds) > len(expected)
+
+
+@pytest.mark.parametrize("dialect", sorted(DIALECTS))
+def test_every_dialect_runs_on_the_simulated_cnc_and_visits_exactly_the_targets(
+    dialect, machine, plan
+):
+    text = write_program(plan, machine, DIALECTS[dialect]())
+    clock = SimClock()
+    cnc = SimulatedCnc(machine, clock)
+    events = list(cnc.run_program(text, dialect))
+    dwells = [e for e in events if e.kind == "dwell"]
+    # The programs carry coordinates to 1 um (3 decimals), so "exactly" is within 0.5 um.
+    np.testing.assert_allclose([e.position_mm for e in dwells], expected_dwell_points(plan),
+                               rtol=0, atol=GCODE_RESOLUTION_MM)
+    assert all(e.dwell_s == pytest.approx(2.0) for e in dwells)
+    assert re.fullmatch(r"X run 1 \+ target 1/\d+ at 0\.000 mm", dwells[0].text)
+    assert [e.kind for e in events].count("stop") == len(plan.lines)
+    assert events[-1].kind == "end"
+    assert cnc.is_standstill()
+    assert cnc.position_mm()[2] == pytest.approx(machine.travel_max_mm[2])
+    if dialect in ("sinumerik", "linuxcnc"):  # the others have no message block
+        assert any(e.kind == "message" and "LINE X" in e.text for e in events)
+
+
+def _blocks(text: str) -> list[str]:
+    return text.splitlines()
+
+
+def test_iso_fanuc_syntax(machine, plan):
+    blocks = _blocks(write_program(plan, machine, DIALECTS["iso"]()))
+    assert blocks[0] == "%" and blocks[-1] == "%" and blocks[-2] == "M30"
+    assert re.fullmatch(r"O\d{4} \([A-Z0-9 ]*\)", blocks[1])
+    for block in blocks[2:-1]:
+        assert re.fullmatch(
+            r"\([^()]*\)|G21 G90 G94 G17|M00|M30|G04 P\d+"
+            r"|G0[01]( [XYZ]-?\d+\.\d{3})+( F\d+\.\d)?",
+            block,
+        ), block
+    assert "G04 P2000" in blocks
+
+
+def test_sinumerik_syntax(machine, plan):
+    blocks = _blocks(write_program(plan, machine, DIALECTS["sinumerik"]()))
+    assert blocks[-1] == "M30" and "G71 G90 G94 G17" in blocks
+    for block in blocks:
+        assert re.fullmatch(
+            r'; [^\n]*|G71 G90 G94 G17|M0|M30|MSG\("[^"]*"\)|MSG\(\)|G4 F\d+\.\d+'
+            r"|G[01]( [XYZ]-?\d+\.\d{3})+( F\d+\.\d)?",
+            block,
+        ), block
+    assert "G4 F2.000" in blocks
+
+
+def test_heidenhain_conversational_syntax(machine, plan):
+    blocks = _blocks(write_program(plan, machine, DIALECTS["heidenhain"]()))
+    numbers = [int(b.split(" ", 1)[0]) for b in blocks]
+    assert numbers == list(range(len(blocks)))
+    contents = [b.split(" ", 1)[1] for b in blocks]
+    assert contents[0] == "BEGIN PGM XMALIGN MM" and contents[-1] == "END PGM XMALIGN MM"
+    assert contents[-2].endswith("M30")
+    for i, content in enumerate(contents[1:-1], start=1):
+        assert re.fullmatch(
+            r"; [^\n]*|STOP|CYCL DEF 9\.0 DWELL TIME|CYCL DEF 9\.1 DWELL \d+\.\d+"
+            r"|L( [XYZ][+-]\d+\.\d{3})+ R0 (FMAX|F\d+)( M30)?",
+            content,
+        ), content
+        if content.startswith("CYCL DEF 9.1"):
+            assert contents[i - 1] == "CYCL DEF 9.0 DWELL TIME"
+
+
+def test_target_outside_travel_is_refused(machine, plan):
+    plan.lines[0].targets_mm = plan.lines[0].targets_mm + 100.0
+    with pytest.raises(OutOfRangeError, match=r"line X: target \d+ .* outside the travel"):
+        write_program(plan, machine, DIALECTS["iso"]())
