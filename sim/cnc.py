@@ -202,6 +202,8 @@ _WORD = re.compile(r"\s*([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _METRIC = {"iso": {21}, "linuxcnc": {21}, "sinumerik": {71, 710}}
 _INCH = {"iso": {20}, "linuxcnc": {20}, "sinumerik": {70, 700}}
 _MODAL_NOOPS = {17, 90, 94}
+#: Words that give the dwell time: Fanuc P ms or X s, LinuxCNC P s, Sinumerik F s.
+_DWELL_WORDS = {"iso": ("P", "X"), "linuxcnc": ("P",), "sinumerik": ("F",)}
 
 
 def _split_words(line_no: int, code: str, reader: _Reader) -> list[tuple[str, str]]:
@@ -222,10 +224,8 @@ def _g_number(line_no: int, value: str, reader: _Reader) -> int:
     return int(value)
 
 
-def _dwell_seconds(
-    dialect: str, line_no: int, words: dict[str, str], reader: _Reader
-) -> float:
-    allowed = {"iso": ("P", "X"), "linuxcnc": ("P",), "sinumerik": ("F",)}[dialect]
+def _dwell_seconds(dialect: str, line_no: int, words: dict[str, str], reader: _Reader) -> float:
+    allowed = _DWELL_WORDS[dialect]
     given = [letter for letter in words if letter in allowed]
     if len(given) != 1:
         raise reader.fail(line_no, f"dwell needs exactly one of {', '.join(allowed)}")
@@ -257,7 +257,7 @@ def _word_block(dialect: str, line_no: int, code: str, reader: _Reader) -> None:
             raise reader.fail(line_no, f"unsupported G{g}")
     if 4 in g_codes:
         seconds = _dwell_seconds(dialect, line_no, words, reader)
-        extra = set(words) - {"P", "X", "F"}
+        extra = set(words) - set(_DWELL_WORDS[dialect])
         if extra or {0, 1} & set(g_codes):
             raise reader.fail(line_no, "a dwell must stand alone in its block")
         reader.dwell(line_no, seconds)
@@ -521,7 +521,10 @@ class SimulatedCnc:
                 return
 
     def _event(
-        self, kind: Literal["message", "stop", "dwell", "end"], line_no: int, text: str = "",
+        self,
+        kind: Literal["message", "stop", "dwell", "end"],
+        line_no: int,
+        text: str = "",
         dwell_s: float = 0.0,
     ) -> CncEvent:
         return CncEvent(kind, line_no, self._clock.now(), self.position_mm(), text, dwell_s)
