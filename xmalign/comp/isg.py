@@ -1,0 +1,64 @@
+"""ISG kernel (Beckhoff TwinCAT CNC): volumetric compensation parameter file, ISG CSV format.
+
+From the ISG / TF5280 "Volumetric compensation" documentation:
+
+- a header line names the columns (arguments and parameters), the rows below
+  are the records; ``//`` starts a comment line; ``#`` is a file break after
+  which a new header and its records follow;
+- position errors (``C0Y``, ``A0Z``, ``B0Z``, ...) are constants, one record;
+  component errors (``EXX EYX EZX EAX EBX ECX``) are tabulated against their
+  argument ``X`` (mm);
+- parameter values are in mm for offsets and rad for angles.
+
+The kernel builds the compensation from the ISO 230 error model itself, so the
+values are errors, not corrections. They are ISO 230-1 errors of each axis's
+own motion: a workpiece-side axis's tables are written with the sign reversed
+(CONVENTIONS.md states every error as tool relative to workpiece). The chain
+goes into the header comment; the start-up list (``vol_comp[i].file_name``,
+axis assignment, ``Chain``, ``max_records``) is configured in the CNC.
+"""
+
+from __future__ import annotations
+
+from xmalign.comp.common import table
+from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.rigid_body import (
+    AXES,
+    MOTION_NAMES,
+    ROTATION_NAMES,
+    SQUARENESS_NAMES,
+    TRANSLATION_NAMES,
+    Chain,
+)
+
+NAME = "isg"
+COMPENSATES = frozenset({*MOTION_NAMES, "squareness"})
+FILE_NAME = "vol_comp.csv"
+
+
+def _number(value: float) -> str:
+    return f"{value:.9g}"
+
+
+def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
+    """File name -> text of the volumetric parameter file."""
+    squareness = [tables.squareness.get(name, (0.0, 0.0))[0] for name in SQUARENESS_NAMES]
+    lines = [
+        f"// xmalign volumetric compensation, chain {chain}, workpiece axes:"
+        f" {len(chain.workpiece)}; mm and rad",
+        "// position errors",
+        " ".join(name[1:] for name in SQUARENESS_NAMES),
+        " ".join(_number(v) for v in squareness),
+    ]
+    records = 1
+    for axis in AXES:
+        names = (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis])
+        sign = -1.0 if axis in chain.workpiece else 1.0
+        columns = [table(tables, name) for name in names]
+        lines += ["#", f"// component errors of {axis}", " ".join([axis, *names])]
+        for n, position in enumerate(columns[0].positions_mm):
+            values = [sign * table_.values[n] for table_ in columns]
+            lines.append(" ".join([_number(position), *(_number(v) for v in values)]))
+        records += len(columns[0].positions_mm)
+    lines.insert(1, f"// records: {records} (vol_comp[i].max_records must be at least this)")
+    return {FILE_NAME: "\n".join(lines) + "\n"}
