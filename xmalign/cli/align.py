@@ -1,0 +1,219 @@
+"""``xmalign align``: align the launch and receiver units to each other.
+
+``--sim`` builds a virtual setup (seeded), puts the units a given distance off
+alignment and shows the automatic fine alignment converging, in simulated
+time. ``--live --config units.yaml`` does the same on the hardware the
+configuration names. ``--manual`` first lets the operator jog the axes from
+the terminal until every beam is in range. The units are left stopped and
+locked however the command ends.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from firmware_iface.config import load_units_config, open_devices
+from sim.units import SimPositioningUnit
+from sim.world import FixedPosition, World, build_world
+from xmalign.alignment import (
+    AlignmentStep,
+    FineAlignmentResult,
+    FineAlignmentSettings,
+    fine_align,
+    jog,
+    parse_jog,
+    range_used,
+)
+from xmalign.cli.common import console, machine_or_default
+from xmalign.errors import InputError, XmalignError
+from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
+from xmalign.machine import Machine
+from xmalign.roles import Clock, Interferometer, PositioningUnit, WallClock
+from xmalign.safety import interrupted, units_locked_on_exit
+
+#: Column names of the aligned channels (xmalign.alignment.ALIGNED_CHANNELS order).
+_SHORT = ("sv um", "sw um", "aw urad", "av urad", "au urad")
+
+
+@dataclass
+class AlignmentDevices:
+    """The units, the interferometer and the clock one alignment runs on."""
+
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+    distance_mm: float
+
+
+def _true_offsets(world: World) -> EncoderOffsets:
+    return EncoderOffsets(
+        c2=world.launch.axes[1].zero_offset_rad,
+        c3=world.receiver.axes[0].zero_offset_rad,
+        c4=world.receiver.axes[1].zero_offset_rad,
+    )
+
+
+def simulated_setup(
+    machine: Machine, position_mm: np.ndarray, seed: int, start_um: float, start_urad: float,
+    gamma_rad: float = 0.3,
+) -> tuple[World, AlignmentDevices]:
+    """A virtual setup with the units ``start_um`` / ``start_urad`` off alignment.
+
+    The launch unit misses the receiver by ``start_um`` (diagonally in v and w)
+    and each receiver axis is ``start_urad`` off; the units then stand still,
+    unlocked. Returns the world and the in-process devices (virtual time);
+    ``distance_mm`` is the true cp-to-cp distance.
+    """
+    world = build_world(machine, FixedPosition(position_mm), seed=seed, gamma_rad=gamma_rad)
+    cp = receiver_cp(position_mm, machine.receiver_offset, machine.spindle_angle_rad)
+    aligned = aligned_angles(world.launch2mcs_mm, gamma_rad, cp, machine.spindle_angle_rad,
+                             _true_offsets(world))
+    elevation = aligned.launch_rad[1]
+    miss_rad = start_um * 1e-3 / math.sqrt(2.0) / aligned.distance_mm
+    launch_start = aligned.launch_rad + [miss_rad / math.cos(elevation), -miss_rad]
+    roll = -world.receiver.axes[2].zero_offset_rad
+    receiver_start = np.array([*aligned.receiver_rad[:2], roll]) + start_urad * 1e-6
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    launch.move_to(launch_start, timeout_s=60.0)
+    receiver.move_to(receiver_start, timeout_s=60.0)
+    devices = AlignmentDevices(launch, receiver, world.interferometer, world.clock,
+                               aligned.distance_mm)
+    return world, devices
+
+
+def _step_table() -> Table:
+    table = Table(title="Fine alignment", title_justify="left")
+    table.add_column("t s", justify="right")
+    for name in _SHORT:
+        table.add_column(name, justify="right")
+    table.add_column("l mm", justify="right")
+    return table
+
+
+def _add_step(table: Table, start_s: float, step: AlignmentStep) -> None:
+    values = [f"{v:+.2f}" for v in step.error] + [""] * (len(_SHORT) - len(step.error))
+    table.add_row(f"{step.time_s - start_s:.3f}", *values, f"{step.distance_mm:.0f}")
+
+
+def run_fine_alignment(devices: AlignmentDevices, settings: FineAlignmentSettings,
+                       time_label: str) -> FineAlignmentResult:
+    """Fine-align with a live table of the steps; the units are locked on any exit."""
+    table = _step_table()
+    start_s = devices.clock.now()
+    with units_locked_on_exit(devices.launch, devices.receiver):
+        result = fine_align(devices.launch, devices.receiver, devices.interferometer,
+                            devices.clock, devices.distance_mm, settings,
+                            on_step=lambda step: _add_step(table, start_s, step))
+    console.print(table)
+    console.print(
+        f"converged in {result.elapsed_s:.3f} s of {time_label} after {len(result.steps)} steps;"
+        " units locked", markup=False)
+    return result
+
+
+def manual_alignment(devices: AlignmentDevices, machine: Machine, move_timeout_s: float) -> None:
+    """Jog loop: show how much of each range the channels use until the operator is done."""
+    ranges = machine.interferometer
+    console.print("Jog: 'a<n> <deg>' moves axis a<n> (e.g. 'a2 -0.01'); Enter when all beams"
+                  " are in range.", markup=False)
+    while True:
+        reading = devices.interferometer.read()
+        if reading.beam_ok:
+            used = range_used(reading, ranges.straightness_range_um, ranges.angle_range_urad)
+            shown = ", ".join(f"{name.split()[0]} {100 * u:.0f}%"
+                              for name, u in zip(_SHORT, used, strict=True))
+            console.print(f"beam in range: {shown}", markup=False)
+        else:
+            console.print("beam out of range", markup=False)
+        try:
+            text = input("jog> ")
+        except EOFError as error:
+            raise XmalignError("no answer from the operator (end of input)") from error
+        if not text.strip():
+            if reading.beam_ok:
+                return
+            console.print("the beam is not in range yet", markup=False)
+            continue
+        try:
+            command = parse_jog(text)
+        except InputError as error:
+            console.print(str(error), markup=False)
+            continue
+        jog(devices.launch, devices.receiver, command, move_timeout_s)
+
+
+def _parse_at(text: str | None, machine: Machine) -> np.ndarray:
+    if text is None:
+        low, high = machine.travel_min_mm, machine.travel_max_mm
+        return low + np.array([0.8, 0.7, 0.8]) * (high - low)
+    try:
+        position = np.array([float(v) for v in text.split(",")])
+    except ValueError as error:
+        raise InputError(f"option --at: '{text}' is not 'x,y,z' in mm") from error
+    if position.shape != (3,):
+        raise InputError(f"option --at: '{text}' is not 'x,y,z' in mm")
+    if not machine.within_travel(position):
+        raise InputError(f"option --at: {text} is outside the travel of '{machine.name}'")
+    return position
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def align(
+        sim: Annotated[bool, typer.Option("--sim", help="Align in a simulated setup.")] = False,
+        live: Annotated[bool, typer.Option("--live", help="Align the units of --config.")] = False,
+        config: Annotated[Path | None, typer.Option(help="units.yaml for --live.")] = None,
+        machine_file: Annotated[
+            Path | None, typer.Option("--machine", help="Machine YAML.")] = None,
+        manual: Annotated[bool, typer.Option(help="Jog into range first.")] = False,
+        at: Annotated[str | None, typer.Option(help="--sim: CNC tool point 'x,y,z' mm.")] = None,
+        seed: Annotated[int, typer.Option(help="--sim: seed of the virtual setup.")] = 1,
+        start_um: Annotated[float, typer.Option(help="--sim: initial beam miss, um.")] = 200.0,
+        start_urad: Annotated[float, typer.Option(help="--sim: initial angle error, urad.")] = 300,
+        distance_mm: Annotated[float | None, typer.Option(
+            help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000)."
+        )] = None,
+        timeout_s: Annotated[float, typer.Option("--timeout", help="Give up after, s.")] = 5.0,
+    ) -> None:
+        """Fine-align the launch and receiver units on the interferometer channels."""
+        if sim == live:
+            raise InputError("choose one of --sim and --live")
+        machine = machine_or_default(machine_file)
+        settings = FineAlignmentSettings(timeout_s=timeout_s)
+        try:
+            if sim:
+                _, devices = simulated_setup(machine, _parse_at(at, machine), seed, start_um,
+                                             start_urad)
+                devices.distance_mm = distance_mm or devices.distance_mm
+                if manual:
+                    manual_alignment(devices, machine, 60.0)
+                run_fine_alignment(devices, settings, "simulated time")
+                return
+            if config is None:
+                raise InputError("--live needs --config units.yaml")
+            _align_live(config, machine, settings, distance_mm or 1000.0, manual)
+        except KeyboardInterrupt as error:
+            raise interrupted(error) from error
+
+
+def _align_live(config_path: Path, machine: Machine, settings: FineAlignmentSettings,
+                distance_mm: float, manual: bool) -> None:
+    config = load_units_config(config_path)
+    live = open_devices(config, machine)
+    try:
+        devices = AlignmentDevices(live.launch, live.receiver, live.interferometer, WallClock(),
+                                   distance_mm)
+        with units_locked_on_exit(live.launch, live.receiver):
+            if manual:
+                manual_alignment(devices, machine, config.timeouts.move_s)
+        run_fine_alignment(devices, settings, "wall time")
+    finally:
+        live.close()
