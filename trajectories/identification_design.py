@@ -120,6 +120,21 @@ def _pose_information(information: ca.MX) -> ca.MX:
     return f_pp - f_pc @ ca.solve(f_cc, f_pc.T)
 
 
+def predicted_pose_covariance(machine: Machine, machine_mm: Vec) -> Vec:
+    """Predicted covariance of ``(x mm, y mm, z mm, gamma rad)`` for alignments at tool
+    points ``machine_mm`` (N, 3), around the machine file's coarse launch position, (4, 4)."""
+    if machine.launch_unit is None:
+        raise InputError(
+            "machine file has no launch_unit.position_mm; add the coarse launch position"
+        )
+    points = np.atleast_2d(np.asarray(machine_mm, dtype=float))
+    tool = ca.MX.sym("tool", *points.shape)
+    launch_cp = np.asarray(machine.launch_unit.position_mm, dtype=float)
+    information = _information(tool, launch_cp, receiver_offset_mcs(machine), machine)
+    evaluate = ca.Function("pose_information", [tool], [_pose_information(information)])
+    return np.linalg.inv(np.array(evaluate(points)))
+
+
 def design_identification(machine: Machine, count: int = 6) -> IdentificationDesign:
     """Machine positions for identification that minimise the predicted pose uncertainty.
 
@@ -174,7 +189,7 @@ def design_identification(machine: Machine, count: int = 6) -> IdentificationDes
         (beam_mm >= machine.measurement.standoff_mm - tolerance_mm)
         & (beam_mm <= machine.interferometer.max_range_mm + tolerance_mm)
     )
-    covariance = np.linalg.inv(np.atleast_2d(opti.debug.value(pose_info)))
+    covariance = predicted_pose_covariance(machine, machine_mm)
     if not (feasible and np.all(np.isfinite(covariance))):
         raise GeometryError(
             "no identification design found inside the travel, the stand-off and the beam"
