@@ -1,0 +1,165 @@
+"""Each server driven by an independent client over loopback / a virtual bus / a pty."""
+
+import time
+
+import canopen
+import numpy as np
+import pytest
+import serial
+from pymodbus.client import ModbusTcpClient
+
+from firmware_iface.register_map import Control, Status, load_register_map
+from firmware_iface.xm_line_protocol import Reply, decode_line
+from sim.clock import SimClock
+from sim.servers.canopen_node import EDS_PATH, CanopenUnitServer
+from sim.servers.modbus import ModbusUnitServer
+from sim.servers.serial_pty import PtyInterferometerServer
+from sim.units import SimUnit, rad_to_counts
+from sim.world import build_world
+from xmalign.roles import InterferometerReading
+
+RMAP = load_register_map()
+
+
+def words(value):
+    value &= 0xFFFFFFFF
+    return [value >> 16, value & 0xFFFF]
+
+
+def wait_for(predicate, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.fixture
+def modbus(free_port):
+    unit = SimUnit("receiver", SimClock(real_time=True), seed=1)
+    server = ModbusUnitServer(unit, "127.0.0.1", free_port)
+    server.start()
+    client = ModbusTcpClient("127.0.0.1", port=free_port, timeout=2)
+    assert client.connect()
+    yield unit, client
+    client.close()
+    server.stop()
+
+
+def mb_status(client, n):
+    return Status(
+        client.read_holding_registers(
+            RMAP.axis(n, "status").address, count=1, device_id=1
+        ).registers[0]
+    )
+
+
+def test_modbus_move_lock_and_refusals(modbus):
+    unit, client = modbus
+    assert client.read_holding_registers(0, count=3, device_id=1).registers == [2, 256, 3]
+    target = RMAP.axis(2, "target").address
+    refused = client.write_registers(target, words(rad_to_counts(2.0)), device_id=1)
+    assert refused.isError() and refused.exception_code == 3
+    read_only = client.write_registers(RMAP.axis(2, "status").address, [1], device_id=1)
+    assert read_only.isError() and read_only.exception_code == 2
+    control = RMAP.axis(2, "control").address
+    assert not client.write_registers(target, words(rad_to_counts(0.05)), device_id=1).isError()
+    client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
+    assert Status.MOVING in mb_status(client, 2)
+    assert wait_for(lambda: Status.IN_POSITION in mb_status(client, 2))
+    actual = client.read_holding_registers(RMAP.axis(2, "actual").address, count=2, device_id=1)
+    high, low = actual.registers
+    assert abs((high << 16 | low) - rad_to_counts(0.05)) <= 200  # encoder noise
+    client.write_registers(control, [Control.ENABLE], device_id=1)
+    assert Status.LOCKED in mb_status(client, 2)
+
+
+def test_modbus_heartbeat_stall_stops_and_locks(modbus):
+    unit, client = modbus
+    control = RMAP.axis(1, "control").address
+    client.write_registers(RMAP.axis(1, "target").address, words(rad_to_counts(3.0)), device_id=1)
+    client.write_registers(3, [1], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
+    for beat in range(2, 5):
+        time.sleep(0.15)
+        client.write_registers(3, [beat], device_id=1)
+    assert Status.MOVING in mb_status(client, 1)
+    time.sleep(1.0)
+    bits = mb_status(client, 1)
+    assert Status.FAULT in bits and Status.LOCKED in bits and Status.MOVING not in bits
+    fault = client.read_holding_registers(RMAP.axis(1, "fault_code").address, count=1, device_id=1)
+    assert fault.registers == [4]
+
+
+def test_canopen_nodes_move_refuse_and_watch_the_heartbeat():
+    clock = SimClock(real_time=True)
+    units = [SimUnit("launch", clock, seed=1), SimUnit("receiver", clock, seed=2)]
+    server = CanopenUnitServer(units, "xmalign-test-bus", "virtual")
+    server.start()
+    network = canopen.Network()
+    network.connect(interface="virtual", channel="xmalign-test-bus")
+    try:
+        assert server.node_ids == [1, 2, 3, 4, 5]
+        node = canopen.RemoteNode(4, str(EDS_PATH))
+        network.add_node(node)
+        assert node.sdo[0x6041].raw & 0x6F == 0x40  # switch on disabled
+        for word in (0x06, 0x07, 0x0F):
+            node.sdo[0x6040].raw = word
+        assert node.sdo[0x6041].raw & 0x6F == 0x27  # operation enabled
+        with pytest.raises(canopen.SdoAbortedError) as refused:
+            node.sdo[0x607A].raw = rad_to_counts(2.0)
+        assert refused.value.code == 0x06090030
+        node.sdo[0x607A].raw = rad_to_counts(0.04)
+        node.sdo[0x6040].raw = 0x1F
+        assert wait_for(lambda: node.sdo[0x6041].raw & 0x400)
+        assert abs(node.sdo[0x6064].raw - rad_to_counts(0.04)) <= 200
+        node.sdo[0x6040].raw = 0x07  # disable operation = lock
+        assert units[1].axes[1].is_locked()
+        # heartbeat: host node 127 beats, then stops while a move runs
+        beat = network.send_periodic(0x77F, [0x05], 0.1)
+        time.sleep(0.3)
+        node.sdo[0x6040].raw = 0x0F
+        node.sdo[0x607A].raw = rad_to_counts(-1.0)
+        node.sdo[0x6040].raw = 0x1F
+        beat.stop()
+        time.sleep(1.2)
+        assert node.sdo[0x6041].raw & 0x08  # fault
+        assert node.sdo[0x603F].raw == 0xFF04
+        assert units[1].axes[1].is_locked()
+    finally:
+        network.disconnect()
+        server.stop()
+
+
+def test_interferometer_on_a_pty(machine):
+    world = build_world(machine, seed=3, real_time=True)
+    server = PtyInterferometerServer(world.interferometer, rate_hz=100.0)
+    server.start()
+    port = serial.Serial(server.port, timeout=2.0)
+    try:
+
+        def ask(text):
+            port.write(text.encode() + b"\n")
+            return decode_line(port.readline())
+
+        assert ask("ID?") == Reply(True, "ID XMALIGN-SIM XM-60 class 1.0")
+        assert ask("RATE 200") == Reply(True, "RATE 200")
+        assert ask("BOGUS").ok is False
+        assert ask("ZERO") == Reply(True, "ZERO")
+        assert ask("READ") == Reply(True, "READ")
+        sample = decode_line(port.readline())
+        assert isinstance(sample, InterferometerReading)
+        assert abs(sample.channels[0]) < 1.0  # just zeroed: noise only
+        assert ask("STREAM ON") == Reply(True, "STREAM ON")
+        lines = [decode_line(port.readline()) for _ in range(40)]
+        samples = [line for line in lines if isinstance(line, InterferometerReading)]
+        times = np.array([s.time_s for s in samples])
+        assert len(samples) >= 39 and np.all(np.diff(times) > 0)
+        assert 0.1 < times[-1] - times[0] < 0.5  # about 200 samples/s
+        port.write(b"STREAM OFF\n")
+    finally:
+        port.close()
+        server.stop()
