@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -21,27 +19,3 @@ def reference_machine_path() -> Path:
 @pytest.fixture(scope="session")
 def reference_machine(reference_machine_path: Path) -> Machine:
     return load_machine(reference_machine_path)
-
-
-def run_cli(
-    *args: str, cwd: Path | None = None, timeout: float = 120
-) -> subprocess.CompletedProcess:
-    """Run ``xmalign ARGS`` as a user would, in a fresh interpreter."""
-    return subprocess.run(
-        [sys.executable, "-m", "xmalign", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=timeout,
-        stdin=subprocess.DEVNULL,
-    )
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
-    """Exit code 2, one line on stderr naming the fragments, no traceback."""
-    assert result.returncode == 2, result.stderr
-    assert "Traceback" not in result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]

@@ -1,6 +1,6 @@
 import json
 
-from conftest import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli
 
 from xmalign.formats.pose import read_pose
 

@@ -1,0 +1,302 @@
+"""Running a measurement plan on the units, the interferometer and the machine (roles only).
+
+Per line: drive the units to the plan's angles, fine-align at the line start,
+lock, then follow the machine through the targets and capture the six
+channels averaged over each dwell. Every captured point is appended to the
+measurement CSV and flushed at once; a resumed run skips the points already
+recorded. A beam loss or a device fault stops the line with the units locked.
+
+The interferometer reports in its beam frame (``u`` from the launch unit
+towards the receiver) with the raw displacement since its datum; the rows are
+written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
+minus the commanded displacement from the run's first point (where the datum
+is set).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
+from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
+from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.plan import Plan, PlanLine
+from xmalign.geometry import Vec
+from xmalign.kinematics import receiver_axis, receiver_cp
+from xmalign.roles import (
+    CHANNELS,
+    Clock,
+    Interferometer,
+    InterferometerReading,
+    MachinePositionSource,
+    PositioningUnit,
+)
+
+#: Time the units may take to reach the plan's angles, s.
+UNIT_MOVE_TIMEOUT_S = 120.0
+#: Part of each dwell left for the machine to settle before averaging starts.
+SETTLE_FRACTION = 0.2
+#: Part of each dwell that is averaged (the rest is margin for the controller's dwell timer).
+AVERAGE_FRACTION = 0.6
+
+
+@dataclass(frozen=True)
+class CapturePoint:
+    """One point of the plan to capture, in the order the program visits it."""
+
+    line: PlanLine
+    run: int
+    direction: str
+    index: int
+
+    @property
+    def key(self) -> tuple[str, int, str, int]:
+        return (self.line.id, self.run, self.direction, self.index)
+
+    @property
+    def point_mm(self) -> Vec:
+        return self.line.target_points_mm()[self.index]
+
+    @property
+    def starts_run(self) -> bool:
+        """The run's first point: the interferometer datum is set here."""
+        return self.direction == "+" and self.index == 0
+
+
+def capture_sequence(line: PlanLine) -> Iterator[CapturePoint]:
+    """The line's points in program order: per run, up the targets, then back if bidirectional."""
+    count = len(line.targets_mm)
+    for run in range(1, line.runs + 1):
+        yield from (CapturePoint(line, run, "+", i) for i in range(count))
+        if line.bidirectional:
+            yield from (CapturePoint(line, run, "-", i) for i in range(count - 1, -1, -1))
+
+
+def beam_sign(line: PlanLine, spindle_angle_rad: float) -> float:
+    """+1 when the beam runs along the line's ``u`` (away from the launch unit), else -1."""
+    phi3, phi4 = line.receiver_rad[:2]
+    beam = -receiver_axis(spindle_angle_rad, phi3, phi4)
+    return 1.0 if float(beam @ line.frame[0]) >= 0 else -1.0
+
+
+def line_channels(
+    reading: InterferometerReading, sign: float, commanded_displacement_mm: float
+) -> Vec:
+    """Six channels of CONVENTIONS.md in the line frame from a beam-frame reading, (6,).
+
+    Reversing ``u`` keeps ``w`` and reverses ``v``; a rotation vector's
+    components about ``u`` and ``v`` reverse with them.
+    """
+    raw = reading.channels
+    flip = np.array([sign, sign, 1.0, sign, sign, 1.0])
+    channels = raw * flip
+    channels[0] = sign * raw[0] - commanded_displacement_mm * 1e3
+    return channels
+
+
+def _beam_message(point: CapturePoint, reading: InterferometerReading) -> str:
+    values = ", ".join(
+        f"{name} {value:.1f}"
+        for name, value in zip(CHANNELS[1:], reading.channels[1:], strict=True)
+    )
+    return (
+        f"beam lost on line {point.line.id} run {point.run} ({point.direction}) target "
+        f"{point.index + 1} ({values}): the units are locked; check the beam path, re-align "
+        "and continue with --resume"
+    )
+
+
+@dataclass
+class RunStatistics:
+    """Simulated or real time spent, s, and what was captured."""
+
+    alignment_s: float = 0.0
+    measuring_s: float = 0.0
+    points: int = 0
+    skipped: int = 0
+    alignments: dict[str, FineAlignmentResult] = field(default_factory=dict)
+
+
+@dataclass
+class CalibrationRun:
+    """Captures a plan's points with the units, the interferometer and a clock.
+
+    Parameters
+    ----------
+    plan : Plan
+    launch, receiver : PositioningUnit
+    interferometer : Interferometer
+    clock : Clock
+    record : callable
+        Called with every captured row at once (append + flush to the CSV).
+    done : set of tuple
+        Keys ``(line, run, direction, index)`` already recorded (resume).
+    launch2mcs_mm : array_like, shape (3,), optional
+        Identified launch cp, for the fine-alignment distance of each line.
+    """
+
+    plan: Plan
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+    record: Callable[[MeasurementRow], None]
+    done: set[tuple[str, int, str, int]] = field(default_factory=set)
+    launch2mcs_mm: Vec | None = None
+    alignment_settings: FineAlignmentSettings | None = None
+    statistics: RunStatistics = field(default_factory=RunStatistics)
+
+    def line_is_done(self, line: PlanLine) -> bool:
+        return all(point.key in self.done for point in capture_sequence(line))
+
+    def _distance_mm(self, line: PlanLine) -> float:
+        if self.launch2mcs_mm is None:
+            return float(line.extra.get("start_distance_mm", 1000.0))
+        start_cp = receiver_cp(
+            line.start_mm, self.plan.receiver_offset_mm, self.plan.spindle_angle_rad
+        )
+        return float(np.linalg.norm(start_cp - np.asarray(self.launch2mcs_mm)))
+
+    def set_line(self, line: PlanLine) -> FineAlignmentResult:
+        """Units to the plan's angles, fine alignment at the line start, lock."""
+        started = self.clock.now()
+        self.launch.move_to(line.launch_rad, UNIT_MOVE_TIMEOUT_S)
+        self.receiver.move_to(line.receiver_rad, UNIT_MOVE_TIMEOUT_S)
+        result = fine_align(
+            self.launch,
+            self.receiver,
+            self.interferometer,
+            self.clock,
+            self._distance_mm(line),
+            self.alignment_settings,
+        )
+        self.launch.lock()
+        self.receiver.lock()
+        self.statistics.alignments[line.id] = result
+        self.statistics.alignment_s += self.clock.now() - started
+        return result
+
+    def capture(self, point: CapturePoint, dwell_s: float) -> MeasurementRow | None:
+        """Datum at the run's first point, then average over the dwell and record the row."""
+        started = self.clock.now()
+        if point.starts_run:
+            self.interferometer.zero()
+        if point.key in self.done:
+            self.statistics.skipped += 1
+            return None
+        self.clock.sleep(SETTLE_FRACTION * dwell_s)
+        reading = self.interferometer.average(max(AVERAGE_FRACTION * dwell_s, 1e-3))
+        if not reading.beam_ok:
+            raise BeamLostError(_beam_message(point, reading))
+        line = point.line
+        displacement = float(line.targets_mm[point.index] - line.targets_mm[0])
+        sign = beam_sign(line, self.plan.spindle_angle_rad)
+        row = MeasurementRow(
+            line=line.id,
+            run=point.run,
+            direction=point.direction,
+            index=point.index,
+            target_mm=float(line.targets_mm[point.index]),
+            machine_mm=point.point_mm,
+            channels=line_channels(reading, sign, displacement),
+        )
+        self.record(row)
+        self.done.add(point.key)
+        self.statistics.points += 1
+        self.statistics.measuring_s += self.clock.now() - started
+        return row
+
+
+def follow_machine(
+    run: CalibrationRun,
+    position: MachinePositionSource,
+    lines: Iterable[PlanLine],
+    on_line_start: Callable[[PlanLine], None],
+    tolerance_mm: float = 0.005,
+    timeout_s: float = 600.0,
+    poll_s: float = 0.05,
+) -> None:
+    """Capture while the controller runs the program: wait for standstill at each target.
+
+    ``on_line_start`` is called before each line (e.g. to tell the operator to
+    press cycle start once the units are set).
+    """
+    for line in lines:
+        if run.line_is_done(line):
+            continue
+        run.set_line(line)
+        on_line_start(line)
+        for point in capture_sequence(line):
+            _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
+            run.capture(point, line.dwell_s)
+
+
+def _wait_at(
+    position: MachinePositionSource,
+    clock: Clock,
+    point: CapturePoint,
+    tolerance_mm: float,
+    timeout_s: float,
+    poll_s: float,
+) -> None:
+    deadline = clock.now() + timeout_s
+    while clock.now() < deadline:
+        if position.is_standstill():
+            miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
+            if miss <= tolerance_mm:
+                return
+        clock.sleep(poll_s)
+    raise DeviceTimeoutError(
+        f"the machine did not stop at line {point.line.id} run {point.run} target "
+        f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
+    )
+
+
+def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: float) -> None:
+    """Refuse a dwell that is not where the plan expects the next capture."""
+    miss = float(np.linalg.norm(np.asarray(position_mm) - point.point_mm))
+    if miss > tolerance_mm:
+        raise InputError(
+            f"the program dwells at {np.round(position_mm, 3).tolist()} mm but the plan expects "
+            f"line {point.line.id} run {point.run} target {point.index + 1} at "
+            f"{np.round(point.point_mm, 3).tolist()} mm: program and plan do not match"
+        )
+
+
+class ProgramEvent(Protocol):
+    """What a controller running the program reports (the simulated CNC's events)."""
+
+    kind: str
+    position_mm: Vec
+    dwell_s: float
+
+
+def capture_program(
+    run: CalibrationRun, events: Iterable[ProgramEvent], tolerance_mm: float = 1e-3
+) -> None:
+    """Capture while a program runs: set the units at each programmed stop, capture at each dwell.
+
+    The program is the one ``xmalign program`` writes for ``run.plan``: one
+    stop per line (before its first run) and one dwell per capture point, in
+    the order of :func:`capture_sequence`.
+    """
+    lines = iter(run.plan.lines)
+    points: Iterator[CapturePoint] = iter(())
+    for event in events:
+        if event.kind == "stop":
+            line = next(lines, None)
+            if line is None:
+                raise InputError("the program stops for more lines than the plan has")
+            if not run.line_is_done(line):
+                run.set_line(line)
+            points = capture_sequence(line)
+        elif event.kind == "dwell":
+            point = next(points, None)
+            if point is None:
+                raise InputError("the program dwells at more points than the plan has")
+            check_program_position(point, event.position_mm, tolerance_mm)
+            run.capture(point, event.dwell_s)
