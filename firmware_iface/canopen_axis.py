@@ -49,7 +49,7 @@ SHUTDOWN, SWITCH_ON, ENABLE_OPERATION = 0x06, 0x07, 0x0F
 NEW_SET_POINT, HALT, FAULT_RESET = 0x10, 0x100, 0x80
 FAULT, TARGET_REACHED, SET_POINT_ACK = 0x08, 0x400, 0x1000
 #: Statusword mask and value of *operation enabled* (the only state with the brake released).
-STATE_MASK, OPERATION_ENABLED = 0x6F, 0x27
+STATE_MASK, SWITCHED_ON_STATE, OPERATION_ENABLED = 0x6F, 0x23, 0x27
 #: SDO abort code "value range of parameter exceeded": the node refuses a target.
 ABORT_VALUE_RANGE = 0x06090030
 #: ``0x603F`` holds ``FAULT_CODE_BASE + fault code`` of registers.yaml.
@@ -139,8 +139,9 @@ class CanopenAxis:
         return status
 
     def move_to(self, angle_rad: float) -> None:
-        """Profile-position move to a reported angle (returns once the node accepted it)."""
+        """Profile-position move to a reported angle (returns once the node took the target)."""
         self._set_mode(MODE_PROFILE_POSITION)
+        self._ensure_switched_on()
         try:
             self._write(TARGET_POSITION, self.rad_to_counts(angle_rad))
         except OutOfRangeError as error:
@@ -149,8 +150,13 @@ class CanopenAxis:
             ) from error
         self._write(CONTROLWORD, ENABLE_OPERATION)
         self._write(CONTROLWORD, ENABLE_OPERATION | NEW_SET_POINT)
-        self._wait_for(SET_POINT_ACK, 1.0, "acknowledge the new target")
+        # acknowledged, or already there (a short move can end before the first poll)
+        self._wait_for(SET_POINT_ACK | TARGET_REACHED, 1.0, "take the new target")
         self._write(CONTROLWORD, ENABLE_OPERATION)
+
+    def _ensure_switched_on(self) -> None:
+        if self.statusword() & STATE_MASK not in (SWITCHED_ON_STATE, OPERATION_ENABLED):
+            self.enable()
 
     def wait_in_position(self, timeout_s: float) -> None:
         self._wait_for(TARGET_REACHED, timeout_s, "reach its target")
@@ -186,6 +192,7 @@ class CanopenAxis:
     def home(self, timeout_s: float) -> None:
         """Home on the current position (method of the EDS) and wait until attained."""
         self._set_mode(MODE_HOMING)
+        self._ensure_switched_on()
         self._write(CONTROLWORD, ENABLE_OPERATION)
         self._write(CONTROLWORD, ENABLE_OPERATION | NEW_SET_POINT)
         self._wait_for(SET_POINT_ACK, timeout_s, "finish homing")
@@ -197,6 +204,7 @@ class CanopenAxis:
         For tracking, call it every control cycle with the new velocity command.
         """
         self._set_mode(MODE_CSV)
+        self._ensure_switched_on()
         self._write(TARGET_VELOCITY, self.rad_to_counts(velocity_rad_s))
         self._write(CONTROLWORD, ENABLE_OPERATION)
 
