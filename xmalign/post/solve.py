@@ -217,22 +217,25 @@ class TableFit:
     n_parameters: int
 
 
+def _undetermined(normal: Vec, layout: ParameterLayout) -> GeometryError:
+    """An error naming the parameter most involved in the weakest direction of the system."""
+    _, vectors = np.linalg.eigh(normal)
+    column = int(np.argmax(np.abs(vectors[:, 0])))
+    return GeometryError(
+        f"the lines cannot determine {layout.describe(column)}; measure the three axis lines"
+        " and the three face diagonals"
+    )
+
+
 def _factorise(normal: Vec, layout: ParameterLayout) -> tuple[Vec, bool]:
+    """Cholesky factor of the (column-scaled) normal matrix; GeometryError when singular."""
     try:
         factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
     except np.linalg.LinAlgError as error:
-        raise GeometryError(
-            "the lines cannot separate the errors (singular system); measure the three axis"
-            " lines and the three face diagonals"
-        ) from error
+        raise _undetermined(normal, layout) from error
     pivots = np.diag(factor[0]) ** 2
-    weak = np.flatnonzero(pivots < _RANK_TOLERANCE * pivots.max())
-    if len(weak):
-        raise GeometryError(
-            f"the lines cannot determine {layout.describe(int(weak[0]))}"
-            f" ({len(weak)} undetermined parameters); measure the three axis lines and the"
-            " three face diagonals"
-        )
+    if pivots.min() < _RANK_TOLERANCE * pivots.max():
+        raise _undetermined(normal, layout)
     return factor
 
 

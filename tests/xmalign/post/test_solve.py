@@ -1,0 +1,146 @@
+"""The error-table fit: reproduction of a known machine, conventions, backlash, GUM, rank."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.machine import ErrorAmplitudes, VirtualMachine
+from xmalign.errors import GeometryError, InputError
+from xmalign.machine import Machine
+from xmalign.post.compare import grid_points, volumetric_rms_um
+from xmalign.post.evaluate import post_process
+from xmalign.post.synthetic import measure, six_line_plan
+from xmalign.rigid_body import Chain, ErrorTables
+
+BACKLASH_MM = np.array([0.004, 0.003, 0.002])
+
+
+def _machine(reference: Machine, **changes: object) -> Machine:
+    return reference.model_copy(update=changes)
+
+
+def _fit(machine: Machine, truth: VirtualMachine, seed: int, n: int = 40, **plan: object):
+    layout = six_line_plan(machine, n, **plan)
+    rows = measure(
+        layout, Chain.parse(machine.chain), truth, np.random.default_rng(seed),
+        backlash_mm=BACKLASH_MM,
+    )
+    return post_process(machine, layout, rows, "synthetic.csv")
+
+
+@pytest.fixture(scope="module")
+def truth(reference_machine: Machine) -> VirtualMachine:
+    return VirtualMachine(reference_machine, seed=11)
+
+
+@pytest.fixture(scope="module")
+def bidirectional(reference_machine: Machine, truth: VirtualMachine):
+    return _fit(reference_machine, truth, seed=5)
+
+
+def _rms(machine: Machine, model, truth) -> float:
+    points = grid_points(machine.travel_min_mm, machine.travel_max_mm, 6)
+    return volumetric_rms_um(Chain.parse(machine.chain), points, model, truth)
+
+
+def test_reproduces_a_known_machine(reference_machine, truth, bidirectional):
+    assert _rms(reference_machine, ErrorTables(), truth) > 10.0  # tens of um to reproduce
+    assert _rms(reference_machine, bidirectional.fit.tables.model(""), truth) <= 1.0
+
+
+@pytest.mark.parametrize(
+    ("chain", "offset_mm", "spindle_deg"),
+    [("XFYZ", [0.0, 0.0, -180.0], 0.0), ("FYXZ", [60.0, -40.0, -300.0], 30.0)],
+)
+def test_abbe_offsets_and_chains(reference_machine, chain, offset_mm, spindle_deg):
+    machine = _machine(
+        reference_machine, chain=chain, receiver_offset_mm=offset_mm, spindle_angle_deg=spindle_deg
+    )
+    truth = VirtualMachine(machine, seed=23)
+    result = _fit(machine, truth, seed=2, n=30, runs=1, bidirectional=False)
+    assert _rms(machine, result.fit.tables.model(""), truth) <= 1.0
+
+
+def test_table_conventions(bidirectional):
+    tables = bidirectional.fit.tables.tables
+    for name in ("EXX", "EAX", "ECY", "EZZ"):
+        assert tables[name].values[0] == 0.0 and tables[name].u95[0] == 0.0
+    for name in ("EYX", "EZX", "EXY", "EZY", "EXZ", "EYZ"):
+        assert tables[name].values[0] == 0.0 and tables[name].values[-1] == 0.0
+        assert np.all(tables[name].u95[1:-1] > 0.0)
+    assert set(bidirectional.fit.tables.squareness) == {"EC0Y", "EA0Z", "EB0Z"}
+
+
+def test_forward_and_reverse_tables_recover_the_backlash(bidirectional):
+    tables = bidirectional.fit.tables.tables
+    for i, name in enumerate(("EXX", "EYY", "EZZ")):
+        reversal = tables[name + "+"].values - tables[name + "-"].values
+        assert abs(np.mean(reversal) + BACKLASH_MM[i]) < 0.2e-3
+        assert np.max(np.abs(reversal + BACKLASH_MM[i])) < 1.0e-3
+        assert np.allclose(0.5 * (tables[name + "+"].values + tables[name + "-"].values),
+                           tables[name].values)
+
+
+def test_setup_terms_and_residuals_are_reported(bidirectional):
+    assert [s.line_id for s in bidirectional.fit.setup] == ["X", "Y", "Z", "XY", "YZ", "XZ"]
+    assert all(len(s.linear_offset_um) == 2 for s in bidirectional.fit.setup)
+    for rms in bidirectional.fit.residual_rms.values():
+        assert np.all(rms < 2.0)  # noise level of the synthetic channels
+    assert 0.2 < bidirectional.fit.sigma0 < 1.0
+
+
+def test_expanded_uncertainty_follows_the_channel_uncertainties(reference_machine, truth):
+    base = _fit(reference_machine, truth, seed=7, n=20, runs=1, bidirectional=False)
+    doubled = reference_machine.uncertainty.model_copy(
+        update={
+            name: 2 * getattr(reference_machine.uncertainty, name)
+            for name in ("channel_linear_um", "channel_straightness_um",
+                         "channel_angle_urad", "channel_roll_urad")
+        }
+    )
+    machine = _machine(reference_machine, uncertainty=doubled)
+    scaled = _fit(machine, truth, seed=7, n=20, runs=1, bidirectional=False)
+    a, b = base.fit.tables.tables["EXX"].u95, scaled.fit.tables.tables["EXX"].u95
+    assert np.allclose(b[1:], 2 * a[1:], rtol=1e-6)
+    assert "EXX+" not in base.fit.tables.tables
+
+
+def test_u95_covers_the_scatter_of_repeated_measurements(reference_machine, truth):
+    """GUM check: the spread of EXX over repeated noisy measurements matches u95 / 2."""
+    fits = [
+        _fit(reference_machine, truth, seed=s, n=15, runs=1, bidirectional=False)
+        for s in range(8)
+    ]
+    values = np.array([f.fit.tables.tables["EXX"].values[1:] for f in fits])
+    predicted = fits[0].fit.tables.tables["EXX"].u95[1:] / 2
+    # the synthetic noise is below the assumed channel uncertainty: spread < predicted
+    assert np.median(values.std(axis=0, ddof=1) / predicted) < 1.0
+
+
+def test_without_diagonals_the_squareness_is_refused(reference_machine, truth):
+    layout = six_line_plan(reference_machine, 10, runs=1, bidirectional=False)
+    layout.lines = layout.lines[:3]
+    rows = measure(layout, Chain.parse("FYXZ"), truth, np.random.default_rng(0))
+    undetermined = "cannot determine (EC0Y|EA0Z|EB0Z)|no measurement sees"
+    with pytest.raises(GeometryError, match=undetermined):
+        post_process(reference_machine, layout, rows, "m.csv")
+
+
+def test_a_missing_axis_line_is_named(reference_machine, truth):
+    layout = six_line_plan(reference_machine, 10, runs=1, bidirectional=False)
+    layout.lines = [line for line in layout.lines if line.id != "Y"]
+    rows = measure(layout, Chain.parse("FYXZ"), truth, np.random.default_rng(0))
+    with pytest.raises(InputError, match="no line along Y"):
+        post_process(reference_machine, layout, rows, "m.csv")
+
+
+def test_a_perfect_machine_gives_zero_tables(reference_machine):
+    perfect = VirtualMachine(reference_machine, ErrorAmplitudes(scale=0.0), seed=1)
+    layout = six_line_plan(reference_machine, 10, runs=1, bidirectional=False)
+    rows = measure(layout, Chain.parse("FYXZ"), perfect, np.random.default_rng(3))
+    tables = post_process(reference_machine, layout, rows, "m.csv").fit.tables
+    values = np.concatenate([t.values for t in tables.tables.values()])
+    u95 = np.concatenate([t.u95 for t in tables.tables.values()])
+    assert np.all(np.abs(values) <= 2 * u95 + 1e-12)
+    assert np.mean(np.abs(values) <= u95 + 1e-12) >= 0.9
