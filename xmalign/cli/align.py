@@ -30,6 +30,7 @@ from xmalign.alignment import (
     jog,
     parse_jog,
     range_used,
+    sensitivity,
 )
 from xmalign.cli.common import console, machine_or_default
 from xmalign.errors import InputError, XmalignError
@@ -67,25 +68,30 @@ def simulated_setup(
 ) -> tuple[World, AlignmentDevices]:
     """A virtual setup with the units ``start_um`` / ``start_urad`` off alignment.
 
-    The launch unit misses the receiver by ``start_um`` (diagonally in v and w)
-    and each receiver axis is ``start_urad`` off; the units then stand still,
-    unlocked. Returns the world and the in-process devices (virtual time);
+    The units are first aligned on the (simulated) beam, then moved so that
+    the straightness channels read ``start_um`` in total (equal in v and w)
+    and each angle channel ``start_urad``; they then stand still, unlocked.
+    Returns the world and the in-process devices (virtual time);
     ``distance_mm`` is the true cp-to-cp distance.
     """
     world = build_world(machine, FixedPosition(position_mm), seed=seed, gamma_rad=gamma_rad)
     cp = receiver_cp(position_mm, machine.receiver_offset, machine.spindle_angle_rad)
-    aligned = aligned_angles(world.launch2mcs_mm, gamma_rad, cp, machine.spindle_angle_rad,
+    nominal = aligned_angles(world.launch2mcs_mm, gamma_rad, cp, machine.spindle_angle_rad,
                              _true_offsets(world))
-    elevation = aligned.launch_rad[1]
-    miss_rad = start_um * 1e-3 / math.sqrt(2.0) / aligned.distance_mm
-    launch_start = aligned.launch_rad + [miss_rad / math.cos(elevation), -miss_rad]
     roll = -world.receiver.axes[2].zero_offset_rad
-    receiver_start = np.array([*aligned.receiver_rad[:2], roll]) + start_urad * 1e-6
     launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
-    launch.move_to(launch_start, timeout_s=60.0)
-    receiver.move_to(receiver_start, timeout_s=60.0)
+    launch.move_to(nominal.launch_rad, timeout_s=60.0)
+    receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
+    fine_align(launch, receiver, world.interferometer, world.clock, nominal.distance_mm,
+               FineAlignmentSettings(timeout_s=60.0))
+    aligned_rad = np.array([axis.target_rad for axis in (*world.launch.axes, *world.receiver.axes)])
+    wanted = np.array([start_um / math.sqrt(2.0)] * 2 + [start_urad] * 3)
+    offset_urad = np.linalg.solve(sensitivity(aligned_rad[1], nominal.distance_mm), wanted)
+    start = aligned_rad + offset_urad * 1e-6
+    launch.move_to(start[:2], timeout_s=60.0)
+    receiver.move_to(start[2:], timeout_s=60.0)
     devices = AlignmentDevices(launch, receiver, world.interferometer, world.clock,
-                               aligned.distance_mm)
+                               nominal.distance_mm)
     return world, devices
 
 

@@ -1,0 +1,114 @@
+"""Fine alignment on the simulated setup: the channel mapping, convergence, beam loss, jogging."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from xmalign.alignment import (
+    FineAlignmentSettings,
+    JogCommand,
+    aligned_error,
+    fine_align,
+    jog,
+    parse_jog,
+    range_used,
+    sensitivity,
+)
+from xmalign.cli.align import simulated_setup
+from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError, OutOfRangeError
+from xmalign.roles import InterferometerReading
+
+#: CNC points giving beams from nearly level to steep (the launch unit stands below the table).
+POSITIONS = [np.array(p, dtype=float) for p in ([1600, 1050, -100], [300, 1400, -400],
+                                                 [1900, 200, 0])]
+
+
+@pytest.mark.parametrize("position", POSITIONS)
+def test_sensitivity_matches_the_simulated_instrument(reference_machine, position) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(reference_machine, position, seed=2, start_um=0, start_urad=0)
+    step_rad = 20e-6
+    base = world.interferometer.geometry()
+    axes = [*devices.launch.axes, *devices.receiver.axes]
+    motors = [*world.launch.axes, *world.receiver.axes]
+    measured = []
+    for axis, motor in zip(axes, motors, strict=True):
+        start = motor.motor_rad()  # the encoder reading would add its noise
+        axis.move_to(start + step_rad)
+        axis.wait_in_position(1.0)
+        after = world.interferometer.geometry()
+        measured.append(aligned_error(_noise_free(after)) - aligned_error(_noise_free(base)))
+        axis.move_to(start)
+        axis.wait_in_position(1.0)
+    elevation = devices.launch.angles_rad()[1]
+    predicted = sensitivity(elevation, base.distance_mm) * (step_rad * 1e6)
+    np.testing.assert_allclose(np.array(measured).T, predicted, rtol=0.02, atol=0.05)
+
+
+def _noise_free(geometry) -> InterferometerReading:  # noqa: ANN001
+    return InterferometerReading(0.0, geometry.channels, geometry.beam_ok)
+
+
+@pytest.mark.parametrize("position", POSITIONS)
+def test_converges_from_200um_300urad_within_5s(reference_machine, position) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(reference_machine, position, seed=7, start_um=200,
+                                     start_urad=300)
+    start = aligned_error(world.interferometer.read())
+    assert np.hypot(*start[:2]) > 150 and np.all(np.abs(start[2:]) > 100)
+    settings = FineAlignmentSettings()
+    result = fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock,
+                        distance_mm=1000.0, settings=settings)
+    assert result.elapsed_s <= 5.0
+    truth = aligned_error(_noise_free(world.interferometer.geometry()))
+    assert np.all(np.abs(truth[:2]) <= 2 * settings.straightness_tol_um)
+    assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
+    assert result.distance_mm == pytest.approx(world.interferometer.geometry().distance_mm,
+                                               rel=0.15)
+
+
+def test_lost_beam_stops_fine_alignment(reference_machine) -> None:  # noqa: ANN001
+    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=600,
+                                 start_urad=0)
+    with pytest.raises(BeamLostError, match="beam was lost.*align --manual"):
+        fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock, 1000.0)
+
+
+def test_timeout_names_the_residuals(reference_machine) -> None:  # noqa: ANN001
+    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=200,
+                                 start_urad=300)
+    settings = FineAlignmentSettings(timeout_s=0.1)
+    with pytest.raises(DeviceTimeoutError, match=r"did not converge in 0.1 s \(straightness_v"):
+        fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock,
+                   1000.0, settings)
+
+
+@pytest.mark.parametrize(("text", "axis", "step_deg"),
+                         [("a2 -0.01", 2, -0.01), ("A5 +.5", 5, 0.5), (" a1 3 ", 1, 3.0)])
+def test_parse_jog(text: str, axis: int, step_deg: float) -> None:
+    assert parse_jog(text) == JogCommand(axis, math.radians(step_deg))
+
+
+@pytest.mark.parametrize("text", ["a6 0.1", "a1", "x 1", "a1 0.1 0.2", "a1 1e"])
+def test_parse_jog_refuses_nonsense(text: str) -> None:
+    with pytest.raises(InputError, match="expected an axis a1..a5"):
+        parse_jog(text)
+
+
+def test_jog_moves_one_axis(reference_machine) -> None:  # noqa: ANN001
+    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=0,
+                                 start_urad=0)
+    before = np.concatenate([devices.launch.angles_rad(), devices.receiver.angles_rad()])
+    jog(devices.launch, devices.receiver, JogCommand(4, math.radians(0.01)), 1.0)
+    after = np.concatenate([devices.launch.angles_rad(), devices.receiver.angles_rad()])
+    moved = after - before
+    assert moved[3] == pytest.approx(math.radians(0.01), abs=5e-5)
+    assert np.all(np.abs(np.delete(moved, 3)) < 5e-5)
+    with pytest.raises(OutOfRangeError, match="no axis a6"):
+        jog(devices.launch, devices.receiver, JogCommand(6, 0.0), 1.0)
+
+
+def test_range_used() -> None:
+    reading = InterferometerReading(0.0, np.array([5.0, 125.0, -250.0, 50.0, -500.0, 0.0]))
+    np.testing.assert_allclose(range_used(reading, 250.0, 500.0), [0.5, 1.0, 0.0, 1.0, 0.1])
