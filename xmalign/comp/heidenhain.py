@@ -44,6 +44,11 @@ COMPENSATES = frozenset({*POSITIONING.values(), *STRAIGHTNESS, "squareness"})
 _WIDTH = 12
 
 
+def _signed(value: float, decimals: int) -> str:
+    """``+0.00123``; a value that rounds to zero is ``+0.00000``, never ``-0.00000``."""
+    return f"{round(value, decimals) + 0.0:+.{decimals}f}"
+
+
 def _row(cells: list[str]) -> str:
     return "".join(cell.ljust(_WIDTH) for cell in cells).rstrip()
 
@@ -73,7 +78,7 @@ def render_com(tables: ErrorTableSet, axis: str) -> str:
     columns = _com_columns(tables, axis, positions)
     lines = [f"BEGIN {axis}.COM MM", _row(["NR", "AXISPOS", *columns])]
     for n, position in enumerate(positions):
-        cells = [str(n), f"{position:+.4f}", *(f"{c[n]:+.5f}" for c in columns.values())]
+        cells = [str(n), _signed(position, 4), *(_signed(c[n], 5) for c in columns.values())]
         lines.append(_row(cells))
     lines.append("[END]")
     return "\n".join(lines) + "\n"

@@ -50,7 +50,7 @@ COMPENSATES = frozenset({*POSITIONING.values(), *STRAIGHTNESS, "squareness"})
 
 
 def _mm(value: float) -> str:
-    return f"{value:.6f}"
+    return f"{round(value, 6) + 0.0:.6f}"
 
 
 def _eec_block(axis: str, grid: Grid, values_mm: Vec) -> list[str]:
