@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 from xmalign.alignment import FineAlignmentSettings, fine_align
 from xmalign.errors import GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
-from xmalign.geometry import Vec, azimuth_elevation
+from xmalign.geometry import Vec, azimuth_elevation, wrap_angle
 from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit
@@ -42,11 +42,14 @@ class PoseGuess:
 
     ``gamma_rad`` may be unknown (None): the machine file only guesses the
     position; the routine then estimates gamma from the first alignment.
+    ``offsets`` and ``receiver_roll_rad`` (reported a5 angle of zero roll)
+    are learnt from the recorded alignments as they come in.
     """
 
     launch2mcs_mm: Vec
     gamma_rad: float | None = None
     offsets: EncoderOffsets = field(default_factory=EncoderOffsets)
+    receiver_roll_rad: float = 0.0
 
 
 Stage = Literal["skipped", "moving", "pointing", "manual", "aligning", "recorded"]
@@ -113,12 +116,36 @@ def gamma_from_alignments(launch2mcs_mm: Vec, session: Session) -> float:
     return float(np.angle(np.mean(np.exp(1j * np.array(gammas)))))
 
 
+def _pointing_bias(guess: PoseGuess, session: Session) -> tuple[EncoderOffsets, float]:
+    """Encoder offsets and receiver roll that the recorded alignments show for this guess.
+
+    The angles the guess predicts at each recorded position minus the angles
+    recorded there (mean): the zero offsets plus whatever the guess gets wrong
+    nearby, so that coarse pointing at the next position lands in range.
+    """
+    biases = []
+    for a in session.alignments:
+        cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+        predicted = aligned_angles(guess.launch2mcs_mm, float(guess.gamma_rad), cp,
+                                   session.spindle_angle_rad)
+        biases.append([predicted.launch_rad[1] - a.launch_rad[1],
+                       float(wrap_angle(predicted.receiver_rad[0] - a.receiver_rad[0])),
+                       predicted.receiver_rad[1] - a.receiver_rad[1]])
+    c2, c3, c4 = np.mean(biases, axis=0)
+    roll = float(np.mean([a.receiver_rad[2] for a in session.alignments]))
+    return EncoderOffsets(float(c2), float(c3), float(c4)), roll
+
+
 def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None:
-    if guess is None or guess.gamma_rad is not None:
-        return guess
+    """The guess completed from the recorded alignments (gamma, offsets, roll), if usable."""
+    if guess is None or (guess.gamma_rad is None and not session.alignments):
+        return guess if guess is None or guess.gamma_rad is not None else None
+    if guess.gamma_rad is None:
+        guess = replace(guess, gamma_rad=gamma_from_alignments(guess.launch2mcs_mm, session))
     if not session.alignments:
-        return None
-    return replace(guess, gamma_rad=gamma_from_alignments(guess.launch2mcs_mm, session))
+        return guess
+    offsets, roll = _pointing_bias(guess, session)
+    return replace(guess, offsets=offsets, receiver_roll_rad=roll)
 
 
 def _point_units(
@@ -127,10 +154,9 @@ def _point_units(
     """Move both units to the angles predicted by the guess; returns the predicted distance."""
     predicted = aligned_angles(guess.launch2mcs_mm, float(guess.gamma_rad), cp_mm,
                                session.spindle_angle_rad, guess.offsets)
-    receiver_now = devices.receiver.angles_rad()
-    receiver_target = predicted.receiver_rad[: len(receiver_now)]
+    receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
     devices.launch.move_to(predicted.launch_rad, timeout_s)
-    devices.receiver.move_to(receiver_target, timeout_s)
+    devices.receiver.move_to(receiver_target[: len(devices.receiver.axes)], timeout_s)
     return predicted.distance_mm
 
 

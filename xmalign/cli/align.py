@@ -62,6 +62,25 @@ def _true_offsets(world: World) -> EncoderOffsets:
     )
 
 
+def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
+                   receiver: PositioningUnit) -> float:
+    """What the operator's manual alignment achieves in a simulated setup.
+
+    Moves the units to the nominal aligned angles of the true pose (true
+    encoder offsets, ignoring the optical-centre offsets and the beam
+    misalignment), which brings every beam into range but leaves work for
+    fine alignment. Returns the nominal cp-to-cp distance, mm.
+    """
+    cnc_mm = world.interferometer.position.position_mm()
+    cp = receiver_cp(cnc_mm, machine.receiver_offset, machine.spindle_angle_rad)
+    nominal = aligned_angles(world.launch2mcs_mm, world.gamma_rad, cp,
+                             machine.spindle_angle_rad, _true_offsets(world))
+    roll = -world.receiver.axes[2].zero_offset_rad
+    launch.move_to(nominal.launch_rad, timeout_s=60.0)
+    receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
+    return nominal.distance_mm
+
+
 def simulated_setup(
     machine: Machine, position_mm: np.ndarray, seed: int, start_um: float, start_urad: float,
     gamma_rad: float = 0.3,
@@ -75,23 +94,17 @@ def simulated_setup(
     ``distance_mm`` is the true cp-to-cp distance.
     """
     world = build_world(machine, FixedPosition(position_mm), seed=seed, gamma_rad=gamma_rad)
-    cp = receiver_cp(position_mm, machine.receiver_offset, machine.spindle_angle_rad)
-    nominal = aligned_angles(world.launch2mcs_mm, gamma_rad, cp, machine.spindle_angle_rad,
-                             _true_offsets(world))
-    roll = -world.receiver.axes[2].zero_offset_rad
     launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
-    launch.move_to(nominal.launch_rad, timeout_s=60.0)
-    receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
-    fine_align(launch, receiver, world.interferometer, world.clock, nominal.distance_mm,
+    distance_mm = point_by_truth(world, machine, launch, receiver)
+    fine_align(launch, receiver, world.interferometer, world.clock, distance_mm,
                FineAlignmentSettings(timeout_s=60.0))
     aligned_rad = np.array([axis.target_rad for axis in (*world.launch.axes, *world.receiver.axes)])
     wanted = np.array([start_um / math.sqrt(2.0)] * 2 + [start_urad] * 3)
-    offset_urad = np.linalg.solve(sensitivity(aligned_rad[1], nominal.distance_mm), wanted)
+    offset_urad = np.linalg.solve(sensitivity(aligned_rad[1], distance_mm), wanted)
     start = aligned_rad + offset_urad * 1e-6
     launch.move_to(start[:2], timeout_s=60.0)
     receiver.move_to(start[2:], timeout_s=60.0)
-    devices = AlignmentDevices(launch, receiver, world.interferometer, world.clock,
-                               nominal.distance_mm)
+    devices = AlignmentDevices(launch, receiver, world.interferometer, world.clock, distance_mm)
     return world, devices
 
 

@@ -1,0 +1,99 @@
+"""units_locked_on_exit: axes stopped and locked on success, error and Ctrl-C, one message."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.clock import SimClock
+from sim.units import SimPositioningUnit, SimUnit
+from xmalign.errors import DeviceError, DriveFaultError, TransportError, XmalignError
+from xmalign.safety import interrupted, lock_all, units_locked_on_exit
+
+
+def moving_units() -> tuple[SimClock, SimPositioningUnit, SimPositioningUnit]:
+    """Both simulated units with every axis in the middle of a long move."""
+    clock = SimClock()
+    launch = SimPositioningUnit(SimUnit("launch", clock, seed=1))
+    receiver = SimPositioningUnit(SimUnit("receiver", clock, seed=2))
+    for axis in (*launch.axes, *receiver.axes):
+        axis.move_to(1.0)
+    clock.sleep(0.5)
+    return clock, launch, receiver
+
+
+def all_locked(clock: SimClock, *units: SimPositioningUnit) -> bool:
+    clock.sleep(1.0)  # braking from full speed takes a third of a second
+    return all(axis.is_locked() for unit in units for axis in unit.axes)
+
+
+def test_locks_after_success() -> None:
+    clock, launch, receiver = moving_units()
+    with units_locked_on_exit(launch, receiver):
+        pass
+    assert all_locked(clock, launch, receiver)
+    assert all(abs(a) < 0.9 for a in np.concatenate([launch.angles_rad(), receiver.angles_rad()]))
+
+
+@pytest.mark.parametrize("error", [DriveFaultError("axis a1 reports fault 2"), RuntimeError("bug"),
+                                   KeyboardInterrupt()])
+def test_locks_and_propagates_on_error(error: BaseException) -> None:
+    clock, launch, receiver = moving_units()
+    with pytest.raises(type(error)) as caught, units_locked_on_exit(launch, receiver):
+        raise error
+    assert caught.value is error
+    assert all_locked(clock, launch, receiver)
+
+
+class UnreachableAxis:
+    """An axis whose link is gone: every command fails."""
+
+    name = "a2"
+    label = "axis a2 of the launch unit at 10.0.0.5:502"
+
+    def lock(self) -> None:
+        raise TransportError("lost the connection to the launch unit at 10.0.0.5:502")
+
+
+class HalfReachableUnit:
+    kind = "launch"
+
+    def __init__(self, reachable: SimPositioningUnit) -> None:
+        self.axes = (reachable.axes[0], UnreachableAxis())
+
+
+def test_one_unreachable_axis_does_not_stop_the_others() -> None:
+    clock, launch, receiver = moving_units()
+    unit = HalfReachableUnit(launch)
+    with pytest.raises(DeviceError) as caught, units_locked_on_exit(unit, receiver):
+        pass
+    assert str(caught.value) == (
+        "could not lock axis a2 of the launch unit at 10.0.0.5:502: lost the connection to the"
+        " launch unit at 10.0.0.5:502"
+    )
+    assert all_locked(clock, receiver) and launch.axes[0].is_locked()
+
+
+def test_locking_problems_join_the_original_message() -> None:
+    _, launch, _ = moving_units()
+    with pytest.raises(DriveFaultError) as caught, units_locked_on_exit(HalfReachableUnit(launch)):
+        raise DriveFaultError("axis a1 reports fault 2: drive fault")
+    assert str(caught.value).startswith("axis a1 reports fault 2: drive fault; could not lock")
+
+
+def test_ctrl_c_becomes_one_line() -> None:
+    _, launch, _ = moving_units()
+    with pytest.raises(KeyboardInterrupt) as caught, units_locked_on_exit(launch):
+        raise KeyboardInterrupt
+    error = interrupted(caught.value)
+    assert isinstance(error, XmalignError)
+    assert str(error) == "interrupted by the operator; all axes were stopped and locked"
+
+
+def test_lock_all_reports_each_axis_that_cannot_be_locked() -> None:
+    clock, launch, receiver = moving_units()
+    assert lock_all((launch, receiver)) == []
+    assert all_locked(clock, launch, receiver)
+    problems = lock_all((HalfReachableUnit(launch),))
+    assert problems == ["could not lock axis a2 of the launch unit at 10.0.0.5:502: lost the"
+                        " connection to the launch unit at 10.0.0.5:502"]
