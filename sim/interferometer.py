@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from sim.machine import VirtualMachine
 from sim.units import SimUnit
 from xmalign.errors import InputError
-from xmalign.geometry import Vec, line_frame, rot_z
+from xmalign.geometry import Vec, rot_z
 from xmalign.machine import InterferometerRanges
 from xmalign.roles import Clock, InterferometerReading, MachinePositionSource, mean_reading
 
@@ -118,7 +118,7 @@ class SimInterferometer:
         mount = Rotation.from_rotvec(tool_rotation).as_matrix() @ rot_z(setup.spindle_angle_rad)
         receiver = self.receiver.head_rotation(mount)
         centre = self.receiver.optical_centre(cp, receiver)
-        frame = line_frame(head[:, 0])
+        frame = head.T  # the launch head's axes: the line frame of its beam, turning with it
         along, across_v, across_w = frame @ (centre - origin)
         relative = Rotation.from_matrix(head.T @ receiver @ _FACING.T).as_rotvec()
         angles = frame @ (head @ relative)

@@ -49,8 +49,12 @@ class AxisLimits:
     acceleration_rad_s2: float = math.radians(90.0)
 
 
-_FULL_TURN = AxisLimits(-math.pi, math.pi)
-_TILT = AxisLimits(-math.pi / 2, math.pi / 2)
+#: Azimuth axes turn three quarters of a turn either way (cable-limited, as real units),
+#: so a correction across ±180° never needs a full turn back.
+_FULL_TURN = AxisLimits(-math.radians(270.0), math.radians(270.0))
+#: Tilt axes reach a little past vertical, so a vertical line (exactly ±90°) stays
+#: commandable whatever the encoder zero offset.
+_TILT = AxisLimits(-math.radians(100.0), math.radians(100.0))
 AXIS_LIMITS = {"launch": (_FULL_TURN, _TILT), "receiver": (_FULL_TURN, _TILT, _FULL_TURN)}
 AXIS_NAMES = {"launch": ("a1", "a2"), "receiver": ("a3", "a4", "a5")}
 

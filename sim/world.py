@@ -13,6 +13,7 @@ from sim.interferometer import SimInterferometer
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.units import SimUnit
 from xmalign.geometry import Vec
+from xmalign.kinematics import EncoderOffsets
 from xmalign.machine import Machine
 from xmalign.roles import Clock, MachinePositionSource
 
@@ -41,6 +42,13 @@ class World:
     interferometer: SimInterferometer
     launch2mcs_mm: Vec
     gamma_rad: float
+
+    @property
+    def offsets(self) -> EncoderOffsets:
+        """The true encoder zero offsets c2, c3, c4 (what identification should find)."""
+        launch = np.resize(self.launch.imperfections.zero_offsets_rad, 2)
+        receiver = np.resize(self.receiver.imperfections.zero_offsets_rad, 2)
+        return EncoderOffsets(c2=float(launch[1]), c3=float(receiver[0]), c4=float(receiver[1]))
 
 
 def build_world(

@@ -77,13 +77,15 @@ def sensitivity(elevation_rad: float, distance_mm: float, n_axes: int = 5) -> Ve
     """
     c, s = math.cos(elevation_rad), math.sin(elevation_rad)
     l_um_per_urad = distance_mm * 1e-3
-    matrix = np.array([
-        [-l_um_per_urad * c, 0.0, 0.0, 0.0, 0.0],
-        [0.0, -l_um_per_urad, 0.0, 0.0, 0.0],
-        [-c, 0.0, c, 0.0, 0.0],
-        [0.0, 1.0, 0.0, 1.0, 0.0],
-        [-s, 0.0, s, 0.0, -1.0],
-    ])
+    matrix = np.array(
+        [
+            [-l_um_per_urad * c, 0.0, 0.0, 0.0, 0.0],
+            [0.0, -l_um_per_urad, 0.0, 0.0, 0.0],
+            [-c, 0.0, c, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 1.0, 0.0],
+            [-s, 0.0, s, 0.0, -1.0],
+        ]
+    )
     return matrix[:n_axes, :n_axes]
 
 
@@ -114,6 +116,12 @@ class FineAlignmentSettings:
         Timeout of each unit move.
     align_roll : bool
         Also drive ``angle_u`` to zero with the receiver roll a5.
+    steer_launch : bool
+        Also steer the launch axes (straightness). Off at a measuring line's
+        start: there the receiver is close to the launch unit, so zeroing a
+        few µm of straightness would tilt the beam by (offset / distance) and
+        lose it at the line's far end; the beam direction comes from the
+        identified pose and only the receiver turns to face it.
     """
 
     straightness_tol_um: float = 1.0
@@ -125,6 +133,7 @@ class FineAlignmentSettings:
     max_step_urad: float = 5000.0
     move_timeout_s: float = 2.0
     align_roll: bool = True
+    steer_launch: bool = True
 
 
 @dataclass(frozen=True)
@@ -153,12 +162,47 @@ class FineAlignmentResult:
         return aligned_error(self.reading)[:2]
 
 
+#: Singular values of the tolerance-scaled sensitivity below this fraction of the
+#: largest are directions the axes cannot steer (gimbal lock of a vertical beam).
+_CONTROLLABLE_RATIO = 1e-3
+
+
+def _tolerances(settings: FineAlignmentSettings, n_axes: int) -> Vec:
+    tolerances = [settings.straightness_tol_um] * 2 + [settings.angle_tol_urad] * 3
+    return np.array(tolerances[:n_axes])
+
+
+@dataclass(frozen=True)
+class _Loop:
+    """The loop's linear model in tolerance units, split into what the axes can steer.
+
+    Near a vertical beam the azimuth axes turn the beam about itself (gimbal
+    lock): the lateral error across the elevation plane cannot be steered by
+    small moves. Such directions are left alone and do not count against
+    convergence; their residual is what the coarse pointing left, which the
+    beam ranges absorb.
+    """
+
+    scale: Vec  # tolerance of each channel, (n,)
+    u_steerable: Vec  # (n, k) left singular vectors of the steerable directions
+    solve: Vec  # (n_axes, n) pseudo-inverse on the steerable directions
+
+    @classmethod
+    def of(cls, matrix: Vec, scale: Vec) -> _Loop:
+        u, s, vt = np.linalg.svd(matrix / scale[:, None])
+        keep = s > _CONTROLLABLE_RATIO * s[0]
+        solve = vt[keep].T @ np.diag(1.0 / s[keep]) @ u[:, keep].T @ np.diag(1.0 / scale)
+        return cls(scale, u[:, keep], solve)
+
+    def steerable_error(self, error: Vec) -> Vec:
+        """The part of the error the axes can remove, in tolerance units."""
+        scaled = error / self.scale
+        return self.u_steerable @ (self.u_steerable.T @ scaled)
+
+
 def is_converged(error: Vec, settings: FineAlignmentSettings) -> bool:
     """Whether the aligned channels (straightness first) are within the tolerances."""
-    return bool(
-        np.all(np.abs(error[:2]) <= settings.straightness_tol_um)
-        and np.all(np.abs(error[2:]) <= settings.angle_tol_urad)
-    )
+    return bool(np.all(np.abs(error) <= _tolerances(settings, len(error))))
 
 
 def _describe(error: Vec) -> str:
@@ -249,18 +293,27 @@ def fine_align(
         steps.append(step)
         if on_step is not None:
             on_step(step)
-        if is_converged(error, settings):
+        matrix = sensitivity(elevation, distance_mm, n_axes)
+        if not settings.steer_launch:
+            matrix[:, :2] = 0.0
+        loop = _Loop.of(matrix, _tolerances(settings, n_axes))
+        if np.all(np.abs(loop.steerable_error(error)) <= 1.0):
             return FineAlignmentResult(
-                reading=reading, launch_rad=launch.angles_rad(), receiver_rad=receiver.angles_rad(),
-                distance_mm=distance_mm, elapsed_s=clock.now() - start_s, steps=steps,
+                reading=reading,
+                launch_rad=launch.angles_rad(),
+                receiver_rad=receiver.angles_rad(),
+                distance_mm=distance_mm,
+                elapsed_s=clock.now() - start_s,
+                steps=steps,
             )
         if clock.now() - start_s >= settings.timeout_s:
             raise DeviceTimeoutError(
                 f"fine alignment did not converge in {settings.timeout_s:g} s ({_describe(error)})"
             )
-        correction_urad = np.linalg.solve(sensitivity(elevation, distance_mm, n_axes), -error)
-        correction_urad = np.clip(settings.gain * correction_urad, -settings.max_step_urad,
-                                  settings.max_step_urad)
+        correction_urad = loop.solve @ -error
+        correction_urad = np.clip(
+            settings.gain * correction_urad, -settings.max_step_urad, settings.max_step_urad
+        )
         last_step = (correction_urad[:2], error)
         setpoint = setpoint + correction_urad * 1e-6
         _move_units(launch, receiver, setpoint, settings.move_timeout_s)

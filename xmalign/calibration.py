@@ -6,9 +6,9 @@ channels averaged over each dwell. Every captured point is appended to the
 measurement CSV and flushed at once; a resumed run skips the points already
 recorded. A beam loss or a device fault stops the line with the units locked.
 
-The interferometer reports in its beam frame (``u`` from the launch unit
-towards the receiver) with the raw displacement since its datum; the rows are
-written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
+The interferometer reports in its own frame, the launch head's (``u`` from the
+launch unit towards the receiver), with the raw displacement since its datum;
+the rows are written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
 minus the commanded displacement from the run's first point (where the datum
 is set).
 """
@@ -25,8 +25,8 @@ from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_a
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan, PlanLine
-from xmalign.geometry import Vec
-from xmalign.kinematics import receiver_axis, receiver_cp
+from xmalign.geometry import Vec, rot_y, rot_z
+from xmalign.kinematics import receiver_cp
 from xmalign.roles import (
     CHANNELS,
     Clock,
@@ -36,6 +36,8 @@ from xmalign.roles import (
     PositioningUnit,
 )
 
+#: Fine alignment at a line start turns only the receiver (see FineAlignmentSettings).
+LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Part of each dwell left for the machine to settle before averaging starts.
@@ -76,26 +78,32 @@ def capture_sequence(line: PlanLine) -> Iterator[CapturePoint]:
             yield from (CapturePoint(line, run, "-", i) for i in range(count - 1, -1, -1))
 
 
-def beam_sign(line: PlanLine, spindle_angle_rad: float) -> float:
-    """+1 when the beam runs along the line's ``u`` (away from the launch unit), else -1."""
+def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
+    """Axes of the interferometer's frame (the launch head's) for a line, rows u, v, w, (3, 3).
+
+    Taken from the receiver's commanded angles: aligned, its optical axis is
+    ``-u`` and its "up" is the launch head's ``w`` (CONVENTIONS.md, roll 0).
+    For any line that is not vertical this is the line frame of the beam.
+    """
     phi3, phi4 = line.receiver_rad[:2]
-    beam = -receiver_axis(spindle_angle_rad, phi3, phi4)
-    return 1.0 if float(beam @ line.frame[0]) >= 0 else -1.0
+    receiver = rot_z(spindle_angle_rad + phi3) @ rot_y(-phi4)
+    u, w = -receiver[:, 0], receiver[:, 2]
+    return np.vstack([u, np.cross(w, u), w])
 
 
-def line_channels(
-    reading: InterferometerReading, sign: float, commanded_displacement_mm: float
-) -> Vec:
-    """Six channels of CONVENTIONS.md in the line frame from a beam-frame reading, (6,).
+def line_channels(reading: InterferometerReading, head2line: Vec, commanded_mm: float) -> Vec:
+    """Six channels of CONVENTIONS.md in the line frame from a head-frame reading, (6,).
 
-    Reversing ``u`` keeps ``w`` and reverses ``v``; a rotation vector's
-    components about ``u`` and ``v`` reverse with them.
+    ``head2line`` (3, 3) turns head-frame components into line-frame ones; the
+    straightness is a vector across the beam and the angles a rotation vector,
+    so both turn with it. ``linear_um`` becomes the displacement along the
+    line minus the commanded displacement ``commanded_mm``.
     """
     raw = reading.channels
-    flip = np.array([sign, sign, 1.0, sign, sign, 1.0])
-    channels = raw * flip
-    channels[0] = sign * raw[0] - commanded_displacement_mm * 1e3
-    return channels
+    straightness = head2line @ np.array([0.0, raw[1], raw[2]])
+    angles = head2line @ raw[3:6]
+    linear = raw[0] * head2line[0, 0] - commanded_mm * 1e3
+    return np.concatenate([[linear], straightness[1:], angles])
 
 
 def _beam_message(point: CapturePoint, reading: InterferometerReading) -> str:
@@ -172,7 +180,7 @@ class CalibrationRun:
             self.interferometer,
             self.clock,
             self._distance_mm(line),
-            self.alignment_settings,
+            self.alignment_settings or LINE_START_ALIGNMENT,
         )
         self.launch.lock()
         self.receiver.lock()
@@ -194,7 +202,7 @@ class CalibrationRun:
             raise BeamLostError(_beam_message(point, reading))
         line = point.line
         displacement = float(line.targets_mm[point.index] - line.targets_mm[0])
-        sign = beam_sign(line, self.plan.spindle_angle_rad)
+        head2line = line.frame @ head_frame(line, self.plan.spindle_angle_rad).T
         row = MeasurementRow(
             line=line.id,
             run=point.run,
@@ -202,7 +210,7 @@ class CalibrationRun:
             index=point.index,
             target_mm=float(line.targets_mm[point.index]),
             machine_mm=point.point_mm,
-            channels=line_channels(reading, sign, displacement),
+            channels=line_channels(reading, head2line, displacement),
         )
         self.record(row)
         self.done.add(point.key)

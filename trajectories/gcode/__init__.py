@@ -9,6 +9,8 @@ from trajectories.gcode.fanuc import IsoDialect
 from trajectories.gcode.heidenhain import HeidenhainDialect
 from trajectories.gcode.linuxcnc import LinuxCncDialect
 from trajectories.gcode.sinumerik import SinumerikDialect
+from xmalign.errors import InputError
+from xmalign.machine import Machine
 
 DIALECTS: dict[str, type[Dialect]] = {
     "iso": IsoDialect,
@@ -17,4 +19,27 @@ DIALECTS: dict[str, type[Dialect]] = {
     "linuxcnc": LinuxCncDialect,
 }
 
-__all__ = ["DIALECTS", "Dialect"]
+#: G-code dialect of each controller of the machine file.
+CONTROLLER_DIALECTS = {
+    "sinumerik": "sinumerik",
+    "fanuc": "iso",
+    "heidenhain": "heidenhain",
+    "linuxcnc": "linuxcnc",
+}
+
+
+def resolve_dialect(machine: Machine, dialect: str | None) -> str:
+    """The dialect asked for, or the machine controller's; InputError if there is none."""
+    if dialect is not None:
+        if dialect not in DIALECTS:
+            raise InputError(f"--dialect '{dialect}' is not known (known: {', '.join(DIALECTS)})")
+        return dialect
+    if machine.controller not in CONTROLLER_DIALECTS:
+        raise InputError(
+            f"controller '{machine.controller}' has no G-code dialect of its own;"
+            f" choose one with --dialect ({', '.join(DIALECTS)})"
+        )
+    return CONTROLLER_DIALECTS[machine.controller]
+
+
+__all__ = ["CONTROLLER_DIALECTS", "DIALECTS", "Dialect", "resolve_dialect"]

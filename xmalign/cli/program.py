@@ -10,43 +10,21 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from trajectories.gcode import DIALECTS
+from trajectories.gcode import DIALECTS, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.cli.common import console, error_console, machine_or_default
-from xmalign.errors import GeometryError, InputError
+from xmalign.errors import GeometryError
 from xmalign.formats.common import atomic_write_text, write_json
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
-from xmalign.machine import Machine
 
-#: G-code dialect of each controller of the machine file.
-CONTROLLER_DIALECTS = {
-    "sinumerik": "sinumerik",
-    "fanuc": "iso",
-    "heidenhain": "heidenhain",
-    "linuxcnc": "linuxcnc",
-}
 DESIGN_FORMAT = "xmalign.identify-design/1"
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
 ]
-
-
-def resolve_dialect(machine: Machine, dialect: str | None) -> str:
-    """The dialect asked for, or the machine controller's; InputError if there is none."""
-    if dialect is not None:
-        if dialect not in DIALECTS:
-            raise InputError(f"--dialect '{dialect}' is not known (known: {', '.join(DIALECTS)})")
-        return dialect
-    if machine.controller not in CONTROLLER_DIALECTS:
-        raise InputError(
-            f"controller '{machine.controller}' has no G-code dialect of its own;"
-            f" choose one with --dialect ({', '.join(DIALECTS)})"
-        )
-    return CONTROLLER_DIALECTS[machine.controller]
 
 
 def _plan_table(measurement: MeasurementPlan) -> Table:

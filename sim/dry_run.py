@@ -1,0 +1,320 @@
+"""The whole calibration on the virtual machine: identify, program, run, post, comp.
+
+Every step uses the same code as on real hardware (the identification
+routine, the planner, the G-code writer, the run orchestration, the
+post-processor and the table writers) with the simulated units, interferometer
+and CNC behind the roles; at the end the results are compared with the
+simulator's truth.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sim.clock import SimClock
+from sim.cnc import SimulatedCnc
+from sim.units import SimPositioningUnit
+from sim.world import World, build_world
+from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode.program import write_program
+from trajectories.identification_design import design_identification
+from trajectories.planner import MeasurementPlan, plan_measurement
+from xmalign.calibration import UNIT_MOVE_TIMEOUT_S, CalibrationRun, capture_program
+from xmalign.comp import writer as comp_writer
+from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
+from xmalign.formats.measurements import MeasurementWriter, read_measurements
+from xmalign.formats.plan import write_plan
+from xmalign.formats.pose import write_pose
+from xmalign.formats.session import Session
+from xmalign.geometry import Vec, wrap_angle
+from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
+from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
+from xmalign.kinematics import aligned_angles, receiver_cp
+from xmalign.machine import Machine
+from xmalign.post.compare import grid_points, volumetric_rms_um
+from xmalign.post.evaluate import post_process
+from xmalign.rigid_body import Chain, ErrorTables
+from xmalign.safety import units_locked_on_exit
+
+#: How far the simulated launch unit stands from the machine file's coarse guess, mm:
+#: anywhere within this horizontally, and up to this much higher (the reference
+#: guess sits at the lowest height the receiver reaches, so lower is infeasible).
+PLACEMENT_SCATTER_MM = 25.0
+STAGES = ("identify", "program", "run", "post", "comp")
+#: File name ending of a program in each dialect, as the controllers expect.
+PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
+
+
+@dataclass(frozen=True)
+class DryRunOptions:
+    """What a dry run simulates."""
+
+    seed: int = 1
+    identification_positions: int = 6
+    method: str = "joint"
+    dialect: str | None = None
+
+
+@dataclass
+class LineMargin:
+    """Beam margin of one line: predicted (95 %) and seen in the measurement."""
+
+    line: str
+    predicted_straightness_um: float
+    predicted_angle_urad: float
+    measured_straightness_um: float
+    measured_angle_urad: float
+
+
+@dataclass
+class DryRunReport:
+    """The results of a dry run next to the simulator's truth."""
+
+    identification: IdentificationResult
+    truth_launch2mcs_mm: Vec
+    truth_gamma_rad: float
+    plan: MeasurementPlan
+    margins: list[LineMargin]
+    volumetric_before_um: float
+    volumetric_after_um: float
+    identification_s: float
+    alignment_s: float
+    measuring_s: float
+    points: int
+    files: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def position_error_um(self) -> Vec:
+        return (self.identification.position_mm - self.truth_launch2mcs_mm) * 1e3
+
+    @property
+    def gamma_error_urad(self) -> float:
+        return float(wrap_angle(self.identification.gamma_rad - self.truth_gamma_rad)) * 1e6
+
+    @property
+    def on_machine_s(self) -> float:
+        return self.identification_s + self.alignment_s + self.measuring_s
+
+
+@dataclass
+class _Setup:
+    world: World
+    cnc: SimulatedCnc
+    launch: SimPositioningUnit
+    receiver: SimPositioningUnit
+
+
+def _setup(machine: Machine, seed: int) -> _Setup:
+    rng = np.random.default_rng(seed)
+    guess = machine.launch_unit.position_mm if machine.launch_unit else None
+    placed = machine
+    if guess is not None:
+        scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
+        scatter[2] = abs(scatter[2])
+        launch_unit = machine.launch_unit.model_copy(
+            update={"position_mm": list(np.asarray(guess) + scatter)}
+        )
+        placed = machine.model_copy(update={"launch_unit": launch_unit})
+    world = build_world(
+        placed, seed=int(rng.integers(2**31)), gamma_rad=float(rng.uniform(-math.pi, math.pi))
+    )
+    cnc = SimulatedCnc(machine, world.clock)
+    world.interferometer.position = cnc
+    return _Setup(world, cnc, SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver))
+
+
+def _operator(setup: _Setup, machine: Machine, rng: np.random.Generator) -> Callable[[], None]:
+    """A simulated technician who jogs the units until the beams are in range.
+
+    Used where no pose guess can point the units (the first alignment, when the
+    launch unit's azimuth is unknown): the units end within about 0.1 mrad of
+    alignment, as a person watching the receiver's range display would leave them.
+    """
+
+    def align_by_hand() -> None:
+        world = setup.world
+        cp = receiver_cp(
+            setup.cnc.position_mm(), machine.receiver_offset, machine.spindle_angle_rad
+        )
+        angles = aligned_angles(
+            world.launch2mcs_mm, world.gamma_rad, cp, machine.spindle_angle_rad, world.offsets
+        )
+        setup.launch.move_to(angles.launch_rad + rng.normal(0, 1e-4, 2), UNIT_MOVE_TIMEOUT_S)
+        receiver = angles.receiver_rad + np.append(rng.normal(0, 1e-4, 2), 0.0)
+        setup.receiver.move_to(receiver, UNIT_MOVE_TIMEOUT_S)
+
+    return align_by_hand
+
+
+def _refined_guess(session: Session) -> PoseGuess | None:
+    """After three alignments, point the units with a quick identification."""
+    if len(session.alignments) < 3:
+        return None
+    result = identify(session, "intersection")
+    return PoseGuess(result.position_mm, result.gamma_rad)
+
+
+def _identify(
+    setup: _Setup, machine: Machine, options: DryRunOptions, workdir: Path
+) -> IdentificationResult:
+    positions = design_identification(machine, options.identification_positions).machine_mm
+    guess = (
+        PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
+        if machine.launch_unit
+        else None
+    )
+    devices = RoutineDevices(
+        setup.cnc, setup.launch, setup.receiver, setup.world.interferometer, setup.world.clock
+    )
+    session_path = workdir / "session.json"
+    session_path.unlink(missing_ok=True)
+    with units_locked_on_exit(setup.launch, setup.receiver):
+        session = run_identification(
+            positions,
+            machine,
+            devices,
+            session_path,
+            guess=guess,
+            manual_align=_operator(setup, machine, np.random.default_rng(options.seed)),
+            refine_guess=_refined_guess,
+        )
+    uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
+    return identify(session, options.method, uncertainty, str(session_path))
+
+
+def _measure(
+    setup: _Setup, plan: MeasurementPlan, program: str, dialect: str, pose: Vec, csv_path: Path
+) -> CalibrationRun:
+    csv_path.unlink(missing_ok=True)
+    with MeasurementWriter(csv_path) as writer, units_locked_on_exit(setup.launch, setup.receiver):
+        run = CalibrationRun(
+            plan.plan,
+            setup.launch,
+            setup.receiver,
+            setup.world.interferometer,
+            setup.world.clock,
+            writer.append,
+            launch2mcs_mm=pose,
+        )
+        capture_program(run, setup.cnc.run_program(program, dialect))
+    return run
+
+
+def _margins(plan: MeasurementPlan, rows: list, machine: Machine) -> list[LineMargin]:
+    """Room left in the straightness and angle ranges: predicted (95 %) and measured."""
+    ranges = machine.interferometer
+    margins = []
+    for planned in plan.lines:
+        channels = np.array([r.channels for r in rows if r.line == planned.line.id])
+        envelope = planned.line.extra.get("envelope", {})
+        margins.append(
+            LineMargin(
+                line=planned.line.id,
+                predicted_straightness_um=ranges.straightness_range_um
+                - float(envelope.get("straightness_95_um", math.nan)),
+                predicted_angle_urad=ranges.angle_range_urad
+                - float(envelope.get("angle_95_urad", math.nan)),
+                measured_straightness_um=ranges.straightness_range_um
+                - float(np.max(np.hypot(channels[:, 1], channels[:, 2]))),
+                measured_angle_urad=ranges.angle_range_urad
+                - float(np.max(np.abs(channels[:, 3:6]))),
+            )
+        )
+    return margins
+
+
+def measured_strokes(plan: MeasurementPlan) -> tuple[Vec, Vec]:
+    """Per axis, the stretch its own axis line measured: lower and upper CNC limits, (3,) each.
+
+    Compensation tables exist only there; the diagonals reach further, but
+    outside the strokes the tables hold their end values and predict nothing.
+    """
+    low, high = np.empty(3), np.empty(3)
+    for k, axis in enumerate("XYZ"):
+        points = plan.plan.line(axis).target_points_mm()[:, k]
+        low[k], high[k] = points.min(), points.max()
+    return low, high
+
+
+def simulate_calibration(
+    machine: Machine,
+    workdir: Path,
+    options: DryRunOptions | None = None,
+    on_stage: Callable[[str], None] | None = None,
+) -> DryRunReport:
+    """Run identify, program, run, post and comp on a seeded virtual machine.
+
+    Files (session, pose, plan, program, measurements, errors, compensation
+    tables, truth tables) are written into ``workdir``. ``on_stage`` is
+    called with each stage's name as it starts.
+    """
+    options = options or DryRunOptions()
+    stage = on_stage or (lambda name: None)
+    workdir.mkdir(parents=True, exist_ok=True)
+    setup = _setup(machine, options.seed)
+    clock: SimClock = setup.world.clock
+
+    stage("identify")
+    result = _identify(setup, machine, options, workdir)
+    write_pose(workdir / "pose.json", result.to_pose())
+    identification_s = clock.now()
+
+    stage("program")
+    measurement_plan = plan_measurement(machine, result.to_pose())
+    write_plan(workdir / "plan.json", measurement_plan.plan)
+    dialect_name = resolve_dialect(machine, options.dialect)
+    program = write_program(measurement_plan.plan, machine, DIALECTS[dialect_name]())
+    program_path = workdir / f"run{PROGRAM_SUFFIX[dialect_name]}"
+    program_path.write_text(program)
+
+    stage("run")
+    started = clock.now()
+    csv_path = workdir / "measurements.csv"
+    run = _measure(setup, measurement_plan, program, dialect_name, result.position_mm, csv_path)
+    run_s = clock.now() - started
+    rows = read_measurements(workdir / "measurements.csv")
+
+    stage("post")
+    post = post_process(machine, measurement_plan.plan, rows, "measurements.csv")
+    tables: ErrorTableSet = post.fit.tables
+    write_error_tables(workdir / "errors.csv", tables)
+    setup.world.machine.write_truth_tables(str(workdir / "truth.csv"), 50.0)
+
+    stage("comp")
+    comp_dir = workdir / "comp"
+    comp_dir.mkdir(exist_ok=True)
+    chain = Chain.parse(machine.chain)
+    for name, text in comp_writer(machine.controller).render(tables, chain).items():
+        (comp_dir / name).write_text(text)
+
+    low, high = measured_strokes(measurement_plan)
+    points = grid_points(low, high)
+    truth = setup.world.machine
+    return DryRunReport(
+        identification=result,
+        truth_launch2mcs_mm=setup.world.launch2mcs_mm,
+        truth_gamma_rad=setup.world.gamma_rad,
+        plan=measurement_plan,
+        margins=_margins(measurement_plan, rows, machine),
+        volumetric_before_um=volumetric_rms_um(chain, points, truth, ErrorTables()),
+        volumetric_after_um=volumetric_rms_um(chain, points, truth, tables.model()),
+        identification_s=identification_s,
+        alignment_s=run.statistics.alignment_s,
+        measuring_s=run_s - run.statistics.alignment_s,
+        points=run.statistics.points,
+        files={
+            "session": workdir / "session.json",
+            "pose": workdir / "pose.json",
+            "plan": workdir / "plan.json",
+            "program": program_path,
+            "measurements": workdir / "measurements.csv",
+            "errors": workdir / "errors.csv",
+            "truth": workdir / "truth.csv",
+            "comp": comp_dir,
+        },
+    )
