@@ -28,7 +28,7 @@ from xmalign.calibration import UNIT_MOVE_TIMEOUT_S, CalibrationRun, capture_pro
 from xmalign.comp import writer as comp_writer
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
 from xmalign.formats.measurements import MeasurementWriter, read_measurements
-from xmalign.formats.plan import write_plan
+from xmalign.formats.plan import Plan, write_plan
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import Session
 from xmalign.geometry import Vec, wrap_angle
@@ -102,14 +102,17 @@ class DryRunReport:
 
 
 @dataclass
-class _Setup:
+class VirtualSetup:
+    """The virtual machine with its CNC and both units, as a technician finds it on site."""
+
     world: World
     cnc: SimulatedCnc
     launch: SimPositioningUnit
     receiver: SimPositioningUnit
 
 
-def _setup(machine: Machine, seed: int) -> _Setup:
+def virtual_setup(machine: Machine, seed: int) -> VirtualSetup:
+    """The seeded virtual setup: the same seed gives the same machine, units and placement."""
     rng = np.random.default_rng(seed)
     guess = machine.launch_unit.position_mm if machine.launch_unit else None
     placed = machine
@@ -125,10 +128,14 @@ def _setup(machine: Machine, seed: int) -> _Setup:
     )
     cnc = SimulatedCnc(machine, world.clock)
     world.interferometer.position = cnc
-    return _Setup(world, cnc, SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver))
+    return VirtualSetup(
+        world, cnc, SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    )
 
 
-def _operator(setup: _Setup, machine: Machine, rng: np.random.Generator) -> Callable[[], None]:
+def _operator(
+    setup: VirtualSetup, machine: Machine, rng: np.random.Generator
+) -> Callable[[], None]:
     """A simulated technician who jogs the units until the beams are in range.
 
     Used where no pose guess can point the units (the first alignment, when the
@@ -159,10 +166,15 @@ def _refined_guess(session: Session) -> PoseGuess | None:
     return PoseGuess(result.position_mm, result.gamma_rad)
 
 
-def _identify(
-    setup: _Setup, machine: Machine, options: DryRunOptions, workdir: Path
+def identify_virtually(
+    setup: VirtualSetup,
+    machine: Machine,
+    positions_mm: Vec,
+    session_path: Path,
+    method: str = "joint",
+    seed: int = 0,
 ) -> IdentificationResult:
-    positions = design_identification(machine, options.identification_positions).machine_mm
+    """The identification routine on the virtual setup (session written as it goes), solved."""
     guess = (
         PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
         if machine.launch_unit
@@ -171,35 +183,48 @@ def _identify(
     devices = RoutineDevices(
         setup.cnc, setup.launch, setup.receiver, setup.world.interferometer, setup.world.clock
     )
-    session_path = workdir / "session.json"
-    session_path.unlink(missing_ok=True)
     with units_locked_on_exit(setup.launch, setup.receiver):
         session = run_identification(
-            positions,
+            positions_mm,
             machine,
             devices,
             session_path,
             guess=guess,
-            manual_align=_operator(setup, machine, np.random.default_rng(options.seed)),
+            manual_align=_operator(setup, machine, np.random.default_rng(seed)),
             refine_guess=_refined_guess,
         )
     uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
-    return identify(session, options.method, uncertainty, str(session_path))
+    return identify(session, method, uncertainty, str(session_path))
 
 
-def _measure(
-    setup: _Setup, plan: MeasurementPlan, program: str, dialect: str, pose: Vec, csv_path: Path
+def measure_virtually(
+    setup: VirtualSetup,
+    plan: Plan,
+    program: str,
+    dialect: str,
+    csv_path: Path,
+    resume: bool = False,
 ) -> CalibrationRun:
-    csv_path.unlink(missing_ok=True)
+    """Run the G-code program on the virtual CNC and capture every point into ``csv_path``.
+
+    With ``resume`` the rows already in the file are kept and not captured again.
+    """
+    done = (
+        {row.key() for row in read_measurements(csv_path)}
+        if resume and csv_path.exists()
+        else set()
+    )
+    if not resume:
+        csv_path.unlink(missing_ok=True)
     with MeasurementWriter(csv_path) as writer, units_locked_on_exit(setup.launch, setup.receiver):
         run = CalibrationRun(
-            plan.plan,
+            plan,
             setup.launch,
             setup.receiver,
             setup.world.interferometer,
             setup.world.clock,
             writer.append,
-            launch2mcs_mm=pose,
+            done=done,
         )
         capture_program(run, setup.cnc.run_program(program, dialect))
     return run
@@ -256,11 +281,16 @@ def simulate_calibration(
     options = options or DryRunOptions()
     stage = on_stage or (lambda name: None)
     workdir.mkdir(parents=True, exist_ok=True)
-    setup = _setup(machine, options.seed)
+    setup = virtual_setup(machine, options.seed)
     clock: SimClock = setup.world.clock
 
     stage("identify")
-    result = _identify(setup, machine, options, workdir)
+    session_path = workdir / "session.json"
+    session_path.unlink(missing_ok=True)
+    positions = design_identification(machine, options.identification_positions).machine_mm
+    result = identify_virtually(
+        setup, machine, positions, session_path, options.method, options.seed
+    )
     write_pose(workdir / "pose.json", result.to_pose())
     identification_s = clock.now()
 
@@ -275,7 +305,7 @@ def simulate_calibration(
     stage("run")
     started = clock.now()
     csv_path = workdir / "measurements.csv"
-    run = _measure(setup, measurement_plan, program, dialect_name, result.position_mm, csv_path)
+    run = measure_virtually(setup, measurement_plan.plan, program, dialect_name, csv_path)
     run_s = clock.now() - started
     rows = read_measurements(workdir / "measurements.csv")
 

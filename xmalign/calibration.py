@@ -26,7 +26,6 @@ from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan, PlanLine
 from xmalign.geometry import Vec, rot_y, rot_z
-from xmalign.kinematics import receiver_cp
 from xmalign.roles import (
     CHANNELS,
     Clock,
@@ -38,6 +37,8 @@ from xmalign.roles import (
 
 #: Fine alignment at a line start turns only the receiver (see FineAlignmentSettings).
 LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
+#: Fine-alignment distance guess when a plan does not give the line's beam distances, mm.
+DEFAULT_START_DISTANCE_MM = 500.0
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Part of each dwell left for the machine to settle before averaging starts.
@@ -143,8 +144,6 @@ class CalibrationRun:
         Called with every captured row at once (append + flush to the CSV).
     done : set of tuple
         Keys ``(line, run, direction, index)`` already recorded (resume).
-    launch2mcs_mm : array_like, shape (3,), optional
-        Identified launch cp, for the fine-alignment distance of each line.
     """
 
     plan: Plan
@@ -154,20 +153,17 @@ class CalibrationRun:
     clock: Clock
     record: Callable[[MeasurementRow], None]
     done: set[tuple[str, int, str, int]] = field(default_factory=set)
-    launch2mcs_mm: Vec | None = None
     alignment_settings: FineAlignmentSettings | None = None
     statistics: RunStatistics = field(default_factory=RunStatistics)
 
     def line_is_done(self, line: PlanLine) -> bool:
         return all(point.key in self.done for point in capture_sequence(line))
 
-    def _distance_mm(self, line: PlanLine) -> float:
-        if self.launch2mcs_mm is None:
-            return float(line.extra.get("start_distance_mm", 1000.0))
-        start_cp = receiver_cp(
-            line.start_mm, self.plan.receiver_offset_mm, self.plan.spindle_angle_rad
-        )
-        return float(np.linalg.norm(start_cp - np.asarray(self.launch2mcs_mm)))
+    @staticmethod
+    def _distance_mm(line: PlanLine) -> float:
+        """cp-to-cp distance at the line start (the plan's ``beam_distance_mm``), first guess."""
+        distances = line.extra.get("beam_distance_mm") or [DEFAULT_START_DISTANCE_MM]
+        return float(distances[0])
 
     def set_line(self, line: PlanLine) -> FineAlignmentResult:
         """Units to the plan's angles, fine alignment at the line start, lock."""
