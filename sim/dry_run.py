@@ -18,6 +18,7 @@ import numpy as np
 
 from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
+from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
 from trajectories.gcode import DIALECTS, resolve_dialect
@@ -58,6 +59,10 @@ class DryRunOptions:
     identification_positions: int = 6
     method: str = "joint"
     dialect: str | None = None
+    #: CNC points (N, 3) mm to identify at; default: designed for ``identification_positions``.
+    identification_mm: Vec | None = None
+    #: How large the virtual machine's errors are drawn; default seed 003 Table 1.
+    amplitudes: ErrorAmplitudes | None = None
 
 
 @dataclass
@@ -111,7 +116,9 @@ class VirtualSetup:
     receiver: SimPositioningUnit
 
 
-def virtual_setup(machine: Machine, seed: int) -> VirtualSetup:
+def virtual_setup(
+    machine: Machine, seed: int, amplitudes: ErrorAmplitudes | None = None
+) -> VirtualSetup:
     """The seeded virtual setup: the same seed gives the same machine, units and placement."""
     rng = np.random.default_rng(seed)
     guess = machine.launch_unit.position_mm if machine.launch_unit else None
@@ -124,7 +131,10 @@ def virtual_setup(machine: Machine, seed: int) -> VirtualSetup:
         )
         placed = machine.model_copy(update={"launch_unit": launch_unit})
     world = build_world(
-        placed, seed=int(rng.integers(2**31)), gamma_rad=float(rng.uniform(-math.pi, math.pi))
+        placed,
+        seed=int(rng.integers(2**31)),
+        gamma_rad=float(rng.uniform(-math.pi, math.pi)),
+        amplitudes=amplitudes,
     )
     cnc = SimulatedCnc(machine, world.clock)
     world.interferometer.position = cnc
@@ -281,13 +291,15 @@ def simulate_calibration(
     options = options or DryRunOptions()
     stage = on_stage or (lambda name: None)
     workdir.mkdir(parents=True, exist_ok=True)
-    setup = virtual_setup(machine, options.seed)
+    setup = virtual_setup(machine, options.seed, options.amplitudes)
     clock: SimClock = setup.world.clock
 
     stage("identify")
     session_path = workdir / "session.json"
     session_path.unlink(missing_ok=True)
-    positions = design_identification(machine, options.identification_positions).machine_mm
+    positions = options.identification_mm
+    if positions is None:
+        positions = design_identification(machine, options.identification_positions).machine_mm
     result = identify_virtually(
         setup, machine, positions, session_path, options.method, options.seed
     )
