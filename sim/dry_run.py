@@ -46,6 +46,8 @@ from xmalign.safety import units_locked_on_exit
 #: anywhere within this horizontally, and up to this much higher (the reference
 #: guess sits at the lowest height the receiver reaches, so lower is infeasible).
 PLACEMENT_SCATTER_MM = 25.0
+#: How well a technician aligns the units by hand (standard deviation per axis), rad.
+HAND_RAD = 20e-6
 STAGES = ("identify", "program", "run", "post", "comp")
 #: File name ending of a program in each dialect, as the controllers expect.
 PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
@@ -149,8 +151,9 @@ def _operator(
     """A simulated technician who jogs the units until the beams are in range.
 
     Used where no pose guess can point the units (the first alignment, when the
-    launch unit's azimuth is unknown): the units end within about 0.1 mrad of
-    alignment, as a person watching the receiver's range display would leave them.
+    launch unit's azimuth is unknown): the units end within about 20 µrad of
+    alignment (40 µm at 2 m), inside the ranges, as a person watching the
+    receiver's range display would leave them.
     """
 
     def align_by_hand() -> None:
@@ -161,8 +164,8 @@ def _operator(
         angles = aligned_angles(
             world.launch2mcs_mm, world.gamma_rad, cp, machine.spindle_angle_rad, world.offsets
         )
-        setup.launch.move_to(angles.launch_rad + rng.normal(0, 1e-4, 2), UNIT_MOVE_TIMEOUT_S)
-        receiver = angles.receiver_rad + np.append(rng.normal(0, 1e-4, 2), 0.0)
+        setup.launch.move_to(angles.launch_rad + rng.normal(0, HAND_RAD, 2), UNIT_MOVE_TIMEOUT_S)
+        receiver = angles.receiver_rad + np.append(rng.normal(0, HAND_RAD, 2), 0.0)
         setup.receiver.move_to(receiver, UNIT_MOVE_TIMEOUT_S)
 
     return align_by_hand

@@ -69,7 +69,7 @@ class Measurement(_Strict):
     target_spacing_mm: Annotated[float, Field(gt=0, le=200)] = 100.0
     runs: Annotated[int, Field(ge=1, le=5)] = 2
     bidirectional: bool = True
-    dwell_s: Annotated[float, Field(ge=0)] = 2.0
+    dwell_s: Annotated[float, Field(ge=0)] = 1.0
     overrun_mm: Annotated[float, Field(ge=0)] = 5.0
     standoff_mm: Annotated[float, Field(ge=0)] = 150.0
     irregular_spacing: bool = False

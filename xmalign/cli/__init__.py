@@ -13,6 +13,7 @@ import typer
 from xmalign.cli import align, identify
 from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
+from xmalign.cli import run as run_command
 from xmalign.cli import sim as sim_command
 from xmalign.errors import XmalignError
 
@@ -30,7 +31,7 @@ def _root() -> None:
     """Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units."""
 
 
-for command_module in (align, identify, sim_command, program_command, post_command):
+for command_module in (identify, program_command, run_command, post_command, align, sim_command):
     command_module.register(app)
 
 
