@@ -33,7 +33,12 @@ from xmalign.formats.plan import Plan, write_plan
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import Session
 from xmalign.geometry import Vec, wrap_angle
-from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
+from xmalign.identification_routine import (
+    PoseGuess,
+    RoutineDevices,
+    RoutineEvent,
+    run_identification,
+)
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
@@ -186,6 +191,7 @@ def identify_virtually(
     session_path: Path,
     method: str = "joint",
     seed: int = 0,
+    on_event: Callable[[RoutineEvent], None] | None = None,
 ) -> IdentificationResult:
     """The identification routine on the virtual setup (session written as it goes), solved."""
     guess = (
@@ -205,6 +211,7 @@ def identify_virtually(
             guess=guess,
             manual_align=_operator(setup, machine, np.random.default_rng(seed)),
             refine_guess=_refined_guess,
+            on_event=on_event,
         )
     uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
     return identify(session, method, uncertainty, str(session_path))

@@ -189,6 +189,8 @@ def design_identification(machine: Machine, count: int = 6) -> IdentificationDes
         (beam_mm >= machine.measurement.standoff_mm - tolerance_mm)
         & (beam_mm <= machine.interferometer.max_range_mm + tolerance_mm)
     )
+    # ipopt honours bounds only to its tolerance: put the points exactly inside the travel.
+    machine_mm = np.clip(machine_mm, machine.travel_min_mm, machine.travel_max_mm)
     covariance = predicted_pose_covariance(machine, machine_mm)
     if not (feasible and np.all(np.isfinite(covariance))):
         raise GeometryError(

@@ -3,17 +3,22 @@
 from __future__ import annotations
 
 import math
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from xmalign.cli.common import console, machine_or_default
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
-from xmalign.formats.session import Session, read_session, write_session
+from xmalign.formats.session import Session, read_session
+from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
 
@@ -98,25 +103,42 @@ def print_result(result: IdentificationResult, session: Session, truth: dict | N
         console.print(f"warning: {warning}", style="yellow", markup=False)
 
 
-def _simulated_session(machine: Machine, alignments: int, seed: int) -> tuple[Session, dict]:
-    from sim.identification import SessionImperfections, simulate_session, spread_positions
+def _simulated_identification(
+    machine: Machine, alignments: int, seed: int, method: str, session_path: Path
+) -> tuple[IdentificationResult, dict]:
+    """The identification routine on the virtual machine with simulated units."""
+    from sim.dry_run import identify_virtually, virtual_setup
+    from trajectories.identification_design import design_identification
 
-    rng = np.random.default_rng(seed)
-    guess = np.array(machine.launch_unit.position_mm if machine.launch_unit else [0.0, 0.0, 0.0])
-    launch = guess + rng.uniform(-20, 20, 3)
-    gamma = float(rng.uniform(-math.pi, math.pi))
-    imperfections = SessionImperfections.realistic(rng)
-    truth = imperfections.truth(launch, gamma)
-    session = simulate_session(
-        spread_positions(machine, alignments),
-        truth,
-        machine.receiver_offset,
-        machine.spindle_angle_rad,
-        imperfections,
-        rng,
-    )
-    offsets = {"c2": truth.offsets.c2, "c3": truth.offsets.c3, "c4": truth.offsets.c4}
-    return session, {"position_mm": launch, "gamma_rad": gamma, "offsets": offsets}
+    setup = virtual_setup(machine, seed)
+    positions = design_identification(machine, alignments).machine_mm
+    with _progress_of_routine(alignments) as on_event:
+        result = identify_virtually(
+            setup, machine, positions, session_path, method, seed, on_event=on_event
+        )
+    world = setup.world
+    offsets = world.offsets
+    truth = {
+        "position_mm": world.launch2mcs_mm,
+        "gamma_rad": world.gamma_rad,
+        "offsets": {"c2": offsets.c2, "c3": offsets.c3, "c4": offsets.c4},
+    }
+    return result, truth
+
+
+@contextmanager
+def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]:
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), console=console
+    ) as progress:
+        task = progress.add_task("identification", total=total)
+
+        def on_event(event: RoutineEvent) -> None:
+            progress.update(task, description=f"identification: {event.stage}")
+            if event.stage in ("recorded", "skipped"):
+                progress.advance(task)
+
+        yield on_event
 
 
 def identify_command(
@@ -131,7 +153,7 @@ def identify_command(
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML (uncertainty defaults; --sim machine).")
     ] = None,
-    alignments: Annotated[int, typer.Option(min=2, help="Alignments to simulate.")] = 8,
+    alignments: Annotated[int, typer.Option(min=3, help="Alignments to simulate.")] = 6,
     seed: Annotated[int, typer.Option(help="Seed of the simulation.")] = 1,
     session_out: Annotated[
         Path | None, typer.Option(help="With --sim: also write the simulated session.")
@@ -168,13 +190,15 @@ def identify_command(
     )
     truth = None
     if sim:
-        session, truth = _simulated_session(machine_model, alignments, seed)
-        source = "simulated session"
-        if session_out is not None:
-            write_session(session_out, session)
+        session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
+        session_path.unlink(missing_ok=True)
+        result, truth = _simulated_identification(
+            machine_model, alignments, seed, method, session_path
+        )
+        session = read_session(session_path)
     else:
-        session, source = read_session(input), str(input)
-    result = identify(session, method, uncertainty, source)
+        session = read_session(input)
+        result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
         write_pose(out, result.to_pose())
