@@ -228,6 +228,8 @@ class TrialOutcome:
         The reported quantities (see :func:`quantity_label`).
     envelope_um : dict of str to ndarray, shape (ENVELOPE_SAMPLES,)
         Per line, the predicted 95 % straightness radius along the line.
+    envelope_limit_um : float
+        The straightness the envelope must stay within (range minus allowance).
     volumetric_um : ndarray, shape (216,) or None
         Residual volumetric error after compensation at :attr:`grid_mm`.
     failure : str or None
@@ -237,6 +239,7 @@ class TrialOutcome:
     strategy_index: int
     values: dict[str, float] = field(default_factory=dict)
     envelope_um: dict[str, Vec] = field(default_factory=dict)
+    envelope_limit_um: float = math.nan
     volumetric_um: Vec | None = None
     grid_mm: Vec | None = None
     failure: str | None = None
@@ -249,16 +252,18 @@ def _pose_values(result: IdentificationResult, position_mm: Vec, gamma_rad: floa
     }
 
 
-def _plan_values(plan: MeasurementPlan) -> tuple[dict[str, float], dict[str, Vec]]:
-    values, envelopes = {}, {}
+def _plan_outcome(plan: MeasurementPlan, strategy_index: int) -> TrialOutcome:
+    """Predicted margins per line and the envelope along each line, from a plan."""
+    outcome = TrialOutcome(strategy_index)
     along = np.linspace(0.0, 1.0, ENVELOPE_SAMPLES)
     for planned in plan.lines:
         line, envelope = planned.line.id, planned.envelope
-        values[f"straightness_margin_um:{line}"] = envelope.straightness_margin_um
-        values[f"angle_margin_urad:{line}"] = envelope.angle_margin_urad
+        outcome.values[f"straightness_margin_um:{line}"] = envelope.straightness_margin_um
+        outcome.values[f"angle_margin_urad:{line}"] = envelope.angle_margin_urad
         lateral = envelope.lateral_95_um
-        envelopes[line] = np.interp(along, np.linspace(0.0, 1.0, lateral.size), lateral)
-    return values, envelopes
+        outcome.envelope_um[line] = np.interp(along, np.linspace(0.0, 1.0, lateral.size), lateral)
+        outcome.envelope_limit_um = envelope.straightness_limit_um
+    return outcome
 
 
 def _launch_truth(machine: Machine, rng: np.random.Generator) -> tuple[Vec, float]:
@@ -285,9 +290,9 @@ def identification_trial(spec: TrialSpec) -> TrialOutcome:
     )
     uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
     result = identify(session, spec.method, uncertainty)
-    plan_values, envelopes = _plan_values(plan_measurement(machine, result.to_pose()))
-    values = _pose_values(result, position_mm, gamma_rad) | plan_values
-    return TrialOutcome(spec.strategy_index, values, envelopes)
+    outcome = _plan_outcome(plan_measurement(machine, result.to_pose()), spec.strategy_index)
+    outcome.values = _pose_values(result, position_mm, gamma_rad) | outcome.values
+    return outcome
 
 
 def residual_map_um(chain: Chain, points_mm: Vec, truth, compensated) -> Vec:
@@ -318,10 +323,10 @@ def calibration_trial(spec: TrialSpec) -> TrialOutcome:
     truth = virtual_setup(machine, spec.seed, spec.amplitudes).world.machine
     grid = grid_points(*measured_strokes(report.plan))
     residual = residual_map_um(Chain.parse(machine.chain), grid, truth, tables)
-    plan_values, envelopes = _plan_values(report.plan)
-    values = (
+    outcome = _plan_outcome(report.plan, spec.strategy_index)
+    outcome.values = (
         _pose_values(report.identification, report.truth_launch2mcs_mm, report.truth_gamma_rad)
-        | plan_values
+        | outcome.values
         | {f"measured_margin_um:{m.line}": m.measured_straightness_um for m in report.margins}
         | {
             "volumetric_before_um": report.volumetric_before_um,
@@ -329,7 +334,8 @@ def calibration_trial(spec: TrialSpec) -> TrialOutcome:
             "on_machine_min": report.on_machine_s / 60.0,
         }
     )
-    return TrialOutcome(spec.strategy_index, values, envelopes, residual, grid)
+    outcome.volumetric_um, outcome.grid_mm = residual, grid
+    return outcome
 
 
 def run_trial(spec: TrialSpec) -> TrialOutcome:
@@ -370,6 +376,7 @@ class StrategyResult:
     envelopes_um: dict[str, list[Vec]] = field(default_factory=dict)
     volumetric_um: list[Vec] = field(default_factory=list)
     grid_mm: Vec | None = None
+    envelope_limit_um: float = math.nan
 
     @property
     def stable(self) -> bool:
@@ -385,6 +392,7 @@ class StrategyResult:
         for outcome in done:
             for line, curve in outcome.envelope_um.items():
                 self.envelopes_um.setdefault(line, []).append(curve)
+            self.envelope_limit_um = outcome.envelope_limit_um
             if outcome.volumetric_um is not None:
                 self.volumetric_um.append(outcome.volumetric_um)
                 self.grid_mm = outcome.grid_mm

@@ -11,6 +11,7 @@ import sys
 import typer
 
 from xmalign.cli import align, identify
+from xmalign.cli import mc as mc_command
 from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
 from xmalign.cli import run as run_command
@@ -31,7 +32,15 @@ def _root() -> None:
     """Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units."""
 
 
-for command_module in (identify, program_command, run_command, post_command, align, sim_command):
+for command_module in (
+    identify,
+    program_command,
+    run_command,
+    post_command,
+    align,
+    sim_command,
+    mc_command,
+):
     command_module.register(app)
 
 

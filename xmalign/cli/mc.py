@@ -1,0 +1,229 @@
+"""``xmalign mc``: Monte Carlo planning of a calibration, strategies side by side."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import numpy as np
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table as RichTable
+
+from xmalign.cli.common import console, machine_or_default
+from xmalign.errors import InputError, TransportError
+from xmalign.formats.common import atomic_write_text
+
+if TYPE_CHECKING:
+    from sim.mc import StrategyResult, StudySettings
+
+#: The quantity a tolerance applies to, per mode.
+TOLERANCE_QUANTITY = {
+    "identification": "position_error_um",
+    "calibration": "volumetric_after_um",
+}
+
+
+@contextmanager
+def _executor(scheduler: str | None, workers: int) -> Iterator[Executor]:
+    """Local processes, or the Dask cluster whose scheduler is at ``scheduler``."""
+    if scheduler is None:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            yield pool
+        return
+    try:
+        from dask.distributed import Client
+    except ImportError as error:
+        raise InputError(
+            "--scheduler needs dask.distributed: pip install 'xmalign[cluster]'"
+        ) from error
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as error:
+        raise TransportError(f"--scheduler {scheduler}: cannot connect ({error})") from error
+    with client:
+        yield client.get_executor(pure=False)
+
+
+def _cell(result: StrategyResult, name: str) -> str:
+    values = result.study.values(name)
+    if values.size < 2:
+        return "-"
+    s = result.study.summaries()[name]
+    return f"{s.mean:.4g} ± {s.standard_uncertainty:.2g} [{s.low:.4g}, {s.high:.4g}]"
+
+
+def _table(results: Sequence[StrategyResult], tolerance_um: float | None, mode: str) -> RichTable:
+    from sim.mc import quantity_label
+
+    table = RichTable(title="Monte Carlo: mean ± standard uncertainty [95 % interval]")
+    table.add_column("quantity")
+    for result in results:
+        table.add_column(result.strategy.name, justify="right")
+    names = list(dict.fromkeys(n for r in results for n in r.study.names))
+    for name in names:
+        table.add_row(quantity_label(name), *(_cell(r, name) for r in results))
+    if tolerance_um is not None:
+        quantity = TOLERANCE_QUANTITY[mode]
+        table.add_row(
+            f"P({quantity_label(quantity).split(',')[0]} <= {tolerance_um:g} um)",
+            *(_within(r, quantity, tolerance_um) for r in results),
+        )
+    table.add_row("trials (failed)", *(f"{r.trials} ({len(r.failures)})" for r in results))
+    table.add_row("stable (GUM S1 7.9)", *("yes" if r.stable else "no" for r in results))
+    return table
+
+
+def _within(result: StrategyResult, quantity: str, tolerance_um: float) -> str:
+    values = result.study.values(quantity)
+    if not result.trials:
+        return "-"
+    # a failed trial did not meet the tolerance either
+    return f"{np.count_nonzero(values <= tolerance_um) / result.trials:.1%}"
+
+
+def _results_json(
+    results: Sequence[StrategyResult], settings: StudySettings, machine_name: str
+) -> str:
+    document = {
+        "format": "xmalign-mc/1",
+        "machine": machine_name,
+        "mode": settings.mode,
+        "digits": settings.digits,
+        "batch": settings.batch,
+        "seed": settings.seed,
+        "strategies": [
+            {
+                "name": r.strategy.name,
+                "placement": r.strategy.placement,
+                "identification": r.strategy.identification,
+                "alignments": r.strategy.alignments,
+                "target_spacing_mm": r.strategy.target_spacing_mm,
+                "runs": r.strategy.runs,
+                "trials": r.trials,
+                "failed": len(r.failures),
+                "failures": sorted(set(r.failures)),
+                "stable": r.stable,
+                "quantities": {
+                    name: {
+                        "mean": s.mean,
+                        "standard_uncertainty": s.standard_uncertainty,
+                        "low_95": s.low,
+                        "high_95": s.high,
+                        "count": s.count,
+                    }
+                    for name, s in r.study.summaries().items()
+                },
+            }
+            for r in results
+        ],
+    }
+    return json.dumps(document, indent=2) + "\n"
+
+
+def mc(
+    machine: Annotated[
+        Path | None, typer.Option(help="Machine YAML (default: the reference machine).")
+    ] = None,
+    trials: Annotated[
+        int, typer.Option(help="Most trials per strategy (fewer once the results are stable).")
+    ] = 100,
+    vary: Annotated[
+        str,
+        typer.Option(
+            help="Decisions to compare, comma-separated: launch-position, identification, "
+            "alignments, targets, runs; NAME=V1:V2 lists the values (e.g. targets=100:50)."
+        ),
+    ] = "",
+    mode: Annotated[
+        str,
+        typer.Option(
+            help="calibration (the whole dry run, ~1 s a trial) or identification "
+            "(identification and line planning only, ~10 ms)."
+        ),
+    ] = "calibration",
+    batch: Annotated[int, typer.Option(help="Trials per batch of the adaptive procedure.")] = 20,
+    digits: Annotated[
+        int, typer.Option(help="Significant digits of the standard uncertainties to stabilise.")
+    ] = 1,
+    scheduler: Annotated[
+        str | None, typer.Option(help="Dask scheduler address (default: local processes).")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="Local worker processes (default: every core).")] = 0,
+    seed: Annotated[int, typer.Option(help="Seed of the study; every strategy sees it.")] = 0,
+    method: Annotated[str, typer.Option(help="Identification method.")] = "joint",
+    error_scale: Annotated[
+        float, typer.Option(help="Factor on the machine-error amplitudes (seed 003 Table 1).")
+    ] = 1.0,
+    squareness_urad: Annotated[
+        float, typer.Option(help="Half-width of the random squareness errors, urad.")
+    ] = 20.0,
+    tolerance_um: Annotated[
+        float | None,
+        typer.Option(
+            help="Report the share of trials within this: volumetric error after comp "
+            "(calibration) or launch position error (identification), um."
+        ),
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Directory for mc.json and the plots.")] = Path("mc"),
+) -> None:
+    """Plan a calibration by Monte Carlo: compare strategies on the same random setups."""
+    # imported here: the simulator is loaded only by the commands that use it
+    from sim.machine import ErrorAmplitudes
+    from sim.mc import StudySettings, run_study, strategies
+    from sim.mc_plots import plot_envelopes, plot_histograms, plot_volumetric_map
+
+    if error_scale < 0 or squareness_urad < 0:
+        raise InputError("--error-scale and --squareness-urad must not be negative")
+    if workers < 0:
+        raise InputError(f"--workers {workers}: must be 0 (every core) or more")
+    settings = StudySettings(
+        mode=mode,
+        max_trials=trials,
+        batch=batch,
+        digits=digits,
+        seed=seed,
+        method=method,
+        amplitudes=ErrorAmplitudes(scale=error_scale, squareness_urad=squareness_urad),
+    )
+    chosen_machine = machine_or_default(machine)
+    chosen = strategies(chosen_machine, vary.split(","))
+    progress = Progress(
+        TextColumn("trials"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+    )
+    with progress, _executor(scheduler, workers or os.cpu_count() or 1) as executor:
+        task = progress.add_task("trials", total=trials * len(chosen))
+        results = run_study(
+            chosen_machine, chosen, settings, executor, lambda: progress.advance(task)
+        )
+        progress.update(task, total=sum(r.trials for r in results))
+    console.print(_table(results, tolerance_um, mode))
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
+    written = [
+        out / "mc.json",
+        plot_histograms(results, out / "histograms.png"),
+        plot_envelopes(results, out / "envelopes.png"),
+        plot_volumetric_map(results, out / "volumetric.png"),
+    ]
+    for result in results:
+        if result.failures:
+            console.print(
+                f"{result.strategy.name}: {len(result.failures)} failed trial(s), e.g. "
+                f"{result.failures[0]}",
+                highlight=False,
+            )
+    console.print("wrote " + ", ".join(str(p) for p in written if p is not None), highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    app.command(name="mc")(mc)
