@@ -51,7 +51,7 @@ def test_linuxcnc_program_passes_rs274_and_dwells_at_every_target(tmp_path, mach
         np.array([float(v) for v in m.groups()])
         for m in re.finditer(r"STRAIGHT_FEED\(([-\d.]+), ([-\d.]+), ([-\d.]+),", canon)
     ]
-    dwell_blocks = re.findall(r"DWELL\(2\.0000\)", canon)
+    dwell_blocks = re.findall(rf"DWELL\({plan.lines[0].dwell_s:.4f}\)", canon)
     expected = expected_dwell_points(plan)
     assert len(dwell_blocks) == len(expected)
     lines = canon.splitlines()
@@ -79,7 +79,7 @@ def test_every_dialect_runs_on_the_simulated_cnc_and_visits_exactly_the_targets(
     # The programs carry coordinates to 1 um (3 decimals), so "exactly" is within 0.5 um.
     np.testing.assert_allclose([e.position_mm for e in dwells], expected_dwell_points(plan),
                                rtol=0, atol=GCODE_RESOLUTION_MM)
-    assert all(e.dwell_s == pytest.approx(2.0) for e in dwells)
+    assert all(e.dwell_s == pytest.approx(plan.lines[0].dwell_s) for e in dwells)
     assert re.fullmatch(r"X run 1 \+ target 1/\d+ at 0\.000 mm", dwells[0].text)
     assert [e.kind for e in events].count("stop") == len(plan.lines)
     assert events[-1].kind == "end"
@@ -103,7 +103,7 @@ def test_iso_fanuc_syntax(machine, plan):
             r"|G0[01]( [XYZ]-?\d+\.\d{3})+( F\d+\.\d)?",
             block,
         ), block
-    assert "G04 P2000" in blocks
+    assert f"G04 P{round(plan.lines[0].dwell_s * 1000)}" in blocks
 
 
 def test_sinumerik_syntax(machine, plan):
@@ -115,7 +115,7 @@ def test_sinumerik_syntax(machine, plan):
             r"|G[01]( [XYZ]-?\d+\.\d{3})+( F\d+\.\d)?",
             block,
         ), block
-    assert "G4 F2.000" in blocks
+    assert f"G4 F{plan.lines[0].dwell_s:.3f}" in blocks
 
 
 def test_heidenhain_conversational_syntax(machine, plan):
