@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from firmware_iface.modbus import ModbusUnit, decode, encode, tcp_transport
+from firmware_iface.modbus import ModbusUnit, decode, encode, rtu_transport, tcp_transport
 from firmware_iface.register_map import load_register_map
 from sim.clock import SimClock
 from sim.units import SimUnit
@@ -146,3 +146,10 @@ def test_connection_lost_mid_move_ends_locked_with_one_message(served_launch) ->
         assert sim.axes[0].fault_code == 4
     finally:
         unit.close()
+
+
+def test_rtu_transport_on_a_missing_port_names_the_device(tmp_path) -> None:  # noqa: ANN001
+    transport = rtu_transport(str(tmp_path / "ttyUSB9"), "receiver unit", timeout_s=0.1,
+                              retries=0)
+    with pytest.raises(TransportError, match=r"receiver unit on .*ttyUSB9"):
+        ModbusUnit(transport)
