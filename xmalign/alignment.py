@@ -200,11 +200,6 @@ class _Loop:
         return self.u_steerable @ (self.u_steerable.T @ scaled)
 
 
-def is_converged(error: Vec, settings: FineAlignmentSettings) -> bool:
-    """Whether the aligned channels (straightness first) are within the tolerances."""
-    return bool(np.all(np.abs(error) <= _tolerances(settings, len(error))))
-
-
 def _describe(error: Vec) -> str:
     names = [n.removesuffix("_um").removesuffix("_urad") for n in ALIGNED_CHANNELS]
     units = ["um", "um", "urad", "urad", "urad"]
