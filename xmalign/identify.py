@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import stats
+from scipy.special import chdtrc
 
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.pose import LaunchPose
@@ -587,7 +587,7 @@ def _solve(
 
 
 def _p_value(solution: _Solution) -> float:
-    return float(stats.chi2.sf(solution.chi2, solution.dof)) if solution.dof > 0 else 1.0
+    return float(chdtrc(solution.dof, solution.chi2)) if solution.dof > 0 else 1.0
 
 
 def _without_outlier(
