@@ -13,15 +13,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
 from rich.table import Table
 
-from firmware_iface.config import load_units_config, open_devices
-from sim.units import SimPositioningUnit
-from sim.world import FixedPosition, World, build_world
 from xmalign.alignment import (
     AlignmentStep,
     FineAlignmentResult,
@@ -34,10 +31,13 @@ from xmalign.alignment import (
 )
 from xmalign.cli.common import console, machine_or_default
 from xmalign.errors import InputError, XmalignError
-from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
+from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, PositioningUnit, WallClock
 from xmalign.safety import interrupted, units_locked_on_exit
+
+if TYPE_CHECKING:
+    from sim.world import World
 
 #: Column names of the aligned channels (xmalign.alignment.ALIGNED_CHANNELS order).
 _SHORT = ("sv um", "sw um", "aw urad", "av urad", "au urad")
@@ -54,14 +54,6 @@ class AlignmentDevices:
     distance_mm: float
 
 
-def _true_offsets(world: World) -> EncoderOffsets:
-    return EncoderOffsets(
-        c2=world.launch.axes[1].zero_offset_rad,
-        c3=world.receiver.axes[0].zero_offset_rad,
-        c4=world.receiver.axes[1].zero_offset_rad,
-    )
-
-
 def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
                    receiver: PositioningUnit) -> float:
     """What the operator's manual alignment achieves in a simulated setup.
@@ -74,7 +66,7 @@ def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
     cnc_mm = world.interferometer.position.position_mm()
     cp = receiver_cp(cnc_mm, machine.receiver_offset, machine.spindle_angle_rad)
     nominal = aligned_angles(world.launch2mcs_mm, world.gamma_rad, cp,
-                             machine.spindle_angle_rad, _true_offsets(world))
+                             machine.spindle_angle_rad, world.offsets)
     roll = -world.receiver.axes[2].zero_offset_rad
     launch.move_to(nominal.launch_rad, timeout_s=60.0)
     receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
@@ -93,6 +85,9 @@ def simulated_setup(
     Returns the world and the in-process devices (virtual time);
     ``distance_mm`` is the true cp-to-cp distance.
     """
+    from sim.units import SimPositioningUnit
+    from sim.world import FixedPosition, build_world
+
     world = build_world(machine, FixedPosition(position_mm), seed=seed, gamma_rad=gamma_rad)
     launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
     distance_mm = point_by_truth(world, machine, launch, receiver)
@@ -225,6 +220,8 @@ def register(app: typer.Typer) -> None:
 
 def _align_live(config_path: Path, machine: Machine, settings: FineAlignmentSettings,
                 distance_mm: float, manual: bool) -> None:
+    from firmware_iface.config import load_units_config, open_devices
+
     config = load_units_config(config_path)
     live = open_devices(config, machine)
     try:
