@@ -43,7 +43,7 @@ def _executor(scheduler: str | None, workers: int) -> Iterator[Executor]:
             "--scheduler needs dask.distributed: pip install 'xmalign[cluster]'"
         ) from error
     try:
-        client = Client(scheduler, timeout="10s")
+        client = Client(scheduler, timeout="5s")
     except (OSError, TimeoutError) as error:
         raise TransportError(f"--scheduler {scheduler}: cannot connect ({error})") from error
     with client:
