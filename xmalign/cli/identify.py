@@ -141,12 +141,61 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
         yield on_event
 
 
+def _live_identification(
+    machine: Machine, config_path: Path, alignments: int, session_path: Path
+) -> Session:
+    """The identification routine on real units: the operator moves the machine (or a CNC
+    position file tells where it is), the units point and fine-align, and every alignment
+    is written to ``session_path`` at once, so an interrupted routine resumes."""
+    from firmware_iface.config import load_units_config, open_devices
+    from trajectories.identification_design import design_identification
+    from xmalign.cli.align import AlignmentDevices, manual_alignment
+    from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
+    from xmalign.roles import WallClock
+
+    config = load_units_config(config_path)
+    positions = design_identification(machine, alignments).machine_mm
+    guess = (
+        PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
+        if machine.launch_unit
+        else None
+    )
+    live = open_devices(config, machine)
+    try:
+        clock = WallClock()
+        devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
+        jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
+        with _progress_of_routine(alignments) as on_event:
+            return run_identification(
+                positions,
+                machine,
+                devices,
+                session_path,
+                guess=guess,
+                manual_align=lambda: manual_alignment(jog, machine, config.timeouts.move_s),
+                on_event=on_event,
+                unit_timeout_s=config.timeouts.move_s,
+            )
+    finally:
+        live.close()
+
+
 def identify_command(
     input: Annotated[
         Path | None, typer.Option("--input", help="Identification session JSON.")
     ] = None,
     out: Annotated[Path | None, typer.Option(help="Write the launch-pose JSON here.")] = None,
     method: Annotated[str, typer.Option(help=f"One of {', '.join(METHODS)}.")] = "joint",
+    live: Annotated[
+        bool, typer.Option("--live", help="Run the identification routine on real units.")
+    ] = False,
+    config: Annotated[
+        Path | None, typer.Option(help="With --live: the hardware configuration units.yaml.")
+    ] = None,
+    session_file: Annotated[
+        Path | None,
+        typer.Option("--session", help="With --live: session file, written as it goes (resumed)."),
+    ] = None,
     sim: Annotated[
         bool, typer.Option("--sim", help="Simulate a session on the virtual machine.")
     ] = False,
@@ -175,9 +224,11 @@ def identify_command(
     """Identify the launch unit's pose (position and azimuth) from aligned units."""
     if method not in METHODS:
         raise InputError(f"--method: unknown method '{method}' (choose {', '.join(METHODS)})")
-    if sim == (input is not None):
-        raise InputError("give either --input SESSION.json or --sim")
-    machine_model = machine_or_default(machine) if (sim or machine is not None) else None
+    if (input is not None) + sim + live != 1:
+        raise InputError("give one of --input SESSION.json, --sim or --live")
+    if live and (config is None or session_file is None):
+        raise InputError("--live needs --config UNITS.yaml and --session SESSION.json")
+    machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,
         {
@@ -197,8 +248,12 @@ def identify_command(
         )
         session = read_session(session_path)
     else:
-        session = read_session(input)
-        result = identify(session, method, uncertainty, str(input))
+        if live:
+            session = _live_identification(machine_model, config, alignments, session_file)
+            source = str(session_file)
+        else:
+            session, source = read_session(input), str(input)
+        result = identify(session, method, uncertainty, source)
     print_result(result, session, truth)
     if out is not None:
         write_pose(out, result.to_pose())
