@@ -1,4 +1,7 @@
-"""The register map of REGISTERS.md, loaded from ``registers.yaml`` (one source for driver and sim)."""
+"""The register map of REGISTERS.md, loaded from ``registers.yaml``.
+
+One source for the driver and the simulated units.
+"""
 
 from __future__ import annotations
 
@@ -55,10 +58,13 @@ def load_register_map(path: Path = REGISTER_MAP_PATH) -> RegisterMap:
     data = yaml.safe_load(path.read_text(encoding="utf-8"))
     block = data["axis_block"]
     return RegisterMap(
-        device={k: Register(k, v["address"], v["type"], v["access"]) for k, v in data["device"].items()},
+        device={
+            k: Register(k, v["address"], v["type"], v["access"]) for k, v in data["device"].items()
+        },
         axis_stride=block["base_stride"],
         axis_registers={
-            k: Register(k, v["offset"], v["type"], v["access"]) for k, v in block["registers"].items()
+            k: Register(k, v["offset"], v["type"], v["access"])
+            for k, v in block["registers"].items()
         },
         fault_codes={int(k): v for k, v in data["fault_codes"].items()},
         heartbeat_period_s=data["watchdog"]["heartbeat_period_ms"] / 1000.0,
