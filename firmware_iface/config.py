@@ -38,7 +38,6 @@ from typing import Annotated, Literal
 
 import can
 import canopen
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from firmware_iface.canopen_axis import CanopenUnit
@@ -46,7 +45,7 @@ from firmware_iface.interferometer import ReplayInterferometer, SerialInterferom
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import check_format, validate
+from xmalign.formats.common import check_format, read_yaml, validate
 from xmalign.machine import Machine
 from xmalign.roles import Interferometer, MachineMover, PositioningUnit
 
@@ -147,17 +146,7 @@ def _resolve(path: Path | None, base_dir: Path) -> Path | None:
 def load_units_config(path: str | Path) -> UnitsConfig:
     """Read and validate a ``units.yaml``; errors name the file and the key."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from error
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{path}: not valid YAML{where}") from error
-    return parse_units_config(data, str(path), path.parent)
+    return parse_units_config(read_yaml(path, "units configuration"), str(path), path.parent)
 
 
 @dataclass

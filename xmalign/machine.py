@@ -13,11 +13,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from xmalign.errors import InputError
-from xmalign.formats.common import validate
+from xmalign.formats.common import read_yaml, validate
 from xmalign.geometry import Vec
 
 AXES = ("X", "Y", "Z")
@@ -148,18 +147,7 @@ def parse_machine(data: object, source: str = "<machine>") -> Machine:
 
 def load_machine(path: str | Path) -> Machine:
     """Read and validate a machine YAML file."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read machine file ({error.strerror})") from error
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{path}:{where} not valid YAML") from error
-    return parse_machine(data, str(path))
+    return parse_machine(read_yaml(path, "machine file"), str(path))
 
 
 def default_machine_path() -> Path:

@@ -44,17 +44,17 @@ class Dialect(ABC):
     def message(self, text: str) -> str:
         """A message the controller shows to the operator (a comment where it has none)."""
 
-    @abstractmethod
     def stop(self) -> str:
         """Programmed stop; the operator continues with cycle start."""
+        return "M0"
 
-    @abstractmethod
     def rapid(self, axes_mm: Mapping[str, float]) -> str:
         """Rapid move of the named axes (``{"X": .., "Z": ..}``)."""
+        return f"G0 {words(axes_mm)}"
 
-    @abstractmethod
     def feed(self, axes_mm: Mapping[str, float], feed_mm_min: float) -> str:
         """Linear move at a feed."""
+        return f"G1 {words(axes_mm)} F{feed_mm_min:.1f}"
 
     @abstractmethod
     def dwell(self, seconds: float) -> list[str]: ...

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from trajectories.gcode.base import Dialect, plain_text, words
+from trajectories.gcode.base import Dialect, plain_text
 
 
 class SinumerikDialect(Dialect):
@@ -26,15 +26,6 @@ class SinumerikDialect(Dialect):
 
     def message(self, text: str) -> str:
         return f'MSG("{plain_text(text)}")'
-
-    def stop(self) -> str:
-        return "M0"
-
-    def rapid(self, axes_mm: Mapping[str, float]) -> str:
-        return f"G0 {words(axes_mm)}"
-
-    def feed(self, axes_mm: Mapping[str, float], feed_mm_min: float) -> str:
-        return f"G1 {words(axes_mm)} F{feed_mm_min:.1f}"
 
     def dwell(self, seconds: float) -> list[str]:
         return [f"G4 F{seconds:.3f}"]

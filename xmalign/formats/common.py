@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from pydantic import BaseModel, ValidationError
 
 from xmalign.errors import FormatError, InputError
@@ -33,6 +34,21 @@ def validate(model: type[M], data: object, source: str) -> M:
         return model.model_validate(data)
     except ValidationError as error:
         raise InputError(describe_validation_error(error, source)) from error
+
+
+def read_yaml(path: str | Path, what: str = "file") -> object:
+    """Parse a YAML file; errors name the file (and the line of a syntax error)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise InputError(f"{path}: cannot read {what} ({error.strerror})") from error
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise InputError(f"{path}: not valid YAML{where}") from error
 
 
 def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
