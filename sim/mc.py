@@ -89,9 +89,7 @@ class Strategy:
         """CNC points (N, 3) mm at which this strategy aligns the units."""
         if self.identification == "spread":
             return spread_positions(machine, self.alignments)
-        designed = design_identification(machine, self.alignments).machine_mm
-        # the optimiser's bounds hold to ~1e-5 mm; the routine refuses points 1e-6 mm outside
-        return np.clip(designed, machine.travel_min_mm, machine.travel_max_mm)
+        return design_identification(machine, self.alignments).machine_mm
 
 
 def _placed(machine: Machine, placement: str) -> Vec:
