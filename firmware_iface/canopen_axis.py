@@ -78,8 +78,14 @@ class CanopenAxis:
         Time source of the waits.
     """
 
-    def __init__(self, node: canopen.RemoteNode, name: str, device_name: str,
-                 clock: Clock | None = None, poll_s: float = 0.01) -> None:
+    def __init__(
+        self,
+        node: canopen.RemoteNode,
+        name: str,
+        device_name: str,
+        clock: Clock | None = None,
+        poll_s: float = 0.01,
+    ) -> None:
         self.node = node
         self.name = name
         self.label = f"axis {name} (CANopen node {node.id}) of the {device_name}"
@@ -225,22 +231,33 @@ class CanopenUnit:
         Produce the host heartbeat on the network while the unit is open.
     """
 
-    def __init__(self, network: canopen.Network, kind: Literal["launch", "receiver"],
-                 node_ids: Sequence[int] | None = None, device_name: str | None = None,
-                 clock: Clock | None = None, heartbeat: bool = True) -> None:
+    def __init__(
+        self,
+        network: canopen.Network,
+        kind: Literal["launch", "receiver"],
+        node_ids: Sequence[int] | None = None,
+        device_name: str | None = None,
+        clock: Clock | None = None,
+        heartbeat: bool = True,
+    ) -> None:
         self.kind = kind
         self.device_name = device_name or f"{kind} unit"
         first = FIRST_AXIS[kind]
-        ids = list(node_ids) if node_ids is not None else [first, first + 1, first + 2][
-            : 2 if kind == "launch" else 3]
+        ids = (
+            list(node_ids)
+            if node_ids is not None
+            else [first, first + 1, first + 2][: 2 if kind == "launch" else 3]
+        )
         self.network = network
         self._heartbeat_task = (
             network.send_periodic(HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S)
-            if heartbeat else None
+            if heartbeat
+            else None
         )
         self._axes = tuple(
-            CanopenAxis(network.add_node(node_id, str(EDS_PATH)), f"a{first + i}",
-                        self.device_name, clock)
+            CanopenAxis(
+                network.add_node(node_id, str(EDS_PATH)), f"a{first + i}", self.device_name, clock
+            )
             for i, node_id in enumerate(ids)
         )
 

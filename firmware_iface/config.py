@@ -131,12 +131,16 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
     config = validate(UnitsConfig, data, source)
     if base_dir is None:
         return config
-    return config.model_copy(update={
-        "interferometer": config.interferometer.model_copy(update={
-            "replay": _resolve(config.interferometer.replay, base_dir)}),
-        "machine_position": config.machine_position.model_copy(update={
-            "file": _resolve(config.machine_position.file, base_dir)}),
-    })
+    return config.model_copy(
+        update={
+            "interferometer": config.interferometer.model_copy(
+                update={"replay": _resolve(config.interferometer.replay, base_dir)}
+            ),
+            "machine_position": config.machine_position.model_copy(
+                update={"file": _resolve(config.machine_position.file, base_dir)}
+            ),
+        }
+    )
 
 
 def _resolve(path: Path | None, base_dir: Path) -> Path | None:
@@ -166,8 +170,11 @@ class LiveDevices:
 
 
 def _open_unit(
-    config: UnitConfig, kind: Literal["launch", "receiver"], timeouts: Timeouts,
-    networks: dict[tuple[str, str], canopen.Network], closers: list[Callable[[], None]],
+    config: UnitConfig,
+    kind: Literal["launch", "receiver"],
+    timeouts: Timeouts,
+    networks: dict[tuple[str, str], canopen.Network],
+    closers: list[Callable[[], None]],
 ) -> PositioningUnit:
     name = f"{kind} unit"
     if isinstance(config, CanopenUnitConfig):
@@ -175,8 +182,9 @@ def _open_unit(
         if key not in networks:
             network = canopen.Network()
             try:
-                network.connect(interface=config.interface, channel=config.channel,
-                                bitrate=config.bitrate)
+                network.connect(
+                    interface=config.interface, channel=config.channel, bitrate=config.bitrate
+                )
             except (can.CanError, OSError, ValueError) as error:
                 raise TransportError(
                     f"cannot open the CAN bus {config.channel} ({config.interface}): {error}"
@@ -189,8 +197,9 @@ def _open_unit(
     if isinstance(config, ModbusTcpUnit):
         transport = tcp_transport(config.host, config.port, name, config.device_id, timeouts.io_s)
     else:
-        transport = rtu_transport(config.serial_port, name, config.baudrate, config.device_id,
-                                  timeouts.io_s)
+        transport = rtu_transport(
+            config.serial_port, name, config.baudrate, config.device_id, timeouts.io_s
+        )
     closers.append(transport.close)
     modbus_unit = ModbusUnit(transport, expected_kind=kind)
     modbus_unit.start_heartbeat()
@@ -211,7 +220,9 @@ def _open_interferometer(
 
 
 def open_devices(
-    config: UnitsConfig, machine: Machine, ask: Callable[[str], str] = input,
+    config: UnitsConfig,
+    machine: Machine,
+    ask: Callable[[str], str] = input,
     tell: Callable[[str], None] = print,
 ) -> LiveDevices:
     """Open both units, the interferometer and the machine-position source of ``config``.
@@ -229,6 +240,7 @@ def open_devices(
             close()
         raise
     source = config.machine_position
-    mover = OperatorPrompt(machine, ask, tell,
-                           FilePositions(source.file) if source.file is not None else None)
+    mover = OperatorPrompt(
+        machine, ask, tell, FilePositions(source.file) if source.file is not None else None
+    )
     return LiveDevices(launch, receiver, interferometer, mover, closers)

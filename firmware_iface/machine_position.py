@@ -68,8 +68,11 @@ class FilePositions:
             raise TransportError(
                 f"cannot read the machine position file {self.path} ({error.strerror})"
             ) from error
-        numbered = [(n, line) for n, line in enumerate(lines, start=1)
-                    if line.strip() and not line.lstrip().startswith("#")]
+        numbered = [
+            (n, line)
+            for n, line in enumerate(lines, start=1)
+            if line.strip() and not line.lstrip().startswith("#")
+        ]
         if not numbered:
             raise FormatError(f"{self.path}: no position in the file (expected a line 'x y z')")
         number, line = numbered[-1]
@@ -96,9 +99,15 @@ class CheckedMover:
         Largest distance between target and reported position after the move.
     """
 
-    def __init__(self, mover: MachineMover, machine: Machine, name: str = "CNC",
-                 tolerance_mm: float = 0.05, clock: Clock | None = None,
-                 standstill_timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        mover: MachineMover,
+        machine: Machine,
+        name: str = "CNC",
+        tolerance_mm: float = 0.05,
+        clock: Clock | None = None,
+        standstill_timeout_s: float = 10.0,
+    ) -> None:
         self.mover = mover
         self.machine = machine
         self.name = name
@@ -126,9 +135,7 @@ class CheckedMover:
             self.clock.sleep(0.05)
         miss = float(np.linalg.norm(self.position_mm() - target))
         if miss > self.tolerance_mm:
-            raise OutOfRangeError(
-                f"the {self.name} stopped {miss:.3f} mm from {_format(target)}"
-            )
+            raise OutOfRangeError(f"the {self.name} stopped {miss:.3f} mm from {_format(target)}")
 
 
 class OperatorPrompt:
@@ -154,10 +161,14 @@ class OperatorPrompt:
         Largest accepted distance between the target and the typed position.
     """
 
-    def __init__(self, machine: Machine, ask: Callable[[str], str] = input,
-                 tell: Callable[[str], None] = print,
-                 source: MachinePositionSource | None = None,
-                 max_deviation_mm: float = 5.0) -> None:
+    def __init__(
+        self,
+        machine: Machine,
+        ask: Callable[[str], str] = input,
+        tell: Callable[[str], None] = print,
+        source: MachinePositionSource | None = None,
+        max_deviation_mm: float = 5.0,
+    ) -> None:
         self.machine = machine
         self.ask = ask
         self.tell = tell

@@ -89,8 +89,11 @@ class ModbusTransport:
     """
 
     def __init__(
-        self, client: ModbusTcpClient | ModbusSerialClient, device_name: str,
-        device_id: int = 1, retries: int = 2,
+        self,
+        client: ModbusTcpClient | ModbusSerialClient,
+        device_name: str,
+        device_id: int = 1,
+        retries: int = 2,
     ) -> None:
         self.client = client
         self.device_name = device_name
@@ -99,13 +102,19 @@ class ModbusTransport:
         self._lock = threading.Lock()
 
     def read_registers(self, address: int, count: int) -> list[int]:
-        response = self._call("read", address, lambda c: c.read_holding_registers(
-            address, count=count, device_id=self.device_id))
+        response = self._call(
+            "read",
+            address,
+            lambda c: c.read_holding_registers(address, count=count, device_id=self.device_id),
+        )
         return list(response.registers)
 
     def write_registers(self, address: int, values: Sequence[int]) -> None:
-        self._call("write", address, lambda c: c.write_registers(
-            address, list(values), device_id=self.device_id))
+        self._call(
+            "write",
+            address,
+            lambda c: c.write_registers(address, list(values), device_id=self.device_id),
+        )
 
     def close(self) -> None:
         with self._lock:
@@ -144,7 +153,11 @@ class ModbusTransport:
 
 
 def tcp_transport(
-    host: str, port: int, device_name: str, device_id: int = 1, timeout_s: float = 1.0,
+    host: str,
+    port: int,
+    device_name: str,
+    device_id: int = 1,
+    timeout_s: float = 1.0,
     retries: int = 2,
 ) -> ModbusTransport:
     """Transport over Modbus TCP."""
@@ -153,8 +166,12 @@ def tcp_transport(
 
 
 def rtu_transport(
-    serial_port: str, device_name: str, baudrate: int = 115200, device_id: int = 1,
-    timeout_s: float = 1.0, retries: int = 2,
+    serial_port: str,
+    device_name: str,
+    baudrate: int = 115200,
+    device_id: int = 1,
+    timeout_s: float = 1.0,
+    retries: int = 2,
 ) -> ModbusTransport:
     """Transport over Modbus RTU on a serial line."""
     client = ModbusSerialClient(
@@ -272,9 +289,12 @@ class ModbusUnit:
     """
 
     def __init__(
-        self, transport: RegisterTransport, device_name: str | None = None,
+        self,
+        transport: RegisterTransport,
+        device_name: str | None = None,
         expected_kind: Literal["launch", "receiver"] | None = None,
-        clock: Clock | None = None, poll_s: float = 0.01,
+        clock: Clock | None = None,
+        poll_s: float = 0.01,
         register_map: RegisterMap | None = None,
     ) -> None:
         self.transport = transport

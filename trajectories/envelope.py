@@ -74,9 +74,10 @@ class BeamEnvelope:
     @property
     def nominal_fits(self) -> bool:
         """True when the identified pose itself keeps the beam inside the limits."""
-        return float(np.max(self.lateral_nominal_um)) <= self.straightness_limit_um and float(
-            np.max(np.abs(self.angle_nominal_urad))
-        ) <= self.angle_limit_urad
+        return (
+            float(np.max(self.lateral_nominal_um)) <= self.straightness_limit_um
+            and float(np.max(np.abs(self.angle_nominal_urad))) <= self.angle_limit_urad
+        )
 
     @property
     def within(self) -> bool:
@@ -130,8 +131,13 @@ def predict_envelope(
     straightness_limit_um, angle_limit_urad : float
         Range minus allowance the envelope must stay inside.
     """
-    args = (np.asarray(receiver_cp_mm, dtype=float), launch_rad, receiver_rad,
-            spindle_angle_rad, frame[1:])
+    args = (
+        np.asarray(receiver_cp_mm, dtype=float),
+        launch_rad,
+        receiver_rad,
+        spindle_angle_rad,
+        frame[1:],
+    )
     q0 = np.asarray(q_mm_rad, dtype=float)
     nominal = _beam_at_receiver(q0, *args)
     jacobian = np.empty((nominal.size, q0.size))

@@ -76,15 +76,11 @@ def _halton(index: int, base: int) -> float:
 
 def _start_points(machine: Machine, count: int) -> Vec:
     low, high = machine.travel_min_mm, machine.travel_max_mm
-    fractions = np.array(
-        [[_halton(i + 1, base) for base in _HALTON_BASES] for i in range(count)]
-    )
+    fractions = np.array([[_halton(i + 1, base) for base in _HALTON_BASES] for i in range(count)])
     return low + fractions * (high - low)
 
 
-def _information(
-    tool_mm: ca.MX, launch_cp_mm: Vec, offset_mm: Vec, machine: Machine
-) -> ca.MX:
+def _information(tool_mm: ca.MX, launch_cp_mm: Vec, offset_mm: Vec, machine: Machine) -> ca.MX:
     """Fisher information (7x7) of ``(x, y, z, gamma, c2, c3, c4)`` for tool points (N, 3)."""
     u = machine.uncertainty
     encoder_var = (u.encoder_urad * 1e-6) ** 2

@@ -136,9 +136,7 @@ class _Stretch:
         return self.far - self.near
 
 
-def _stretches(
-    launch_cp_mm: Vec, e: Vec, machine: Machine, overrun_mm: float
-) -> list[_Stretch]:
+def _stretches(launch_cp_mm: Vec, e: Vec, machine: Machine, overrun_mm: float) -> list[_Stretch]:
     """Usable target stretches on both senses of direction ``e`` through the launch cp.
 
     ``near``/``far`` are beam parameters (distance along ``sense·e`` from the cp

@@ -83,8 +83,10 @@ def open_session(path: Path, machine: Machine) -> Session:
     offset or spindle angle (its alignments would not fit this setup).
     """
     if not path.exists():
-        return Session(receiver_offset_mm=machine.receiver_offset.copy(),
-                       spindle_angle_rad=machine.spindle_angle_rad)
+        return Session(
+            receiver_offset_mm=machine.receiver_offset.copy(),
+            spindle_angle_rad=machine.spindle_angle_rad,
+        )
     session = read_session(path)
     if not np.allclose(session.receiver_offset_mm, machine.receiver_offset, atol=1e-6):
         raise InputError(
@@ -126,11 +128,16 @@ def _pointing_bias(guess: PoseGuess, session: Session) -> tuple[EncoderOffsets, 
     biases = []
     for a in session.alignments:
         cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-        predicted = aligned_angles(guess.launch2mcs_mm, float(guess.gamma_rad), cp,
-                                   session.spindle_angle_rad)
-        biases.append([predicted.launch_rad[1] - a.launch_rad[1],
-                       float(wrap_angle(predicted.receiver_rad[0] - a.receiver_rad[0])),
-                       predicted.receiver_rad[1] - a.receiver_rad[1]])
+        predicted = aligned_angles(
+            guess.launch2mcs_mm, float(guess.gamma_rad), cp, session.spindle_angle_rad
+        )
+        biases.append(
+            [
+                predicted.launch_rad[1] - a.launch_rad[1],
+                float(wrap_angle(predicted.receiver_rad[0] - a.receiver_rad[0])),
+                predicted.receiver_rad[1] - a.receiver_rad[1],
+            ]
+        )
     c2, c3, c4 = np.mean(biases, axis=0)
     roll = float(np.mean([a.receiver_rad[2] for a in session.alignments]))
     return EncoderOffsets(float(c2), float(c3), float(c4)), roll
@@ -152,8 +159,9 @@ def _point_units(
     guess: PoseGuess, cp_mm: Vec, session: Session, devices: RoutineDevices, timeout_s: float
 ) -> float:
     """Move both units to the angles predicted by the guess; returns the predicted distance."""
-    predicted = aligned_angles(guess.launch2mcs_mm, float(guess.gamma_rad), cp_mm,
-                               session.spindle_angle_rad, guess.offsets)
+    predicted = aligned_angles(
+        guess.launch2mcs_mm, float(guess.gamma_rad), cp_mm, session.spindle_angle_rad, guess.offsets
+    )
     receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
     devices.launch.move_to(predicted.launch_rad, timeout_s)
     devices.receiver.move_to(receiver_target[: len(devices.receiver.axes)], timeout_s)
@@ -164,12 +172,14 @@ def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual
     devices.launch.lock()
     devices.receiver.lock()
     receiver = devices.receiver.angles_rad()
-    session.alignments.append(Alignment(
-        machine_mm=machine_mm,
-        launch_rad=devices.launch.angles_rad(),
-        receiver_rad=np.concatenate([receiver, np.zeros(3 - len(receiver))]),
-        straightness_um=residual_um,
-    ))
+    session.alignments.append(
+        Alignment(
+            machine_mm=machine_mm,
+            launch_rad=devices.launch.angles_rad(),
+            receiver_rad=np.concatenate([receiver, np.zeros(3 - len(receiver))]),
+            straightness_um=residual_um,
+        )
+    )
 
 
 def run_identification(
@@ -233,6 +243,7 @@ def run_identification(
     distance_mm = DEFAULT_DISTANCE_MM
     with units_locked_on_exit(devices.launch, devices.receiver):
         for index, target in enumerate(positions, start=1):
+
             def event(stage: Stage, where: Vec, index: int = index) -> None:
                 if on_event is not None:
                     on_event(RoutineEvent(index, len(positions), stage, where))
@@ -258,8 +269,14 @@ def run_identification(
                 event("manual", machine_mm)
                 manual_align()
             event("aligning", machine_mm)
-            result = fine_align(devices.launch, devices.receiver, devices.interferometer,
-                                devices.clock, distance_mm, settings)
+            result = fine_align(
+                devices.launch,
+                devices.receiver,
+                devices.interferometer,
+                devices.clock,
+                distance_mm,
+                settings,
+            )
             distance_mm = result.distance_mm
             _record(session, machine_mm, devices, result.straightness_um)
             write_session(path, session)
@@ -267,4 +284,3 @@ def run_identification(
             if refine_guess is not None:
                 guess = refine_guess(session) or guess
     return session
-

@@ -174,8 +174,11 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
     parts.append(
         _html_table(
             [
-                "line", "straightness offset v, w / um", "alignment slope v, w / urad",
-                "angle offsets u, v, w / urad", "residual RMS lin, sv, sw / um",
+                "line",
+                "straightness offset v, w / um",
+                "alignment slope v, w / urad",
+                "angle offsets u, v, w / urad",
+                "residual RMS lin, sv, sw / um",
                 "residual RMS au, av, aw / urad",
             ],
             [

@@ -27,8 +27,13 @@ from xmalign.cli.align import simulated_setup
 from xmalign.machine import default_machine_path, load_machine
 
 TARGET_S = 5.0
-POSITIONS = ([1600, 1050, -100], [300, 1400, -400], [1900, 200, 0], [1000, 750, -250],
-             [200, 150, -50])
+POSITIONS = (
+    [1600, 1050, -100],
+    [300, 1400, -400],
+    [1900, 200, 0],
+    [1000, 750, -250],
+    [200, 150, -50],
+)
 
 
 def bench_fine_alignment(seeds: range = range(8)) -> bool:
@@ -36,18 +41,26 @@ def bench_fine_alignment(seeds: range = range(8)) -> bool:
     times, steps, distances = [], [], []
     for seed in seeds:
         for position in POSITIONS:
-            _, devices = simulated_setup(machine, np.array(position, dtype=float), seed, 200.0,
-                                         300.0)
+            _, devices = simulated_setup(
+                machine, np.array(position, dtype=float), seed, 200.0, 300.0
+            )
             distances.append(devices.distance_mm)
-            result = fine_align(devices.launch, devices.receiver, devices.interferometer,
-                                devices.clock, distance_mm=1000.0)
+            result = fine_align(
+                devices.launch,
+                devices.receiver,
+                devices.interferometer,
+                devices.clock,
+                distance_mm=1000.0,
+            )
             times.append(result.elapsed_s)
             steps.append(len(result.steps))
     times_s = np.array(times)
-    print(f"fine alignment, {len(times)} runs (distances {min(distances):.0f}-"
-          f"{max(distances):.0f} mm), simulated time to converge: median {np.median(times_s):.3f}"
-          f" s, max {times_s.max():.3f} s (target <= {TARGET_S:g} s); steps median "
-          f"{np.median(steps):.0f}, max {max(steps)}")
+    print(
+        f"fine alignment, {len(times)} runs (distances {min(distances):.0f}-"
+        f"{max(distances):.0f} mm), simulated time to converge: median {np.median(times_s):.3f}"
+        f" s, max {times_s.max():.3f} s (target <= {TARGET_S:g} s); steps median "
+        f"{np.median(steps):.0f}, max {max(steps)}"
+    )
     return bool(times_s.max() <= TARGET_S)
 
 
@@ -69,8 +82,10 @@ def bench_modbus_latency(n: int = 2000) -> None:
         transport.close()
         server.stop()
     ms = np.array(latencies) * 1e3
-    print(f"Modbus TCP read of 6 registers on loopback, {n} reads: median {np.median(ms):.3f} ms,"
-          f" p95 {np.percentile(ms, 95):.3f} ms, max {ms.max():.3f} ms")
+    print(
+        f"Modbus TCP read of 6 registers on loopback, {n} reads: median {np.median(ms):.3f} ms,"
+        f" p95 {np.percentile(ms, 95):.3f} ms, max {ms.max():.3f} ms"
+    )
 
 
 if __name__ == "__main__":

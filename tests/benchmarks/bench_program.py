@@ -43,9 +43,20 @@ def main() -> int:
         pose_path = Path(tmp) / "pose.json"
         write_pose(pose_path, pose)
         for dialect in DIALECTS:
-            command = [sys.executable, "-m", "xmalign", "program", "--pose", str(pose_path),
-                       "--plan-out", str(Path(tmp) / "plan.json"), "--dialect", dialect,
-                       "--out", str(Path(tmp) / "run.nc")]
+            command = [
+                sys.executable,
+                "-m",
+                "xmalign",
+                "program",
+                "--pose",
+                str(pose_path),
+                "--plan-out",
+                str(Path(tmp) / "plan.json"),
+                "--dialect",
+                dialect,
+                "--out",
+                str(Path(tmp) / "run.nc"),
+            ]
             start = time.perf_counter()
             subprocess.run(command, check=True, capture_output=True)
             wall_s = time.perf_counter() - start

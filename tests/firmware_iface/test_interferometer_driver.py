@@ -118,8 +118,10 @@ def test_recorded_stream_replays_the_same_readings(reference_machine, tmp_path) 
 def test_replay_average_and_zero(tmp_path) -> None:  # noqa: ANN001
     path = tmp_path / "s.csv"
     rows = [f"{0.02 * i:.6f},{10.0 + i:.4f},1,2,3,4,5,{int(i != 3)}" for i in range(6)]
-    path.write_text("time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
-                    "angle_v_urad,angle_w_urad,beam_ok\n" + "\n".join(rows) + "\n")
+    path.write_text(
+        "time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
+        "angle_v_urad,angle_w_urad,beam_ok\n" + "\n".join(rows) + "\n"
+    )
     replay = ReplayInterferometer(path)
     replay.zero()
     mean = replay.average(0.05)  # samples at 0, 0.02, 0.04, 0.06 s
@@ -130,7 +132,9 @@ def test_replay_average_and_zero(tmp_path) -> None:  # noqa: ANN001
 
 def test_bad_stream_file_names_the_line(tmp_path) -> None:  # noqa: ANN001
     path = tmp_path / "bad.csv"
-    path.write_text("time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
-                    "angle_v_urad,angle_w_urad,beam_ok\n0,1,2,3,4,5,6,1\n0.02,1,2,x,4,5,6,1\n")
+    path.write_text(
+        "time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
+        "angle_v_urad,angle_w_urad,beam_ok\n0,1,2,3,4,5,6,1\n0.02,1,2,x,4,5,6,1\n"
+    )
     with pytest.raises(FormatError, match="bad.csv: line 3"):
         ReplayInterferometer(path)

@@ -42,8 +42,10 @@ class Operator:
         self.told.append(message)
 
 
-@pytest.mark.parametrize(("text", "expected"), [
-    ("1 2 3", [1, 2, 3]), ("1.5,-2;3e2", [1.5, -2, 300]), ("1 2", None), ("a b c", None)])
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("1 2 3", [1, 2, 3]), ("1.5,-2;3e2", [1.5, -2, 300]), ("1 2", None), ("a b c", None)],
+)
 def test_parse_position(text: str, expected: list[float] | None) -> None:
     result = parse_position(text)
     assert (result is None) if expected is None else np.allclose(result, expected)
@@ -89,8 +91,9 @@ def test_file_positions_name_the_bad_line(tmp_path) -> None:  # noqa: ANN001
 
 def test_checked_mover_on_the_simulated_cnc(reference_machine) -> None:  # noqa: ANN001
     clock = SimClock()
-    mover = CheckedMover(SimulatedCnc(reference_machine, clock), reference_machine,
-                         "simulated CNC", clock=clock)
+    mover = CheckedMover(
+        SimulatedCnc(reference_machine, clock), reference_machine, "simulated CNC", clock=clock
+    )
     mover.move_to([1200.0, 300.0, -250.0], 8000.0)
     np.testing.assert_allclose(mover.position_mm(), [1200.0, 300.0, -250.0])
     with pytest.raises(OutOfRangeError, match="outside the travel of the simulated CNC"):
@@ -102,47 +105,66 @@ def test_example_units_config_loads() -> None:
     assert config.launch.transport == "modbus-tcp" and config.receiver.transport == "canopen"
 
 
-@pytest.mark.parametrize(("body", "fragment"), [
-    ("launch: {transport: modbus-tcp, port: 502}", "key 'launch.modbus-tcp.host'"),
-    ("launch: {transport: usb, host: x}", "key 'launch'"),
-    ("launch: {transport: modbus-tcp, host: x, speed: 3}", "unknown key 'launch.modbus-tcp.speed'"),
-])
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        ("launch: {transport: modbus-tcp, port: 502}", "key 'launch.modbus-tcp.host'"),
+        ("launch: {transport: usb, host: x}", "key 'launch'"),
+        (
+            "launch: {transport: modbus-tcp, host: x, speed: 3}",
+            "unknown key 'launch.modbus-tcp.speed'",
+        ),
+    ],
+)
 def test_bad_units_config_names_file_and_key(tmp_path, body: str, fragment: str) -> None:  # noqa: ANN001
     path = tmp_path / "units.yaml"
-    path.write_text(textwrap.dedent(f"""\
+    path.write_text(
+        textwrap.dedent(f"""\
         format: xmalign.units/1
         {body}
         receiver: {{transport: modbus-tcp, host: localhost}}
         interferometer: {{port: /dev/null}}
-        """))
+        """)
+    )
     with pytest.raises(InputError, match=f"units.yaml: .*{fragment}".replace("[", r"\[")):
         load_units_config(path)
 
 
 def test_interferometer_needs_exactly_one_source(tmp_path) -> None:  # noqa: ANN001
     path = tmp_path / "units.yaml"
-    path.write_text("format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
-                    "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {}\n")
+    path.write_text(
+        "format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
+        "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {}\n"
+    )
     with pytest.raises(InputError, match="key 'interferometer': give exactly one of"):
         load_units_config(path)
 
 
-def test_open_devices_on_simulated_servers(reference_machine, served_launch, free_port,  # noqa: ANN001
-                                           tmp_path) -> None:
+def test_open_devices_on_simulated_servers(
+    reference_machine,
+    served_launch,
+    free_port,  # noqa: ANN001
+    tmp_path,
+) -> None:
     _, launch_server = served_launch
-    receiver_server = ModbusUnitServer(SimUnit("receiver", SimClock(real_time=True)), "127.0.0.1",
-                                       free_port)
+    receiver_server = ModbusUnitServer(
+        SimUnit("receiver", SimClock(real_time=True)), "127.0.0.1", free_port
+    )
     receiver_server.start()
     stream = tmp_path / "stream.csv"
-    stream.write_text("time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
-                      "angle_v_urad,angle_w_urad,beam_ok\n0,0,1,2,3,4,5,1\n")
+    stream.write_text(
+        "time_s,linear_um,straightness_v_um,straightness_w_um,angle_u_urad,"
+        "angle_v_urad,angle_w_urad,beam_ok\n0,0,1,2,3,4,5,1\n"
+    )
     path = tmp_path / "units.yaml"
-    path.write_text(textwrap.dedent(f"""\
+    path.write_text(
+        textwrap.dedent(f"""\
         format: xmalign.units/1
         launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {receiver_server.port}}}
         receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {launch_server.port}}}
         interferometer: {{replay: stream.csv}}
-        """))
+        """)
+    )
     config = load_units_config(path)
     try:
         with pytest.raises(XmalignError, match="is a receiver unit, expected a launch unit"):

@@ -127,8 +127,9 @@ def test_reconnects_after_a_dropped_connection(served_launch) -> None:  # noqa: 
 
 def test_connection_lost_mid_move_ends_locked_with_one_message(served_launch) -> None:  # noqa: ANN001
     sim, server = served_launch
-    unit = ModbusUnit(tcp_transport("127.0.0.1", server.port, "launch unit", timeout_s=0.2,
-                                    retries=1))
+    unit = ModbusUnit(
+        tcp_transport("127.0.0.1", server.port, "launch unit", timeout_s=0.2, retries=1)
+    )
     unit.start_heartbeat()
     try:
         with pytest.raises(TransportError) as caught, units_locked_on_exit(unit):
@@ -149,7 +150,6 @@ def test_connection_lost_mid_move_ends_locked_with_one_message(served_launch) ->
 
 
 def test_rtu_transport_on_a_missing_port_names_the_device(tmp_path) -> None:  # noqa: ANN001
-    transport = rtu_transport(str(tmp_path / "ttyUSB9"), "receiver unit", timeout_s=0.1,
-                              retries=0)
+    transport = rtu_transport(str(tmp_path / "ttyUSB9"), "receiver unit", timeout_s=0.1, retries=0)
     with pytest.raises(TransportError, match=r"receiver unit on .*ttyUSB9"):
         ModbusUnit(transport)

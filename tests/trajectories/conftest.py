@@ -14,9 +14,13 @@ def machine() -> Machine:
     return load_machine(default_machine_path())
 
 
-def make_pose(position_mm=(100.0, 100.0, -680.0), gamma_deg: float = 30.0,
-              sigma_mm: float = 0.05, sigma_gamma_rad: float = 20e-6,
-              offsets_deg: dict | None = None) -> LaunchPose:
+def make_pose(
+    position_mm=(100.0, 100.0, -680.0),
+    gamma_deg: float = 30.0,
+    sigma_mm: float = 0.05,
+    sigma_gamma_rad: float = 20e-6,
+    offsets_deg: dict | None = None,
+) -> LaunchPose:
     covariance = np.diag([sigma_mm**2] * 3 + [sigma_gamma_rad**2])
     offsets = {"c2": 0.01, "c3": -0.02, "c4": 0.005} if offsets_deg is None else offsets_deg
     return LaunchPose(

@@ -24,8 +24,16 @@ def test_program_writes_clean_gcode_to_stdout_and_the_plan(tmp_path):
     pose_path, plan_path = tmp_path / "pose.json", tmp_path / "plan.json"
     write_pose(pose_path, make_pose())
     result = runner.invoke(
-        app, ["program", "--pose", str(pose_path), "--plan-out", str(plan_path),
-              "--dialect", "linuxcnc"],
+        app,
+        [
+            "program",
+            "--pose",
+            str(pose_path),
+            "--plan-out",
+            str(plan_path),
+            "--dialect",
+            "linuxcnc",
+        ],
     )
     assert result.exit_code == 0, result.output
     plan = read_plan(plan_path)
@@ -39,7 +47,9 @@ def test_bad_pose_file_is_one_line_and_exit_2(tmp_path):
     bad.write_text(json.dumps({"format": "xmalign.launch-pose/9"}))
     result = subprocess.run(
         [sys.executable, "-m", "xmalign", "program", "--pose", str(bad)],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert result.returncode == 2
     assert result.stdout == ""
@@ -49,8 +59,9 @@ def test_bad_pose_file_is_one_line_and_exit_2(tmp_path):
 def test_strict_refuses_a_pose_whose_envelope_leaves_the_range(tmp_path):
     pose_path = tmp_path / "pose.json"
     write_pose(pose_path, make_pose(offsets_deg={}))
-    lenient = runner.invoke(app, ["program", "--pose", str(pose_path), "--out",
-                                  str(tmp_path / "a.mpf")])
+    lenient = runner.invoke(
+        app, ["program", "--pose", str(pose_path), "--out", str(tmp_path / "a.mpf")]
+    )
     assert lenient.exit_code == 0 and (tmp_path / "a.mpf").read_text().endswith("M30\n")
     strict = runner.invoke(app, ["program", "--pose", str(pose_path), "--strict"])
     assert strict.exit_code != 0 and "margin" in str(strict.exception)
@@ -63,8 +74,9 @@ def test_isg_controller_needs_a_dialect(tmp_path, machine):
     machine_path.write_text(json.dumps(data))
     pose_path = tmp_path / "pose.json"
     write_pose(pose_path, make_pose())
-    result = runner.invoke(app, ["program", "--machine", str(machine_path), "--pose",
-                                 str(pose_path)])
+    result = runner.invoke(
+        app, ["program", "--machine", str(machine_path), "--pose", str(pose_path)]
+    )
     assert "--dialect" in str(result.exception)
 
 
@@ -77,8 +89,9 @@ def test_identification_design_beats_its_start_and_stays_feasible(machine):
 
 
 def test_plan_identify_command_writes_the_positions(tmp_path):
-    result = runner.invoke(app, ["plan-identify", "--count", "3", "--out",
-                                 str(tmp_path / "d.json")])
+    result = runner.invoke(
+        app, ["plan-identify", "--count", "3", "--out", str(tmp_path / "d.json")]
+    )
     assert result.exit_code == 0, result.output
     written = json.loads((tmp_path / "d.json").read_text())
     assert written["format"] == "xmalign.identify-design/1"

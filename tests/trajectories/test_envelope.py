@@ -18,8 +18,12 @@ def test_exact_pose_without_uncertainty_has_a_zero_envelope(machine):
         np.concatenate([pose.position_mm, [pose.gamma_rad], pose.offsets.as_array()]),
         np.zeros((7, 7)),
         planned.layout.target_points_mm() + receiver_offset_mcs(machine),
-        planned.line.launch_rad, planned.line.receiver_rad, machine.spindle_angle_rad, frame,
-        200.0, 400.0,
+        planned.line.launch_rad,
+        planned.line.receiver_rad,
+        machine.spindle_angle_rad,
+        frame,
+        200.0,
+        400.0,
     )
     assert np.max(envelope.lateral_95_um) < 1e-6
     assert envelope.angle_95_urad < 1e-6

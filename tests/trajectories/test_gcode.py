@@ -41,8 +41,11 @@ def test_linuxcnc_program_passes_rs274_and_dwells_at_every_target(tmp_path, mach
     path = tmp_path / "run.ngc"
     path.write_text(write_program(plan, machine, DIALECTS["linuxcnc"]()))
     result = subprocess.run(
-        ["rs274", "-g", str(path)], stdin=subprocess.DEVNULL, capture_output=True,
-        text=True, timeout=60,
+        ["rs274", "-g", str(path)],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr
     canon = result.stdout
@@ -77,8 +80,12 @@ def test_every_dialect_runs_on_the_simulated_cnc_and_visits_exactly_the_targets(
     events = list(cnc.run_program(text, dialect))
     dwells = [e for e in events if e.kind == "dwell"]
     # The programs carry coordinates to 1 um (3 decimals), so "exactly" is within 0.5 um.
-    np.testing.assert_allclose([e.position_mm for e in dwells], expected_dwell_points(plan),
-                               rtol=0, atol=GCODE_RESOLUTION_MM)
+    np.testing.assert_allclose(
+        [e.position_mm for e in dwells],
+        expected_dwell_points(plan),
+        rtol=0,
+        atol=GCODE_RESOLUTION_MM,
+    )
     assert all(e.dwell_s == pytest.approx(plan.lines[0].dwell_s) for e in dwells)
     assert re.fullmatch(r"X run 1 \+ target 1/\d+ at 0\.000 mm", dwells[0].text)
     assert [e.kind for e in events].count("stop") == len(plan.lines)

@@ -82,7 +82,9 @@ _MACHINE = load_machine(default_machine_path())
 
 @settings(max_examples=40, deadline=None)
 @given(
-    x=st.floats(0, 2000), y=st.floats(0, 1500), z=st.floats(-680, -180),
+    x=st.floats(0, 2000),
+    y=st.floats(0, 1500),
+    z=st.floats(-680, -180),
     line_id=st.sampled_from(LINE_IDS),
 )
 def test_any_reachable_launch_position_gives_lines_inside_travel_and_range(x, y, z, line_id):

@@ -22,8 +22,9 @@ from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError, OutOfR
 from xmalign.roles import InterferometerReading
 
 #: CNC points giving beams from nearly level to steep (the launch unit stands below the table).
-POSITIONS = [np.array(p, dtype=float) for p in ([1600, 1050, -100], [300, 1400, -400],
-                                                 [1900, 200, 0])]
+POSITIONS = [
+    np.array(p, dtype=float) for p in ([1600, 1050, -100], [300, 1400, -400], [1900, 200, 0])
+]
 
 
 @pytest.mark.parametrize("position", POSITIONS)
@@ -53,39 +54,56 @@ def _noise_free(geometry) -> InterferometerReading:  # noqa: ANN001
 
 @pytest.mark.parametrize("position", POSITIONS)
 def test_converges_from_200um_300urad_within_5s(reference_machine, position) -> None:  # noqa: ANN001
-    world, devices = simulated_setup(reference_machine, position, seed=7, start_um=200,
-                                     start_urad=300)
+    world, devices = simulated_setup(
+        reference_machine, position, seed=7, start_um=200, start_urad=300
+    )
     start = aligned_error(world.interferometer.read())
     assert np.hypot(*start[:2]) > 150 and np.all(np.abs(start[2:]) > 100)
     settings = FineAlignmentSettings()
-    result = fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock,
-                        distance_mm=1000.0, settings=settings)
+    result = fine_align(
+        devices.launch,
+        devices.receiver,
+        devices.interferometer,
+        devices.clock,
+        distance_mm=1000.0,
+        settings=settings,
+    )
     assert result.elapsed_s <= 5.0
     truth = aligned_error(_noise_free(world.interferometer.geometry()))
     assert np.all(np.abs(truth[:2]) <= 2 * settings.straightness_tol_um)
     assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
-    assert result.distance_mm == pytest.approx(world.interferometer.geometry().distance_mm,
-                                               rel=0.15)
+    assert result.distance_mm == pytest.approx(
+        world.interferometer.geometry().distance_mm, rel=0.15
+    )
 
 
 def test_lost_beam_stops_fine_alignment(reference_machine) -> None:  # noqa: ANN001
-    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=600,
-                                 start_urad=0)
+    _, devices = simulated_setup(
+        reference_machine, POSITIONS[0], seed=1, start_um=600, start_urad=0
+    )
     with pytest.raises(BeamLostError, match="beam was lost.*align --manual"):
         fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock, 1000.0)
 
 
 def test_timeout_names_the_residuals(reference_machine) -> None:  # noqa: ANN001
-    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=200,
-                                 start_urad=300)
+    _, devices = simulated_setup(
+        reference_machine, POSITIONS[0], seed=1, start_um=200, start_urad=300
+    )
     settings = FineAlignmentSettings(timeout_s=0.1)
     with pytest.raises(DeviceTimeoutError, match=r"did not converge in 0.1 s \(straightness_v"):
-        fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock,
-                   1000.0, settings)
+        fine_align(
+            devices.launch,
+            devices.receiver,
+            devices.interferometer,
+            devices.clock,
+            1000.0,
+            settings,
+        )
 
 
-@pytest.mark.parametrize(("text", "axis", "step_deg"),
-                         [("a2 -0.01", 2, -0.01), ("A5 +.5", 5, 0.5), (" a1 3 ", 1, 3.0)])
+@pytest.mark.parametrize(
+    ("text", "axis", "step_deg"), [("a2 -0.01", 2, -0.01), ("A5 +.5", 5, 0.5), (" a1 3 ", 1, 3.0)]
+)
 def test_parse_jog(text: str, axis: int, step_deg: float) -> None:
     assert parse_jog(text) == JogCommand(axis, math.radians(step_deg))
 
@@ -97,8 +115,7 @@ def test_parse_jog_refuses_nonsense(text: str) -> None:
 
 
 def test_jog_moves_one_axis(reference_machine) -> None:  # noqa: ANN001
-    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=0,
-                                 start_urad=0)
+    _, devices = simulated_setup(reference_machine, POSITIONS[0], seed=1, start_um=0, start_urad=0)
     before = np.concatenate([devices.launch.angles_rad(), devices.receiver.angles_rad()])
     jog(devices.launch, devices.receiver, JogCommand(4, math.radians(0.01)), 1.0)
     after = np.concatenate([devices.launch.angles_rad(), devices.receiver.angles_rad()])

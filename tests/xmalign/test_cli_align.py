@@ -32,8 +32,9 @@ def test_align_sim_shows_convergence() -> None:
 def test_align_refuses_bad_options(tmp_path) -> None:  # noqa: ANN001
     assert_one_line_error(run_cli("align"), "choose one of --sim and --live")
     assert_one_line_error(run_cli("align", "--live"), "--live needs --config")
-    assert_one_line_error(run_cli("align", "--live", "--config", str(tmp_path / "u.yaml")),
-                          "u.yaml: cannot read")
+    assert_one_line_error(
+        run_cli("align", "--live", "--config", str(tmp_path / "u.yaml")), "u.yaml: cannot read"
+    )
     assert_one_line_error(run_cli("align", "--sim", "--at", "1,2"), "option --at")
 
 
@@ -59,22 +60,34 @@ def test_align_live_over_modbus_and_the_serial_line(tmp_path) -> None:  # noqa: 
     launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
     point_by_truth(world, machine, launch, receiver)  # the operator's coarse alignment
     launch.move_to(launch.angles_rad() + [3e-5, -3e-5], 10.0)
-    servers = [ModbusUnitServer(world.launch, "127.0.0.1", _free_port()),
-               ModbusUnitServer(world.receiver, "127.0.0.1", _free_port())]
+    servers = [
+        ModbusUnitServer(world.launch, "127.0.0.1", _free_port()),
+        ModbusUnitServer(world.receiver, "127.0.0.1", _free_port()),
+    ]
     pty = PtyInterferometerServer(world.interferometer, rate_hz=200.0)
     try:
         for server in servers:
             server.start()
         pty.start()
         config = tmp_path / "units.yaml"
-        config.write_text(textwrap.dedent(f"""\
+        config.write_text(
+            textwrap.dedent(f"""\
             format: xmalign.units/1
             launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {servers[0].port}}}
             receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {servers[1].port}}}
             interferometer: {{port: {pty.port}, rate_hz: 200}}
-            """))
-        result = run_cli("align", "--live", "--config", str(config), "--machine",
-                         str(machine_path), "--distance-mm", "1500")
+            """)
+        )
+        result = run_cli(
+            "align",
+            "--live",
+            "--config",
+            str(config),
+            "--machine",
+            str(machine_path),
+            "--distance-mm",
+            "1500",
+        )
         assert result.returncode == 0, result.stderr
         assert "s of wall time" in result.stdout and "units locked" in result.stdout
         world.launch.check_watchdog()

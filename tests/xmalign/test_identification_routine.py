@@ -30,8 +30,13 @@ def simulated(machine: Machine, seed: int = 3) -> tuple[World, RoutineDevices]:
     world = build_world(machine, seed=seed, gamma_rad=0.4)
     cnc = SimulatedCnc(machine, world.clock)
     world.interferometer.position = cnc  # the interferometer sees where the CNC is
-    devices = RoutineDevices(cnc, SimPositioningUnit(world.launch),
-                             SimPositioningUnit(world.receiver), world.interferometer, world.clock)
+    devices = RoutineDevices(
+        cnc,
+        SimPositioningUnit(world.launch),
+        SimPositioningUnit(world.receiver),
+        world.interferometer,
+        world.clock,
+    )
     return world, devices
 
 
@@ -58,8 +63,15 @@ def test_records_every_alignment_as_taken_and_identifies(reference_machine, tmp_
             recorded_counts.append(len(json.loads(path.read_text())["alignments"]))
 
     guess = PoseGuess(world.launch2mcs_mm + [0.02, -0.02, 0.01])  # gamma unknown
-    session = run_identification(positions, reference_machine, devices, path, guess,
-                                 manual_align=manual_align, on_event=on_event)
+    session = run_identification(
+        positions,
+        reference_machine,
+        devices,
+        path,
+        guess,
+        manual_align=manual_align,
+        on_event=on_event,
+    )
     assert recorded_counts == [1, 2, 3, 4, 5]
     # the operator points the first one or two; then the learnt gamma and offsets suffice
     assert 1 <= len(calls) <= 2
@@ -82,14 +94,27 @@ def test_interrupted_routine_resumes_after_the_last_recorded(reference_machine, 
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        run_identification(positions, reference_machine, devices, path, guess,
-                           manual_align=manual_align, on_event=stop_after_two)
+        run_identification(
+            positions,
+            reference_machine,
+            devices,
+            path,
+            guess,
+            manual_align=manual_align,
+            on_event=stop_after_two,
+        )
     assert len(read_session(path).alignments) == 2
     assert all(axis.is_locked() for unit in (world.launch, world.receiver) for axis in unit.axes)
     stages: list[tuple[int, str]] = []
-    session = run_identification(positions, reference_machine, devices, path, guess,
-                                 manual_align=manual_align,
-                                 on_event=lambda e: stages.append((e.index, e.stage)))
+    session = run_identification(
+        positions,
+        reference_machine,
+        devices,
+        path,
+        guess,
+        manual_align=manual_align,
+        on_event=lambda e: stages.append((e.index, e.stage)),
+    )
     assert len(session.alignments) == 4
     assert (1, "skipped") in stages and (2, "skipped") in stages
     assert (3, "recorded") in stages and (4, "recorded") in stages
@@ -108,8 +133,9 @@ def test_position_outside_travel_is_refused_before_moving(reference_machine, tmp
 def test_without_guess_or_operator_it_cannot_point(reference_machine, tmp_path) -> None:  # noqa: ANN001
     _, devices = simulated(reference_machine)
     with pytest.raises(GeometryError, match="no pose guess and no operator"):
-        run_identification([[500.0, 500.0, -100.0]], reference_machine, devices,
-                           tmp_path / "s.json")
+        run_identification(
+            [[500.0, 500.0, -100.0]], reference_machine, devices, tmp_path / "s.json"
+        )
 
 
 def test_session_of_another_setup_is_refused(reference_machine, tmp_path) -> None:  # noqa: ANN001
@@ -122,8 +148,13 @@ def test_session_of_another_setup_is_refused(reference_machine, tmp_path) -> Non
 
 def test_gamma_from_alignments(reference_machine, tmp_path: Path) -> None:  # noqa: ANN001
     world, devices = simulated(reference_machine)
-    session = run_identification(spread_positions(reference_machine, 2), reference_machine,
-                                 devices, tmp_path / "s.json",
-                                 PoseGuess(world.launch2mcs_mm, world.gamma_rad))
+    session = run_identification(
+        spread_positions(reference_machine, 2),
+        reference_machine,
+        devices,
+        tmp_path / "s.json",
+        PoseGuess(world.launch2mcs_mm, world.gamma_rad),
+    )
     assert gamma_from_alignments(world.launch2mcs_mm, session) == pytest.approx(
-        world.gamma_rad, abs=2e-4)
+        world.gamma_rad, abs=2e-4
+    )

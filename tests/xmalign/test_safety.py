@@ -35,8 +35,9 @@ def test_locks_after_success() -> None:
     assert all(abs(a) < 0.9 for a in np.concatenate([launch.angles_rad(), receiver.angles_rad()]))
 
 
-@pytest.mark.parametrize("error", [DriveFaultError("axis a1 reports fault 2"), RuntimeError("bug"),
-                                   KeyboardInterrupt()])
+@pytest.mark.parametrize(
+    "error", [DriveFaultError("axis a1 reports fault 2"), RuntimeError("bug"), KeyboardInterrupt()]
+)
 def test_locks_and_propagates_on_error(error: BaseException) -> None:
     clock, launch, receiver = moving_units()
     with pytest.raises(type(error)) as caught, units_locked_on_exit(launch, receiver):
@@ -95,5 +96,7 @@ def test_lock_all_reports_each_axis_that_cannot_be_locked() -> None:
     assert lock_all((launch, receiver)) == []
     assert all_locked(clock, launch, receiver)
     problems = lock_all((HalfReachableUnit(launch),))
-    assert problems == ["could not lock axis a2 of the launch unit at 10.0.0.5:502: lost the"
-                        " connection to the launch unit at 10.0.0.5:502"]
+    assert problems == [
+        "could not lock axis a2 of the launch unit at 10.0.0.5:502: lost the"
+        " connection to the launch unit at 10.0.0.5:502"
+    ]

@@ -54,8 +54,9 @@ class AlignmentDevices:
     distance_mm: float
 
 
-def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
-                   receiver: PositioningUnit) -> float:
+def point_by_truth(
+    world: World, machine: Machine, launch: PositioningUnit, receiver: PositioningUnit
+) -> float:
     """What the operator's manual alignment achieves in a simulated setup.
 
     Moves the units to the nominal aligned angles of the true pose (true
@@ -65,8 +66,9 @@ def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
     """
     cnc_mm = world.interferometer.position.position_mm()
     cp = receiver_cp(cnc_mm, machine.receiver_offset, machine.spindle_angle_rad)
-    nominal = aligned_angles(world.launch2mcs_mm, world.gamma_rad, cp,
-                             machine.spindle_angle_rad, world.offsets)
+    nominal = aligned_angles(
+        world.launch2mcs_mm, world.gamma_rad, cp, machine.spindle_angle_rad, world.offsets
+    )
     roll = -world.receiver.axes[2].zero_offset_rad
     launch.move_to(nominal.launch_rad, timeout_s=60.0)
     receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
@@ -74,7 +76,11 @@ def point_by_truth(world: World, machine: Machine, launch: PositioningUnit,
 
 
 def simulated_setup(
-    machine: Machine, position_mm: np.ndarray, seed: int, start_um: float, start_urad: float,
+    machine: Machine,
+    position_mm: np.ndarray,
+    seed: int,
+    start_um: float,
+    start_urad: float,
     gamma_rad: float = 0.3,
 ) -> tuple[World, AlignmentDevices]:
     """A virtual setup with the units ``start_um`` / ``start_urad`` off alignment.
@@ -91,8 +97,14 @@ def simulated_setup(
     world = build_world(machine, FixedPosition(position_mm), seed=seed, gamma_rad=gamma_rad)
     launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
     distance_mm = point_by_truth(world, machine, launch, receiver)
-    fine_align(launch, receiver, world.interferometer, world.clock, distance_mm,
-               FineAlignmentSettings(timeout_s=60.0))
+    fine_align(
+        launch,
+        receiver,
+        world.interferometer,
+        world.clock,
+        distance_mm,
+        FineAlignmentSettings(timeout_s=60.0),
+    )
     aligned_rad = np.array([axis.target_rad for axis in (*world.launch.axes, *world.receiver.axes)])
     wanted = np.array([start_um / math.sqrt(2.0)] * 2 + [start_urad] * 3)
     offset_urad = np.linalg.solve(sensitivity(aligned_rad[1], distance_mm), wanted)
@@ -117,33 +129,45 @@ def _add_step(table: Table, start_s: float, step: AlignmentStep) -> None:
     table.add_row(f"{step.time_s - start_s:.3f}", *values, f"{step.distance_mm:.0f}")
 
 
-def run_fine_alignment(devices: AlignmentDevices, settings: FineAlignmentSettings,
-                       time_label: str) -> FineAlignmentResult:
+def run_fine_alignment(
+    devices: AlignmentDevices, settings: FineAlignmentSettings, time_label: str
+) -> FineAlignmentResult:
     """Fine-align with a live table of the steps; the units are locked on any exit."""
     table = _step_table()
     start_s = devices.clock.now()
     with units_locked_on_exit(devices.launch, devices.receiver):
-        result = fine_align(devices.launch, devices.receiver, devices.interferometer,
-                            devices.clock, devices.distance_mm, settings,
-                            on_step=lambda step: _add_step(table, start_s, step))
+        result = fine_align(
+            devices.launch,
+            devices.receiver,
+            devices.interferometer,
+            devices.clock,
+            devices.distance_mm,
+            settings,
+            on_step=lambda step: _add_step(table, start_s, step),
+        )
     console.print(table)
     console.print(
         f"converged in {result.elapsed_s:.3f} s of {time_label} after {len(result.steps)} steps;"
-        " units locked", markup=False)
+        " units locked",
+        markup=False,
+    )
     return result
 
 
 def manual_alignment(devices: AlignmentDevices, machine: Machine, move_timeout_s: float) -> None:
     """Jog loop: show how much of each range the channels use until the operator is done."""
     ranges = machine.interferometer
-    console.print("Jog: 'a<n> <deg>' moves axis a<n> (e.g. 'a2 -0.01'); Enter when all beams"
-                  " are in range.", markup=False)
+    console.print(
+        "Jog: 'a<n> <deg>' moves axis a<n> (e.g. 'a2 -0.01'); Enter when all beams are in range.",
+        markup=False,
+    )
     while True:
         reading = devices.interferometer.read()
         if reading.beam_ok:
             used = range_used(reading, ranges.straightness_range_um, ranges.angle_range_urad)
-            shown = ", ".join(f"{name.split()[0]} {100 * u:.0f}%"
-                              for name, u in zip(_SHORT, used, strict=True))
+            shown = ", ".join(
+                f"{name.split()[0]} {100 * u:.0f}%" for name, u in zip(_SHORT, used, strict=True)
+            )
             console.print(f"beam in range: {shown}", markup=False)
         else:
             console.print("beam out of range", markup=False)
@@ -186,15 +210,19 @@ def register(app: typer.Typer) -> None:
         live: Annotated[bool, typer.Option("--live", help="Align the units of --config.")] = False,
         config: Annotated[Path | None, typer.Option(help="units.yaml for --live.")] = None,
         machine_file: Annotated[
-            Path | None, typer.Option("--machine", help="Machine YAML.")] = None,
+            Path | None, typer.Option("--machine", help="Machine YAML.")
+        ] = None,
         manual: Annotated[bool, typer.Option(help="Jog into range first.")] = False,
         at: Annotated[str | None, typer.Option(help="--sim: CNC tool point 'x,y,z' mm.")] = None,
         seed: Annotated[int, typer.Option(help="--sim: seed of the virtual setup.")] = 1,
         start_um: Annotated[float, typer.Option(help="--sim: initial beam miss, um.")] = 200.0,
         start_urad: Annotated[float, typer.Option(help="--sim: initial angle error, urad.")] = 300,
-        distance_mm: Annotated[float | None, typer.Option(
-            help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000)."
-        )] = None,
+        distance_mm: Annotated[
+            float | None,
+            typer.Option(
+                help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000)."
+            ),
+        ] = None,
         timeout_s: Annotated[float, typer.Option("--timeout", help="Give up after, s.")] = 5.0,
     ) -> None:
         """Fine-align the launch and receiver units on the interferometer channels."""
@@ -204,8 +232,9 @@ def register(app: typer.Typer) -> None:
         settings = FineAlignmentSettings(timeout_s=timeout_s)
         try:
             if sim:
-                _, devices = simulated_setup(machine, _parse_at(at, machine), seed, start_um,
-                                             start_urad)
+                _, devices = simulated_setup(
+                    machine, _parse_at(at, machine), seed, start_um, start_urad
+                )
                 devices.distance_mm = distance_mm or devices.distance_mm
                 if manual:
                     manual_alignment(devices, machine, 60.0)
@@ -218,15 +247,21 @@ def register(app: typer.Typer) -> None:
             raise interrupted(error) from error
 
 
-def _align_live(config_path: Path, machine: Machine, settings: FineAlignmentSettings,
-                distance_mm: float, manual: bool) -> None:
+def _align_live(
+    config_path: Path,
+    machine: Machine,
+    settings: FineAlignmentSettings,
+    distance_mm: float,
+    manual: bool,
+) -> None:
     from firmware_iface.config import load_units_config, open_devices
 
     config = load_units_config(config_path)
     live = open_devices(config, machine)
     try:
-        devices = AlignmentDevices(live.launch, live.receiver, live.interferometer, WallClock(),
-                                   distance_mm)
+        devices = AlignmentDevices(
+            live.launch, live.receiver, live.interferometer, WallClock(), distance_mm
+        )
         with units_locked_on_exit(live.launch, live.receiver):
             if manual:
                 manual_alignment(devices, machine, config.timeouts.move_s)

@@ -24,10 +24,7 @@ SQUARENESS_IN_STRAIGHTNESS = {"EXY": ("EC0Y", -1.0), "EYZ": ("EA0Z", -1.0), "EXZ
 POSITIONING = {axis: f"E{axis}{axis}" for axis in AXES}
 #: The six straightness errors: name -> (input axis, output axis).
 STRAIGHTNESS = {
-    name: (axis, name[1])
-    for axis in AXES
-    for name in TRANSLATION_NAMES[axis]
-    if name[1] != axis
+    name: (axis, name[1]) for axis in AXES for name in TRANSLATION_NAMES[axis] if name[1] != axis
 }
 
 

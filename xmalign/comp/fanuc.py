@@ -108,8 +108,6 @@ def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
         by_axis = {p.axis: getattr(p, field) for p in pitch}
         lines.append(_parameter(number, [by_axis[a] for a in sorted(by_axis, key=axis_number)]))
     for p in pitch:
-        lines.extend(
-            f"N{10000 + p.first_number + i:05d}P{int(v)};" for i, v in enumerate(p.values)
-        )
+        lines.extend(f"N{10000 + p.first_number + i:05d}P{int(v)};" for i, v in enumerate(p.values))
     lines.append("%")
     return {"PITCH.TXT": "\n".join(lines) + "\n"}

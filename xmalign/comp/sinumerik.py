@@ -131,14 +131,16 @@ def render_cec(tables: ErrorTableSet) -> str:
         "; Needs MD18342 $MN_MM_CEC_MAX_POINTS, MD32710 $MA_CEC_ENABLE=1 on the output axes",
         "CHANDATA(1)",
     ]
-    for index, (what, input_axis, output_axis, source, direction) in enumerate(
-        _cec_tables(tables)
-    ):
+    for index, (what, input_axis, output_axis, source, direction) in enumerate(_cec_tables(tables)):
         grid = _grid(source, f"{what} (MD18342)", MAX_CEC_POINTS)
         out.append(f"; table {index}: {what}, {output_axis} = f({input_axis})")
         out.extend(
             _cec_block(
-                index, input_axis, output_axis, grid, values_on(grid.positions_mm, source),
+                index,
+                input_axis,
+                output_axis,
+                grid,
+                values_on(grid.positions_mm, source),
                 direction,
             )
         )

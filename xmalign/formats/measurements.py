@@ -21,7 +21,15 @@ from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
 
 HEADER = (
-    "line", "run", "direction", "index", "target_mm", "x_mm", "y_mm", "z_mm", *CHANNELS,
+    "line",
+    "run",
+    "direction",
+    "index",
+    "target_mm",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    *CHANNELS,
 )
 
 
@@ -43,7 +51,11 @@ class MeasurementRow:
 
     def as_fields(self) -> list[str]:
         return [
-            self.line, str(self.run), self.direction, str(self.index), repr(float(self.target_mm)),
+            self.line,
+            str(self.run),
+            self.direction,
+            str(self.index),
+            repr(float(self.target_mm)),
             *(repr(float(v)) for v in self.machine_mm),
             *(f"{float(v):.6g}" for v in self.channels),
         ]
@@ -65,8 +77,13 @@ def _parse_row(fields: list[str], where: str) -> MeasurementRow:
     if not line:
         raise InputError(f"{where}: empty line id")
     return MeasurementRow(
-        line=line, run=run_n, direction=direction, index=index_n, target_mm=values[0],
-        machine_mm=np.array(values[1:4]), channels=np.array(values[4:]),
+        line=line,
+        run=run_n,
+        direction=direction,
+        index=index_n,
+        target_mm=values[0],
+        machine_mm=np.array(values[1:4]),
+        channels=np.array(values[4:]),
     )
 
 

@@ -16,8 +16,16 @@ from xmalign.geometry import Vec
 PLAN_FORMAT = "xmalign.plan/1"
 _V3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 _KNOWN_LINE_KEYS = {
-    "id", "start_mm", "end_mm", "frame", "launch_deg", "receiver_deg",
-    "targets_mm", "runs", "bidirectional", "dwell_s",
+    "id",
+    "start_mm",
+    "end_mm",
+    "frame",
+    "launch_deg",
+    "receiver_deg",
+    "targets_mm",
+    "runs",
+    "bidirectional",
+    "dwell_s",
 }
 
 

@@ -257,9 +257,7 @@ def fit_error_tables(
         Standard uncertainty of each channel, mm / rad.
     """
     knots = compensation_points(lines)
-    bidirectional = {
-        axis for data in lines if data.bidirectional for axis in data.moving_axes()
-    }
+    bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
     layout = ParameterLayout(knots, bidirectional)
     setup = SetupLayout(lines, layout.n_columns)
     first_rows = list(np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines[:-1]]))

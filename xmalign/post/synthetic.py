@@ -139,9 +139,13 @@ def measure(
                 channels += rng.normal(0.0, 1.0, channels.shape) * np.array(setup.noise)
                 rows.extend(
                     MeasurementRow(
-                        line=line.id, run=run, direction="+" if sign > 0 else "-",
-                        index=int(i), target_mm=float(line.targets_mm[i]),
-                        machine_mm=points[i], channels=values,
+                        line=line.id,
+                        run=run,
+                        direction="+" if sign > 0 else "-",
+                        index=int(i),
+                        target_mm=float(line.targets_mm[i]),
+                        machine_mm=points[i],
+                        channels=values,
                     )
                     for i, values in zip(order, channels, strict=True)
                 )

@@ -84,7 +84,11 @@ def test_fanuc_incremental_values_and_parameters():
     assert "N03624A1P100000A2P75000A3P50000;" in lines
     # correction -(e - e_ref) = 0, 2, 3, 1, -1 -> increments 0, 2, 1, -2, -2
     assert [line for line in lines if line.startswith("N1000")][:5] == [
-        "N10000P0;", "N10001P2;", "N10002P1;", "N10003P-2;", "N10004P-2;",
+        "N10000P0;",
+        "N10001P2;",
+        "N10002P1;",
+        "N10003P-2;",
+        "N10004P-2;",
     ]
     # Z: reference at z = 0 (e = 0); corrections -4, -3, -2, -1, 0 -> increments 0, 1, 1, 1, 1
     assert lines[lines.index("N10010P0;") + 1] == "N10011P1;"

@@ -26,8 +26,11 @@ def files(tmp_path_factory, reference_machine) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("post")
     plan = six_line_plan(reference_machine, 12, runs=2, bidirectional=True)
     rows = measure(
-        plan, Chain.parse(reference_machine.chain), VirtualMachine(reference_machine, seed=4),
-        np.random.default_rng(9), backlash_mm=[0.003, 0.002, 0.001],
+        plan,
+        Chain.parse(reference_machine.chain),
+        VirtualMachine(reference_machine, seed=4),
+        np.random.default_rng(9),
+        backlash_mm=[0.003, 0.002, 0.001],
     )
     paths = {"plan": folder / "plan.json", "data": folder / "m.csv", "dir": folder}
     write_plan(paths["plan"], plan)
@@ -38,14 +41,27 @@ def files(tmp_path_factory, reference_machine) -> dict[str, Path]:
 def _post(files, *extra: str):
     return CliRunner().invoke(
         app,
-        ["post", "--plan", str(files["plan"]), "--data", str(files["data"]),
-         "--out", str(files["dir"] / "errors.csv"), *extra],
+        [
+            "post",
+            "--plan",
+            str(files["plan"]),
+            "--data",
+            str(files["data"]),
+            "--out",
+            str(files["dir"] / "errors.csv"),
+            *extra,
+        ],
     )
 
 
 def test_post_writes_tables_and_report(files, reference_machine_path):
-    result = _post(files, "--machine", str(reference_machine_path),
-                   "--report", str(files["dir"] / "report.html"))
+    result = _post(
+        files,
+        "--machine",
+        str(reference_machine_path),
+        "--report",
+        str(files["dir"] / "report.html"),
+    )
     assert result.exit_code == 0, result.output
     tables = read_error_tables(files["dir"] / "errors.csv")
     assert {"EXX", "EXX+", "EXX-", "ECZ"} <= set(tables.tables)
@@ -59,8 +75,16 @@ def test_comp_writes_each_controller(files, controller):
     _post(files)
     out = files["dir"] / controller
     result = CliRunner().invoke(
-        app, ["comp", "--errors", str(files["dir"] / "errors.csv"),
-              "--controller", controller, "--out", str(out)],
+        app,
+        [
+            "comp",
+            "--errors",
+            str(files["dir"] / "errors.csv"),
+            "--controller",
+            controller,
+            "--out",
+            str(out),
+        ],
     )
     assert result.exit_code == 0, result.output
     assert any(out.iterdir())
@@ -72,8 +96,16 @@ def test_a_bad_row_is_named_by_its_line(files):
     bad = files["dir"] / "bad.csv"
     bad.write_text("\n".join(lines) + "\n")
     result = CliRunner().invoke(
-        app, ["post", "--plan", str(files["plan"]), "--data", str(bad),
-              "--out", str(files["dir"] / "e.csv")],
+        app,
+        [
+            "post",
+            "--plan",
+            str(files["plan"]),
+            "--data",
+            str(bad),
+            "--out",
+            str(files["dir"] / "e.csv"),
+        ],
     )
     assert isinstance(result.exception, InputError)
     assert "bad.csv: line 8" in str(result.exception)
@@ -81,13 +113,25 @@ def test_a_bad_row_is_named_by_its_line(files):
 
 def test_a_row_of_an_unknown_line_is_refused_with_exit_2(files):
     lines = files["data"].read_text().splitlines()
-    lines[3] = "Q" + lines[3][lines[3].index(","):]
+    lines[3] = "Q" + lines[3][lines[3].index(",") :]
     bad = files["dir"] / "unknown.csv"
     bad.write_text("\n".join(lines) + "\n")
     done = subprocess.run(
-        [sys.executable, "-m", "xmalign", "post", "--plan", str(files["plan"]),
-         "--data", str(bad), "--out", str(files["dir"] / "e.csv")],
-        capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "xmalign",
+            "post",
+            "--plan",
+            str(files["plan"]),
+            "--data",
+            str(bad),
+            "--out",
+            str(files["dir"] / "e.csv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 2
     assert "line 'Q'" in done.stderr and "Traceback" not in done.stderr
@@ -96,7 +140,15 @@ def test_a_row_of_an_unknown_line_is_refused_with_exit_2(files):
 def test_unknown_controller(files):
     _post(files)
     result = CliRunner().invoke(
-        app, ["comp", "--errors", str(files["dir"] / "errors.csv"), "--controller", "mazak",
-              "--out", str(files["dir"] / "x")],
+        app,
+        [
+            "comp",
+            "--errors",
+            str(files["dir"] / "errors.csv"),
+            "--controller",
+            "mazak",
+            "--out",
+            str(files["dir"] / "x"),
+        ],
     )
     assert isinstance(result.exception, InputError) and "mazak" in str(result.exception)

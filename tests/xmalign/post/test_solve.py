@@ -23,7 +23,10 @@ def _machine(reference: Machine, **changes: object) -> Machine:
 def _fit(machine: Machine, truth: VirtualMachine, seed: int, n: int = 40, **plan: object):
     layout = six_line_plan(machine, n, **plan)
     rows = measure(
-        layout, Chain.parse(machine.chain), truth, np.random.default_rng(seed),
+        layout,
+        Chain.parse(machine.chain),
+        truth,
+        np.random.default_rng(seed),
         backlash_mm=BACKLASH_MM,
     )
     return post_process(machine, layout, rows, "synthetic.csv")
@@ -78,8 +81,9 @@ def test_forward_and_reverse_tables_recover_the_backlash(bidirectional):
         reversal = tables[name + "+"].values - tables[name + "-"].values
         assert abs(np.mean(reversal) + BACKLASH_MM[i]) < 0.2e-3
         assert np.max(np.abs(reversal + BACKLASH_MM[i])) < 1.0e-3
-        assert np.allclose(0.5 * (tables[name + "+"].values + tables[name + "-"].values),
-                           tables[name].values)
+        assert np.allclose(
+            0.5 * (tables[name + "+"].values + tables[name + "-"].values), tables[name].values
+        )
 
 
 def test_setup_terms_and_residuals_are_reported(bidirectional):
@@ -95,8 +99,12 @@ def test_expanded_uncertainty_follows_the_channel_uncertainties(reference_machin
     doubled = reference_machine.uncertainty.model_copy(
         update={
             name: 2 * getattr(reference_machine.uncertainty, name)
-            for name in ("channel_linear_um", "channel_straightness_um",
-                         "channel_angle_urad", "channel_roll_urad")
+            for name in (
+                "channel_linear_um",
+                "channel_straightness_um",
+                "channel_angle_urad",
+                "channel_roll_urad",
+            )
         }
     )
     machine = _machine(reference_machine, uncertainty=doubled)
@@ -109,8 +117,7 @@ def test_expanded_uncertainty_follows_the_channel_uncertainties(reference_machin
 def test_u95_covers_the_scatter_of_repeated_measurements(reference_machine, truth):
     """GUM check: the spread of EXX over repeated noisy measurements matches u95 / 2."""
     fits = [
-        _fit(reference_machine, truth, seed=s, n=15, runs=1, bidirectional=False)
-        for s in range(8)
+        _fit(reference_machine, truth, seed=s, n=15, runs=1, bidirectional=False) for s in range(8)
     ]
     values = np.array([f.fit.tables.tables["EXX"].values[1:] for f in fits])
     predicted = fits[0].fit.tables.tables["EXX"].u95[1:] / 2
