@@ -36,7 +36,7 @@ from xmalign.errors import (
     TransportError,
 )
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, WallClock, move_axes
 
 EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
 
@@ -277,13 +277,7 @@ class CanopenUnit:
             axis.reset_fault()
 
     def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
-        angles = np.asarray(angles_rad, dtype=float)
-        if angles.shape != (len(self._axes),):
-            raise ValueError(f"{self.device_name}: expected {len(self._axes)} angles")
-        for axis, angle in zip(self._axes, angles, strict=True):
-            axis.move_to(float(angle))
-        for axis in self._axes:
-            axis.wait_in_position(timeout_s)
+        move_axes(self._axes, angles_rad, timeout_s, self.device_name)
 
     def lock(self) -> None:
         for axis in self._axes:

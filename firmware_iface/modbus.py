@@ -35,7 +35,7 @@ from xmalign.errors import (
     XmalignError,
 )
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, WallClock, move_axes
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
@@ -410,13 +410,7 @@ class ModbusUnit:
             axis.wait_homed(timeout_s)
 
     def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
-        angles = np.asarray(angles_rad, dtype=float)
-        if angles.shape != (len(self._axes),):
-            raise ValueError(f"{self.device_name}: expected {len(self._axes)} angles")
-        for axis, angle in zip(self._axes, angles, strict=True):
-            axis.move_to(float(angle))
-        for axis in self._axes:
-            axis.wait_in_position(timeout_s)
+        move_axes(self._axes, angles_rad, timeout_s, self.device_name)
 
     def lock(self) -> None:
         for axis in self._axes:

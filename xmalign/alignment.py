@@ -41,6 +41,7 @@ from xmalign.roles import (
     InterferometerReading,
     PositioningUnit,
     RotaryAxis,
+    move_axes,
 )
 
 #: The five channels fine alignment drives to zero, in the order of the unit axes a1..a5.
@@ -319,10 +320,7 @@ def _move_units(
     launch: PositioningUnit, receiver: PositioningUnit, setpoint_rad: Vec, timeout_s: float
 ) -> None:
     axes: list[RotaryAxis] = [*launch.axes, *receiver.axes][: len(setpoint_rad)]
-    for axis, angle in zip(axes, setpoint_rad, strict=True):
-        axis.move_to(float(angle))
-    for axis in axes:
-        axis.wait_in_position(timeout_s)
+    move_axes(axes, setpoint_rad, timeout_s, "positioning units")
 
 
 # --- manual mode ----------------------------------------------------------------------------

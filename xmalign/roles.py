@@ -9,11 +9,13 @@ timeout and raise :class:`xmalign.errors.DeviceTimeoutError` when it runs out.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
+from xmalign.errors import InputError
 from xmalign.geometry import Vec
 
 CHANNELS = (
@@ -147,6 +149,22 @@ class MachineMover(MachinePositionSource, Protocol):
     def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
         """Move the tool point and return when it stands still there."""
         ...
+
+
+def move_axes(
+    axes: Sequence[RotaryAxis], angles_rad: Sequence[float] | Vec, timeout_s: float, device: str
+) -> None:
+    """Start every axis towards its reported angle, then wait until all are in position.
+
+    Raises InputError when the number of angles is not the number of axes.
+    """
+    angles = np.asarray(angles_rad, dtype=float)
+    if angles.shape != (len(axes),):
+        raise InputError(f"{device}: expected {len(axes)} angles, got {angles.size}")
+    for axis, angle in zip(axes, angles, strict=True):
+        axis.move_to(float(angle))
+    for axis in axes:
+        axis.wait_in_position(timeout_s)
 
 
 def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading:
