@@ -23,10 +23,9 @@ from typing import Literal, TypeVar
 
 import can
 import canopen
-import numpy as np
-from numpy.typing import ArrayLike
 
 from firmware_iface.register_map import load_register_map
+from firmware_iface.unit import AxisGroup
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
@@ -35,8 +34,7 @@ from xmalign.errors import (
     OutOfRangeError,
     TransportError,
 )
-from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock, move_axes
+from xmalign.roles import Clock, WallClock
 
 EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
 
@@ -215,7 +213,7 @@ class CanopenAxis:
         self._write(CONTROLWORD, ENABLE_OPERATION)
 
 
-class CanopenUnit:
+class CanopenUnit(AxisGroup):
     """A positioning unit made of CiA 402 axis nodes; implements ``PositioningUnit``.
 
     Parameters
@@ -260,28 +258,6 @@ class CanopenUnit:
             )
             for i, node_id in enumerate(ids)
         )
-
-    @property
-    def axes(self) -> tuple[CanopenAxis, ...]:
-        return self._axes
-
-    def angles_rad(self) -> Vec:
-        return np.array([axis.position_rad() for axis in self._axes])
-
-    def enable(self) -> None:
-        for axis in self._axes:
-            axis.enable()
-
-    def reset_faults(self) -> None:
-        for axis in self._axes:
-            axis.reset_fault()
-
-    def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
-        move_axes(self._axes, angles_rad, timeout_s, self.device_name)
-
-    def lock(self) -> None:
-        for axis in self._axes:
-            axis.lock()
 
     def close(self) -> None:
         """Stop producing the heartbeat (the nodes lock themselves 500 ms later)."""

@@ -19,12 +19,11 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any, Literal, Protocol
 
-import numpy as np
-from numpy.typing import ArrayLike
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from firmware_iface.register_map import Control, Register, RegisterMap, Status, load_register_map
+from firmware_iface.unit import AxisGroup
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
@@ -34,8 +33,7 @@ from xmalign.errors import (
     TransportError,
     XmalignError,
 )
-from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock, move_axes
+from xmalign.roles import Clock, WallClock
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
@@ -271,7 +269,7 @@ class ModbusAxis:
         self.unit.write(self.number, "control", int(bits))
 
 
-class ModbusUnit:
+class ModbusUnit(AxisGroup):
     """A positioning unit behind a register transport; implements ``PositioningUnit``.
 
     Parameters
@@ -323,10 +321,6 @@ class ModbusUnit:
         n_axes = self._read_device("axis_count")
         first = FIRST_AXIS[self.kind]
         self._axes = tuple(ModbusAxis(self, n, f"a{first + n - 1}") for n in range(1, n_axes + 1))
-
-    @property
-    def axes(self) -> tuple[ModbusAxis, ...]:
-        return self._axes
 
     # --- conversions and register access -------------------------------------------------
     def counts_to_rad(self, counts: int) -> float:
@@ -391,30 +385,12 @@ class ModbusUnit:
                 return
 
     # --- unit operations ------------------------------------------------------------------
-    def angles_rad(self) -> Vec:
-        return np.array([axis.position_rad() for axis in self._axes])
-
-    def enable(self) -> None:
-        for axis in self._axes:
-            axis.enable()
-
-    def reset_faults(self) -> None:
-        for axis in self._axes:
-            axis.reset_fault()
-
     def home(self, timeout_s: float) -> None:
         """Home every axis and wait until all report homed."""
         for axis in self._axes:
             axis.home()
         for axis in self._axes:
             axis.wait_homed(timeout_s)
-
-    def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
-        move_axes(self._axes, angles_rad, timeout_s, self.device_name)
-
-    def lock(self) -> None:
-        for axis in self._axes:
-            axis.lock()
 
     def close(self) -> None:
         """Stop the heartbeat thread and close the transport (axes are left as they are)."""

@@ -72,6 +72,11 @@ def wrap_angle(angle_rad: ArrayLike) -> Vec:
     return (np.asarray(angle_rad, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def circular_mean(angles_rad: ArrayLike) -> float:
+    """Mean direction of angles (rad), right across the ±pi seam."""
+    return float(np.angle(np.mean(np.exp(1j * np.asarray(angles_rad, dtype=float)))))
+
+
 def line_frame(u: ArrayLike) -> Vec:
     """Line frame of CONVENTIONS.md for a line direction ``u``.
 

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 from xmalign.alignment import FineAlignmentSettings, fine_align
 from xmalign.errors import GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
-from xmalign.geometry import Vec, azimuth_elevation, wrap_angle
+from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
 from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit
@@ -115,7 +115,7 @@ def gamma_from_alignments(launch2mcs_mm: Vec, session: Session) -> float:
         cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
         azimuth, _ = azimuth_elevation(cp - launch2mcs_mm)
         gammas.append(float(azimuth) - a.launch_rad[0])
-    return float(np.angle(np.mean(np.exp(1j * np.array(gammas)))))
+    return circular_mean(gammas)
 
 
 def _pointing_bias(guess: PoseGuess, session: Session) -> tuple[EncoderOffsets, float]:

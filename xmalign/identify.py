@@ -30,7 +30,7 @@ from scipy.special import chdtrc
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.pose import LaunchPose
 from xmalign.formats.session import Session
-from xmalign.geometry import Vec, azimuth_elevation, line_frame, wrap_angle
+from xmalign.geometry import Vec, azimuth_elevation, circular_mean, line_frame, wrap_angle
 from xmalign.kinematics import launch_direction, receiver_axis, receiver_cp
 from xmalign.machine import Uncertainty
 
@@ -448,16 +448,12 @@ def _nearest_point_to_lines(points: Vec, directions: Vec) -> Vec:
     return np.linalg.solve(a, np.einsum("nij,nj->i", projectors, points))
 
 
-def _circular_mean(angles: Vec) -> float:
-    return float(np.angle(np.mean(np.exp(1j * np.asarray(angles)))))
-
-
 def _intersection_estimate(obs: Observations) -> Vec:
     """The seed paper's estimate: nearest point to the beam lines, mean azimuth offset."""
     d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
     position = _nearest_point_to_lines(obs.inputs[:, BX:DIST], d)
     azimuth, _ = azimuth_elevation(d)
-    return np.append(position, _circular_mean(azimuth - obs.inputs[:, PHI1]))
+    return np.append(position, circular_mean(azimuth - obs.inputs[:, PHI1]))
 
 
 def _distance_estimate(obs: Observations, weights: Vec, start: Vec) -> _Fit:
@@ -473,7 +469,7 @@ def _distance_start(obs: Observations) -> Vec:
     launch_cps = obs.inputs[:, BX:DIST] - obs.inputs[:, DIST, None] * d
     position = launch_cps.mean(axis=0)
     azimuth, _ = azimuth_elevation(obs.inputs[:, BX:DIST] - position)
-    return np.append(position, _circular_mean(azimuth - obs.inputs[:, PHI1]))
+    return np.append(position, circular_mean(azimuth - obs.inputs[:, PHI1]))
 
 
 def _joint_weights(
