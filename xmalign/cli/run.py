@@ -70,11 +70,12 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
         except XmalignError as error:
             raise _kept(error, output) from error
     for note in run.statistics.resumed:
-        console.print(note, markup=False)
+        console.print(note, markup=False, soft_wrap=True)
     console.print(
         f"{run.statistics.points} points captured; {output.writer.saved} points in"
         f" {output.writer.path}",
         markup=False,
+        soft_wrap=True,
     )
 
 

@@ -353,8 +353,8 @@ def _check_magnitudes(row: MeasurementRow, limits: ChannelLimits, where: str) ->
     for value, limit, name, unit in checks:
         if value > limit:
             raise InputError(
-                f"{where}: {name} {value:.6g} {unit} is beyond twice the interferometer's"
-                f" range ({limit:g} {unit})"
+                f"{where}: {name} {value:.6g} {unit} is beyond {limit:g} {unit}, twice the"
+                " interferometer's range"
             )
     for name, value in row.environment.items():
         low, high = ENVIRONMENT_LIMITS[name]
