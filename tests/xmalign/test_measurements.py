@@ -172,10 +172,11 @@ def test_a_file_cut_anywhere_resumes_with_every_complete_row(tmp_path_factory, c
     header_end = data.index(b"\n", data.index(b"\n") + 1) + 1
     path.write_bytes(data[:cut])
     complete = data[:cut].count(b"\n") - 2
-    if cut < header_end:
-        if cut > 0 and data[:cut].count(b"\n") == 1:
-            with pytest.raises(InputError):
-                read_measurements(path)
+    if cut < header_end:  # a cut header: refused, or (cut after a column) a file with no rows
+        try:
+            assert read_measurements(path) == []
+        except InputError as error:
+            assert str(path) in str(error)
         return
     resumed = load_measurements(path, torn_ok=True)
     assert [r.key() for r in resumed.rows] == [r.key() for r in _rows(12)[:complete]]

@@ -512,4 +512,3 @@ def write_measurements(
     with MeasurementWriter.create(path, plan_sha256) as writer:
         for row in rows:
             writer.append(row)
-
