@@ -36,6 +36,7 @@ from xmalign.formats.measurements import (
     MeasurementFile,
     MeasurementRow,
     MeasurementWriter,
+    check_recorded_plan,
     load_measurements,
     plan_sha256,
 )
@@ -55,8 +56,6 @@ from xmalign.roles import (
 LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 #: Fine-alignment distance guess when a plan does not give the line's beam distances, mm.
 DEFAULT_START_DISTANCE_MM = 500.0
-#: A recorded point farther than this from the plan's target belongs to another plan, mm.
-POINT_TOLERANCE_MM = 0.01
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Part of each dwell left for the machine to settle before averaging starts.
@@ -482,37 +481,10 @@ def open_run_output(
     if path.stat().st_size == 0:
         return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
     recorded = load_measurements(path, limits, torn_ok=True)
-    warnings = _check_recorded_plan(recorded, plan)
+    warnings = check_recorded_plan(recorded, plan)
     if recorded.torn is not None:
         warnings.append(
             f"{path}: line {recorded.torn.line_number} was cut short when the run stopped"
             f" ({recorded.torn.text[:40]!r}); it is dropped and its point measured again"
         )
     return RunOutput(MeasurementWriter.resume(recorded), recorded, warnings)
-
-
-def _check_recorded_plan(recorded: MeasurementFile, plan: Plan) -> list[str]:
-    """Refuse a file recorded for another plan; a warning when the file does not say."""
-    path = recorded.path
-    expected = plan_sha256(plan)
-    if recorded.plan_sha256 is not None and recorded.plan_sha256 != expected:
-        raise InputError(
-            f"{path} was recorded for another plan (plan_sha256 {recorded.plan_sha256[:12]}...,"
-            f" this plan is {expected[:12]}...): give the plan it was recorded with, or"
-            " another --out"
-        )
-    points = {line.id: line.target_points_mm() for line in plan.lines}
-    for row in recorded.rows:
-        targets = points.get(row.line)
-        if (
-            targets is None
-            or row.index >= len(targets)
-            or np.linalg.norm(targets[row.index] - row.machine_mm) > POINT_TOLERANCE_MM
-        ):
-            raise InputError(
-                f"{path}: line {row.line} run {row.run} index {row.index} is not a point of"
-                " this plan: the file was recorded for another plan"
-            )
-    if recorded.plan_sha256 is None:
-        return [f"{path} does not record its plan; its points match this plan's targets"]
-    return []

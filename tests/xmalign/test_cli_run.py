@@ -1,5 +1,6 @@
 import contextlib
 import io
+import json
 import shutil
 import signal
 import subprocess
@@ -223,3 +224,21 @@ def test_killed_at_random_points_and_resumed_no_point_is_lost_or_repeated(dry, t
     assert len(_data_rows(out)) == len(rows) == len(expected)
     assert sorted(row.key() for row in rows) == expected
     assert any(row.segment > 0 for row in rows)  # a new process re-aligned the units
+
+
+def test_post_refuses_measurements_recorded_for_another_plan(dry, tmp_path):
+    plan = json.loads((dry / "plan.json").read_text())
+    plan["lines"][0]["dwell_s"] += 1.0
+    other = tmp_path / "other-plan.json"
+    other.write_text(json.dumps(plan))
+    result = _main(
+        "post",
+        "--plan",
+        str(other),
+        "--data",
+        str(dry / "measurements.csv"),
+        "--out",
+        str(tmp_path / "e.csv"),
+    )
+    assert_one_line_error(result, "measurements.csv was recorded for another plan")
+    assert not (tmp_path / "e.csv").exists()

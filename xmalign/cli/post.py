@@ -14,7 +14,7 @@ from xmalign.cli.common import console, machine_or_default
 from xmalign.comp import WRITERS, writer
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
-from xmalign.formats.measurements import read_measurements
+from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.post.evaluate import PostResult, post_process
 from xmalign.rigid_body import Chain
@@ -62,7 +62,10 @@ def post(
     with _progress() as progress:
         task = progress.add_task("reading plan and measurements", total=None)
         plan_ = read_plan(plan)
-        rows = read_measurements(data)
+        limits = ChannelLimits.of_ranges(**machine_.interferometer.model_dump())
+        recorded = load_measurements(data, limits)
+        check_recorded_plan(recorded, plan_, check_points=False)
+        rows = recorded.rows
         progress.update(task, description=f"fitting {len(rows)} points")
         result = post_process(machine_, plan_, rows, str(data))
         write_error_tables(out, result.fit.tables)

@@ -61,6 +61,8 @@ OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS)
 WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN)
 #: The largest travel a machine can have, mm (commanded points and targets).
 MAX_COORDINATE_MM = 100_000.0
+#: A recorded point farther than this from its plan target belongs to another plan, mm.
+POINT_TOLERANCE_MM = 0.01
 PLAN_KEY = "plan_sha256"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
@@ -512,3 +514,35 @@ def write_measurements(
     with MeasurementWriter.create(path, plan_sha256) as writer:
         for row in rows:
             writer.append(row)
+
+
+def check_recorded_plan(
+    recorded: MeasurementFile, plan: Plan, check_points: bool = True
+) -> list[str]:
+    """Refuse a file recorded for another plan; a warning when the file does not say.
+
+    The identity recorded in the file decides; every row must also be a point of
+    the plan (``check_points``: ``post`` checks them itself, naming more).
+    """
+    path = recorded.path
+    expected = plan_sha256(plan)
+    if recorded.plan_sha256 is not None and recorded.plan_sha256 != expected:
+        raise InputError(
+            f"{path} was recorded for another plan (plan_sha256 {recorded.plan_sha256[:12]}...,"
+            f" this plan is {expected[:12]}...): give the plan it was recorded with"
+        )
+    points = {line.id: line.target_points_mm() for line in plan.lines}
+    for row in recorded.rows if check_points else []:
+        targets = points.get(row.line)
+        if (
+            targets is None
+            or row.index >= len(targets)
+            or np.linalg.norm(targets[row.index] - row.machine_mm) > POINT_TOLERANCE_MM
+        ):
+            raise InputError(
+                f"{path}: line {row.line} run {row.run} index {row.index} is not a point of"
+                " this plan: the file was recorded for another plan"
+            )
+    if recorded.plan_sha256 is None:
+        return [f"{path} does not record its plan; its points match this plan's targets"]
+    return []
