@@ -20,6 +20,7 @@ is set).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -457,20 +458,34 @@ class RunOutput:
         self.close()
 
 
+def _holds_no_points(path: Path) -> bool:
+    """A measurement file with a header and not one point (a run that failed at its start)."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return False
+    try:
+        recorded = load_measurements(path, torn_ok=True)
+    except InputError:
+        return False
+    return not recorded.rows and recorded.torn is None
+
+
 def open_run_output(
     path: Path, plan: Plan, resume: bool, limits: ChannelLimits = NOMINAL_LIMITS
 ) -> RunOutput:
     """Open the measurement CSV of a run: a new file, or (``resume``) the one to go on with.
 
     Raw measurements are never replaced: without ``resume`` an existing file is
-    refused. With ``resume`` the file must have been recorded for ``plan``; a
-    torn last row is cut off with a warning and its point is measured again.
+    refused unless it holds not one point. With ``resume`` the file must have
+    been recorded for ``plan``; a torn last row is cut off with a warning and
+    its point is measured again.
     """
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{path}: is a folder; give a file name for --out")
     if not resume:
-        if path.exists() and path.stat().st_size > 0:
+        if _holds_no_points(path):
+            os.truncate(path, 0)
+        elif path.exists() and path.stat().st_size > 0:
             raise InputError(
                 f"{path} already holds measurements and is never replaced: add --resume to"
                 " go on with it, or give another --out"

@@ -13,6 +13,7 @@ import pytest
 from cli_helpers import assert_one_line_error, run_cli
 
 from sim.dry_run import DryRunOptions, simulate_calibration
+from xmalign import __version__
 from xmalign.cli import main
 from xmalign.formats.measurements import read_measurements
 
@@ -242,3 +243,57 @@ def test_post_refuses_measurements_recorded_for_another_plan(dry, tmp_path):
     )
     assert_one_line_error(result, "measurements.csv was recorded for another plan")
     assert not (tmp_path / "e.csv").exists()
+
+
+def test_version_and_flags_in_help():
+    assert _main("--version").stdout.strip() == f"xmalign {__version__}"
+    help_text = _main("run", "--help").stdout
+    assert "--sim " in help_text and "--resume " in help_text and "<bool>" not in help_text
+
+
+def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, reference_machine_path):
+    other = tmp_path / "other.yaml"
+    text = reference_machine_path.read_text()
+    other.write_text(text.replace("X: [0, 2000]", "X: [0, 2100]"))
+    plan = str(dry / "plan.json")
+    for command in (
+        ("run", "--plan", plan, "--sim", "--out", str(tmp_path / "m.csv")),
+        (
+            "post",
+            "--plan",
+            plan,
+            "--data",
+            str(dry / "measurements.csv"),
+            "--out",
+            str(tmp_path / "e.csv"),
+        ),
+    ):
+        result = _main(*command, "--machine", str(other))
+        assert_one_line_error(
+            result, "plan.json was made for machine 'Example FYXZ gantry mill'", str(other)
+        )
+    assert not (tmp_path / "m.csv").exists() and not (tmp_path / "e.csv").exists()
+    renamed = tmp_path / "renamed.json"
+    renamed.write_text((dry / "plan.json").read_text().replace("Example FYXZ", "Another"))
+    assert_one_line_error(
+        _main(
+            "post",
+            "--plan",
+            str(renamed),
+            "--data",
+            str(dry / "measurements.csv"),
+            "--out",
+            "e.csv",
+        ),
+        "made for machine 'Another gantry mill'",
+        "not for the reference machine (no --machine)",
+    )
+
+
+def test_program_finds_pose_json_in_the_working_folder(dry, tmp_path):
+    missing = run_cli("program", cwd=tmp_path)
+    assert_one_line_error(missing, "pose.json does not exist", "xmalign identify", "--pose")
+    shutil.copy(dry / "pose.json", tmp_path / "pose.json")
+    result = run_cli("program", "--plan-out", "plan.json", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("\n") > 100 and (tmp_path / "plan.json").exists()

@@ -14,7 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from xmalign.calibration import CalibrationRun, RunOutput, open_run_output
-from xmalign.cli.common import console, error_console, machine_or_default
+from xmalign.cli.common import console, error_console, machine_for_plan, machine_or_default
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
@@ -186,8 +186,8 @@ def run_command(
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
     _check_seed(seed)
-    machine_model = machine_or_default(machine)
     plan_model = read_plan(plan)
+    machine_model = machine_for_plan(machine, plan_model, plan)
     limits = ChannelLimits.of_ranges(**machine_model.interferometer.model_dump())
     with open_run_output(out, plan_model, resume, limits) as output:
         try:
