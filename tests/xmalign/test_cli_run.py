@@ -15,7 +15,9 @@ from cli_helpers import assert_one_line_error, run_cli
 from sim.dry_run import DryRunOptions, simulate_calibration
 from xmalign import __version__
 from xmalign.cli import main
+from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import read_measurements
+from xmalign.formats.plan import read_plan
 
 
 def test_dry_run_then_run_sim_on_its_plan(tmp_path):
@@ -297,3 +299,33 @@ def test_program_finds_pose_json_in_the_working_folder(dry, tmp_path):
     result = run_cli("program", "--plan-out", "plan.json", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout.count("\n") > 100 and (tmp_path / "plan.json").exists()
+
+
+def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
+    folder = tmp_path / "dry"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "xmalign", "dry-run", "--seed", "3", "--out", str(folder)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+    )
+    _wait_for_rows(process, folder / "measurements.csv", 20)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    (line,) = stderr.strip().splitlines()
+    csv_path = folder / "measurements.csv"
+    saved = len(read_measurements(csv_path))
+    assert line.startswith(f"stopped: {saved} points kept in {csv_path}; go on with --resume (")
+    command = line[line.index("(xmalign ") + len("(xmalign ") : -1].split()
+    finished = _main(*command)
+    assert finished.returncode == 0, finished.stderr
+    plan = read_plan(folder / "plan.json")
+    assert len(read_measurements(csv_path)) == sum(
+        1 for line in plan.lines for _ in capture_sequence(line)
+    )
+    assert_one_line_error(_main("dry-run", "--out", str(folder)), "already holds a dry run")
+    assert_one_line_error(
+        _main("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed -5"
+    )
