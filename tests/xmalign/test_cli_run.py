@@ -14,8 +14,8 @@ from cli_helpers import assert_one_line_error, run_cli
 
 from sim.dry_run import DryRunOptions, simulate_calibration
 from xmalign import __version__
-from xmalign.cli import main
 from xmalign.calibration import capture_sequence
+from xmalign.cli import main
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
 
