@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
@@ -158,13 +157,12 @@ def virtual_setup(
 ) -> VirtualSetup:
     """The seeded virtual setup: the same seed gives the same machine, units and placement."""
     rng = np.random.default_rng(seed)
-    guess = machine.launch_unit.position_mm if machine.launch_unit else None
     placed = machine
-    if guess is not None:
+    if machine.launch_unit is not None:
         scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
         scatter[2] = abs(scatter[2])
         launch_unit = machine.launch_unit.model_copy(
-            update={"position_mm": list(np.asarray(guess) + scatter)}
+            update={"position_mm": list(np.asarray(machine.launch_unit.position_mm) + scatter)}
         )
         placed = machine.model_copy(update={"launch_unit": launch_unit})
     world = build_world(
@@ -317,7 +315,7 @@ def simulate_calibration(
     check_dry_run_folder(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes)
-    clock: SimClock = setup.world.clock
+    clock = setup.world.clock
 
     stage("identify")
     session_path = workdir / "session.json"

@@ -109,7 +109,7 @@ def plot_volumetric_map(results: Sequence[StrategyResult], path: Path) -> Path |
     figure = plt.figure(figsize=(4.5 * columns, 4.0 * rows))
     for k, (result, level) in enumerate(zip(mapped, levels, strict=True)):
         ax = figure.add_subplot(rows, columns, k + 1, projection="3d")
-        grid = result.grid_mm
+        grid = np.asarray(result.grid_mm)
         points = ax.scatter(
             grid[:, 0], grid[:, 1], grid[:, 2], c=level, cmap="viridis", vmin=0.0, vmax=top
         )

@@ -379,9 +379,14 @@ def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: 
 class ProgramEvent(Protocol):
     """What a controller running the program reports (the simulated CNC's events)."""
 
-    kind: str
-    position_mm: Vec
-    dwell_s: float
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def position_mm(self) -> Vec: ...
+
+    @property
+    def dwell_s(self) -> float: ...
 
 
 def capture_program(

@@ -183,7 +183,7 @@ def test_a_file_cut_anywhere_resumes_with_every_complete_row(tmp_path_factory, c
     assert (resumed.torn is None) == (cut == len(data) or data[cut - 1 : cut] == b"\n")
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=80, deadline=None)
 @given(position=st.integers(0, 10_000), byte=st.integers(0, 255))
 def test_a_damaged_byte_gives_rows_or_one_line_error(tmp_path_factory, position, byte):
     path = tmp_path_factory.mktemp("flip") / "m.csv"
