@@ -204,6 +204,7 @@ def test_killed_at_random_points_and_resumed_no_point_is_lost_or_repeated(dry, t
     out = tmp_path / "m.csv"
     expected = sorted(row.key() for row in read_measurements(dry / "measurements.csv"))
     kills = torn = 0
+    just_torn = False
     for _ in range(20):
         saved = len(_data_rows(out)) if out.exists() else 0
         process = _start(dry, out, *(["--resume"] if out.exists() else []))
@@ -212,6 +213,8 @@ def test_killed_at_random_points_and_resumed_no_point_is_lost_or_repeated(dry, t
             process.kill()
             kills += 1
         _, stderr = process.communicate(timeout=60)
+        assert not just_torn or "was cut short" in stderr, stderr
+        just_torn = False
         if process.returncode == 0:
             break
         assert process.returncode == -signal.SIGKILL, stderr
@@ -221,6 +224,7 @@ def test_killed_at_random_points_and_resumed_no_point_is_lost_or_repeated(dry, t
             if not last.startswith(b"#"):
                 out.write_bytes(data[: len(data) - 1 - int(rng.integers(1, len(last)))])
                 torn += 1
+                just_torn = True
     assert process.returncode == 0, stderr
     assert kills >= 3 and torn >= 1
     rows = read_measurements(out)

@@ -1,5 +1,8 @@
 """The measurement CSV: round trips, the checks on reading, torn rows and damaged files."""
 
+import os
+import stat
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -148,6 +151,15 @@ def test_a_cut_last_row_is_refused_unless_resuming(tmp_path):
 
 def test_a_complete_last_row_without_line_end_is_accepted(tmp_path):
     assert len(read_measurements(_file(tmp_path, HEADER, GOOD, end=""))) == 1
+
+
+def test_a_new_file_is_readable_by_the_controller_account(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        write_measurements(tmp_path / "m.csv", _rows(1))
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "m.csv").stat().st_mode) == 0o644
 
 
 def test_an_existing_file_is_never_replaced(tmp_path):
