@@ -474,6 +474,19 @@ def _holds_no_points(path: Path) -> bool:
     return not recorded.rows and recorded.torn is None
 
 
+def check_run_output(path: Path, resume: bool) -> None:
+    """Refuse an ``--out`` a run cannot use, before anything is read, created or connected."""
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; give a file name for --out")
+    if resume and not path.exists():
+        raise InputError(f"--resume: {path} does not exist yet; run without --resume")
+    if not resume and path.exists() and path.stat().st_size > 0 and not _holds_no_points(path):
+        raise InputError(
+            f"{path} already holds measurements and is never replaced: add --resume to"
+            " go on with it, or give another --out"
+        )
+
+
 def open_run_output(
     path: Path, plan: Plan, resume: bool, limits: ChannelLimits = NOMINAL_LIMITS
 ) -> RunOutput:
@@ -485,20 +498,10 @@ def open_run_output(
     its point is measured again.
     """
     path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; give a file name for --out")
-    if not resume:
+    check_run_output(path, resume)
+    if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        elif path.exists() and path.stat().st_size > 0:
-            raise InputError(
-                f"{path} already holds measurements and is never replaced: add --resume to"
-                " go on with it, or give another --out"
-            )
-        return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
-    if not path.exists():
-        raise InputError(f"--resume: {path} does not exist yet; run without --resume")
-    if path.stat().st_size == 0:
         return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
     recorded = load_measurements(path, limits, torn_ok=True)
     warnings = check_recorded_plan(recorded, plan)

@@ -333,3 +333,23 @@ def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
     assert_one_line_error(
         _main("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed -5"
     )
+
+
+BAD_OPTIONS = [
+    (["--program", "missing.nc"], "missing.nc: cannot read G-code program"),
+    (["--program", "bad.nc"], "bad.nc: G-code program is not UTF-8 text"),
+    (["--program", "."], "cannot read G-code program (Is a directory)"),
+    (["--dialect", "klingon"], "--dialect 'klingon' is not known"),
+    (["--config", "units.yaml"], "give either --sim or --config"),
+    (["--seed", "-5"], "--seed -5: give a seed of 0 or more"),
+]
+
+
+@pytest.mark.parametrize("options, message", BAD_OPTIONS, ids=[o[0][0] for o in BAD_OPTIONS])
+def test_bad_run_options_are_one_line_and_create_no_file(
+    dry, tmp_path, monkeypatch, options, message
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bad.nc").write_bytes(b"G1 X\xff\n")
+    assert_one_line_error(_run_sim(dry, tmp_path / "m.csv", *options), message)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.nc"]

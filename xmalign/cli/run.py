@@ -13,7 +13,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from xmalign.calibration import CalibrationRun, RunOutput, open_run_output
+from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
 from xmalign.cli.common import console, error_console, machine_for_plan, machine_or_default
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
@@ -79,14 +79,10 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
     )
 
 
-def _run_sim(
-    machine: Machine,
-    plan: Plan,
-    output: RunOutput,
-    seed: int,
-    program: Path | None,
-    dialect: str | None,
-) -> None:
+def _sim_measurement(
+    machine: Machine, plan: Plan, seed: int, program: Path | None, dialect: str | None
+) -> Callable[[RunOutput], None]:
+    """Check the --sim options; the measurement on the virtual machine into an output."""
     from sim.dry_run import measure_virtually, virtual_setup
     from trajectories.gcode import DIALECTS, resolve_dialect
     from trajectories.gcode.program import write_program
@@ -97,40 +93,51 @@ def _run_sim(
         if program is not None
         else write_program(plan, machine, DIALECTS[dialect_name]())
     )
-    setup = virtual_setup(machine, seed)
-    _measure(output, plan, lambda: measure_virtually(setup, plan, text, dialect_name, output))
+
+    def measure(output: RunOutput) -> None:
+        setup = virtual_setup(machine, seed)
+        _measure(output, plan, lambda: measure_virtually(setup, plan, text, dialect_name, output))
+
+    return measure
 
 
-def _run_live(machine: Machine, plan: Plan, output: RunOutput, config_path: Path) -> None:
+def _live_measurement(
+    machine: Machine, plan: Plan, config_path: Path
+) -> Callable[[RunOutput], None]:
+    """Check the hardware configuration; the live measurement into an output."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.calibration import follow_machine, step_through
     from xmalign.roles import WallClock
     from xmalign.safety import units_locked_on_exit
 
     config = load_units_config(config_path)
-    devices = open_devices(config, machine)
 
-    def measure() -> CalibrationRun:
-        with units_locked_on_exit(devices.launch, devices.receiver):
-            run = output.calibration_run(
-                plan, devices.launch, devices.receiver, devices.interferometer, WallClock()
-            )
-            if config.machine_position.source == "file":
-                follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
-            else:
-                step_through(
-                    run,
-                    devices.mover,
-                    plan.lines,
-                    machine.feed_mm_min.measure,
-                    machine.measurement.overrun_mm,
+    def measure(output: RunOutput) -> None:
+        devices = open_devices(config, machine)
+
+        def capture() -> CalibrationRun:
+            with units_locked_on_exit(devices.launch, devices.receiver):
+                run = output.calibration_run(
+                    plan, devices.launch, devices.receiver, devices.interferometer, WallClock()
                 )
-        return run
+                if config.machine_position.source == "file":
+                    follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
+                else:
+                    step_through(
+                        run,
+                        devices.mover,
+                        plan.lines,
+                        machine.feed_mm_min.measure,
+                        machine.measurement.overrun_mm,
+                    )
+            return run
 
-    try:
-        _measure(output, plan, measure)
-    finally:
-        devices.close()
+        try:
+            _measure(output, plan, capture)
+        finally:
+            devices.close()
+
+    return measure
 
 
 def _tell_cycle_start(line: object) -> None:
@@ -186,16 +193,19 @@ def run_command(
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
     _check_seed(seed)
+    check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
     limits = ChannelLimits.of_ranges(**machine_model.interferometer.model_dump())
+    if sim:
+        measure = _sim_measurement(machine_model, plan_model, seed, program, dialect)
+    else:
+        assert config is not None
+        measure = _live_measurement(machine_model, plan_model, config)
+    # the options are checked: only now is --out created or opened, before any device
     with open_run_output(out, plan_model, resume, limits) as output:
         try:
-            if sim:
-                _run_sim(machine_model, plan_model, output, seed, program, dialect)
-            else:
-                assert config is not None
-                _run_live(machine_model, plan_model, output, config)
+            measure(output)
         except KeyboardInterrupt:
             raise _stopped(out) from None
 
