@@ -102,6 +102,7 @@ BAD_FILES = [
     ("short row", [HEADER, "X,1,+,0"], "line 2: expected 14 fields, found 4"),
     ("setup", ["# setup line=X segment=0 launch_deg=1", HEADER], "line 1: damaged setup"),
     ("only comments", ["# nothing here"], "no header line"),
+    ("huge field", [HEADER, GOOD.replace("X,", "X" * 200_000 + ",", 1)], "field larger"),
 ]
 
 

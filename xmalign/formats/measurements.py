@@ -293,7 +293,10 @@ class _Reader:
         if text.startswith("#"):
             self.comment(text, number)
             return
-        fields = next(csv.reader([text]))
+        try:
+            fields = next(csv.reader([text]))
+        except csv.Error as error:  # e.g. a field beyond the csv module's size limit
+            raise InputError(f"{self.where(number)}: {error}") from error
         if not self.file.columns:
             self.header(fields, number)
         else:
