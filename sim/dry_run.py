@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
@@ -25,11 +24,18 @@ from trajectories.gcode import DIALECTS, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
-from xmalign.calibration import UNIT_MOVE_TIMEOUT_S, CalibrationRun, capture_program
+from xmalign.calibration import (
+    UNIT_MOVE_TIMEOUT_S,
+    CalibrationRun,
+    RunOutput,
+    capture_program,
+    open_run_output,
+)
 from xmalign.comp import writer as comp_writer
+from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
-from xmalign.formats.measurements import MeasurementWriter, read_measurements
-from xmalign.formats.plan import Plan, write_plan
+from xmalign.formats.measurements import read_measurements
+from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import Session
 from xmalign.geometry import Vec, wrap_angle
@@ -56,6 +62,29 @@ HAND_RAD = 20e-6
 STAGES = ("identify", "program", "run", "post", "comp")
 #: File name ending of a program in each dialect, as the controllers expect.
 PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
+#: What a dry run writes into its folder (the program as run.<suffix>).
+DRY_RUN_FILES = (
+    "session.json",
+    "pose.json",
+    "plan.json",
+    "measurements.csv",
+    "errors.csv",
+    "truth.csv",
+    "comp",
+    *(f"run{suffix}" for suffix in PROGRAM_SUFFIX.values()),
+)
+
+
+def check_dry_run_folder(workdir: Path) -> None:
+    """Refuse a folder that is a file or already holds a dry run's files (never replaced)."""
+    if workdir.exists() and not workdir.is_dir():
+        raise InputError(f"{workdir}: is a file; give a folder for the dry run's files")
+    found = [name for name in DRY_RUN_FILES if (workdir / name).exists()]
+    if found:
+        raise InputError(
+            f"{workdir}/ already holds a dry run ({', '.join(found)}); give another --out"
+            " or remove them"
+        )
 
 
 @dataclass(frozen=True)
@@ -128,13 +157,12 @@ def virtual_setup(
 ) -> VirtualSetup:
     """The seeded virtual setup: the same seed gives the same machine, units and placement."""
     rng = np.random.default_rng(seed)
-    guess = machine.launch_unit.position_mm if machine.launch_unit else None
     placed = machine
-    if guess is not None:
+    if machine.launch_unit is not None:
         scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
         scatter[2] = abs(scatter[2])
         launch_unit = machine.launch_unit.model_copy(
-            update={"position_mm": list(np.asarray(guess) + scatter)}
+            update={"position_mm": list(np.asarray(machine.launch_unit.position_mm) + scatter)}
         )
         placed = machine.model_copy(update={"launch_unit": launch_unit})
     world = build_world(
@@ -218,33 +246,15 @@ def identify_virtually(
 
 
 def measure_virtually(
-    setup: VirtualSetup,
-    plan: Plan,
-    program: str,
-    dialect: str,
-    csv_path: Path,
-    resume: bool = False,
+    setup: VirtualSetup, plan: Plan, program: str, dialect: str, output: RunOutput
 ) -> CalibrationRun:
-    """Run the G-code program on the virtual CNC and capture every point into ``csv_path``.
+    """Run the G-code program on the virtual CNC and capture every point into ``output``.
 
-    With ``resume`` the rows already in the file are kept and not captured again.
+    The points ``output`` already holds (a resumed file) are not captured again.
     """
-    done = (
-        {row.key() for row in read_measurements(csv_path)}
-        if resume and csv_path.exists()
-        else set()
-    )
-    if not resume:
-        csv_path.unlink(missing_ok=True)
-    with MeasurementWriter(csv_path) as writer, units_locked_on_exit(setup.launch, setup.receiver):
-        run = CalibrationRun(
-            plan,
-            setup.launch,
-            setup.receiver,
-            setup.world.interferometer,
-            setup.world.clock,
-            writer.append,
-            done=done,
+    with units_locked_on_exit(setup.launch, setup.receiver):
+        run = output.calibration_run(
+            plan, setup.launch, setup.receiver, setup.world.interferometer, setup.world.clock
         )
         capture_program(run, setup.cnc.run_program(program, dialect))
     return run
@@ -291,22 +301,24 @@ def simulate_calibration(
     workdir: Path,
     options: DryRunOptions | None = None,
     on_stage: Callable[[str], None] | None = None,
+    on_point: Callable[[int], None] | None = None,
 ) -> DryRunReport:
     """Run identify, program, run, post and comp on a seeded virtual machine.
 
     Files (session, pose, plan, program, measurements, errors, compensation
-    tables, truth tables) are written into ``workdir``. ``on_stage`` is
-    called with each stage's name as it starts.
+    tables, truth tables) are written into ``workdir``, which must not hold
+    an earlier dry run. ``on_stage`` is called with each stage's name as it
+    starts, ``on_point`` with the number of points saved after each one.
     """
     options = options or DryRunOptions()
     stage = on_stage or (lambda name: None)
+    check_dry_run_folder(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes)
-    clock: SimClock = setup.world.clock
+    clock = setup.world.clock
 
     stage("identify")
     session_path = workdir / "session.json"
-    session_path.unlink(missing_ok=True)
     positions = options.identification_mm
     if positions is None:
         positions = design_identification(machine, options.identification_positions).machine_mm
@@ -319,20 +331,24 @@ def simulate_calibration(
     stage("program")
     measurement_plan = plan_measurement(machine, result.to_pose())
     write_plan(workdir / "plan.json", measurement_plan.plan)
+    # as `xmalign run --resume --plan plan.json` will read it (the same plan identity)
+    plan = read_plan(workdir / "plan.json")
     dialect_name = resolve_dialect(machine, options.dialect)
-    program = write_program(measurement_plan.plan, machine, DIALECTS[dialect_name]())
+    program = write_program(plan, machine, DIALECTS[dialect_name]())
     program_path = workdir / f"run{PROGRAM_SUFFIX[dialect_name]}"
     program_path.write_text(program)
 
     stage("run")
     started = clock.now()
     csv_path = workdir / "measurements.csv"
-    run = measure_virtually(setup, measurement_plan.plan, program, dialect_name, csv_path)
+    with open_run_output(csv_path, plan, resume=False) as output:
+        output.on_saved = on_point or (lambda saved: None)
+        run = measure_virtually(setup, plan, program, dialect_name, output)
     run_s = clock.now() - started
-    rows = read_measurements(workdir / "measurements.csv")
+    rows = read_measurements(csv_path)
 
     stage("post")
-    post = post_process(machine, measurement_plan.plan, rows, "measurements.csv")
+    post = post_process(machine, plan, rows, "measurements.csv")
     tables: ErrorTableSet = post.fit.tables
     write_error_tables(workdir / "errors.csv", tables)
     setup.world.machine.write_truth_tables(str(workdir / "truth.csv"), 50.0)

@@ -33,6 +33,18 @@ def _save(figure: plt.Figure, path: Path) -> Path:
     return path
 
 
+def histogram_range(values: np.ndarray) -> tuple[float, float]:
+    """Range of a histogram that has room for 30 bins even for a (nearly) constant quantity.
+
+    numpy refuses bins finer than the floating-point resolution of the values
+    (``351 ± 1e-13``); the range is at least 1e-6 of the values' magnitude.
+    """
+    low, high = float(np.min(values)), float(np.max(values))
+    span = max(high - low, 1e-6 * max(abs(low), abs(high)), 1e-9)
+    centre = 0.5 * (low + high)
+    return centre - 0.5 * span, centre + 0.5 * span
+
+
 def plot_histograms(results: Sequence[StrategyResult], path: Path) -> Path:
     """One panel per quantity, the strategies' distributions overlaid."""
     names = list(dict.fromkeys(n for r in results for n in r.study.names))
@@ -41,7 +53,13 @@ def plot_histograms(results: Sequence[StrategyResult], path: Path) -> Path:
         for result in results:
             values = result.study.values(name)
             if values.size:
-                ax.hist(values, bins=30, histtype="step", label=result.strategy.name)
+                ax.hist(
+                    values,
+                    bins=30,
+                    range=histogram_range(values),
+                    histtype="step",
+                    label=result.strategy.name,
+                )
         ax.set_title(quantity_label(name), fontsize=8)
         ax.tick_params(labelsize=7)
     if names:
@@ -91,7 +109,7 @@ def plot_volumetric_map(results: Sequence[StrategyResult], path: Path) -> Path |
     figure = plt.figure(figsize=(4.5 * columns, 4.0 * rows))
     for k, (result, level) in enumerate(zip(mapped, levels, strict=True)):
         ax = figure.add_subplot(rows, columns, k + 1, projection="3d")
-        grid = result.grid_mm
+        grid = np.asarray(result.grid_mm)
         points = ax.scatter(
             grid[:, 0], grid[:, 1], grid[:, 2], c=level, cmap="viridis", vmin=0.0, vmax=top
         )

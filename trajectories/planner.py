@@ -174,6 +174,7 @@ def plan_measurement(
         spindle_angle_rad=machine.spindle_angle_rad,
         lines=[p.line for p in planned],
         extra={
+            "machine_sha256": machine.geometry_sha256(),
             "launch_position_mm": [float(v) for v in pose.position_mm],
             "launch_gamma_deg": float(np.degrees(pose.gamma_rad)),
             "encoder_offsets_deg": {

@@ -6,6 +6,11 @@ channels averaged over each dwell. Every captured point is appended to the
 measurement CSV and flushed at once; a resumed run skips the points already
 recorded. A beam loss or a device fault stops the line with the units locked.
 
+Each alignment of a line is recorded with the locked unit angles. A resumed
+line keeps its setup when the units still stand where they were locked;
+otherwise it is aligned again and its further rows form a new setup segment,
+which ``post`` fits with its own setup terms.
+
 The interferometer reports in its own frame, the launch head's (``u`` from the
 launch unit towards the receiver), with the raw displacement since its datum;
 the rows are written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
@@ -15,17 +20,29 @@ is set).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
-from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.measurements import (
+    NOMINAL_LIMITS,
+    ChannelLimits,
+    LineSetup,
+    MeasurementFile,
+    MeasurementRow,
+    MeasurementWriter,
+    check_recorded_plan,
+    load_measurements,
+    plan_sha256,
+)
 from xmalign.formats.plan import Plan, PlanLine
-from xmalign.geometry import Vec, rot_y, rot_z
+from xmalign.geometry import Vec, rot_y, rot_z, wrap_angle
 from xmalign.roles import (
     CHANNELS,
     Clock,
@@ -46,6 +63,11 @@ UNIT_MOVE_TIMEOUT_S = 120.0
 SETTLE_FRACTION = 0.2
 #: Part of each dwell that is averaged (the rest is margin for the controller's dwell timer).
 AVERAGE_FRACTION = 0.6
+#: Encoder readings averaged to record or check where a locked unit stands.
+STANDING_READINGS = 10
+#: A resumed line keeps its setup when no unit axis is farther than this from where it
+#: was locked, rad (a few times the encoder noise of the mean; a locked unit does not move).
+SETUP_KEPT_RAD = 20e-6
 
 
 @dataclass(frozen=True)
@@ -129,6 +151,8 @@ class RunStatistics:
     points: int = 0
     skipped: int = 0
     alignments: dict[str, FineAlignmentResult] = field(default_factory=dict)
+    #: What a resume did with each line it found started (setup kept or a new segment).
+    resumed: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -145,6 +169,12 @@ class CalibrationRun:
         Called with every captured row at once (append + flush to the CSV).
     done : set of tuple
         Keys ``(line, run, direction, index)`` already recorded (resume).
+    setups : dict of str to LineSetup
+        The latest recorded setup of each line (resume).
+    last_segment : dict of str to int
+        The highest setup segment recorded for each line (resume).
+    record_setup : callable
+        Called with each new alignment of a line before its rows.
     """
 
     plan: Plan
@@ -154,6 +184,9 @@ class CalibrationRun:
     clock: Clock
     record: Callable[[MeasurementRow], None]
     done: set[tuple[str, int, str, int]] = field(default_factory=set)
+    setups: dict[str, LineSetup] = field(default_factory=dict)
+    last_segment: dict[str, int] = field(default_factory=dict)
+    record_setup: Callable[[LineSetup], None] = lambda setup: None
     alignment_settings: FineAlignmentSettings | None = None
     statistics: RunStatistics = field(default_factory=RunStatistics)
 
@@ -166,8 +199,47 @@ class CalibrationRun:
         distances = line.extra.get("beam_distance_mm") or [DEFAULT_START_DISTANCE_MM]
         return float(distances[0])
 
-    def set_line(self, line: PlanLine) -> FineAlignmentResult:
-        """Units to the plan's angles, fine alignment at the line start, lock."""
+    def _standing_rad(self) -> tuple[Vec, Vec]:
+        """Mean encoder angles of the launch and the receiver unit, rad."""
+
+        def mean(unit: PositioningUnit) -> Vec:
+            readings = np.array([unit.angles_rad() for _ in range(STANDING_READINGS)])
+            return readings[0] + np.mean(wrap_angle(readings - readings[0]), axis=0)
+
+        return mean(self.launch), mean(self.receiver)
+
+    def _stands_at(self, setup: LineSetup) -> bool:
+        launch, receiver = self._standing_rad()
+        moved = np.concatenate(
+            [wrap_angle(launch - setup.launch_rad), wrap_angle(receiver - setup.receiver_rad)]
+        )
+        return bool(np.max(np.abs(moved)) <= SETUP_KEPT_RAD)
+
+    def prepare_line(self, line: PlanLine) -> None:
+        """Set the units for a line, or keep a resumed line's setup if they have not moved.
+
+        A line that has rows but must be aligned again continues in a new segment.
+        """
+        recorded = self.setups.get(line.id)
+        if recorded is not None and self._stands_at(recorded):
+            self.launch.lock()
+            self.receiver.lock()
+            self.statistics.resumed.append(
+                f"line {line.id}: the units stand where they were locked; setup kept"
+            )
+            return
+        if line.id not in self.last_segment:
+            self.set_line(line)
+            return
+        segment = self.last_segment[line.id] + 1
+        self.set_line(line, segment)
+        self.statistics.resumed.append(
+            f"line {line.id}: the units had moved and were aligned again; its further rows"
+            f" are setup segment {segment}"
+        )
+
+    def set_line(self, line: PlanLine, segment: int = 0) -> FineAlignmentResult:
+        """Units to the plan's angles, fine alignment at the line start, lock, record."""
         started = self.clock.now()
         self.launch.move_to(line.launch_rad, UNIT_MOVE_TIMEOUT_S)
         self.receiver.move_to(line.receiver_rad, UNIT_MOVE_TIMEOUT_S)
@@ -181,6 +253,10 @@ class CalibrationRun:
         )
         self.launch.lock()
         self.receiver.lock()
+        setup = LineSetup(line.id, segment, *self._standing_rad())
+        self.record_setup(setup)
+        self.setups[line.id] = setup
+        self.last_segment[line.id] = segment
         self.statistics.alignments[line.id] = result
         self.statistics.alignment_s += self.clock.now() - started
         return result
@@ -208,6 +284,7 @@ class CalibrationRun:
             target_mm=float(line.targets_mm[point.index]),
             machine_mm=point.point_mm,
             channels=line_channels(reading, head2line, displacement),
+            segment=self.setups[line.id].segment if line.id in self.setups else 0,
         )
         self.record(row)
         self.done.add(point.key)
@@ -234,7 +311,7 @@ def step_through(
         u = line.frame[0]
         points = line.target_points_mm()
         mover.move_to(points[0] - overrun_mm * u, feed_mm_min)
-        run.set_line(line)
+        run.prepare_line(line)
         for point in capture_sequence(line):
             if point.index == (0 if point.direction == "+" else len(points) - 1):
                 beyond = -overrun_mm if point.direction == "+" else overrun_mm
@@ -260,7 +337,7 @@ def follow_machine(
     for line in lines:
         if run.line_is_done(line):
             continue
-        run.set_line(line)
+        run.prepare_line(line)
         on_line_start(line)
         for point in capture_sequence(line):
             _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
@@ -302,9 +379,14 @@ def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: 
 class ProgramEvent(Protocol):
     """What a controller running the program reports (the simulated CNC's events)."""
 
-    kind: str
-    position_mm: Vec
-    dwell_s: float
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def position_mm(self) -> Vec: ...
+
+    @property
+    def dwell_s(self) -> float: ...
 
 
 def capture_program(
@@ -324,7 +406,7 @@ def capture_program(
             if line is None:
                 raise InputError("the program stops for more lines than the plan has")
             if not run.line_is_done(line):
-                run.set_line(line)
+                run.prepare_line(line)
             points = capture_sequence(line)
         elif event.kind == "dwell":
             point = next(points, None)
@@ -332,3 +414,100 @@ def capture_program(
                 raise InputError("the program dwells at more points than the plan has")
             check_program_position(point, event.position_mm, tolerance_mm)
             run.capture(point, event.dwell_s)
+
+
+@dataclass
+class RunOutput:
+    """The measurement CSV a run appends to, and what it already held."""
+
+    writer: MeasurementWriter
+    recorded: MeasurementFile | None = None
+    warnings: list[str] = field(default_factory=list)
+    #: Called with the number of rows in the file after each one is saved (progress).
+    on_saved: Callable[[int], None] = lambda saved: None
+
+    def append(self, row: MeasurementRow) -> None:
+        self.writer.append(row)
+        self.on_saved(self.writer.saved)
+
+    def calibration_run(
+        self,
+        plan: Plan,
+        launch: PositioningUnit,
+        receiver: PositioningUnit,
+        interferometer: Interferometer,
+        clock: Clock,
+    ) -> CalibrationRun:
+        """A CalibrationRun recording into this file and skipping what it already holds."""
+        recorded = self.recorded
+        return CalibrationRun(
+            plan,
+            launch,
+            receiver,
+            interferometer,
+            clock,
+            record=self.append,
+            record_setup=self.writer.note_setup,
+            done={row.key() for row in recorded.rows} if recorded else set(),
+            setups=recorded.last_setups() if recorded else {},
+            last_segment=recorded.last_segments() if recorded else {},
+        )
+
+    def close(self) -> None:
+        self.writer.close()
+
+    def __enter__(self) -> RunOutput:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _holds_no_points(path: Path) -> bool:
+    """A measurement file with a header and not one point (a run that failed at its start)."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return False
+    try:
+        recorded = load_measurements(path, torn_ok=True)
+    except InputError:
+        return False
+    return not recorded.rows and recorded.torn is None
+
+
+def check_run_output(path: Path, resume: bool) -> None:
+    """Refuse an ``--out`` a run cannot use, before anything is read, created or connected."""
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; give a file name for --out")
+    if resume and not path.exists():
+        raise InputError(f"--resume: {path} does not exist yet; run without --resume")
+    if not resume and path.exists() and path.stat().st_size > 0 and not _holds_no_points(path):
+        raise InputError(
+            f"{path} already holds measurements and is never replaced: add --resume to"
+            " go on with it, or give another --out"
+        )
+
+
+def open_run_output(
+    path: Path, plan: Plan, resume: bool, limits: ChannelLimits = NOMINAL_LIMITS
+) -> RunOutput:
+    """Open the measurement CSV of a run: a new file, or (``resume``) the one to go on with.
+
+    Raw measurements are never replaced: without ``resume`` an existing file is
+    refused unless it holds not one point. With ``resume`` the file must have
+    been recorded for ``plan``; a torn last row is cut off with a warning and
+    its point is measured again.
+    """
+    path = Path(path)
+    check_run_output(path, resume)
+    if not resume or path.stat().st_size == 0:
+        if _holds_no_points(path):
+            os.truncate(path, 0)
+        return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
+    recorded = load_measurements(path, limits, torn_ok=True)
+    warnings = check_recorded_plan(recorded, plan)
+    if recorded.torn is not None:
+        warnings.append(
+            f"{path}: line {recorded.torn.line_number} was cut short when the run stopped"
+            f" ({recorded.torn.text[:40]!r}); it is dropped and its point measured again"
+        )
+    return RunOutput(MeasurementWriter.resume(recorded), recorded, warnings)

@@ -8,6 +8,8 @@ spacing, runs, dwell and stand-off for ``xmalign program``).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 from pathlib import Path
 from typing import Annotated, Literal
@@ -91,6 +93,20 @@ class Machine(_Strict):
     interferometer: InterferometerRanges = InterferometerRanges()
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
+
+    def geometry_sha256(self) -> str:
+        """Identity of the machine a plan is made for: SHA-256 of its geometry.
+
+        Name, chain, travel, receiver offset and spindle angle (canonical JSON):
+        what a plan's points and angles depend on. Sections that may change
+        between ``program`` and ``post`` (uncertainties, feeds, ranges) do not count.
+        """
+        geometry = self.model_dump(
+            mode="json",
+            include={"name", "chain", "travel_mm", "receiver_offset_mm", "spindle_angle_deg"},
+        )
+        text = json.dumps(geometry, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
     @field_validator("chain")
     @classmethod

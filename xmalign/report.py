@@ -183,7 +183,7 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
             ],
             [
                 [
-                    s.line_id,
+                    s.line_id + (f" (setup segment {s.segment})" if s.segment else ""),
                     ", ".join(_number(v, 1) for v in s.straightness_offset_um),
                     ", ".join(_number(v, 1) for v in s.straightness_slope_urad),
                     ", ".join(_number(v, 1) for v in s.angle_offset_urad),

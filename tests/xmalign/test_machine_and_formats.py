@@ -8,7 +8,12 @@ import yaml
 
 from xmalign.errors import FormatError, InputError
 from xmalign.formats.error_tables import ErrorTableSet, Table, read_error_tables, write_error_tables
-from xmalign.formats.measurements import MeasurementRow, MeasurementWriter, read_measurements
+from xmalign.formats.measurements import (
+    MeasurementRow,
+    MeasurementWriter,
+    load_measurements,
+    read_measurements,
+)
 from xmalign.formats.plan import Plan, PlanLine, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, read_pose, write_pose
 from xmalign.formats.session import Alignment, Session, read_session, write_session
@@ -144,16 +149,16 @@ def test_plan_round_trip_keeps_extra_keys(tmp_path):
 def test_measurements_append_and_bad_row_line_number(tmp_path):
     path = tmp_path / "m.csv"
     row = MeasurementRow("X", 1, "+", 0, 0.0, np.array([1.0, 2, 3]), np.arange(6.0))
-    with MeasurementWriter(path) as writer:
+    with MeasurementWriter.create(path) as writer:
         writer.append(row)
-    with MeasurementWriter(path) as writer:  # reopening keeps the rows (resume)
+    with MeasurementWriter.resume(load_measurements(path, torn_ok=True)) as writer:
         writer.append(MeasurementRow("X", 1, "+", 1, 100.0, np.array([101.0, 2, 3]), np.ones(6)))
     rows = read_measurements(path)
     assert [r.index for r in rows] == [0, 1]
     np.testing.assert_allclose(rows[0].channels, np.arange(6.0))
     with path.open("a") as handle:
-        handle.write("X,1,?,2,200,1,2,3,0,0,0,0,0,0\n")
-    with pytest.raises(InputError, match=r"line 4: direction"):
+        handle.write("X,1,?,2,200,1,2,3,0,0,0,0,0,0,0\n")
+    with pytest.raises(InputError, match=r"line 5: direction"):
         read_measurements(path)
 
 

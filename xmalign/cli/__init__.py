@@ -7,9 +7,11 @@ Each command lives in its own module with a ``register(app)`` function. Any
 from __future__ import annotations
 
 import sys
+from typing import Annotated
 
 import typer
 
+from xmalign import __version__
 from xmalign.cli import align, identify
 from xmalign.cli import mc as mc_command
 from xmalign.cli import post as post_command
@@ -24,11 +26,26 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # plain help: a flag reads as a flag (rich help shows every flag as "<bool>")
+    rich_markup_mode=None,
 )
 
 
+def _print_version(asked: bool) -> None:
+    if asked:
+        typer.echo(f"xmalign {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Show the version and exit."
+        ),
+    ] = False,
+) -> None:
     """Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units."""
 
 

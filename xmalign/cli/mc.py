@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import json
+import math
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -12,10 +13,11 @@ from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
+from rich import box
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import console, error_console, machine_or_default
 from xmalign.errors import InputError, TransportError
 from xmalign.formats.common import atomic_write_text
 
@@ -50,32 +52,58 @@ def _executor(scheduler: str | None, workers: int) -> Iterator[Executor]:
         yield client.get_executor(pure=False)
 
 
-def _cell(result: StrategyResult, name: str) -> str:
-    values = result.study.values(name)
-    if values.size < 2:
-        return "-"
+#: Decimals shown at most.
+MAX_DECIMALS = 6
+
+
+def estimate_decimals(mean: float, uncertainty: float) -> int:
+    """Decimals for a mean and its uncertainty: two significant digits of the uncertainty,
+    but no finer than four of the mean (a near-constant quantity reads ``351.0 ± 0.0``)."""
+    resolution = max(abs(uncertainty) / 10, abs(mean) * 1e-3)
+    if not math.isfinite(resolution) or resolution == 0:
+        return 0
+    return int(min(MAX_DECIMALS, max(0, -math.floor(math.log10(resolution)))))
+
+
+def _estimate_cells(result: StrategyResult, name: str) -> tuple[str, str]:
+    """``mean ± u`` and ``[low, high]`` with sensible digits, or dashes."""
+    if result.study.values(name).size < 2:
+        return "-", "-"
     s = result.study.summaries()[name]
-    return f"{s.mean:.4g} ± {s.standard_uncertainty:.2g} [{s.low:.4g}, {s.high:.4g}]"
+    d = estimate_decimals(s.mean, s.standard_uncertainty)
+    return f"{s.mean:.{d}f} ± {s.standard_uncertainty:.{d}f}", f"[{s.low:.{d}f}, {s.high:.{d}f}]"
 
 
 def _table(results: Sequence[StrategyResult], tolerance_um: float | None, mode: str) -> RichTable:
+    """A row per quantity, then one per strategy: the width does not grow with the strategies."""
     from sim.mc import quantity_label
 
-    table = RichTable(title="Monte Carlo: mean ± standard uncertainty [95 % interval]")
-    table.add_column("quantity")
-    for result in results:
-        table.add_column(result.strategy.name, justify="right")
+    table = RichTable(
+        title="Monte Carlo: mean ± standard uncertainty, 95 % interval",
+        title_justify="left",
+        box=box.SIMPLE_HEAD,
+        pad_edge=False,
+    )
+    table.add_column("quantity / strategy", no_wrap=True)
+    table.add_column("mean ± u", justify="right", no_wrap=True)
+    table.add_column("95 % interval", justify="right", no_wrap=True)
+
+    def group(label: str, cells: Sequence[tuple[str, str]]) -> None:
+        table.add_row(label, "", "", style="bold")
+        for result, (value, interval) in zip(results, cells, strict=True):
+            table.add_row(f"  {result.strategy.name}", value, interval)
+
     names = list(dict.fromkeys(n for r in results for n in r.study.names))
     for name in names:
-        table.add_row(quantity_label(name), *(_cell(r, name) for r in results))
+        group(quantity_label(name), [_estimate_cells(r, name) for r in results])
     if tolerance_um is not None:
         quantity = TOLERANCE_QUANTITY[mode]
-        table.add_row(
+        group(
             f"P({quantity_label(quantity).split(',')[0]} <= {tolerance_um:g} um)",
-            *(_within(r, quantity, tolerance_um) for r in results),
+            [(_within(r, quantity, tolerance_um), "") for r in results],
         )
-    table.add_row("trials (failed)", *(f"{r.trials} ({len(r.failures)})" for r in results))
-    table.add_row("stable (GUM S1 7.9)", *("yes" if r.stable else "no" for r in results))
+    group("trials (failed)", [(f"{r.trials} ({len(r.failures)})", "") for r in results])
+    group("stable (GUM S1 7.9)", [("yes" if r.stable else "no", "") for r in results])
     return table
 
 
@@ -85,6 +113,19 @@ def _within(result: StrategyResult, quantity: str, tolerance_um: float) -> str:
         return "-"
     # a failed trial did not meet the tolerance either
     return f"{np.count_nonzero(values <= tolerance_um) / result.trials:.1%}"
+
+
+def _plot(draw: Callable[[], Path | None], name: str) -> Path | None:
+    """Draw one figure; a failure is a warning (the results are already written)."""
+    try:
+        return draw()
+    except Exception as error:  # noqa: BLE001 - no plot is worth the study's results
+        error_console.print(
+            f"warning: {name} not drawn ({type(error).__name__}: {error})",
+            style="yellow",
+            markup=False,
+        )
+        return None
 
 
 def _results_json(
@@ -206,14 +247,15 @@ def mc(
             chosen_machine, chosen, settings, executor, lambda: progress.advance(task)
         )
         progress.update(task, total=sum(r.trials for r in results))
-    console.print(_table(results, tolerance_um, mode))
+    # the results first: nothing after this may lose minutes of trials
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
+    console.print(_table(results, tolerance_um, mode))
     written = [
         out / "mc.json",
-        plot_histograms(results, out / "histograms.png"),
-        plot_envelopes(results, out / "envelopes.png"),
-        plot_volumetric_map(results, out / "volumetric.png"),
+        _plot(lambda: plot_histograms(results, out / "histograms.png"), "histograms.png"),
+        _plot(lambda: plot_envelopes(results, out / "envelopes.png"), "envelopes.png"),
+        _plot(lambda: plot_volumetric_map(results, out / "volumetric.png"), "volumetric.png"),
     ]
     for result in results:
         if result.failures:

@@ -10,11 +10,11 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import console, machine_for_plan, machine_or_default
 from xmalign.comp import WRITERS, writer
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
-from xmalign.formats.measurements import read_measurements
+from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.post.evaluate import PostResult, post_process
 from xmalign.rigid_body import Chain
@@ -58,11 +58,14 @@ def post(
     report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from six lines."""
-    machine_ = machine_or_default(machine)
+    plan_ = read_plan(plan)
+    machine_ = machine_for_plan(machine, plan_, plan)
     with _progress() as progress:
         task = progress.add_task("reading plan and measurements", total=None)
-        plan_ = read_plan(plan)
-        rows = read_measurements(data)
+        limits = ChannelLimits.of_ranges(**machine_.interferometer.model_dump())
+        recorded = load_measurements(data, limits)
+        check_recorded_plan(recorded, plan_, check_points=False)
+        rows = recorded.rows
         progress.update(task, description=f"fitting {len(rows)} points")
         result = post_process(machine_, plan_, rows, str(data))
         write_error_tables(out, result.fit.tables)

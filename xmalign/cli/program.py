@@ -15,7 +15,7 @@ from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.cli.common import console, error_console, machine_or_default
-from xmalign.errors import GeometryError
+from xmalign.errors import GeometryError, InputError
 from xmalign.formats.common import atomic_write_text, write_json
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
@@ -47,8 +47,17 @@ def _plan_table(measurement: MeasurementPlan) -> Table:
     return table
 
 
+#: Where ``xmalign identify --out`` is usually pointed, and ``program`` looks without --pose.
+DEFAULT_POSE = Path("pose.json")
+
+
 def program(
-    pose: Annotated[Path, typer.Option("--pose", help="Launch pose from xmalign identify.")],
+    pose: Annotated[
+        Path,
+        typer.Option(
+            "--pose", help="Launch pose from xmalign identify (default: pose.json in this folder)."
+        ),
+    ] = DEFAULT_POSE,
     machine: MachineOption = None,
     plan_out: Annotated[
         Path | None, typer.Option("--plan-out", help="Write the measurement plan (JSON).")
@@ -65,6 +74,11 @@ def program(
     ] = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code."""
+    if not pose.exists():
+        raise InputError(
+            f"no launch pose: {pose} does not exist; identify the launch unit first"
+            f" (xmalign identify ... --out {pose}) or give --pose POSE.json"
+        )
     machine_model = machine_or_default(machine)
     dialect_name = resolve_dialect(machine_model, dialect)
     measurement = plan_measurement(machine_model, read_pose(pose))

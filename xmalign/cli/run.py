@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
@@ -12,9 +13,10 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from xmalign.cli.common import console, machine_or_default
-from xmalign.errors import InputError
-from xmalign.formats.measurements import MeasurementRow, MeasurementWriter, read_measurements
+from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
+from xmalign.cli.common import console, error_console, machine_for_plan, machine_or_default
+from xmalign.errors import InputError, XmalignError
+from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
 
@@ -39,88 +41,103 @@ def _point_count(plan: Plan) -> int:
     )
 
 
-def _recorder(
-    writer: MeasurementWriter, advance: Callable[[], None]
-) -> Callable[[MeasurementRow], None]:
-    def record(row: MeasurementRow) -> None:
-        writer.append(row)
-        advance()
+def _stopped(out: Path, also: str = "") -> typer.Exit:
+    """Ctrl-C: one line saying what is kept and how to go on; exit code 130."""
+    try:
+        saved = len(load_measurements(out, torn_ok=True).rows)
+    except XmalignError:
+        saved = 0
+    sys.stderr.write(f"stopped: {saved} points kept in {out}; go on with --resume{also}\n")
+    return typer.Exit(130)
 
-    return record
+
+def _kept(error: XmalignError, output: RunOutput) -> XmalignError:
+    """The same error, saying how many points the file keeps."""
+    return type(error)(f"{error}; {output.writer.saved} points kept in {output.writer.path}")
 
 
-def _run_sim(
-    machine: Machine,
-    plan: Plan,
-    out: Path,
-    resume: bool,
-    seed: int,
-    program: Path | None,
-    dialect: str | None,
-) -> None:
+def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun]) -> None:
+    """Run ``measure`` with a progress bar counting the points saved in the file."""
+    for warning in output.warnings:
+        error_console.print(f"warning: {warning}", style="yellow", markup=False)
+    with _progress() as progress:
+        task = progress.add_task(
+            "measuring", total=_point_count(plan), completed=output.writer.saved
+        )
+        output.on_saved = lambda saved: progress.update(task, completed=saved)
+        try:
+            run = measure()
+        except XmalignError as error:
+            raise _kept(error, output) from error
+    for note in run.statistics.resumed:
+        console.print(note, markup=False, soft_wrap=True)
+    console.print(
+        f"{run.statistics.points} points captured; {output.writer.saved} points in"
+        f" {output.writer.path}",
+        markup=False,
+        soft_wrap=True,
+    )
+
+
+def _sim_measurement(
+    machine: Machine, plan: Plan, seed: int, program: Path | None, dialect: str | None
+) -> Callable[[RunOutput], None]:
+    """Check the --sim options; the measurement on the virtual machine into an output."""
     from sim.dry_run import measure_virtually, virtual_setup
     from trajectories.gcode import DIALECTS, resolve_dialect
     from trajectories.gcode.program import write_program
 
     dialect_name = resolve_dialect(machine, dialect)
     text = (
-        program.read_text(encoding="utf-8")
+        read_text(program, "G-code program")
         if program is not None
         else write_program(plan, machine, DIALECTS[dialect_name]())
     )
-    setup = virtual_setup(machine, seed)
-    done = len(read_measurements(out)) if resume and out.exists() else 0
-    with _progress() as progress:
-        task = progress.add_task("measuring (simulated)", total=_point_count(plan), completed=done)
-        run = measure_virtually(setup, plan, text, dialect_name, out, resume)
-        progress.update(task, completed=done + run.statistics.points)
-    console.print(
-        f"{run.statistics.points} points captured to {out} in {setup.world.clock.now() / 60:.1f}"
-        " min of simulated machine time",
-        markup=False,
-    )
+
+    def measure(output: RunOutput) -> None:
+        setup = virtual_setup(machine, seed)
+        _measure(output, plan, lambda: measure_virtually(setup, plan, text, dialect_name, output))
+
+    return measure
 
 
-def _run_live(machine: Machine, plan: Plan, out: Path, resume: bool, config_path: Path) -> None:
+def _live_measurement(
+    machine: Machine, plan: Plan, config_path: Path
+) -> Callable[[RunOutput], None]:
+    """Check the hardware configuration; the live measurement into an output."""
     from firmware_iface.config import load_units_config, open_devices
-    from xmalign.calibration import CalibrationRun, follow_machine, step_through
+    from xmalign.calibration import follow_machine, step_through
     from xmalign.roles import WallClock
     from xmalign.safety import units_locked_on_exit
 
     config = load_units_config(config_path)
-    done = {row.key() for row in read_measurements(out)} if resume and out.exists() else set()
-    if not resume:
-        out.unlink(missing_ok=True)
-    devices = open_devices(config, machine)
-    try:
-        with (
-            MeasurementWriter(out) as writer,
-            units_locked_on_exit(devices.launch, devices.receiver),
-            _progress() as progress,
-        ):
-            task = progress.add_task("measuring", total=_point_count(plan), completed=len(done))
-            run = CalibrationRun(
-                plan,
-                devices.launch,
-                devices.receiver,
-                devices.interferometer,
-                WallClock(),
-                _recorder(writer, lambda: progress.advance(task)),
-                done=done,
-            )
-            if config.machine_position.source == "file":
-                follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
-            else:
-                step_through(
-                    run,
-                    devices.mover,
-                    plan.lines,
-                    machine.feed_mm_min.measure,
-                    machine.measurement.overrun_mm,
+
+    def measure(output: RunOutput) -> None:
+        devices = open_devices(config, machine)
+
+        def capture() -> CalibrationRun:
+            with units_locked_on_exit(devices.launch, devices.receiver):
+                run = output.calibration_run(
+                    plan, devices.launch, devices.receiver, devices.interferometer, WallClock()
                 )
-    finally:
-        devices.close()
-    console.print(f"{run.statistics.points} points captured to {out}", markup=False)
+                if config.machine_position.source == "file":
+                    follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
+                else:
+                    step_through(
+                        run,
+                        devices.mover,
+                        plan.lines,
+                        machine.feed_mm_min.measure,
+                        machine.measurement.overrun_mm,
+                    )
+            return run
+
+        try:
+            _measure(output, plan, capture)
+        finally:
+            devices.close()
+
+    return measure
 
 
 def _tell_cycle_start(line: object) -> None:
@@ -130,32 +147,67 @@ def _tell_cycle_start(line: object) -> None:
     )
 
 
+def read_text(path: Path, what: str) -> str:
+    """A UTF-8 text file; every failure is one line naming the file."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise InputError(f"{path}: {what} is not UTF-8 text") from error
+    except OSError as error:
+        raise InputError(f"{path}: cannot read {what} ({error.strerror})") from error
+
+
+def _check_seed(seed: int) -> None:
+    if seed < 0:
+        raise InputError(f"--seed {seed}: give a seed of 0 or more")
+
+
 def run_command(
     plan: Annotated[Path, typer.Option(help="Measurement plan JSON (xmalign program --plan-out).")],
-    out: Annotated[Path, typer.Option(help="Measurement CSV, appended point by point.")],
+    out: Annotated[
+        Path,
+        typer.Option(help="Measurement CSV, new (never replaced), saved point by point."),
+    ],
     machine: MachineOption = None,
     sim: Annotated[bool, typer.Option("--sim", help="Run on the virtual machine.")] = False,
     config: Annotated[
         Path | None, typer.Option(help="Hardware configuration units.yaml (live run).")
     ] = None,
-    resume: Annotated[bool, typer.Option(help="Keep the points already in --out.")] = False,
-    seed: Annotated[int, typer.Option(help="With --sim: the virtual machine's seed.")] = 1,
+    resume: Annotated[
+        bool,
+        typer.Option("--resume", help="Go on with the points already in --out (same plan)."),
+    ] = False,
+    seed: Annotated[
+        int, typer.Option(help="With --sim: the virtual machine's seed (the same to resume).")
+    ] = 1,
     program: Annotated[
         Path | None, typer.Option(help="With --sim: execute this G-code (default: from the plan).")
     ] = None,
     dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
 ) -> None:
-    """Drive the units, lock them, step the machine through the plan and capture every point."""
+    """Drive the units, lock them, step the machine through the plan and capture every point.
+
+    Every point is saved to --out before the machine moves on. Ctrl-C stops the
+    units, locks them and keeps every saved point; --resume goes on after them.
+    """
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
-    machine_model = machine_or_default(machine)
+    _check_seed(seed)
+    check_run_output(out, resume)
     plan_model = read_plan(plan)
-    if resume and not out.exists():
-        raise InputError(f"--resume: {out} does not exist yet; run without --resume")
+    machine_model = machine_for_plan(machine, plan_model, plan)
+    limits = ChannelLimits.of_ranges(**machine_model.interferometer.model_dump())
     if sim:
-        _run_sim(machine_model, plan_model, out, resume, seed, program, dialect)
+        measure = _sim_measurement(machine_model, plan_model, seed, program, dialect)
     else:
-        _run_live(machine_model, plan_model, out, resume, config)
+        assert config is not None
+        measure = _live_measurement(machine_model, plan_model, config)
+    # the options are checked: only now is --out created or opened, before any device
+    with open_run_output(out, plan_model, resume, limits) as output:
+        try:
+            measure(output)
+        except KeyboardInterrupt:
+            raise _stopped(out) from None
 
 
 def _results_table(report: object) -> Table:
@@ -203,27 +255,45 @@ def _results_table(report: object) -> Table:
     return table
 
 
+def _dry_run_stopped(
+    out: Path, stage: str, seed: int, machine: Path | None, dialect: str | None
+) -> typer.Exit:
+    """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
+    if stage != "run":
+        sys.stderr.write(f"stopped during {stage}: the files so far are in {out}/\n")
+        return typer.Exit(130)
+    options = f" --machine {machine}" if machine else ""
+    options += f" --dialect {dialect}" if dialect else ""
+    return _stopped(
+        out / "measurements.csv",
+        f" (xmalign run --sim --seed {seed}{options} --plan {out / 'plan.json'}"
+        f" --out {out / 'measurements.csv'} --resume)",
+    )
+
+
 def dry_run_command(
     machine: MachineOption = None,
     seed: Annotated[int, typer.Option(help="Seed of the virtual machine and units.")] = 1,
-    out: Annotated[Path, typer.Option(help="Folder for every file of the calibration.")] = Path(
-        "xmalign-dry-run"
-    ),
+    out: Annotated[
+        Path, typer.Option(help="New folder for every file of the calibration (never replaced).")
+    ] = Path("xmalign-dry-run"),
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect (default: controller's).")
     ] = None,
     identification_positions: Annotated[int, typer.Option(min=3, help="Alignments.")] = 6,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
-    from sim.dry_run import STAGES, DryRunOptions, simulate_calibration
+    from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
+    _check_seed(seed)
     machine_model = machine_or_default(machine)
+    check_dry_run_folder(out)
     options = DryRunOptions(
         seed=seed, identification_positions=identification_positions, dialect=dialect
     )
+    started: list[str] = []
     with _progress() as progress:
         task = progress.add_task("dry run", total=len(STAGES))
-        started: list[str] = []
 
         def on_stage(name: str) -> None:
             if started:
@@ -231,7 +301,14 @@ def dry_run_command(
             started.append(name)
             progress.update(task, description=f"dry run: {name}")
 
-        report = simulate_calibration(machine_model, out, options, on_stage)
+        def on_point(saved: int) -> None:
+            progress.update(task, description=f"dry run: run, {saved} points saved")
+
+        try:
+            report = simulate_calibration(machine_model, out, options, on_stage, on_point)
+        except KeyboardInterrupt:
+            stage = started[-1] if started else "start"
+            raise _dry_run_stopped(out, stage, seed, machine, dialect) from None
         progress.update(task, completed=len(STAGES), description="dry run: done")
     console.print(_results_table(report))
     for warning in report.identification.warnings + report.plan.warnings:

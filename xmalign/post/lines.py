@@ -39,6 +39,8 @@ class LineData:
         Commanded CNC tool point.
     channels : ndarray, shape (N, 6)
         Channels in mm and rad (linear, straightness v, w, angle u, v, w).
+    segment : ndarray of int, shape (N,)
+        Setup segment of each point (0 unless the units were re-aligned on a resume).
     """
 
     line: PlanLine
@@ -48,6 +50,7 @@ class LineData:
     distance_mm: Vec
     machine_mm: Vec
     channels: Vec
+    segment: np.ndarray
 
     @property
     def frame(self) -> Vec:
@@ -96,6 +99,7 @@ def _line_data(line: PlanLine, rows: list[MeasurementRow], source: str) -> LineD
         distance_mm=line.targets_mm[index],
         machine_mm=machine,
         channels=np.array([row.channels for row in rows]) * CHANNEL_TO_SI,
+        segment=np.array([row.segment for row in rows]),
     )
 
 

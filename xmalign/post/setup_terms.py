@@ -7,6 +7,10 @@ Per line (CONVENTIONS.md, "Raw readings carry the setup"):
 - angles u, v, w: a constant each (mounting of the receiver and launch head);
 - linear: a constant per run (dead path, and the run's own zero).
 
+A line whose units were aligned again on a resume (rows of another setup
+``segment``, docs/measurement-files.md) has these terms once per segment; a
+segment with a single target distance has no slope (one point gives none).
+
 Each term is a column of the design matrix; its estimate is reported, not
 subtracted beforehand, so that it is fitted together with the error tables.
 """
@@ -33,6 +37,8 @@ class SetupTerms:
     Attributes
     ----------
     line_id : str
+    segment : int
+        The setup segment of the line these terms belong to.
     straightness_offset_um : ndarray, shape (2,)
         Offset of straightness v and w at the line start.
     straightness_slope_urad : ndarray, shape (2,)
@@ -48,6 +54,7 @@ class SetupTerms:
     straightness_slope_urad: Vec
     angle_offset_urad: Vec
     linear_offset_um: dict[int, float] = field(default_factory=dict)
+    segment: int = 0
 
 
 @dataclass
@@ -69,57 +76,79 @@ class Triplets:
 
 
 @dataclass
-class _LineLayout:
+class _SegmentLayout:
     line_id: str
+    segment: int
     first_column: int
     runs: list[int]
+    has_slope: bool
+
+    @property
+    def n_columns(self) -> int:
+        return (7 if self.has_slope else 5) + len(self.runs)
 
 
 class SetupLayout:
-    """Columns of the setup terms of every line, from ``first_column`` on.
+    """Columns of the setup terms of every line and segment, from ``first_column`` on.
 
-    Column order per line: straightness offsets (v, w), slopes (v, w), angle
-    offsets (u, v, w), then one linear offset per run.
+    Column order per line segment: straightness offsets (v, w), slopes (v, w;
+    only with two or more target distances), angle offsets (u, v, w), then one
+    linear offset per run.
     """
 
     def __init__(self, lines: list[LineData], first_column: int) -> None:
-        self._layouts: list[_LineLayout] = []
+        self._layouts: list[list[_SegmentLayout]] = []
         column = first_column
         for data in lines:
-            runs = sorted({int(r) for r in data.run})
-            self._layouts.append(_LineLayout(data.line.id, column, runs))
-            column += 7 + len(runs)
+            segments = []
+            for segment in sorted({int(s) for s in data.segment}):
+                mine = data.segment == segment
+                runs = sorted({int(r) for r in data.run[mine]})
+                has_slope = len(np.unique(data.distance_mm[mine])) > 1
+                layout = _SegmentLayout(data.line.id, segment, column, runs, has_slope)
+                segments.append(layout)
+                column += layout.n_columns
+            self._layouts.append(segments)
         self.first_column = first_column
         self.n_columns = column - first_column
 
     def add_columns(self, lines: list[LineData], first_rows: list[int], out: Triplets) -> None:
         """Add the setup columns of each line (its rows start at ``first_rows[i]``)."""
-        for data, layout, first_row in zip(lines, self._layouts, first_rows, strict=True):
-            point_rows = first_row + N_CHANNELS * np.arange(len(data.run))
-            c = layout.first_column
-            for k in (0, 1):
-                channel_rows = point_rows + _STRAIGHT_V + k
-                out.add(channel_rows, c + k, 1.0)
-                out.add(channel_rows, c + 2 + k, data.distance_mm / _MM_PER_M)
-            for k in range(3):
-                out.add(point_rows + 3 + k, c + 4 + k, 1.0)
-            for i, run in enumerate(layout.runs):
-                out.add(point_rows[data.run == run] + _LINEAR, c + 7 + i, 1.0)
+        for data, segments, first_row in zip(lines, self._layouts, first_rows, strict=True):
+            all_rows = first_row + N_CHANNELS * np.arange(len(data.run))
+            for layout in segments:
+                mine = data.segment == layout.segment
+                point_rows = all_rows[mine]
+                c = layout.first_column
+                for k in (0, 1):
+                    out.add(point_rows + _STRAIGHT_V + k, c + k, 1.0)
+                if layout.has_slope:
+                    for k in (0, 1):
+                        slope = data.distance_mm[mine] / _MM_PER_M
+                        out.add(point_rows + _STRAIGHT_V + k, c + 2 + k, slope)
+                    c += 2
+                for k in range(3):
+                    out.add(point_rows + 3 + k, c + 2 + k, 1.0)
+                for i, run in enumerate(layout.runs):
+                    out.add(point_rows[data.run[mine] == run] + _LINEAR, c + 5 + i, 1.0)
 
     def unpack(self, x: Vec) -> list[SetupTerms]:
         """The fitted setup terms from the solution vector (mm, rad, mm/m) in file units."""
         terms = []
-        for layout in self._layouts:
-            p = x[layout.first_column : layout.first_column + 7 + len(layout.runs)]
+        for layout in (layout for segments in self._layouts for layout in segments):
+            p = x[layout.first_column : layout.first_column + layout.n_columns]
+            slope = p[2:4] if layout.has_slope else np.zeros(2)
+            rest = p[4:] if layout.has_slope else p[2:]
             terms.append(
                 SetupTerms(
                     line_id=layout.line_id,
                     straightness_offset_um=p[0:2] * 1e3,
-                    straightness_slope_urad=p[2:4] * 1e3,
-                    angle_offset_urad=p[4:7] * 1e6,
+                    straightness_slope_urad=slope * 1e3,
+                    angle_offset_urad=rest[0:3] * 1e6,
                     linear_offset_um={
-                        run: float(v) * 1e3 for run, v in zip(layout.runs, p[7:], strict=True)
+                        run: float(v) * 1e3 for run, v in zip(layout.runs, rest[3:], strict=True)
                     },
+                    segment=layout.segment,
                 )
             )
         return terms
