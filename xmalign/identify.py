@@ -144,9 +144,7 @@ def observations_from_session(session: Session) -> Observations:
 def input_sigmas(u: IdentificationUncertainty) -> Vec:
     """Standard uncertainty of each input column, shape (11,)."""
     p = u.position_mm
-    return np.array(
-        [u.encoder_rad] * 4 + [p, p, p, u.distance_mm] + [u.tool_rotation_rad] * 3
-    )
+    return np.array([u.encoder_rad] * 4 + [p, p, p, u.distance_mm] + [u.tool_rotation_rad] * 3)
 
 
 def systematic_sigmas(u: IdentificationUncertainty) -> Vec:
@@ -407,6 +405,17 @@ def _compiled(method: str, estimated: tuple[str, ...]) -> ca.Function:
     return ca.Function(f"identify_{method}", arguments, outputs)
 
 
+def joint_model() -> ca.Function:
+    """The joint model of one alignment with every offset estimated, for planning.
+
+    A casadi function ``(theta (7,), z (11,), c (19,), spindle_angle_rad,
+    has_distance) -> (r (5,), dr/dtheta (5, 7), dr/dz (5, 11), dr/dc (5, 19))``
+    with ``theta = (x, y, z, gamma, c2, c3, c4)`` and the input and systematic
+    columns of this module; the derivatives are exact.
+    """
+    return _compiled("joint", OFFSET_NAMES)
+
+
 @lru_cache(maxsize=256)
 def _mapped(method: str, estimated: tuple[str, ...], n: int) -> ca.Function:
     return _compiled(method, estimated).map(n)
@@ -496,9 +505,7 @@ class FitResult:
 _DECREMENT_TOL = 1e-9
 
 
-def _gauss_newton(
-    model: _Model, theta0: Vec, weights: Vec, max_iterations: int = 60
-) -> FitResult:
+def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int = 60) -> FitResult:
     """Minimise sum |W_i r_i|^2 by Gauss-Newton with step halving."""
 
     def whitened(theta: Vec) -> tuple[Vec, Vec]:
