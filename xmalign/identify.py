@@ -501,8 +501,9 @@ class FitResult:
     decrement: float = 0.0
 
 
-#: Gauss-Newton stops when a step would lower chi-square by less than this.
-_DECREMENT_TOL = 1e-9
+#: Gauss-Newton stops when a step would lower chi-square by less than this fraction of it
+#: (or of 1 when it is smaller): far below any statistical meaning, near rounding.
+_DECREMENT_TOL = 1e-18
 
 
 def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int = 60) -> FitResult:
@@ -521,7 +522,7 @@ def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int 
         jf = j.reshape(-1, len(theta))
         step, *_ = np.linalg.lstsq(jf, -r.ravel(), rcond=None)
         decrement = float(np.sum((jf @ step) ** 2))
-        if decrement <= _DECREMENT_TOL:
+        if decrement <= _DECREMENT_TOL * max(cost, 1.0):
             return FitResult(theta, j, r, True, iteration, decrement)
         for _ in range(30):
             r_new, j_new = whitened(theta + step)
