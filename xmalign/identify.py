@@ -502,8 +502,9 @@ class FitResult:
 
 
 #: Gauss-Newton stops when a step would lower chi-square by less than this fraction of it
-#: (or of 1 when it is smaller): far below any statistical meaning, near rounding.
-_DECREMENT_TOL = 1e-18
+#: (or of 1 when it is smaller): far below any statistical meaning. The last step is
+#: still taken, so a noise-free fit ends at rounding level (quadratic convergence).
+_DECREMENT_TOL = 1e-10
 
 
 def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int = 60) -> FitResult:
@@ -523,6 +524,9 @@ def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int 
         step, *_ = np.linalg.lstsq(jf, -r.ravel(), rcond=None)
         decrement = float(np.sum((jf @ step) ** 2))
         if decrement <= _DECREMENT_TOL * max(cost, 1.0):
+            r_new, j_new = whitened(theta + step)
+            if float(np.sum(r_new**2)) <= cost:
+                theta, r, j = theta + step, r_new, j_new
             return FitResult(theta, j, r, True, iteration, decrement)
         for _ in range(30):
             r_new, j_new = whitened(theta + step)
@@ -681,6 +685,39 @@ def _normalized_residuals(
     return quadratic, rank
 
 
+def _global_chi2(
+    model: _Model, theta: Vec, weights: Vec, u: IdentificationUncertainty
+) -> tuple[float, int]:
+    """Chi-square of all residuals with their full predicted covariance, and its dof.
+
+    The residuals' covariance is that of every input and systematic pushed through
+    the fit (``(I - A) C (I - A)^T`` with ``A`` the fit's hat matrix): what the
+    systematics leave in the residuals after the pose absorbed its share (a common
+    tilt of the tool is not a constant offset of any encoder) is expected, not a
+    sign of underestimated uncertainties.
+    """
+    e = model.evaluate(theta)
+    n, k, p = e.d_theta.shape
+    per_alignment = _residual_covariances(e.d_inputs, input_sigmas(u))
+    covariance = np.zeros((n * k, n * k))
+    weight = np.zeros((n * k, n * k))
+    for i in range(n):
+        block = slice(i * k, (i + 1) * k)
+        covariance[block, block] = per_alignment[i]
+        weight[block, block] = weights[i].T @ weights[i]
+    sigma_c = systematic_sigmas(u)
+    sigma_c[[OFFSET_NAMES.index(name) for name in model.estimated]] = 0.0
+    jc = e.d_systematics.reshape(n * k, -1)
+    covariance += jc @ np.diag(sigma_c**2) @ jc.T
+    j = e.d_theta.reshape(n * k, p)
+    hat = j @ np.linalg.pinv(j.T @ weight @ j) @ j.T @ weight
+    leave = np.eye(n * k) - hat
+    values, vectors = np.linalg.eigh(leave @ covariance @ leave.T)
+    keep = values > 1e-10 * values.max()
+    projected = vectors[:, keep].T @ e.residuals.ravel()
+    return float(np.sum(projected**2 / values[keep])), int(keep.sum())
+
+
 def _fixed_fit(model: _Model, theta: Vec, weights: Vec) -> FitResult:
     """A closed-form estimate as a fit (nothing iterated)."""
     e = model.evaluate(theta)
@@ -707,14 +744,9 @@ def _solve(
         fit = _gauss_newton(model, theta0, weights)
     propagation = _propagate(model, fit, weights, u)
     quadratic, rank = _normalized_residuals(model, fit.theta, u)
-    dof = int(rank.sum()) - len(fit.theta)
+    chi2, dof = _global_chi2(model, fit.theta, weights, u)
     return _Solution(
-        fit.theta,
-        propagation,
-        np.sqrt(quadratic / np.maximum(rank, 1)),
-        float(quadratic.sum()),
-        dof,
-        fit,
+        fit.theta, propagation, np.sqrt(quadratic / np.maximum(rank, 1)), chi2, dof, fit
     )
 
 
