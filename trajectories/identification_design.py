@@ -273,11 +273,16 @@ def _solve_from(machine: Machine, setting: _Setting, start_mm: Vec) -> _Attempt:
             opti.subject_to(ca.sumsqr(tool[i, :] - tool[j, :]) >= separation2)
     opti.set_initial(tool, start_mm)
     opti.solver("ipopt", {"print_time": False}, _IPOPT_OPTIONS)
+    failure = ""
     try:
         opti.solve()
     except RuntimeError as error:  # the status below says what happened; the caller decides
-        logger.info("ipopt stopped early: %s", error)
-    stats = opti.stats()
+        failure = str(error).strip().splitlines()[-1].strip()
+        logger.info("ipopt stopped early: %s", failure)
+    try:
+        stats = opti.stats()
+    except RuntimeError:  # refused before it ran (e.g. contradictory bounds)
+        return _Attempt(start_mm, math.inf, False, failure or "not solved")
     return _Attempt(
         np.atleast_2d(opti.debug.value(tool)),
         float(opti.debug.value(objective)),
