@@ -549,13 +549,13 @@ class _Propagation:
 
 
 def _propagate(
-    model: _Model, fit: FitResult, weights: Vec, u: IdentificationUncertainty
+    model: _Model, fit: FitResult, e: _Evaluation, weights: Vec, u: IdentificationUncertainty
 ) -> _Propagation:
     """Covariance of theta from the input and systematic uncertainties (implicit function).
 
-    Offsets the model estimates are parameters, not systematics, and carry no prior.
+    ``e`` is the model evaluated at the fit. Offsets the model estimates are
+    parameters, not systematics, and carry no prior.
     """
-    e = model.evaluate(fit.theta)
     jf = fit.jacobian.reshape(-1, len(fit.theta))
     hessian_inv = np.linalg.pinv(jf.T @ jf)
     # G_i = -H^-1 J_i^T W_i dr_i/dz_i, per alignment (p, N_INPUTS)
@@ -673,11 +673,8 @@ class _Solution:
     fit: FitResult
 
 
-def _normalized_residuals(
-    model: _Model, theta: Vec, u: IdentificationUncertainty
-) -> tuple[Vec, Vec]:
+def _normalized_residuals(e: _Evaluation, u: IdentificationUncertainty) -> tuple[Vec, Vec]:
     """Per alignment: residual quadratic form with its predicted covariance, and its rank."""
-    e = model.evaluate(theta)
     cov = _residual_covariances(e.d_inputs, input_sigmas(u))
     pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)
     quadratic = np.einsum("ni,nij,nj->n", e.residuals, pinv, e.residuals)
@@ -686,7 +683,7 @@ def _normalized_residuals(
 
 
 def _global_chi2(
-    model: _Model, theta: Vec, weights: Vec, u: IdentificationUncertainty
+    model: _Model, e: _Evaluation, weights: Vec, u: IdentificationUncertainty
 ) -> tuple[float, int]:
     """Chi-square of all residuals with their full predicted covariance, and its dof.
 
@@ -696,7 +693,6 @@ def _global_chi2(
     tilt of the tool is not a constant offset of any encoder) is expected, not a
     sign of underestimated uncertainties.
     """
-    e = model.evaluate(theta)
     n, k, p = e.d_theta.shape
     per_alignment = _residual_covariances(e.d_inputs, input_sigmas(u))
     covariance = np.zeros((n * k, n * k))
@@ -742,9 +738,10 @@ def _solve(
         theta0 = np.concatenate([_intersection_estimate(obs), np.zeros(len(estimated))])
         weights = _weights(model, theta0, u)
         fit = _gauss_newton(model, theta0, weights)
-    propagation = _propagate(model, fit, weights, u)
-    quadratic, rank = _normalized_residuals(model, fit.theta, u)
-    chi2, dof = _global_chi2(model, fit.theta, weights, u)
+    at_fit = model.evaluate(fit.theta)
+    propagation = _propagate(model, fit, at_fit, weights, u)
+    quadratic, rank = _normalized_residuals(at_fit, u)
+    chi2, dof = _global_chi2(model, at_fit, weights, u)
     return _Solution(
         fit.theta, propagation, np.sqrt(quadratic / np.maximum(rank, 1)), chi2, dof, fit
     )
