@@ -20,11 +20,22 @@ with ``l`` the cp-to-cp distance and ``e`` the beam elevation. The launch axes
 also turn the launch frame, so they move the angle channels as well; the loops
 are decoupled by solving this (triangular) sensitivity matrix for the step,
 and the distance ``l``, which scales the straightness loops, is re-estimated
-from every step's response.
+from every step's response (at most halved or doubled per step: a noisy
+response must not multiply the loop gain).
+
+**Beam recovery.** When the beam leaves its range (before or during fine
+alignment), the units go back to the last angles at which the beam was in
+range; if it is not there (or was never seen), both units search a square
+spiral around those angles (:func:`search_offsets_urad`): the launch unit
+sweeps the beam across the receiver's position while the receiver turns with
+it so the angle channels stay as they were, in steps that let the beam's
+capture regions overlap, out to ``search_radius_urad`` (the units' pointing
+uncertainty). Only if the search fails is a person asked to jog the units.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Callable
@@ -44,6 +55,8 @@ from xmalign.roles import (
     move_axes,
 )
 
+logger = logging.getLogger(__name__)
+
 #: The five channels fine alignment drives to zero, in the order of the unit axes a1..a5.
 ALIGNED_CHANNELS = (
     "straightness_v_um",
@@ -57,6 +70,10 @@ _CHANNEL_INDEX = [CHANNELS.index(name) for name in ALIGNED_CHANNELS]
 _DISTANCE_LIMITS_MM = (20.0, 10000.0)
 #: Smallest predicted beam motion of a launch step that re-estimates the distance, um.
 _MIN_PROBE_UM = 20.0
+#: Largest factor by which one step's response may change the distance estimate.
+_MAX_DISTANCE_FACTOR = 2.0
+#: cos(elevation) below which the azimuth search steps stop growing (near-vertical beams).
+_MIN_COS_ELEVATION = 0.2
 
 
 def sensitivity(elevation_rad: float, distance_mm: float, n_axes: int = 5) -> Vec:
@@ -117,6 +134,16 @@ class FineAlignmentSettings:
         Timeout of each unit move.
     align_roll : bool
         Also drive ``angle_u`` to zero with the receiver roll a5.
+    search_radius_urad, search_radius_um : float
+        How far from the last in-range angles the beam search goes: the units'
+        pointing uncertainty as an angle, plus a lateral uncertainty of where the
+        receiver is (seen over the beam's length, which dominates on short
+        beams). Both 0 disable the search.
+    beam_capture_um : float
+        How far off the receiver's centre a beam is still seen (a little inside
+        the interferometer's straightness range); sets the search step.
+    max_recoveries : int
+        How often one fine alignment may recover a lost beam before giving up.
     steer_launch : bool
         Also steer the launch axes (straightness). Off at a measuring line's
         start: there the receiver is close to the launch unit, so zeroing a
@@ -135,6 +162,10 @@ class FineAlignmentSettings:
     move_timeout_s: float = 2.0
     align_roll: bool = True
     steer_launch: bool = True
+    search_radius_urad: float = 1000.0
+    search_radius_um: float = 500.0
+    beam_capture_um: float = 200.0
+    max_recoveries: int = 3
 
 
 @dataclass(frozen=True)
@@ -148,7 +179,12 @@ class AlignmentStep:
 
 @dataclass
 class FineAlignmentResult:
-    """Outcome of :func:`fine_align`: the last reading, unit angles (rad) and the history."""
+    """Outcome of :func:`fine_align`: the last reading, unit angles (rad) and the history.
+
+    ``recoveries`` counts the times the beam was lost and found again (back at
+    the last in-range angles or by the search), ``search_s`` the time spent
+    searching.
+    """
 
     reading: InterferometerReading
     launch_rad: Vec
@@ -156,6 +192,8 @@ class FineAlignmentResult:
     distance_mm: float
     elapsed_s: float
     steps: list[AlignmentStep] = field(default_factory=list)
+    recoveries: int = 0
+    search_s: float = 0.0
 
     @property
     def straightness_um(self) -> Vec:
@@ -207,14 +245,103 @@ def _describe(error: Vec) -> str:
     return ", ".join(f"{n} {v:+.1f} {u}" for n, v, u in zip(names, error, units, strict=False))
 
 
-def _read(interferometer: Interferometer, settings: FineAlignmentSettings) -> InterferometerReading:
-    reading = interferometer.average(settings.average_s)
-    if not reading.beam_ok:
+def search_offsets_urad(step_urad: float, radius_urad: float) -> Vec:
+    """Offsets of a square spiral around the centre, nearest first, (N, 2) urad.
+
+    Grid points ``step_urad`` apart out to ``radius_urad`` (the centre itself excluded),
+    walked ring by ring so that the units move only one step between readings.
+    """
+    if step_urad <= 0 or radius_urad < step_urad:
+        return np.zeros((0, 2))
+    points: list[tuple[int, int]] = []
+    for r in range(1, int(radius_urad // step_urad) + 1):
+        points += [(r, k) for k in range(-r + 1, r + 1)]  # right side, upwards
+        points += [(k, r) for k in range(r - 1, -r - 1, -1)]  # top, leftwards
+        points += [(-r, k) for k in range(r - 1, -r - 1, -1)]  # left side, downwards
+        points += [(k, -r) for k in range(-r + 1, r + 1)]  # bottom, rightwards
+    grid = np.array(points, dtype=float) * step_urad
+    return grid[np.hypot(grid[:, 0], grid[:, 1]) <= radius_urad + 1e-9]
+
+
+def _search_targets(centre_rad: Vec, offsets_urad: Vec, elevation_rad: float) -> Vec:
+    """Unit setpoints (N, n_axes) that move the beam by the offsets across the receiver.
+
+    The launch azimuth step is scaled by 1/cos(elevation) so that the beam moves
+    the same lateral distance in both directions; the receiver turns with the beam
+    (a3 with a1, a4 against a2) so that the angle channels stay as they were.
+    """
+    cos_e = max(abs(math.cos(elevation_rad)), _MIN_COS_ELEVATION)
+    d1 = offsets_urad[:, 0] * 1e-6 / cos_e
+    d2 = offsets_urad[:, 1] * 1e-6
+    steps = np.zeros((len(offsets_urad), len(centre_rad)))
+    steps[:, 0], steps[:, 1] = d1, d2
+    if len(centre_rad) >= 4:
+        steps[:, 2], steps[:, 3] = d1, -d2
+    return centre_rad + steps
+
+
+@dataclass
+class _Recovery:
+    """State of beam recovery within one fine alignment."""
+
+    last_in_range_rad: Vec | None = None
+    count: int = 0
+    search_s: float = 0.0
+
+
+def _recover(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    setpoint: Vec,
+    distance_mm: float,
+    recovery: _Recovery,
+    settings: FineAlignmentSettings,
+) -> tuple[Vec, InterferometerReading]:
+    """Find the lost beam: back to the last in-range angles, then a spiral search.
+
+    Returns the setpoint where the beam is in range and the reading there.
+    Raises BeamLostError when neither finds it (or after ``max_recoveries``).
+    """
+    started = clock.now()
+    recovery.count += 1
+    if recovery.count > settings.max_recoveries:
         raise BeamLostError(
-            "the beam was lost during fine alignment; jog the units until every beam is"
-            " in range (xmalign align --manual) and start again"
+            f"the beam was lost {recovery.count} times during fine alignment; jog the units"
+            " until every beam is in range (xmalign align --manual) and start again"
         )
-    return reading
+    centre = setpoint if recovery.last_in_range_rad is None else recovery.last_in_range_rad
+    step_urad = math.sqrt(2.0) * settings.beam_capture_um / distance_mm * 1e3
+    radius_urad = settings.search_radius_urad + settings.search_radius_um / distance_mm * 1e3
+    offsets = search_offsets_urad(step_urad, radius_urad)
+    targets = _search_targets(centre, offsets, float(centre[1]))
+    candidates = targets if recovery.last_in_range_rad is None else np.vstack([centre, targets])
+    logger.info(
+        "beam lost (%s in range before); searching %d points, step %.0f urad",
+        "was" if recovery.last_in_range_rad is not None else "never",
+        len(candidates),
+        step_urad,
+    )
+    try:
+        for target in candidates:
+            _move_units(launch, receiver, target, settings.move_timeout_s)
+            clock.sleep(settings.settle_s)
+            reading = interferometer.average(settings.average_s)
+            if reading.beam_ok:
+                logger.info(
+                    "beam found again %.1f urad from the last in-range angles",
+                    float(np.hypot(*((target - centre)[:2] * 1e6))),
+                )
+                return target, reading
+    finally:
+        recovery.search_s += clock.now() - started
+    raise BeamLostError(
+        "the beam was lost during fine alignment and not found again (back to the last"
+        f" in-range angles, then a spiral search of {len(offsets)} points out to"
+        f" {radius_urad:.0f} urad); jog the units until every beam is in range"
+        " (xmalign align --manual) and start again"
+    )
 
 
 def _updated_distance(
@@ -224,14 +351,20 @@ def _updated_distance(
 
     Only steps that should move the beam by at least :data:`_MIN_PROBE_UM` are
     used, so that noise and the small cross-talk of the receiver's optical-centre
-    offset do not corrupt the estimate.
+    offset do not corrupt the estimate; one step changes the estimate by at most
+    a factor :data:`_MAX_DISTANCE_FACTOR` (a unit's positioning noise on a small
+    step must not multiply the loop gain and throw the beam out of range).
     """
     lever = np.array([math.cos(elevation_rad) * step_urad[0], step_urad[1]])
     if np.linalg.norm(lever) * distance_mm * 1e-3 < _MIN_PROBE_UM:
         return distance_mm
     estimate = -1e3 * float(straightness_change_um @ lever) / float(lever @ lever)
     low, high = _DISTANCE_LIMITS_MM
-    return estimate if low <= estimate <= high else distance_mm
+    if not low <= estimate <= high:
+        return distance_mm
+    return float(
+        np.clip(estimate, distance_mm / _MAX_DISTANCE_FACTOR, distance_mm * _MAX_DISTANCE_FACTOR)
+    )
 
 
 def fine_align(
@@ -267,9 +400,11 @@ def fine_align(
     Raises
     ------
     BeamLostError
-        A beam left its range.
+        A beam left its range and neither going back to the last in-range angles
+        nor the spiral search found it (see the module's "Beam recovery").
     DeviceTimeoutError
-        Not converged within ``settings.timeout_s``; the message gives the residuals.
+        Not converged within ``settings.timeout_s`` (search time not counted); the
+        message gives the residuals.
     """
     settings = settings or FineAlignmentSettings()
     n_axes = 5 if settings.align_roll and len(receiver.axes) >= 3 else 4
@@ -277,8 +412,23 @@ def fine_align(
     setpoint = np.concatenate([launch.angles_rad(), receiver.angles_rad()[: n_axes - 2]])
     steps: list[AlignmentStep] = []
     last_step: tuple[Vec, Vec] | None = None  # (commanded launch step urad, error before it)
+    recovery = _Recovery()
+    prior_distance_mm = distance_mm
     while True:
-        reading = _read(interferometer, settings)
+        reading = interferometer.average(settings.average_s)
+        if not reading.beam_ok:
+            setpoint, reading = _recover(
+                launch,
+                receiver,
+                interferometer,
+                clock,
+                setpoint,
+                prior_distance_mm,
+                recovery,
+                settings,
+            )
+            distance_mm, last_step = prior_distance_mm, None
+        recovery.last_in_range_rad = setpoint.copy()
         error = aligned_error(reading, n_axes)
         elevation = float(setpoint[1])
         if last_step is not None:
@@ -301,8 +451,10 @@ def fine_align(
                 distance_mm=distance_mm,
                 elapsed_s=clock.now() - start_s,
                 steps=steps,
+                recoveries=recovery.count,
+                search_s=recovery.search_s,
             )
-        if clock.now() - start_s >= settings.timeout_s:
+        if clock.now() - start_s - recovery.search_s >= settings.timeout_s:
             raise DeviceTimeoutError(
                 f"fine alignment did not converge in {settings.timeout_s:g} s ({_describe(error)})"
             )

@@ -12,23 +12,27 @@ job. Only roles are used here (core code).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from xmalign.alignment import FineAlignmentSettings, fine_align
-from xmalign.errors import GeometryError, InputError, OutOfRangeError
+from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
+from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
 from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
 from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit
 from xmalign.safety import units_locked_on_exit
+
+logger = logging.getLogger(__name__)
 
 #: A recorded alignment this close to a position (CNC or operator readout) counts as done, mm.
 SAME_POSITION_MM = 0.5
@@ -182,6 +186,36 @@ def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual
     )
 
 
+def _align(
+    devices: RoutineDevices,
+    distance_mm: float,
+    settings: FineAlignmentSettings | None,
+    manual_align: Callable[[], None] | None,
+    on_manual: Callable[[Vec], None],
+) -> FineAlignmentResult:
+    """Fine alignment (which finds a lost beam itself); a person only if its search fails."""
+
+    def align() -> FineAlignmentResult:
+        return fine_align(
+            devices.launch,
+            devices.receiver,
+            devices.interferometer,
+            devices.clock,
+            distance_mm,
+            settings,
+        )
+
+    try:
+        return align()
+    except BeamLostError:
+        if manual_align is None:
+            raise
+        logger.warning("fine alignment could not find the beam; asking the operator")
+    on_manual(np.asarray(devices.mover.position_mm(), dtype=float))
+    manual_align()
+    return align()
+
+
 def run_identification(
     positions_mm: ArrayLike,
     machine: Machine,
@@ -211,7 +245,8 @@ def run_identification(
     settings : FineAlignmentSettings, optional
     manual_align : callable, optional
         Lets the operator jog the units into range; used where no guess can point
-        them and whenever a beam is out of range before fine alignment.
+        them and where fine alignment's own beam search (back to the last in-range
+        angles, then a spiral) does not find the beam.
     refine_guess : callable, optional
         Given the session so far, a better guess (e.g. a quick identification).
     on_event : callable, optional
@@ -241,6 +276,7 @@ def run_identification(
     path = Path(session_path)
     session = open_session(path, machine)
     distance_mm = DEFAULT_DISTANCE_MM
+    refined = False
     with units_locked_on_exit(devices.launch, devices.receiver):
         for index, target in enumerate(positions, start=1):
 
@@ -259,7 +295,15 @@ def run_identification(
             if usable is not None:
                 event("pointing", machine_mm)
                 distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
-            if usable is None or not devices.interferometer.read().beam_ok:
+            # Pointed from the coarse guess alone, a beam out of range may be centimetres
+            # off: beyond any search, so a person aligns. From a refined guess, search.
+            coarse_miss = (
+                usable is not None
+                and not refined
+                and manual_align is not None
+                and not devices.interferometer.read().beam_ok
+            )
+            if usable is None or coarse_miss:
                 if manual_align is None:
                     raise GeometryError(
                         f"cannot point the units at identification position {index}: no pose"
@@ -269,18 +313,12 @@ def run_identification(
                 event("manual", machine_mm)
                 manual_align()
             event("aligning", machine_mm)
-            result = fine_align(
-                devices.launch,
-                devices.receiver,
-                devices.interferometer,
-                devices.clock,
-                distance_mm,
-                settings,
-            )
+            result = _align(devices, distance_mm, settings, manual_align, partial(event, "manual"))
             distance_mm = result.distance_mm
             _record(session, machine_mm, devices, result.straightness_um)
             write_session(path, session)
             event("recorded", machine_mm)
-            if refine_guess is not None:
-                guess = refine_guess(session) or guess
+            better = refine_guess(session) if refine_guess is not None else None
+            if better is not None:
+                guess, refined = better, True
     return session

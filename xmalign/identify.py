@@ -15,15 +15,18 @@ Three estimators of the launch cp ``p_L`` and azimuth ``gamma``:
     ``c4`` that the alignments can separate; robust to one bad alignment.
 
 Every estimator reports a covariance built from the stated uncertainties
-(encoder noise, machine positioning, unit kinematics, zero offsets), not only
-from the fit's scatter, and which alignment contributes what.
+(encoder noise, machine positioning, the tool's rotation that turns the
+receiver, unit kinematics, zero offsets, the machine's common-mode error and
+the beams' collimation), not only from the fit's scatter, and which alignment
+contributes what. The models are written in casadi: their derivatives are exact.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
+import casadi as ca
 import numpy as np
 from scipy.special import chdtrc
 
@@ -46,7 +49,14 @@ _WEAK_POSITION_MM = 0.05
 
 @dataclass(frozen=True)
 class IdentificationUncertainty:
-    """Standard uncertainties (k = 1) of the inputs, in mm and rad."""
+    """Standard uncertainties (k = 1) of the inputs, in mm and rad.
+
+    ``machine_position_mm`` and ``tool_rotation_rad`` vary from one alignment to
+    the next; ``machine_common_mm`` and ``tool_rotation_common_rad`` are the
+    machine's error shared by all alignment positions (a common shift or turn
+    of the tool that the field cannot separate from the pose);
+    ``collimation_rad`` is each unit's beam tilt in its head (two components).
+    """
 
     encoder_rad: float = 10e-6
     machine_position_mm: float = 0.020
@@ -54,6 +64,10 @@ class IdentificationUncertainty:
     zero_offset_rad: float = 100e-6
     distance_mm: float = 0.020
     straightness_mm: float = 0.002
+    tool_rotation_rad: float = 15e-6
+    tool_rotation_common_rad: float = 18e-6
+    machine_common_mm: float = 0.015
+    collimation_rad: float = 20e-6
 
     @classmethod
     def from_machine(cls, u: Uncertainty) -> IdentificationUncertainty:
@@ -65,6 +79,10 @@ class IdentificationUncertainty:
             zero_offset_rad=u.encoder_zero_offset_urad * 1e-6,
             distance_mm=u.distance_um * 1e-3,
             straightness_mm=u.straightness_um * 1e-3,
+            tool_rotation_rad=u.tool_rotation_urad * 1e-6,
+            tool_rotation_common_rad=u.tool_rotation_common_urad * 1e-6,
+            machine_common_mm=u.machine_common_um * 1e-3,
+            collimation_rad=u.beam_collimation_urad * 1e-6,
         )
 
     @property
@@ -73,9 +91,10 @@ class IdentificationUncertainty:
         return float(np.hypot(self.machine_position_mm, self.straightness_mm))
 
 
-# Columns of the per-alignment input array: reported angles (rad), beam point (mm), distance (mm).
-PHI1, PHI2, PHI3, PHI4, BX, BY, BZ, DIST = range(8)
-N_INPUTS = 8
+# Columns of the per-alignment input array: reported angles (rad), beam point (mm),
+# distance (mm), the tool's rotation (rad, MCS rotation vector; unknown, nominally 0).
+PHI1, PHI2, PHI3, PHI4, BX, BY, BZ, DIST, RX, RY, RZ = range(11)
+N_INPUTS = 11
 
 
 @dataclass(frozen=True)
@@ -84,10 +103,11 @@ class Observations:
 
     Attributes
     ----------
-    inputs : ndarray, shape (n, 8)
+    inputs : ndarray, shape (n, 11)
         Per alignment: reported ``phi1..phi4`` (rad), the beam point (mm) where
         the beam crosses the receiver (its cp minus the residual straightness),
-        and the cp-to-cp distance (mm, 0 where unknown).
+        the cp-to-cp distance (mm, 0 where unknown) and the tool rotation (rad,
+        0: not measured, its uncertainty enters the covariance).
     has_distance : ndarray of bool, shape (n,)
     spindle_angle_rad : float
     """
@@ -115,21 +135,27 @@ def observations_from_session(session: Session) -> Observations:
             _, v, w = line_frame(beam)
             cp = cp - (a.straightness_um[0] * v + a.straightness_um[1] * w) * 1e-3
         distance = 0.0 if a.distance_mm is None else a.distance_mm
-        rows.append([*a.launch_rad[:2], *a.receiver_rad[:2], *cp, distance])
+        rows.append([*a.launch_rad[:2], *a.receiver_rad[:2], *cp, distance, 0.0, 0.0, 0.0])
     has_distance = np.array([a.distance_mm is not None for a in session.alignments], dtype=bool)
     inputs = np.array(rows, dtype=float).reshape(-1, N_INPUTS)
     return Observations(inputs, has_distance, session.spindle_angle_rad)
 
 
 def input_sigmas(u: IdentificationUncertainty) -> Vec:
-    """Standard uncertainty of each input column, shape (8,)."""
+    """Standard uncertainty of each input column, shape (11,)."""
     p = u.position_mm
-    return np.array([u.encoder_rad] * 4 + [p, p, p, u.distance_mm])
+    return np.array([u.encoder_rad] * 4 + [p, p, p, u.distance_mm] + [u.tool_rotation_rad] * 3)
 
 
 def systematic_sigmas(u: IdentificationUncertainty) -> Vec:
-    """Standard uncertainty of the zero offsets and optical-centre offsets, shape (9,)."""
-    return np.array([u.zero_offset_rad] * 3 + [u.unit_kinematics_mm] * 6)
+    """Standard uncertainty of each systematic (see ``N_SYSTEMATICS``), shape (19,)."""
+    return np.array(
+        [u.zero_offset_rad] * 3
+        + [u.unit_kinematics_mm] * 6
+        + [u.machine_common_mm] * 3
+        + [u.tool_rotation_common_rad] * 3
+        + [u.collimation_rad] * 4
+    )
 
 
 @dataclass
@@ -164,6 +190,9 @@ class IdentificationResult:
         The estimated encoder zero offsets.
     offsets_covariance : (k, k)
         Of the estimated offsets, rad^2.
+    converged, iterations
+        Whether the solver converged (the closed-form intersection always does)
+        and in how many iterations; a warning says so when it did not.
     """
 
     method: str
@@ -180,6 +209,8 @@ class IdentificationResult:
     alignments: list[AlignmentReport] = field(default_factory=list)
     outlier: int | None = None
     warnings: list[str] = field(default_factory=list)
+    converged: bool = True
+    iterations: int = 0
 
     @property
     def n_used(self) -> int:
@@ -199,147 +230,236 @@ class IdentificationResult:
 
 # ------------------------------------------------------------------ residual models
 #
-# Every method is a residual function r(theta, inputs, systematics) -> (n, k): theta the
-# parameters, inputs the (n, 8) array above and systematics (9,) what is common to all
-# alignments and not estimated, nominally zero: the encoder zero offsets c2, c3, c4
-# beyond those estimated, and the optical centres' offsets from the cps in the launch
-# and receiver head frames (axes that do not intersect). The estimate minimises the
-# (whitened) residuals; its covariance follows from the implicit-function theorem,
-# d theta / d z = -(J^T J)^-1 J^T dr/dz, with the stated uncertainties of every z.
+# Every method is a residual model r(theta, z_i, c) -> (k,) per alignment i, written in
+# casadi so that its derivatives are exact: theta the parameters, z_i the alignment's
+# inputs (the columns above; the tool rotation is nominally zero) and c (N_SYSTEMATICS,)
+# what is common to all alignments and not estimated, nominally zero: the encoder zero
+# offsets c2, c3, c4 beyond those estimated, the optical centres' offsets from the cps in
+# the launch and receiver head frames (axes that do not intersect), the machine's
+# common-mode position error and tool rotation at the alignment positions, and both
+# units' beam collimation. The estimate minimises the (whitened) residuals; its
+# covariance follows from the implicit-function theorem,
+# d theta / d z = -(J^T J)^-1 J^T dr/dz, with the stated uncertainties of every z and c.
 
-ResidualFn = Callable[[Vec, Vec, Vec], Vec]
 C2, C3, C4 = 0, 1, 2
 LAUNCH_CENTRE = slice(3, 6)
 RECEIVER_CENTRE = slice(6, 9)
-N_SYSTEMATICS = 9
-
-
-def _head_to_mcs(azimuth: Vec, elevation: Vec, vector_head: Vec) -> Vec:
-    """``Rz(az)·Ry(-el)·vector`` for arrays of angles (n,) and one vector (3,), (n, 3)."""
-    if not np.any(vector_head):
-        return np.zeros((len(azimuth), 3))
-    ca, sa, ce, se = np.cos(azimuth), np.sin(azimuth), np.cos(elevation), np.sin(elevation)
-    x_axis = np.stack([ca * ce, sa * ce, se], axis=-1)
-    y_axis = np.stack([-sa, ca, np.zeros_like(ca)], axis=-1)
-    z_axis = np.stack([-ca * se, -sa * se, ce], axis=-1)
-    return vector_head[0] * x_axis + vector_head[1] * y_axis + vector_head[2] * z_axis
-
-
-def _optical_points(
-    theta: Vec, inputs: Vec, systematics: Vec, spindle_angle_rad: float
-) -> tuple[Vec, Vec]:
-    """Launch optical centre and beam point at the receiver, (n, 3) each, mm."""
-    launch = theta[:3] + _head_to_mcs(
-        theta[3] + inputs[:, PHI1], inputs[:, PHI2], systematics[LAUNCH_CENTRE]
-    )
-    receiver = inputs[:, BX:DIST] + _head_to_mcs(
-        spindle_angle_rad + inputs[:, PHI3], inputs[:, PHI4], systematics[RECEIVER_CENTRE]
-    )
-    return launch, receiver
-
-
-def _beam_from_receiver(inputs: Vec, systematics: Vec, spindle_angle_rad: float) -> Vec:
-    """Beam direction launch -> receiver from the receiver encoders (true angles), (n, 3)."""
-    return -receiver_axis(
-        spindle_angle_rad, inputs[:, PHI3] + systematics[C3], inputs[:, PHI4] + systematics[C4]
-    )
-
-
-def _joint_residuals(estimated: tuple[str, ...], obs: Observations) -> ResidualFn:
-    """Angle and distance residuals of the joint model, (n, 5)."""
-    slots = [OFFSET_NAMES.index(name) for name in estimated]
-
-    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
-        c = systematics[:3].copy()
-        c[slots] += theta[4:]
-        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
-        e = receiver - launch
-        azimuth, elevation = azimuth_elevation(e)
-        r = np.empty((len(inputs), 5))
-        r[:, 0] = wrap_angle(inputs[:, PHI1] - azimuth + theta[3])
-        r[:, 1] = inputs[:, PHI2] + c[C2] - elevation
-        r[:, 2] = wrap_angle(inputs[:, PHI3] + c[C3] - azimuth - np.pi + obs.spindle_angle_rad)
-        r[:, 3] = inputs[:, PHI4] + c[C4] + elevation
-        r[:, 4] = np.where(obs.has_distance, inputs[:, DIST] - np.linalg.norm(e, axis=1), 0.0)
-        return r
-
-    return residuals
-
-
-def _intersection_residuals(obs: Observations) -> ResidualFn:
-    """Perpendicular miss of the launch cp from each receiver beam line, and gamma, (n, 4)."""
-
-    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
-        d = _beam_from_receiver(inputs, systematics, obs.spindle_angle_rad)
-        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
-        miss = launch - receiver
-        perpendicular = miss - np.sum(miss * d, axis=1, keepdims=True) * d
-        azimuth, _ = azimuth_elevation(d)
-        gamma = wrap_angle(azimuth - inputs[:, PHI1] - theta[3])
-        return np.column_stack([perpendicular, gamma])
-
-    return residuals
-
-
-def _distance_residuals(obs: Observations) -> ResidualFn:
-    """Both chains of the closed loop with known distances, mm, (n, 6)."""
-
-    def residuals(theta: Vec, inputs: Vec, systematics: Vec) -> Vec:
-        length = inputs[:, DIST, None]
-        launch, receiver = _optical_points(theta, inputs, systematics, obs.spindle_angle_rad)
-        d_receiver = _beam_from_receiver(inputs, systematics, obs.spindle_angle_rad)
-        d_launch = launch_direction(theta[3], inputs[:, PHI1], inputs[:, PHI2] + systematics[C2])
-        receiver_chain = receiver - length * d_receiver - launch
-        launch_chain = launch + length * d_launch - receiver
-        return np.column_stack([receiver_chain, launch_chain])
-
-    return residuals
-
-
-# ------------------------------------------------------------------ numerical machinery
-
-_THETA_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-7, 1e-7, 1e-7, 1e-7])
-_INPUT_STEP = np.array([1e-7, 1e-7, 1e-7, 1e-7, 1e-4, 1e-4, 1e-4, 1e-4])
-_SYSTEMATIC_STEP = np.array([1e-7] * 3 + [1e-4] * 6)
+COMMON_POSITION = slice(9, 12)
+COMMON_ROTATION = slice(12, 15)
+LAUNCH_COLLIMATION = slice(15, 17)
+RECEIVER_COLLIMATION = slice(17, 19)
+N_SYSTEMATICS = 19
 _NO_SYSTEMATICS = np.zeros(N_SYSTEMATICS)
 
 
-def _central_difference(f: Callable[[Vec], Vec], x: Vec, steps: Vec) -> Vec:
-    """Derivatives of f (any shape) w.r.t. each entry of the vector x, stacked last."""
-    columns = []
-    for j, step in enumerate(steps):
-        h = np.zeros_like(x)
-        h[j] = step
-        columns.append((f(x + h) - f(x - h)) / (2 * step))
-    return np.stack(columns, axis=-1)
-
-
-def _theta_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
-    """d r / d theta, (n, k, p)."""
-    return _central_difference(
-        lambda t: fn(t, inputs, _NO_SYSTEMATICS), theta, _THETA_STEP[: len(theta)]
+def _sx_direction(azimuth: ca.SX, elevation: ca.SX) -> ca.SX:
+    return ca.vertcat(
+        ca.cos(azimuth) * ca.cos(elevation), ca.sin(azimuth) * ca.cos(elevation), ca.sin(elevation)
     )
 
 
-def _input_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
-    """d r_i / d inputs_i, (n, k, 8).
+def _sx_azimuth_elevation(e: ca.SX) -> tuple[ca.SX, ca.SX]:
+    return ca.atan2(e[1], e[0]), ca.atan2(e[2], ca.sqrt(e[0] ** 2 + e[1] ** 2))
 
-    Alignment i's residuals depend only on its own inputs, so one column of
-    every alignment is differentiated at once.
+
+def _sx_wrap(angle: ca.SX) -> ca.SX:
+    return ca.atan2(ca.sin(angle), ca.cos(angle))
+
+
+def _sx_head_to_mcs(azimuth: ca.SX, elevation: ca.SX, vector_head: ca.SX) -> ca.SX:
+    """``Rz(az)·Ry(-el)·vector``."""
+    ca_, sa, ce, se = ca.cos(azimuth), ca.sin(azimuth), ca.cos(elevation), ca.sin(elevation)
+    x_axis = ca.vertcat(ca_ * ce, sa * ce, se)
+    y_axis = ca.vertcat(-sa, ca_, 0)
+    z_axis = ca.vertcat(-ca_ * se, -sa * se, ce)
+    return vector_head[0] * x_axis + vector_head[1] * y_axis + vector_head[2] * z_axis
+
+
+@dataclass(frozen=True)
+class _Symbols:
+    """One alignment's model inputs as casadi symbols, and the geometry they imply."""
+
+    theta: ca.SX
+    z: ca.SX
+    c: ca.SX
+    spindle: ca.SX
+    has_distance: ca.SX
+    offsets: ca.SX  # true minus reported c2, c3, c4 (estimated plus systematic)
+
+    @property
+    def tool_rotation(self) -> ca.SX:
+        return self.z[RX : RZ + 1] + self.c[COMMON_ROTATION]
+
+    def launch_centre(self) -> ca.SX:
+        return self.theta[:3] + _sx_head_to_mcs(
+            self.theta[3] + self.z[PHI1], self.z[PHI2], self.c[LAUNCH_CENTRE]
+        )
+
+    def receiver_centre(self) -> ca.SX:
+        beam_point = self.z[BX:DIST] + self.c[COMMON_POSITION]
+        return beam_point + _sx_head_to_mcs(
+            self.spindle + self.z[PHI3], self.z[PHI4], self.c[RECEIVER_CENTRE]
+        )
+
+    def launch_angles(self) -> tuple[ca.SX, ca.SX]:
+        """Azimuth and elevation of the launch beam from the launch encoders (true angles)."""
+        elevation = self.z[PHI2] + self.offsets[0] - self.c[LAUNCH_COLLIMATION][0]
+        # A beam tilted sideways in the head turns its azimuth by tilt / cos(elevation).
+        azimuth = self.theta[3] + self.z[PHI1] + self.c[LAUNCH_COLLIMATION][1] / ca.cos(elevation)
+        return azimuth, elevation
+
+    def receiver_angles(self) -> tuple[ca.SX, ca.SX]:
+        """Azimuth and elevation of the receiver axis in its mount (the tool) frame."""
+        elevation = self.z[PHI4] + self.offsets[2] - self.c[RECEIVER_COLLIMATION][0]
+        azimuth = (
+            self.spindle
+            + self.z[PHI3]
+            + self.offsets[1]
+            + self.c[RECEIVER_COLLIMATION][1] / ca.cos(elevation)
+        )
+        return azimuth, elevation
+
+    def beam_from_receiver(self) -> ca.SX:
+        """Beam direction launch -> receiver from the receiver encoders, MCS (the tool turns)."""
+        axis = _sx_direction(*self.receiver_angles())
+        return -(axis + ca.cross(self.tool_rotation, axis))
+
+
+def _symbols(n_params: int, estimated: tuple[str, ...] = ()) -> _Symbols:
+    theta = ca.SX.sym("theta", n_params)
+    c = ca.SX.sym("c", N_SYSTEMATICS)
+    offsets = [c[C2], c[C3], c[C4]]
+    for k, name in enumerate(estimated):
+        offsets[OFFSET_NAMES.index(name)] += theta[4 + k]
+    return _Symbols(
+        theta,
+        ca.SX.sym("z", N_INPUTS),
+        c,
+        ca.SX.sym("spindle"),
+        ca.SX.sym("has_distance"),
+        ca.vertcat(*offsets),
+    )
+
+
+def _joint_residuals(s: _Symbols) -> ca.SX:
+    """Angle and distance residuals of the joint model, (5,)."""
+    e = s.receiver_centre() - s.launch_centre()
+    azimuth, elevation = _sx_azimuth_elevation(e)
+    # The receiver's encoders see the beam in the frame of the tool, which is turned.
+    seen = e - ca.cross(s.tool_rotation, e)
+    seen_azimuth, seen_elevation = _sx_azimuth_elevation(-seen)
+    launch_azimuth, launch_elevation = s.launch_angles()
+    receiver_azimuth, receiver_elevation = s.receiver_angles()
+    return ca.vertcat(
+        _sx_wrap(launch_azimuth - azimuth),
+        launch_elevation - elevation,
+        _sx_wrap(receiver_azimuth - seen_azimuth),
+        receiver_elevation - seen_elevation,
+        s.has_distance * (s.z[DIST] - ca.norm_2(e)),
+    )
+
+
+def _intersection_residuals(s: _Symbols) -> ca.SX:
+    """Perpendicular miss of the launch cp from the receiver beam line, and gamma, (4,)."""
+    d = s.beam_from_receiver()
+    miss = s.launch_centre() - s.receiver_centre()
+    perpendicular = miss - ca.dot(miss, d) * d
+    azimuth, _ = _sx_azimuth_elevation(d)
+    launch_azimuth, _ = s.launch_angles()
+    return ca.vertcat(perpendicular, _sx_wrap(azimuth - launch_azimuth))
+
+
+def _distance_residuals(s: _Symbols) -> ca.SX:
+    """Both chains of the closed loop with a known distance, mm, (6,)."""
+    length = s.z[DIST]
+    launch, receiver = s.launch_centre(), s.receiver_centre()
+    d_launch = _sx_direction(*s.launch_angles())
+    receiver_chain = receiver - length * s.beam_from_receiver() - launch
+    launch_chain = launch + length * d_launch - receiver
+    return ca.vertcat(receiver_chain, launch_chain)
+
+
+_MODELS = {
+    "joint": _joint_residuals,
+    "intersection": _intersection_residuals,
+    "distance": _distance_residuals,
+}
+
+
+@dataclass(frozen=True)
+class _Evaluation:
+    """Residuals and their exact derivatives for every alignment."""
+
+    residuals: Vec  # (n, k)
+    d_theta: Vec  # (n, k, p)
+    d_inputs: Vec  # (n, k, N_INPUTS)
+    d_systematics: Vec  # (n, k, N_SYSTEMATICS)
+
+
+@lru_cache(maxsize=32)
+def _compiled(method: str, estimated: tuple[str, ...]) -> ca.Function:
+    s = _symbols(4 + len(estimated), estimated)
+    r = _MODELS[method](s)
+    arguments = [s.theta, s.z, s.c, s.spindle, s.has_distance]
+    outputs = [r, ca.jacobian(r, s.theta), ca.jacobian(r, s.z), ca.jacobian(r, s.c)]
+    return ca.Function(f"identify_{method}", arguments, outputs)
+
+
+def joint_model() -> ca.Function:
+    """The joint model of one alignment with every offset estimated, for planning.
+
+    A casadi function ``(theta (7,), z (11,), c (19,), spindle_angle_rad,
+    has_distance) -> (r (5,), dr/dtheta (5, 7), dr/dz (5, 11), dr/dc (5, 19))``
+    with ``theta = (x, y, z, gamma, c2, c3, c4)`` and the input and systematic
+    columns of this module; the derivatives are exact.
     """
-    per_input = []
-    for j in range(N_INPUTS):
-        h = np.zeros_like(inputs)
-        h[:, j] = _INPUT_STEP[j]
-        plus = fn(theta, inputs + h, _NO_SYSTEMATICS)
-        minus = fn(theta, inputs - h, _NO_SYSTEMATICS)
-        per_input.append((plus - minus) / (2 * _INPUT_STEP[j]))
-    return np.stack(per_input, axis=-1)
+    return _compiled("joint", OFFSET_NAMES)
 
 
-def _systematic_jacobian(fn: ResidualFn, theta: Vec, inputs: Vec) -> Vec:
-    """d r / d systematics, (n, k, 9)."""
-    return _central_difference(lambda z: fn(theta, inputs, z), _NO_SYSTEMATICS, _SYSTEMATIC_STEP)
+@lru_cache(maxsize=256)
+def _mapped(method: str, estimated: tuple[str, ...], n: int) -> ca.Function:
+    return _compiled(method, estimated).map(n)
+
+
+@dataclass(frozen=True)
+class _Model:
+    """A residual model over the alignments of one set of observations."""
+
+    method: str
+    estimated: tuple[str, ...]
+    obs: Observations
+
+    @property
+    def n_params(self) -> int:
+        return 4 + len(self.estimated)
+
+    def evaluate(self, theta: Vec, systematics: Vec = _NO_SYSTEMATICS) -> _Evaluation:
+        n = self.obs.n
+        out = _mapped(self.method, self.estimated, n)(
+            theta,
+            self.obs.inputs.T,
+            systematics,
+            self.obs.spindle_angle_rad,
+            self.obs.has_distance.astype(float)[None, :],
+        )
+        r = np.array(out[0]).T
+        k = r.shape[1]
+
+        def blocks(matrix: ca.DM) -> Vec:
+            return np.array(matrix).reshape(k, n, -1).transpose(1, 0, 2)
+
+        return _Evaluation(r, blocks(out[1]), blocks(out[2]), blocks(out[3]))
+
+    def residuals(self, theta: Vec) -> Vec:
+        return self.evaluate(theta).residuals
+
+
+def _beam_from_receiver(obs: Observations) -> Vec:
+    """Beam directions launch -> receiver from the reported receiver angles, (n, 3)."""
+    return -receiver_axis(obs.spindle_angle_rad, obs.inputs[:, PHI3], obs.inputs[:, PHI4])
+
+
+# ------------------------------------------------------------------ numerical machinery
 
 
 def _residual_covariances(jz: Vec, sigma_inputs: Vec) -> Vec:
@@ -356,44 +476,69 @@ def _whitening(cov: Vec) -> Vec:
 
 
 @dataclass
-class _Fit:
+class FitResult:
+    """Outcome of the Gauss-Newton solver.
+
+    Attributes
+    ----------
+    theta : (p,)
+    jacobian : (n, k, p)
+        Whitened, at ``theta``.
+    residuals : (n, k)
+        Whitened, at ``theta``.
+    converged : bool
+        The predicted decrease of the cost fell below the tolerance.
+    iterations : int
+    decrement : float
+        Last predicted decrease of the whitened cost (chi-square units).
+    """
+
     theta: Vec
-    jacobian: Vec  # whitened, (n, k, p)
-    residuals: Vec  # whitened, (n, k)
+    jacobian: Vec
+    residuals: Vec
+    converged: bool = True
+    iterations: int = 0
+    decrement: float = 0.0
 
 
-def _gauss_newton(
-    fn: ResidualFn, theta0: Vec, inputs: Vec, weights: Vec, max_iterations: int = 60
-) -> _Fit:
+#: Gauss-Newton stops when a step would lower chi-square by less than this fraction of it
+#: (or of 1 when it is smaller): far below any statistical meaning. The last step is
+#: still taken, so a noise-free fit ends at rounding level (quadratic convergence).
+_DECREMENT_TOL = 1e-10
+
+
+def _gauss_newton(model: _Model, theta0: Vec, weights: Vec, max_iterations: int = 60) -> FitResult:
     """Minimise sum |W_i r_i|^2 by Gauss-Newton with step halving."""
 
-    def whitened(theta: Vec) -> Vec:
-        return np.einsum("nij,nj->ni", weights, fn(theta, inputs, _NO_SYSTEMATICS))
+    def whitened(theta: Vec) -> tuple[Vec, Vec]:
+        e = model.evaluate(theta)
+        r = np.einsum("nij,nj->ni", weights, e.residuals)
+        return r, np.einsum("nij,njp->nip", weights, e.d_theta)
 
     theta = np.asarray(theta0, dtype=float).copy()
-    r = whitened(theta)
+    r, j = whitened(theta)
     cost = float(np.sum(r**2))
-    for _ in range(max_iterations):
-        j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
+    decrement = float("inf")
+    for iteration in range(1, max_iterations + 1):
         jf = j.reshape(-1, len(theta))
         step, *_ = np.linalg.lstsq(jf, -r.ravel(), rcond=None)
+        decrement = float(np.sum((jf @ step) ** 2))
+        if decrement <= _DECREMENT_TOL * max(cost, 1.0):
+            r_new, j_new = whitened(theta + step)
+            if float(np.sum(r_new**2)) <= cost:
+                theta, r, j = theta + step, r_new, j_new
+            return FitResult(theta, j, r, True, iteration, decrement)
         for _ in range(30):
-            candidate = theta + step
-            r_new = whitened(candidate)
+            r_new, j_new = whitened(theta + step)
             cost_new = float(np.sum(r_new**2))
-            if cost_new <= cost * (1 + 1e-12) or cost < 1e-30:
+            if cost_new <= cost:
                 break
             step = step / 2
-        theta, r, converged = (
-            candidate,
-            r_new,
-            np.all(np.abs(step) <= 1e-13 * np.maximum(1, np.abs(theta))),
-        )
-        cost = cost_new
-        if converged:
-            break
-    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
-    return _Fit(theta, j, r)
+        else:
+            # No step lowers the cost: a minimum as far as rounding lets us see.
+            return FitResult(theta, j, r, decrement <= 1e-6 * max(cost, 1.0), iteration, decrement)
+        theta, r, j, cost = theta + step, r_new, j_new, cost_new
+    return FitResult(theta, j, r, False, max_iterations, decrement)
 
 
 @dataclass
@@ -404,29 +549,24 @@ class _Propagation:
 
 
 def _propagate(
-    fn: ResidualFn,
-    fit: _Fit,
-    inputs: Vec,
-    weights: Vec,
-    u: IdentificationUncertainty,
-    estimated: tuple[str, ...] = (),
+    model: _Model, fit: FitResult, e: _Evaluation, weights: Vec, u: IdentificationUncertainty
 ) -> _Propagation:
     """Covariance of theta from the input and systematic uncertainties (implicit function).
 
-    Offsets in ``estimated`` are parameters, not systematics, and carry no prior.
+    ``e`` is the model evaluated at the fit. Offsets the model estimates are
+    parameters, not systematics, and carry no prior.
     """
-    p = len(fit.theta)
-    jz = _input_jacobian(fn, fit.theta, inputs)
-    jc = _systematic_jacobian(fn, fit.theta, inputs)
-    jf = fit.jacobian.reshape(-1, p)
+    jf = fit.jacobian.reshape(-1, len(fit.theta))
     hessian_inv = np.linalg.pinv(jf.T @ jf)
-    # G_i = -H^-1 J_i^T W_i dr_i/dz_i, per alignment (p, 8)
-    g_inputs = -np.einsum("pq,nkq,nkl,nlj->npj", hessian_inv, fit.jacobian, weights, jz)
+    # G_i = -H^-1 J_i^T W_i dr_i/dz_i, per alignment (p, N_INPUTS)
+    g_inputs = -np.einsum("pq,nkq,nkl,nlj->npj", hessian_inv, fit.jacobian, weights, e.d_inputs)
     sigma = input_sigmas(u)
     per_alignment = np.einsum("npj,j,nqj->npq", g_inputs, sigma**2, g_inputs)
-    g_systematic = -hessian_inv @ np.einsum("nkq,nkl,nlj->qj", fit.jacobian, weights, jc)
+    g_systematic = -hessian_inv @ np.einsum(
+        "nkq,nkl,nlj->qj", fit.jacobian, weights, e.d_systematics
+    )
     sigma_systematic = systematic_sigmas(u)
-    sigma_systematic[[OFFSET_NAMES.index(name) for name in estimated]] = 0.0
+    sigma_systematic[[OFFSET_NAMES.index(name) for name in model.estimated]] = 0.0
     from_systematics = g_systematic @ np.diag(sigma_systematic**2) @ g_systematic.T
     return _Propagation(
         per_alignment.sum(axis=0) + from_systematics, per_alignment, from_systematics
@@ -450,14 +590,10 @@ def _nearest_point_to_lines(points: Vec, directions: Vec) -> Vec:
 
 def _intersection_estimate(obs: Observations) -> Vec:
     """The seed paper's estimate: nearest point to the beam lines, mean azimuth offset."""
-    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs)
     position = _nearest_point_to_lines(obs.inputs[:, BX:DIST], d)
     azimuth, _ = azimuth_elevation(d)
     return np.append(position, circular_mean(azimuth - obs.inputs[:, PHI1]))
-
-
-def _distance_estimate(obs: Observations, weights: Vec, start: Vec) -> _Fit:
-    return _gauss_newton(_distance_residuals(obs), start, obs.inputs, weights)
 
 
 def _unit_weights(n: int, k: int) -> Vec:
@@ -465,23 +601,21 @@ def _unit_weights(n: int, k: int) -> Vec:
 
 
 def _distance_start(obs: Observations) -> Vec:
-    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs)
     launch_cps = obs.inputs[:, BX:DIST] - obs.inputs[:, DIST, None] * d
     position = launch_cps.mean(axis=0)
     azimuth, _ = azimuth_elevation(obs.inputs[:, BX:DIST] - position)
     return np.append(position, circular_mean(azimuth - obs.inputs[:, PHI1]))
 
 
-def _joint_weights(
-    fn: ResidualFn, theta: Vec, obs: Observations, u: IdentificationUncertainty
-) -> Vec:
-    jz = _input_jacobian(fn, theta, obs.inputs)
-    return _whitening(_residual_covariances(jz, input_sigmas(u)))
+def _weights(model: _Model, theta: Vec, u: IdentificationUncertainty) -> Vec:
+    """Whitening of each alignment's residuals by the covariance its inputs give them."""
+    return _whitening(_residual_covariances(model.evaluate(theta).d_inputs, input_sigmas(u)))
 
 
-def _information(fn: ResidualFn, theta: Vec, inputs: Vec, weights: Vec) -> Vec:
+def _information(model: _Model, theta: Vec, weights: Vec) -> Vec:
     """Whitened normal matrix J^T J, (p, p)."""
-    j = np.einsum("nij,njp->nip", weights, _theta_jacobian(fn, theta, inputs))
+    j = np.einsum("nij,njp->nip", weights, model.evaluate(theta).d_theta)
     jf = j.reshape(-1, len(theta))
     return jf.T @ jf
 
@@ -496,10 +630,9 @@ def _select_offsets(
     obs: Observations, start: Vec, u: IdentificationUncertainty
 ) -> tuple[tuple[str, ...], dict[str, str]]:
     """The encoder offsets the alignments can separate from the pose (rank and information test)."""
-    weights = _joint_weights(_joint_residuals((), obs), start, obs, u)
-    values, _ = _relative_conditioning(
-        _information(_joint_residuals((), obs), start, obs.inputs, weights)
-    )
+    pose_only = _Model("joint", (), obs)
+    weights = _weights(pose_only, start, u)
+    values, _ = _relative_conditioning(_information(pose_only, start, weights))
     if values[0] < 1e-10 * values[-1]:
         raise GeometryError(
             "degenerate geometry: these alignments do not determine the launch pose (rank test); "
@@ -509,8 +642,7 @@ def _select_offsets(
     reasons: dict[str, str] = {}
     while candidates:
         theta = np.concatenate([start, np.zeros(len(candidates))])
-        fn = _joint_residuals(tuple(candidates), obs)
-        information = _information(fn, theta, obs.inputs, weights)
+        information = _information(_Model("joint", tuple(candidates), obs), theta, weights)
         values, vectors = _relative_conditioning(information)
         if values[0] < 1e-9 * values[-1]:
             worst = int(np.argmax(np.abs(vectors[4:, 0])))
@@ -538,47 +670,80 @@ class _Solution:
     normalized: Vec  # (n,) RMS whitened residual per alignment
     chi2: float
     dof: int
+    fit: FitResult
 
 
-def _normalized_residuals(
-    fn: ResidualFn, theta: Vec, obs: Observations, u: IdentificationUncertainty
-) -> tuple[Vec, Vec]:
+def _normalized_residuals(e: _Evaluation, u: IdentificationUncertainty) -> tuple[Vec, Vec]:
     """Per alignment: residual quadratic form with its predicted covariance, and its rank."""
-    r = fn(theta, obs.inputs, _NO_SYSTEMATICS)
-    jz = _input_jacobian(fn, theta, obs.inputs)
-    cov = _residual_covariances(jz, input_sigmas(u))
+    cov = _residual_covariances(e.d_inputs, input_sigmas(u))
     pinv = np.linalg.pinv(cov, rcond=1e-10, hermitian=True)
-    quadratic = np.einsum("ni,nij,nj->n", r, pinv, r)
+    quadratic = np.einsum("ni,nij,nj->n", e.residuals, pinv, e.residuals)
     rank = np.linalg.matrix_rank(cov, tol=None, hermitian=True)
     return quadratic, rank
+
+
+def _global_chi2(
+    model: _Model, e: _Evaluation, weights: Vec, u: IdentificationUncertainty
+) -> tuple[float, int]:
+    """Chi-square of all residuals with their full predicted covariance, and its dof.
+
+    The residuals' covariance is that of every input and systematic pushed through
+    the fit (``(I - A) C (I - A)^T`` with ``A`` the fit's hat matrix): what the
+    systematics leave in the residuals after the pose absorbed its share (a common
+    tilt of the tool is not a constant offset of any encoder) is expected, not a
+    sign of underestimated uncertainties.
+    """
+    n, k, p = e.d_theta.shape
+    per_alignment = _residual_covariances(e.d_inputs, input_sigmas(u))
+    covariance = np.zeros((n * k, n * k))
+    weight = np.zeros((n * k, n * k))
+    for i in range(n):
+        block = slice(i * k, (i + 1) * k)
+        covariance[block, block] = per_alignment[i]
+        weight[block, block] = weights[i].T @ weights[i]
+    sigma_c = systematic_sigmas(u)
+    sigma_c[[OFFSET_NAMES.index(name) for name in model.estimated]] = 0.0
+    jc = e.d_systematics.reshape(n * k, -1)
+    covariance += jc @ np.diag(sigma_c**2) @ jc.T
+    j = e.d_theta.reshape(n * k, p)
+    hat = j @ np.linalg.pinv(j.T @ weight @ j) @ j.T @ weight
+    leave = np.eye(n * k) - hat
+    values, vectors = np.linalg.eigh(leave @ covariance @ leave.T)
+    keep = values > 1e-10 * values.max()
+    projected = vectors[:, keep].T @ e.residuals.ravel()
+    return float(np.sum(projected**2 / values[keep])), int(keep.sum())
+
+
+def _fixed_fit(model: _Model, theta: Vec, weights: Vec) -> FitResult:
+    """A closed-form estimate as a fit (nothing iterated)."""
+    e = model.evaluate(theta)
+    return FitResult(
+        theta,
+        np.einsum("nij,njp->nip", weights, e.d_theta),
+        np.einsum("nij,nj->ni", weights, e.residuals),
+    )
 
 
 def _solve(
     method: str, obs: Observations, u: IdentificationUncertainty, estimated: tuple[str, ...]
 ) -> _Solution:
+    model = _Model(method, estimated if method == "joint" else (), obs)
     if method == "intersection":
-        fn = _intersection_residuals(obs)
-        fit = _Fit(_intersection_estimate(obs), np.empty(0), np.empty(0))
         weights = _unit_weights(obs.n, 4)
-        fit.jacobian = _theta_jacobian(fn, fit.theta, obs.inputs)
+        fit = _fixed_fit(model, _intersection_estimate(obs), weights)
     elif method == "distance":
-        fn = _distance_residuals(obs)
         weights = _unit_weights(obs.n, 6)
-        fit = _distance_estimate(obs, weights, _distance_start(obs))
+        fit = _gauss_newton(model, _distance_start(obs), weights)
     else:
-        fn = _joint_residuals(estimated, obs)
         theta0 = np.concatenate([_intersection_estimate(obs), np.zeros(len(estimated))])
-        weights = _joint_weights(fn, theta0, obs, u)
-        fit = _gauss_newton(fn, theta0, obs.inputs, weights)
-    propagation = _propagate(fn, fit, obs.inputs, weights, u, estimated)
-    quadratic, rank = _normalized_residuals(fn, fit.theta, obs, u)
-    dof = int(rank.sum()) - len(fit.theta)
+        weights = _weights(model, theta0, u)
+        fit = _gauss_newton(model, theta0, weights)
+    at_fit = model.evaluate(fit.theta)
+    propagation = _propagate(model, fit, at_fit, weights, u)
+    quadratic, rank = _normalized_residuals(at_fit, u)
+    chi2, dof = _global_chi2(model, at_fit, weights, u)
     return _Solution(
-        fit.theta,
-        propagation,
-        np.sqrt(quadratic / np.maximum(rank, 1)),
-        float(quadratic.sum()),
-        dof,
+        fit.theta, propagation, np.sqrt(quadratic / np.maximum(rank, 1)), chi2, dof, fit
     )
 
 
@@ -724,13 +889,15 @@ def _assemble(
         covariance_scale=scale,
         alignments=reports,
         outlier=outlier,
+        converged=solution.fit.converged,
+        iterations=solution.fit.iterations,
     )
     result.warnings = _geometry_warnings(result, all_obs, obs)
     return result
 
 
 def _widest_beam_angle_deg(obs: Observations) -> float:
-    d = _beam_from_receiver(obs.inputs, _NO_SYSTEMATICS, obs.spindle_angle_rad)
+    d = _beam_from_receiver(obs)
     cosines = np.clip(d @ d.T, -1.0, 1.0)
     return float(np.degrees(np.arccos(cosines.min())))
 
@@ -739,6 +906,11 @@ def _geometry_warnings(
     result: IdentificationResult, all_obs: Observations, obs: Observations
 ) -> list[str]:
     warnings = []
+    if not result.converged:
+        warnings.append(
+            f"the least-squares solver did not converge in {result.iterations} iterations: the"
+            " pose may not be the best fit to the alignments; check them and identify again"
+        )
     if result.outlier is not None:
         machine = all_obs.inputs[result.outlier, BX:DIST]
         warnings.append(

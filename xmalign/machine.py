@@ -57,6 +57,11 @@ class Uncertainty(_Strict):
     encoder_zero_offset_urad: Positive = 100.0
     distance_um: Positive = 20.0
     straightness_um: Positive = 2.0
+    # the machine's own errors at the identification positions (docs/identification.md)
+    tool_rotation_urad: Positive = 15.0
+    tool_rotation_common_urad: Positive = 18.0
+    machine_common_um: Positive = 15.0
+    beam_collimation_urad: Positive = 20.0
     # interferometer channels, used by ``xmalign post`` to weight and propagate (GUM)
     channel_linear_um: Positive = 0.5
     channel_straightness_um: Positive = 1.0

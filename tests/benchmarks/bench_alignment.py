@@ -6,6 +6,11 @@ Run: ``python tests/benchmarks/bench_alignment.py``
   simulated time (the issue's target), over seeds and CNC positions whose
   beams go from nearly level to steep and from 0.7 m to 2 m long; the first
   distance guess is a blind 1000 mm.
+* Beam recovery: the beam deliberately lost, (a) at the start, the units
+  600 um off (beyond the 250 um straightness range), (b) mid-way, the launch
+  unit's base knocked by 400 urad after the second step: how often fine
+  alignment finds it again without a person, and the simulated time the search
+  took.
 * Round-trip latency of one Modbus holding-register read (6 registers) from
   the driver's transport to the simulated unit's Modbus TCP server on 127.0.0.1.
 """
@@ -22,8 +27,9 @@ from firmware_iface.modbus import tcp_transport
 from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
-from xmalign.alignment import fine_align
+from xmalign.alignment import AlignmentStep, fine_align
 from xmalign.cli.align import simulated_setup
+from xmalign.errors import BeamLostError
 from xmalign.machine import default_machine_path, load_machine
 
 TARGET_S = 5.0
@@ -64,6 +70,56 @@ def bench_fine_alignment(seeds: range = range(8)) -> bool:
     return bool(times_s.max() <= TARGET_S)
 
 
+def _knock_after_second_step(world, enabled: bool):  # noqa: ANN001, ANN202
+    steps = []
+
+    def on_step(step: AlignmentStep) -> None:
+        steps.append(step)
+        if enabled and len(steps) == 2:
+            world.interferometer.gamma_rad += 400e-6
+
+    return on_step
+
+
+def bench_beam_recovery(seeds: range = range(8)) -> bool:
+    machine = load_machine(default_machine_path())
+    cases = {"start": "600 um off at the start", "knock": "knocked by 400 urad mid-way"}
+    lost = dict.fromkeys(cases, 0)
+    failed = dict.fromkeys(cases, 0)
+    search_s: dict[str, list[float]] = {case: [] for case in cases}
+    for seed in seeds:
+        for position in POSITIONS:
+            for case in cases:
+                start_um, start_urad = (600.0, 0.0) if case == "start" else (200.0, 300.0)
+                world, devices = simulated_setup(
+                    machine, np.array(position, dtype=float), seed, start_um, start_urad
+                )
+                try:
+                    result = fine_align(
+                        devices.launch,
+                        devices.receiver,
+                        devices.interferometer,
+                        devices.clock,
+                        distance_mm=devices.distance_mm,
+                        on_step=_knock_after_second_step(world, case == "knock"),
+                    )
+                except BeamLostError as error:
+                    failed[case] += 1
+                    print(f"  {case}, seed {seed}, position {position}: {error}")
+                    continue
+                if result.recoveries:
+                    lost[case] += 1
+                    search_s[case].append(result.search_s)
+    for case, label in cases.items():
+        times = np.array(search_s[case] or [np.nan])
+        print(
+            f"beam recovery, {label}: beam lost in {lost[case] + failed[case]} runs, found"
+            f" again without a person in {lost[case]}; search time (simulated) median"
+            f" {np.median(times):.2f} s, max {times.max():.2f} s"
+        )
+    return not any(failed.values()) and all(lost.values())
+
+
 def bench_modbus_latency(n: int = 2000) -> None:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -90,5 +146,6 @@ def bench_modbus_latency(n: int = 2000) -> None:
 
 if __name__ == "__main__":
     ok = bench_fine_alignment()
+    ok &= bench_beam_recovery()
     bench_modbus_latency()
     sys.exit(0 if ok else 1)

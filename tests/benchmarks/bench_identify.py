@@ -1,27 +1,44 @@
-"""Benchmark of the identification methods over simulated sessions.
+"""Benchmarks of identification: the methods, and the coverage of the stated 95 % region.
 
 Run: python tests/benchmarks/bench_identify.py [--sessions 200] [--seed 1]
+     [--coverage-sessions 100] [--counts 4 6 10 16]
 
-Each session: the reference machine, a random launch pose near the machine
-file's guess, 8 alignments at spread positions (jittered), realistic unit
-imperfections (encoder noise 10 urad, zero offsets 60 urad, axis offsets
-10 um, machine positioning 20 um, distance noise 20 um). Prints, per method,
-the RMS position and gamma errors, the coverage of the reported 95 % region
-of (x, y, z, gamma) and the median / max solve time, then checks the targets.
+Methods: closed-form sessions (:mod:`sim.identification`) on the reference
+machine, a random launch pose near the machine file's guess, 8 alignments at
+spread positions (jittered), realistic unit imperfections (encoder noise
+10 urad, zero offsets 60 urad, axis offsets 10 um, machine positioning 20 um,
+distance noise 20 um). Prints, per method, the RMS position and gamma errors,
+the coverage of the reported 95 % region of (x, y, z, gamma) and the median /
+max solve time.
+
+Coverage: whole identification routines on the virtual setup of the dry run
+(:func:`sim.dry_run.virtual_setup`: machine errors of seed 003 Table 1, the
+tool turning with them, unit imperfections with beam collimation, launch unit
+placed around the guess), at the positions ``plan-identify`` designs for 4, 6,
+10 and 16 alignments, one seeded session each: the fraction of sessions whose
+truth lies inside the stated 95 % region (chi-square, 4 dof, of the pose error
+with the stated covariance), the sessions with a false outlier or a scaled
+covariance, and the mean chi2/dof. Then checks the targets.
 """
 
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
+from sim.dry_run import identify_virtually, virtual_setup
 from sim.identification import SessionImperfections, simulate_session, spread_positions
+from trajectories.identification_design import design_identification
 from xmalign.geometry import wrap_angle
 from xmalign.identify import METHODS, identify
-from xmalign.machine import default_machine_path, load_machine
+from xmalign.machine import Machine, default_machine_path, load_machine
+
+COVERAGE_TARGET = (0.90, 0.99)
 
 
 def run(n_sessions: int, seed: int) -> dict[str, dict[str, float]]:
@@ -63,10 +80,63 @@ def run(n_sessions: int, seed: int) -> dict[str, dict[str, float]]:
     }
 
 
+def coverage(machine: Machine, count: int, n_sessions: int, seed: int) -> dict[str, float]:
+    """Whole identifications on the virtual setup at the designed positions for ``count``."""
+    positions = design_identification(machine, count).machine_mm
+    limit95 = stats.chi2.ppf(0.95, 4)
+    covered = outliers = scaled = not_converged = 0
+    reduced_chi2 = []
+    for session_seed in range(seed, seed + n_sessions):
+        setup = virtual_setup(machine, session_seed)
+        with tempfile.TemporaryDirectory() as workdir:
+            result = identify_virtually(
+                setup, machine, positions, Path(workdir) / "session.json", seed=session_seed
+            )
+        truth = setup.world
+        delta = np.append(
+            result.position_mm - truth.launch2mcs_mm, wrap_angle(result.gamma_rad - truth.gamma_rad)
+        )
+        covered += float(delta @ np.linalg.solve(result.covariance, delta)) <= limit95
+        outliers += result.outlier is not None
+        scaled += result.covariance_scale > 1.0
+        not_converged += not result.converged
+        reduced_chi2.append(result.chi2 / max(result.dof, 1))
+    return {
+        "coverage_95": covered / n_sessions,
+        "outliers": outliers / n_sessions,
+        "scaled": scaled / n_sessions,
+        "not_converged": not_converged / n_sessions,
+        "mean_chi2_dof": float(np.mean(reduced_chi2)),
+    }
+
+
+def print_coverage(counts: list[int], n_sessions: int, seed: int) -> bool:
+    machine = load_machine(default_machine_path())
+    print(
+        f"\ncoverage on the virtual setup (machine errors on), {n_sessions} sessions per count,"
+        f" seeds {seed}..{seed + n_sessions - 1}"
+    )
+    print(f"{'alignments':>10}{'cover 95%':>11}{'outlier':>9}{'scaled':>8}{'chi2/dof':>10}")
+    ok = True
+    for count in counts:
+        start = time.perf_counter()
+        f = coverage(machine, count, n_sessions, seed)
+        print(
+            f"{count:>10}{f['coverage_95']:>11.3f}{f['outliers']:>9.3f}{f['scaled']:>8.3f}"
+            f"{f['mean_chi2_dof']:>10.2f}   ({time.perf_counter() - start:.0f} s)"
+        )
+        low, high = COVERAGE_TARGET
+        ok &= low <= f["coverage_95"] <= high and f["not_converged"] == 0
+    print(f"{'PASS' if ok else 'FAIL'}  coverage within 90-99 % at every count, all converged")
+    return ok
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=200)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--coverage-sessions", type=int, default=100)
+    parser.add_argument("--counts", type=int, nargs="+", default=[4, 6, 10, 16])
     args = parser.parse_args()
     figures = run(args.sessions, args.seed)
     print(f"{args.sessions} sessions of 8 alignments, seed {args.seed}")
@@ -88,7 +158,8 @@ def main() -> None:
     }
     for name, ok in checks.items():
         print(f"{'PASS' if ok else 'FAIL'}  {name}")
-    raise SystemExit(0 if all(checks.values()) else 1)
+    covered = print_coverage(args.counts, args.coverage_sessions, args.seed)
+    raise SystemExit(0 if all(checks.values()) and covered else 1)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from xmalign.alignment import (
+    AlignmentStep,
     FineAlignmentSettings,
     JogCommand,
     aligned_error,
@@ -15,6 +16,7 @@ from xmalign.alignment import (
     jog,
     parse_jog,
     range_used,
+    search_offsets_urad,
     sensitivity,
 )
 from xmalign.cli.align import simulated_setup
@@ -77,12 +79,110 @@ def test_converges_from_200um_300urad_within_5s(reference_machine, position) -> 
     )
 
 
-def test_lost_beam_stops_fine_alignment(reference_machine) -> None:  # noqa: ANN001
+def test_beam_out_of_range_at_the_start_is_found_by_the_search(reference_machine) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(
+        reference_machine, POSITIONS[0], seed=1, start_um=600, start_urad=0
+    )
+    assert not world.interferometer.read().beam_ok
+    settings = FineAlignmentSettings()
+    result = fine_align(
+        devices.launch, devices.receiver, devices.interferometer, devices.clock, 1000.0, settings
+    )
+    assert result.recoveries == 1 and result.search_s > 0
+    truth = aligned_error(_noise_free(world.interferometer.geometry()))
+    assert np.all(np.abs(truth[:2]) <= 2 * settings.straightness_tol_um)
+    assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
+
+
+def _knock_the_launch_unit(world, at_step: int, angle_urad: float):  # noqa: ANN001, ANN202
+    """An on_step callback that turns the launch unit's base once (someone bumps it)."""
+    steps = []
+
+    def on_step(step: AlignmentStep) -> None:
+        steps.append(step)
+        if len(steps) == at_step:
+            world.interferometer.gamma_rad += angle_urad * 1e-6
+
+    return on_step
+
+
+def test_beam_lost_midway_is_found_again(reference_machine) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(
+        reference_machine, POSITIONS[0], seed=1, start_um=200, start_urad=300
+    )
+    settings = FineAlignmentSettings()
+    result = fine_align(
+        devices.launch,
+        devices.receiver,
+        devices.interferometer,
+        devices.clock,
+        1000.0,
+        settings,
+        on_step=_knock_the_launch_unit(world, at_step=2, angle_urad=400.0),
+    )
+    assert result.recoveries == 1
+    truth = aligned_error(_noise_free(world.interferometer.geometry()))
+    assert np.all(np.abs(truth[:2]) <= 2 * settings.straightness_tol_um)
+    assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
+
+
+def test_a_brief_interruption_goes_back_to_the_last_in_range_angles(reference_machine) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(
+        reference_machine, POSITIONS[1], seed=2, start_um=100, start_urad=100
+    )
+
+    class Interrupted:
+        """The interferometer with the beam blocked for its second reading."""
+
+        def __init__(self) -> None:
+            self.readings = 0
+
+        def average(self, duration_s: float) -> InterferometerReading:
+            self.readings += 1
+            reading = world.interferometer.average(duration_s)
+            if self.readings == 2:
+                return InterferometerReading(reading.time_s, reading.channels, beam_ok=False)
+            return reading
+
+    result = fine_align(devices.launch, devices.receiver, Interrupted(), devices.clock, 1000.0)
+    assert result.recoveries == 1
+    # found at the first candidate, the last in-range angles: one move, no spiral
+    assert result.search_s < 0.5
+
+
+def test_beam_not_found_by_the_search_asks_for_a_person(reference_machine) -> None:  # noqa: ANN001
     _, devices = simulated_setup(
         reference_machine, POSITIONS[0], seed=1, start_um=600, start_urad=0
     )
-    with pytest.raises(BeamLostError, match="beam was lost.*align --manual"):
-        fine_align(devices.launch, devices.receiver, devices.interferometer, devices.clock, 1000.0)
+    settings = FineAlignmentSettings(search_radius_urad=100.0, search_radius_um=0.0)
+    with pytest.raises(BeamLostError, match="not found again.*spiral search.*align --manual"):
+        fine_align(
+            devices.launch,
+            devices.receiver,
+            devices.interferometer,
+            devices.clock,
+            1000.0,
+            settings,
+        )
+
+
+@pytest.mark.parametrize(("step", "radius"), [(1.0, 0.5), (1.0, 1.0), (1.0, 3.7), (120.0, 1400.0)])
+def test_search_spiral_covers_the_disc_once_in_unit_steps(step: float, radius: float) -> None:
+    offsets = search_offsets_urad(step, radius)
+    grid = np.round(offsets / step).astype(int)
+    assert len({tuple(p) for p in grid}) == len(grid)  # no point twice
+    assert np.all(np.hypot(*offsets.T) <= radius + 1e-9)
+    n = int(radius // step)
+    expected = {
+        (i, j)
+        for i in range(-n, n + 1)
+        for j in range(-n, n + 1)
+        if (i, j) != (0, 0) and np.hypot(i, j) * step <= radius + 1e-9
+    }
+    assert {tuple(p) for p in grid} == expected
+    # nearest first: rings never move inwards
+    rings = np.max(np.abs(grid), axis=1) if len(grid) else grid
+    assert np.all(np.diff(rings) >= 0)
 
 
 def test_timeout_names_the_residuals(reference_machine) -> None:  # noqa: ANN001

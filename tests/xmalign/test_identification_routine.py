@@ -7,14 +7,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from sim.cnc import SimulatedCnc
+from sim.dry_run import identify_virtually, virtual_setup
 from sim.identification import spread_positions
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
+from trajectories.identification_design import design_identification
+from xmalign.alignment import FineAlignmentSettings
 from xmalign.cli.align import point_by_truth
-from xmalign.errors import GeometryError, InputError, OutOfRangeError
+from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Session, read_session, write_session
+from xmalign.geometry import wrap_angle
 from xmalign.identification_routine import (
     PoseGuess,
     RoutineDevices,
@@ -158,3 +163,41 @@ def test_gamma_from_alignments(reference_machine, tmp_path: Path) -> None:  # no
     assert gamma_from_alignments(world.launch2mcs_mm, session) == pytest.approx(
         world.gamma_rad, abs=2e-4
     )
+
+
+def test_beam_missed_by_the_pointing_is_found_without_a_person(reference_machine, tmp_path) -> None:  # noqa: ANN001
+    """A guess whose azimuth is 400 urad off points the beam out of range at every far
+    position; fine alignment's search finds it there, so no operator is needed."""
+    world, devices = simulated(reference_machine)
+    guess = PoseGuess(world.launch2mcs_mm, world.gamma_rad + 400e-6)
+    positions = spread_positions(reference_machine, 6)
+    no_search = FineAlignmentSettings(search_radius_urad=0.0, search_radius_um=0.0)
+    with pytest.raises(BeamLostError, match="not found again"):
+        run_identification(
+            positions, reference_machine, devices, tmp_path / "a.json", guess, no_search
+        )
+    world, devices = simulated(reference_machine)
+    session = run_identification(positions, reference_machine, devices, tmp_path / "b.json", guess)
+    assert len(session.alignments) == 6
+    assert all(np.abs(a.straightness_um).max() <= 1.0 for a in session.alignments)
+
+
+def test_virtual_sessions_with_machine_errors_agree_with_the_stated_uncertainty(
+    reference_machine, tmp_path
+) -> None:  # noqa: ANN001
+    """The whole routine on the dry run's virtual machine (its errors turn the receiver):
+    no false outlier, no 'residuals larger than stated' warning, the truth inside 95 %."""
+    positions = design_identification(reference_machine, 6).machine_mm
+    limit = stats.chi2.ppf(0.95, 4)
+    for seed in range(1, 9):
+        setup = virtual_setup(reference_machine, seed)
+        result = identify_virtually(
+            setup, reference_machine, positions, tmp_path / f"{seed}.json", seed=seed
+        )
+        assert result.outlier is None and result.converged
+        assert not any("larger than the stated" in w for w in result.warnings), result.warnings
+        delta = np.append(
+            result.position_mm - setup.world.launch2mcs_mm,
+            wrap_angle(result.gamma_rad - setup.world.gamma_rad),
+        )
+        assert delta @ np.linalg.solve(result.covariance, delta) <= limit

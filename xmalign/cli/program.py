@@ -121,6 +121,8 @@ def plan_identify(
         design = design_identification(machine_model, count)
     std = design.std
     console.print(_design_table(design))
+    for warning in design.warnings:
+        error_console.print(f"warning: {warning}")
     console.print(
         f"predicted standard uncertainty: x {1e3 * std[0]:.1f} um, y {1e3 * std[1]:.1f} um,"
         f" z {1e3 * std[2]:.1f} um, gamma {1e6 * std[3]:.1f} urad"
