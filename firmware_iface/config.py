@@ -38,22 +38,21 @@ from typing import Annotated, Literal
 
 import can
 import canopen
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import check_format, read_yaml, validate
+from xmalign.formats.common import StrictFileModel, check_format, read_yaml, validate
 from xmalign.machine import Machine
 from xmalign.roles import Interferometer, MachineMover, PositioningUnit
 
 UNITS_FORMAT = "xmalign.units/1"
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+_Strict = StrictFileModel
 
 
 class ModbusTcpUnit(_Strict):
@@ -108,8 +107,8 @@ class MachinePositionConfig(_Strict):
 
 
 class Timeouts(_Strict):
-    io_s: Annotated[float, Field(gt=0)] = 1.0
-    move_s: Annotated[float, Field(gt=0)] = 30.0
+    io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
+    move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
 
 
 class UnitsConfig(_Strict):

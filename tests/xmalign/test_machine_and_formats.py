@@ -25,8 +25,8 @@ def test_reference_machine_loads(reference_machine):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda d: d.pop("chain"), "missing key 'chain'"),
-        (lambda d: d.update(spindel_angle_deg=0), "unknown key 'spindel_angle_deg'"),
+        (lambda d: d.pop("chain"), "key 'chain': missing"),
+        (lambda d: d.update(spindel_angle_deg=0), "key 'spindel_angle_deg': not a known key"),
         (lambda d: d["travel_mm"].update(X=[10, 5]), "key 'travel_mm'"),
         (lambda d: d["feed_mm_min"].update(measure=0), "key 'feed_mm_min.measure'"),
         (lambda d: d.update(receiver_offset_mm=[0, 0]), "key 'receiver_offset_mm'"),
@@ -79,14 +79,14 @@ def test_session_round_trip(tmp_path):
 @pytest.mark.parametrize(
     ("text", "error", "message"),
     [
-        ("{not json", InputError, "line 1 column 2"),
+        ("{not json", InputError, "line 1: not valid JSON at column 2"),
         ('{"format": "xmalign.identify-session/2"}', FormatError, "version '2'"),
         ('{"format": "xmalign.plan/1"}', FormatError, "not a xmalign.identify-session"),
-        ('{"alignments": []}', FormatError, "missing key 'format'"),
+        ('{"alignments": []}', FormatError, "key 'format': missing"),
         (
             '{"format": "xmalign.identify-session/1", "alignments": []}',
             InputError,
-            "missing key 'receiver_offset_mm'",
+            "key 'receiver_offset_mm': missing",
         ),
     ],
 )

@@ -14,7 +14,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import check_seed, console, machine_or_default, refuse_overwriting
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import Session, read_session
@@ -228,6 +228,11 @@ def identify_command(
         raise InputError("give one of --input SESSION.json, --sim or --live")
     if live and (config is None or session_file is None):
         raise InputError("--live needs --config UNITS.yaml and --session SESSION.json")
+    check_seed(seed)
+    refuse_overwriting(
+        {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
+        {"--out": out, "--session-out": session_out},
+    )
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,

@@ -10,7 +10,7 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import console, machine_or_default, output_folder, refuse_overwriting
 from xmalign.comp import WRITERS, writer
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
@@ -58,6 +58,10 @@ def post(
     report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from six lines."""
+    refuse_overwriting(
+        {"--plan": plan, "--data": data, "--machine": machine},
+        {"--out": out, "--report": report},
+    )
     machine_ = machine_or_default(machine)
     with _progress() as progress:
         task = progress.add_task("reading plan and measurements", total=None)
@@ -91,6 +95,10 @@ def comp(
     machine_ = machine_or_default(machine)
     module = writer(controller or machine_.controller)
     files = module.render(read_error_tables(errors), Chain.parse(machine_.chain))
+    output_folder(out, "--out")
+    refuse_overwriting(
+        {"--errors": errors, "--machine": machine}, {"--out": [out / name for name in files]}
+    )
     for name, text in files.items():
         atomic_write_text(out / name, text)
     console.print(f"{module.NAME}: wrote {', '.join(sorted(files))} in {out}")

@@ -12,7 +12,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import check_seed, console, machine_or_default
 from xmalign.errors import InputError
 from xmalign.formats.measurements import MeasurementRow, MeasurementWriter, read_measurements
 from xmalign.formats.plan import Plan, read_plan
@@ -217,6 +217,7 @@ def dry_run_command(
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, simulate_calibration
 
+    check_seed(seed)
     machine_model = machine_or_default(machine)
     options = DryRunOptions(
         seed=seed, identification_positions=identification_positions, dialect=dialect
