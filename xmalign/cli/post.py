@@ -12,7 +12,7 @@ from rich.table import Table as RichTable
 
 from xmalign.cli.common import console, machine_or_default, output_folder, refuse_overwriting
 from xmalign.comp import WRITERS, writer
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
@@ -99,8 +99,7 @@ def comp(
     refuse_overwriting(
         {"--errors": errors, "--machine": machine}, {"--out": [out / name for name in files]}
     )
-    for name, text in files.items():
-        atomic_write_text(out / name, text)
+    atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
     console.print(f"{module.NAME}: wrote {', '.join(sorted(files))} in {out}")
 
 

@@ -24,6 +24,7 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -140,6 +141,11 @@ def describe_problem(first: Any) -> str:
         return "not a known key"
     if kind == "finite_number":
         return f"{first['input']} is not a finite number"
+    if kind in ("too_short", "too_long"):
+        context = first.get("ctx", {})
+        bound = "at least" if kind == "too_short" else "at most"
+        count = context.get("min_length" if kind == "too_short" else "max_length")
+        return f"must have {bound} {count} values, not {context.get('actual_length')}"
     message = first["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
     if message.startswith("Input should be"):
         value = first.get("input")
@@ -201,7 +207,9 @@ def read_yaml(path: str | Path, what: str = "file") -> object:
         raise InputError(
             located(path, where, problem or f"not valid YAML ({error.problem or error.context})")
         ) from error
-    except (yaml.YAMLError, ValueError, RecursionError) as error:
+    except RecursionError as error:
+        raise InputError(located(path, "not valid YAML", "nested too deeply")) from error
+    except (yaml.YAMLError, ValueError) as error:  # e.g. a date like 2024-13-45
         raise InputError(located(path, "not valid YAML", str(error).splitlines()[0])) from error
     return data
 
@@ -242,8 +250,11 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
         raise line_error(
             path, error.lineno, f"not valid JSON at column {error.colno}: {error.msg}"
         ) from error
-    except (ValueError, RecursionError) as error:
-        raise InputError(located(path, "not valid JSON", str(error).splitlines()[0])) from error
+    except RecursionError as error:
+        raise InputError(located(path, "not valid JSON", "nested too deeply")) from error
+    except ValueError as error:  # e.g. an integer of thousands of digits
+        problem = "a number has too many digits" if "digits" in str(error) else str(error)
+        raise InputError(located(path, "not valid JSON", problem)) from error
     if not isinstance(data, dict):
         raise FormatError(located(path, "top level", "expected a JSON object with a 'format' key"))
     check_format(data.get("format"), expected_format, str(path))
@@ -291,41 +302,69 @@ def _sync_folder(folder: Path) -> None:
         os.close(fd)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` so that a reader sees the old file or the whole new one, never half.
-
-    A temporary file in the same folder is written, synced and renamed over
-    ``path``; it gets ``0666 & ~umask`` like any new file (a controller running
-    as another user can read it). The folder is created if missing.
-
-    Raises
-    ------
-    OutputError
-        ``path`` is a folder, or the folder is read-only, the disk full...;
-        the old file is then left as it was.
-    """
-    path = Path(path)
+def _write_temporary(path: Path, data: bytes) -> Path:
+    """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
     if path.is_dir():
         raise OutputError(located(path, "cannot write", "is a folder; give a file name"))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as error:
         raise OutputError(located(path, "cannot write", os_problem(error))) from error
+    tmp = Path(name)
     try:
         with os.fdopen(fd, "wb") as handle:
             os.fchmod(handle.fileno(), _new_file_mode())
             handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
-        os.replace(tmp, path)
     except BaseException as error:
         with contextlib.suppress(OSError):
-            Path(tmp).unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
         if isinstance(error, OSError):
             raise OutputError(located(path, "cannot write", os_problem(error))) from error
         raise
-    _sync_folder(path.parent)
+    return tmp
+
+
+def atomic_write_files(files: Mapping[Path, bytes]) -> None:
+    """Write several files so that either all are replaced or none is.
+
+    Every file is first written to a synced temporary file next to it (mode
+    ``0666 & ~umask``, as a plain ``open`` would give: a controller running as
+    another user can read it); only when all are written are they renamed
+    over their targets. Folders are created if missing.
+
+    Raises
+    ------
+    OutputError
+        A target is a folder, or a folder is read-only, the disk full...;
+        every old file is then left as it was and no temporary file remains.
+    """
+    written: dict[Path, Path] = {}
+    try:
+        for path, data in files.items():
+            written[Path(path)] = _write_temporary(Path(path), data)
+        for path, tmp in list(written.items()):
+            try:
+                os.replace(tmp, path)
+            except OSError as error:
+                raise OutputError(located(path, "cannot write", os_problem(error))) from error
+            del written[path]
+    finally:
+        for tmp in written.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+    for folder in {Path(path).parent for path in files}:
+        _sync_folder(folder)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write one file so that a reader sees the old file or the whole new one, never half.
+
+    See :func:`atomic_write_files` (temporary file, fsync, rename; umask honoured).
+    """
+    atomic_write_files({Path(path): data})
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

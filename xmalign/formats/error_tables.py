@@ -66,10 +66,14 @@ class Table:
 
 @dataclass
 class ErrorTableSet:
-    """All tables of an error CSV, keyed by file name (``EXX``, ``EXX+``, ``EC0Y``)."""
+    """All tables of an error CSV, keyed by file name (``EXX``, ``EXX+``, ``EC0Y``).
+
+    ``source`` names the file they were read from (for messages).
+    """
 
     tables: dict[str, Table] = field(default_factory=dict)
     squareness: dict[str, tuple[float, float]] = field(default_factory=dict)
+    source: str = "the error tables"
 
     def model(self, direction: str = "") -> ErrorTables:
         """The interpolating error model of one direction (``""``, ``"+"`` or ``"-"``).
@@ -151,7 +155,7 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
             raise FormatError(located(path, "line 1", f"header must be {','.join(HEADER)}"))
         rows: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         first_line: dict[tuple[str, float | None], int] = {}
-        result = ErrorTableSet()
+        result = ErrorTableSet(source=str(path))
         for fields in reader:
             if not fields:
                 continue
