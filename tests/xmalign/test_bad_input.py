@@ -7,6 +7,7 @@ the real command in a fresh interpreter.
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 from pathlib import Path
@@ -72,6 +73,28 @@ def test_outputs_get_the_umask_mode_not_0600(tmp_path: Path, monkeypatch: pytest
         assert path.stat().st_mode & 0o777 == 0o640, path
 
 
+def test_comp_replaces_all_controller_files_or_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The disk fills up while the second of Sinumerik's two files is written."""
+    prepare(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    synced: list[int] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        synced.append(fd)
+        if len(synced) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    code, stderr, _ = run_main(("comp", "--errors", "errors.csv", "--out", "comp"))
+    assert code == 2 and "disk full" in stderr
+    assert [p.name for p in (tmp_path / "comp").iterdir()] == ["NC_CEC.INI"]
+    assert (tmp_path / "comp" / "NC_CEC.INI").read_text() == "old table\n"
+
+
 # -- the real command, in a fresh interpreter (a representative few) ------------------------
 
 
@@ -111,13 +134,6 @@ def test_cli_infinity_in_the_pose(tmp_path: Path) -> None:
 
 def test_cli_dry_run_negative_seed() -> None:
     assert_one_line_error(run_cli("dry-run", "--seed", "-5"), "--seed")
-
-
-def test_cli_non_utf8_machine(tmp_path: Path) -> None:
-    folder = _folder(tmp_path)
-    (folder / "fyxz.yaml").write_bytes(b"name: caf\xe9\n")
-    result = run_cli("plan-identify", "--machine", "fyxz.yaml", cwd=folder)
-    assert_one_line_error(result, "fyxz.yaml", "line 1", "not UTF-8")
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")

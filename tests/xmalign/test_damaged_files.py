@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from firmware_iface.config import load_units_config
+from firmware_iface.interferometer import STREAM_HEADER, read_stream
 from xmalign.errors import XmalignError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import read_plan
@@ -30,7 +31,21 @@ READERS: dict[str, Callable[[Path], object]] = {
     "pose.json": read_pose,
     "plan.json": read_plan,
     "errors.csv": read_error_tables,
+    "stream.csv": read_stream,
 }
+#: A recorded interferometer stream (``units.yaml``'s ``replay``), made here.
+STREAM = (
+    ",".join(STREAM_HEADER)
+    + "\n"
+    + "".join(f"{0.02 * k:.2f},{k}.5,-1.25,2.0,0.5,-3.75,12.0,1\n" for k in range(20))
+)
+
+
+def _original(name: str) -> bytes:
+    if name == "stream.csv":
+        return STREAM.encode()
+    return (ROOT / "examples" / name).read_bytes()
+
 
 _EDIT = st.tuples(
     st.sampled_from(["flip", "set", "insert", "delete", "cut"]),
@@ -67,10 +82,11 @@ def test_damage_changes_the_bytes() -> None:
 
 @pytest.mark.parametrize("name", READERS)
 def test_every_reader_survives_damage(name: str, tmp_path_factory: pytest.TempPathFactory):
-    original = (ROOT / "examples" / name).read_bytes()
+    original = _original(name)
     folder = tmp_path_factory.mktemp("damaged")
     reader = READERS[name]
-    reader(ROOT / "examples" / name)  # the undamaged file is valid
+    (folder / name).write_bytes(original)
+    reader(folder / name)  # the undamaged file is valid
 
     @settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
     @given(edits=st.lists(_EDIT, min_size=1, max_size=4))
