@@ -1,7 +1,7 @@
 """The machine description (YAML) of FORMATS.md, validated with pydantic.
 
 Besides the keys of the spec, two optional sections are xmalign's own
-(documented in docs/formats-notes.md): ``uncertainty`` (the a-priori
+(documented in docs/conventions-notes.md): ``uncertainty`` (the a-priori
 uncertainties identification and planning use) and ``measurement`` (target
 spacing, runs, dwell and stand-off for ``xmalign program``). Every number
 must be finite and within what a real machine can have (docs/formats.md,

@@ -17,7 +17,7 @@ from rich.table import Table
 from xmalign.cli.common import check_seed, console, machine_or_default, refuse_overwriting
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
-from xmalign.formats.session import Session, read_session
+from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
@@ -257,7 +257,12 @@ def identify_command(
             session = _live_identification(machine_model, config, alignments, session_file)
             source = str(session_file)
         else:
-            session, source = read_session(input), str(input)
+            range_um = (
+                machine_model.interferometer.straightness_range_um
+                if machine_model is not None
+                else NOMINAL_STRAIGHTNESS_RANGE_UM
+            )
+            session, source = read_session(input, range_um), str(input)
         result = identify(session, method, uncertainty, source)
     print_result(result, session, truth)
     if out is not None:
