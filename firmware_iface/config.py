@@ -149,7 +149,7 @@ def _resolve(path: Path | None, base_dir: Path) -> Path | None:
 def load_units_config(path: str | Path) -> UnitsConfig:
     """Read and validate a ``units.yaml``; errors name the file and the key."""
     path = Path(path)
-    return parse_units_config(read_yaml(path, "units configuration"), str(path), path.parent)
+    return parse_units_config(read_yaml(path), str(path), path.parent)
 
 
 @dataclass

@@ -73,6 +73,17 @@ class InterferometerRanges(_Strict):
     straightness_range_um: Micrometres = 250.0
     angle_range_urad: Microradians = 500.0
 
+    def channel_limits(self) -> Vec:
+        """The largest credible reading of each channel (roles.CHANNELS order), shape (6,).
+
+        Twice the instrument's ranges (um, urad): a reading beyond is a
+        corrupted value, not a measurement.
+        """
+        return 2.0 * np.array(
+            [1000.0 * self.max_range_mm, *[self.straightness_range_um] * 2]
+            + [self.angle_range_urad] * 3
+        )
+
 
 class Thermal(_Strict):
     """Normalisation of linear errors to 20 °C: the expansion of the machine's scales."""
@@ -184,7 +195,7 @@ def parse_machine(data: object, source: str = "<machine>") -> Machine:
 
 def load_machine(path: str | Path) -> Machine:
     """Read and validate a machine YAML file."""
-    return parse_machine(read_yaml(path, "machine file"), str(path))
+    return parse_machine(read_yaml(path), str(path))
 
 
 def default_machine_path() -> Path:

@@ -178,3 +178,37 @@ def test_error_tables_round_trip(tmp_path):
     path.write_text("name,position_mm,value,unit,u95\nEXX,0,1,urad,\n")
     with pytest.raises(InputError, match="line 2: EXX is in um"):
         read_error_tables(path)
+
+
+def test_channel_limits_are_twice_the_ranges(reference_machine):
+    limits = reference_machine.interferometer.channel_limits()
+    np.testing.assert_allclose(limits, [8e6, 500, 500, 1000, 1000, 1000])
+
+
+def test_an_interrupted_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    import xmalign.formats.common as common
+
+    path = tmp_path / "pose.json"
+    path.write_text("old\n")
+
+    def interrupted(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(common.os, "fsync", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        common.atomic_write_text(path, "new\n")
+    assert path.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["pose.json"]
+
+
+def test_yaml_duplicate_keys_and_bom(tmp_path):
+    from xmalign.formats.common import read_yaml
+
+    path = tmp_path / "a.yaml"
+    path.write_bytes(b"\xef\xbb\xbfa: 1\nb: {c: 2}\n")
+    assert read_yaml(path) == {"a": 1, "b": {"c": 2}}
+    path.write_text("a: 1\nb:\n  c: 2\n  c: 3\n")
+    with pytest.raises(
+        InputError, match=r"a.yaml: line 4: key 'c' given twice \(first on line 3\)"
+    ):
+        read_yaml(path)

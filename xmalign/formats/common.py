@@ -191,11 +191,8 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-def read_yaml(path: str | Path, what: str = "file") -> object:
-    """Parse a YAML file; errors name the file and the line (duplicate keys refused).
-
-    ``what`` is kept for callers that name the kind of file; the message names the path.
-    """
+def read_yaml(path: str | Path) -> object:
+    """Parse a YAML file; errors name the file and the line (duplicate keys refused)."""
     path = Path(path)
     text = read_text(path)
     try:
