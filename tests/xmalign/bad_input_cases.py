@@ -485,6 +485,13 @@ _CLI_CASES = [
     Case("align-seed", ("align", "--sim", "--seed", "-3"), ("--seed",)),
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
+    # command-line mistakes: one line too, not click's box
+    Case("usage-seed-text", ("dry-run", "--seed", "abc"), ("dry-run", "--seed", "--help")),
+    Case("usage-missing-value", ("post", "--plan"), ("--plan", "requires an argument")),
+    Case("usage-no-such-command", ("frobnicate",), ("No such command 'frobnicate'",)),
+    Case("usage-no-such-option", ("sim", "serve", "--foo"), ("sim serve", "--foo")),
+    Case("usage-missing-option", ("comp", "--out", "comp"), ("comp", "Missing option '--errors'")),
+    Case("usage-alignments-1", ("identify", "--sim", "--alignments", "1"), ("--alignments",)),
     # writing fails: the old output stays as it was
     Case(
         "comp-read-only",

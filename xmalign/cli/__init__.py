@@ -11,8 +11,10 @@ is printed instead of the generic one.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import typer
+from typer.core import TyperGroup
 
 from xmalign.cli import align, identify
 from xmalign.cli import mc as mc_command
@@ -20,10 +22,34 @@ from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
 from xmalign.cli import run as run_command
 from xmalign.cli import sim as sim_command
-from xmalign.errors import XmalignError
+from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import os_problem
 
+
+def _is_usage_error(error: Exception) -> bool:
+    """A click usage error (by name: recent typer versions vendor their own click)."""
+    names = {cls.__name__ for cls in type(error).__mro__}
+    return "UsageError" in names and "NoArgsIsHelpError" not in names
+
+
+class _OneLineUsageErrors(TyperGroup):
+    """A command-line mistake (unknown option, bad value) as one line, like a bad file."""
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except Exception as error:
+            if not _is_usage_error(error):
+                raise
+            context = getattr(error, "ctx", None) or ctx
+            where = context.command_path
+            raise InputError(
+                f"{where}: {error.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
+            ) from error
+
+
 app = typer.Typer(
+    cls=_OneLineUsageErrors,
     name="xmalign",
     help="Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units.",
     no_args_is_help=True,
