@@ -117,6 +117,9 @@ def main() -> None:
         where = error.filename if error.filename is not None else "file"
         _say(f"error: {where}: {os_problem(error)}")
         sys.exit(2)
+    except UnicodeDecodeError as error:  # a reader that did not go through read_text
+        _say(f"error: an input file is not UTF-8 text (byte 0x{error.object[error.start]:02x})")
+        sys.exit(2)
 
 
 if __name__ == "__main__":
