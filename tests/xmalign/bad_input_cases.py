@@ -466,6 +466,12 @@ _CLI_CASES = [
         ("post", "--plan", L, "--data", "m.csv", "--out", "comp/../m.csv"),
         ("m.csv", "--data"),
     ),  # noqa: E501
+    Case(
+        "post-out-a-link-to-data",
+        ("post", "--plan", L, "--data", "m.csv", "--out", "link.csv"),
+        ("link.csv", "--data"),
+        damage=lambda folder: (folder / "link.csv").symlink_to("m.csv"),
+    ),  # noqa: E501
     Case("identify-in-as-out", ("identify", "--input", S, "--out", S), (S, "--input")),
     Case("identify-machine-as-out", ("identify", "--input", S, "--out", M, "--machine", M), (M,)),
     Case(
