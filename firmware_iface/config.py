@@ -45,7 +45,13 @@ from firmware_iface.interferometer import ReplayInterferometer, SerialInterferom
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import StrictFileModel, check_format, read_yaml, validate
+from xmalign.formats.common import (
+    StrictFileModel,
+    check_format,
+    located,
+    read_yaml,
+    validate,
+)
 from xmalign.machine import Machine
 from xmalign.roles import Interferometer, MachineMover, PositioningUnit
 
@@ -125,7 +131,7 @@ class UnitsConfig(_Strict):
 def parse_units_config(data: object, source: str, base_dir: Path | None = None) -> UnitsConfig:
     """Validate a decoded ``units.yaml``; relative file paths are taken from ``base_dir``."""
     if not isinstance(data, dict):
-        raise InputError(f"{source}: expected a YAML mapping of configuration keys")
+        raise InputError(located(source, "top level", "expected a YAML mapping of keys"))
     check_format(data.get("format"), UNITS_FORMAT, source)
     config = validate(UnitsConfig, data, source)
     if base_dir is None:

@@ -24,6 +24,7 @@ from xmalign.formats.common import (
     Distance_mm,
     StrictFileModel,
     Vector3_mm,
+    located,
     read_yaml,
     validate,
 )
@@ -189,7 +190,7 @@ class Machine(_Strict):
 def parse_machine(data: object, source: str = "<machine>") -> Machine:
     """Validate a machine mapping; raises InputError naming ``source`` and the key."""
     if not isinstance(data, dict):
-        raise InputError(f"{source}: expected a YAML mapping of machine keys")
+        raise InputError(located(source, "top level", "expected a YAML mapping of machine keys"))
     return validate(Machine, data, source)
 
 
