@@ -212,3 +212,12 @@ def test_yaml_duplicate_keys_and_bom(tmp_path):
         InputError, match=r"a.yaml: line 4: key 'c' given twice \(first on line 3\)"
     ):
         read_yaml(path)
+
+
+def test_json_with_nan_is_not_written(tmp_path):
+    from xmalign.errors import OutputError
+    from xmalign.formats.common import write_json
+
+    with pytest.raises(OutputError, match="p.json: cannot write: a value is not a finite"):
+        write_json(tmp_path / "p.json", {"x": float("nan")})
+    assert not (tmp_path / "p.json").exists()

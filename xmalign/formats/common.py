@@ -370,5 +370,18 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 
 def write_json(path: str | Path, data: dict[str, Any]) -> None:
-    """Write a JSON document atomically, indented for people (NaN refused)."""
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    """Write a JSON document atomically, indented for people.
+
+    Raises
+    ------
+    OutputError
+        A value is NaN or infinite: strict JSON has no such number, and
+        xmalign's readers would refuse the file.
+    """
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False) + "\n"
+    except ValueError as error:
+        raise OutputError(
+            located(path, "cannot write", "a value is not a finite number")
+        ) from error
+    atomic_write_text(path, text)
