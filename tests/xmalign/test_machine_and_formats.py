@@ -212,6 +212,9 @@ def test_yaml_duplicate_keys_and_bom(tmp_path):
         InputError, match=r"a.yaml: line 4: key 'c' given twice \(first on line 3\)"
     ):
         read_yaml(path)
+    path.write_text("a: {b: 1, b: 2}\n")
+    with pytest.raises(InputError, match="a.yaml: line 1: key 'b' given twice"):
+        read_yaml(path)
 
 
 def test_json_with_nan_is_not_written(tmp_path):
