@@ -486,6 +486,26 @@ _CLI_CASES = [
     Case("comp-out-a-file", ("comp", "--errors", E, "--out", P), (P, "--out", "folder")),
     Case("comp-out-the-errors", ("comp", "--errors", E, "--out", E), (E, "--out")),
     Case("mc-out-a-file", ("mc", "--trials", "2", "--out", P), (P, "--out")),
+    Case(
+        "run-seed", ("run", "--sim", "--plan", L, "--out", "new.csv", "--seed", "-4"), ("--seed",)
+    ),  # noqa: E501
+    Case(
+        "run-plan-missing",
+        ("run", "--sim", "--plan", "nope.json", "--out", "new.csv"),
+        ("nope.json", "no such file"),
+    ),  # noqa: E501
+    Case(
+        "run-plan-duplicate-ids",
+        ("run", "--sim", "--plan", L, "--out", "new.csv"),
+        (L, "given twice"),
+        damage=edit_json(L, _line("id", "Y", 0)),
+    ),  # noqa: E501
+    Case(
+        "run-plan-gamma-text",
+        ("run", "--sim", "--plan", L, "--out", "new.csv"),
+        (L, "lines.1.launch_deg.0"),
+        damage=edit_json(L, sets("lines", 1, "launch_deg", 0, value="x")),
+    ),  # noqa: E501
     Case("dry-run-seed", ("dry-run", "--seed", "-5", "--out", "dr"), ("--seed", "-5")),
     Case("identify-seed", ("identify", "--sim", "--seed", "-1"), ("--seed",)),
     Case("align-seed", ("align", "--sim", "--seed", "-3"), ("--seed",)),

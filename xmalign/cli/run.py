@@ -148,6 +148,7 @@ def run_command(
     """Drive the units, lock them, step the machine through the plan and capture every point."""
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
+    check_seed(seed)
     machine_model = machine_or_default(machine)
     plan_model = read_plan(plan)
     if resume and not out.exists():
