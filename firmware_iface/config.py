@@ -38,22 +38,27 @@ from typing import Annotated, Literal
 
 import can
 import canopen
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import check_format, read_yaml, validate
+from xmalign.formats.common import (
+    StrictFileModel,
+    check_format,
+    located,
+    read_yaml,
+    validate,
+)
 from xmalign.machine import Machine
 from xmalign.roles import Interferometer, MachineMover, PositioningUnit
 
 UNITS_FORMAT = "xmalign.units/1"
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+_Strict = StrictFileModel
 
 
 class ModbusTcpUnit(_Strict):
@@ -108,8 +113,8 @@ class MachinePositionConfig(_Strict):
 
 
 class Timeouts(_Strict):
-    io_s: Annotated[float, Field(gt=0)] = 1.0
-    move_s: Annotated[float, Field(gt=0)] = 30.0
+    io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
+    move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
 
 
 class UnitsConfig(_Strict):
@@ -126,7 +131,7 @@ class UnitsConfig(_Strict):
 def parse_units_config(data: object, source: str, base_dir: Path | None = None) -> UnitsConfig:
     """Validate a decoded ``units.yaml``; relative file paths are taken from ``base_dir``."""
     if not isinstance(data, dict):
-        raise InputError(f"{source}: expected a YAML mapping of configuration keys")
+        raise InputError(located(source, "top level", "expected a YAML mapping of keys"))
     check_format(data.get("format"), UNITS_FORMAT, source)
     config = validate(UnitsConfig, data, source)
     if base_dir is None:
@@ -150,7 +155,7 @@ def _resolve(path: Path | None, base_dir: Path) -> Path | None:
 def load_units_config(path: str | Path) -> UnitsConfig:
     """Read and validate a ``units.yaml``; errors name the file and the key."""
     path = Path(path)
-    return parse_units_config(read_yaml(path, "units configuration"), str(path), path.parent)
+    return parse_units_config(read_yaml(path), str(path), path.parent)
 
 
 @dataclass

@@ -19,6 +19,7 @@ role, so captured data can be re-run through alignment or a measurement.
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 from typing import Protocol
 
@@ -26,7 +27,8 @@ import numpy as np
 import serial
 
 from firmware_iface.xm_line_protocol import Command, Reply, decode_line, encode_command
-from xmalign.errors import DeviceError, DeviceTimeoutError, FormatError, InputError, TransportError
+from xmalign.errors import DeviceError, DeviceTimeoutError, FormatError, TransportError
+from xmalign.formats.common import read_text
 from xmalign.roles import CHANNELS, Interferometer, InterferometerReading, mean_reading
 
 STREAM_HEADER = ("time_s", *CHANNELS, "beam_ok")
@@ -172,11 +174,7 @@ class RecordingInterferometer:
 def read_stream(path: str | Path) -> list[InterferometerReading]:
     """Read a recorded stream CSV; errors name the file and line."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from error
-    rows = list(csv.reader(text.splitlines()))
+    rows = list(csv.reader(read_text(path).splitlines()))
     if not rows or tuple(h.strip() for h in rows[0]) != STREAM_HEADER:
         raise FormatError(f"{path}: line 1: expected the header {','.join(STREAM_HEADER)}")
     readings = []
@@ -189,6 +187,8 @@ def read_stream(path: str | Path) -> list[InterferometerReading]:
             values = [float(v) for v in row[:-1]]
         except ValueError as error:
             raise FormatError(f"{path}: line {number}: {error}") from error
+        if not all(math.isfinite(v) for v in values):
+            raise FormatError(f"{path}: line {number}: a value is not a finite number")
         beam_ok = row[-1].strip() == "1"
         readings.append(InterferometerReading(values[0], np.array(values[1:]), beam_ok))
     if not readings:

@@ -68,6 +68,8 @@ class FilePositions:
             raise TransportError(
                 f"cannot read the machine position file {self.path} ({error.strerror})"
             ) from error
+        except UnicodeDecodeError as error:
+            raise FormatError(f"{self.path}: not UTF-8 text (byte {error.start})") from error
         numbered = [
             (n, line)
             for n, line in enumerate(lines, start=1)

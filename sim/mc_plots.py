@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless back
 import numpy as np  # noqa: E402
 
 from sim.mc import StrategyResult, quantity_label  # noqa: E402
+from xmalign.formats.common import atomic_write_bytes  # noqa: E402
 
 #: Which percentile of the trials the volumetric map shows at each point.
 MAP_PERCENTILE = 95.0
@@ -28,8 +30,10 @@ def _grid(count: int, columns: int) -> tuple[plt.Figure, np.ndarray]:
 
 def _save(figure: plt.Figure, path: Path) -> Path:
     figure.tight_layout()
-    figure.savefig(path, dpi=90)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=90)
     plt.close(figure)
+    atomic_write_bytes(path, buffer.getvalue())
     return path
 
 

@@ -22,6 +22,10 @@ class FormatError(InputError):
     """A file whose format, version or syntax xmalign does not know."""
 
 
+class OutputError(XmalignError, OSError):
+    """A file could not be written: no permission, a full disk, a folder in the way."""
+
+
 class GeometryError(XmalignError, ValueError):
     """A setup whose geometry cannot give a result (degenerate, out of reach)."""
 

@@ -1,9 +1,11 @@
 """The machine description (YAML) of FORMATS.md, validated with pydantic.
 
 Besides the keys of the spec, two optional sections are xmalign's own
-(documented in docs/formats-notes.md): ``uncertainty`` (the a-priori
+(documented in docs/conventions-notes.md): ``uncertainty`` (the a-priori
 uncertainties identification and planning use) and ``measurement`` (target
-spacing, runs, dwell and stand-off for ``xmalign program``).
+spacing, runs, dwell and stand-off for ``xmalign program``). Every number
+must be finite and within what a real machine can have (docs/formats.md,
+"Validation").
 """
 
 from __future__ import annotations
@@ -12,30 +14,57 @@ import hashlib
 import json
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from xmalign.errors import InputError
-from xmalign.formats.common import read_yaml, validate
+from xmalign.formats.common import (
+    MAX_LENGTH_MM,
+    Angle_deg,
+    Distance_mm,
+    StrictFileModel,
+    Vector3_mm,
+    located,
+    read_yaml,
+    validate,
+)
 from xmalign.geometry import Vec
 
 AXES = ("X", "Y", "Z")
 CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
 
-Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Positive = Annotated[float, Field(gt=0)]
-TravelRange = Annotated[list[float], Field(min_length=2, max_length=2)]
+
+def _bounded(low: float, high: float, *, open_low: bool = False) -> Any:
+    """A finite float in [low, high] (``(low, high]`` with ``open_low``)."""
+    if open_low:
+        return Annotated[float, Field(gt=low, le=high, allow_inf_nan=False)]
+    return Annotated[float, Field(ge=low, le=high, allow_inf_nan=False)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+Vector3 = Vector3_mm
+TravelRange = Annotated[
+    list[Annotated[float, Field(ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM)]],
+    Field(min_length=2, max_length=2),
+]
+#: Feeds up to 500 m/min; micrometres up to 10 mm; microradians up to 0.1 rad.
+Feed_mm_min = _bounded(0, 500_000, open_low=True)
+Micrometres = _bounded(0, 10_000, open_low=True)
+Microradians = _bounded(0, 100_000, open_low=True)
+Allowance_um = _bounded(0, 10_000)
+Allowance_urad = _bounded(0, 100_000)
+Expansion_ppm_per_k = _bounded(-5.0, 50.0)
+Spacing_mm = _bounded(0, 200, open_low=True)
+Seconds = _bounded(0, 3600)
+Overrun_mm = _bounded(0, 1000)
+NonNegativeLength_mm = _bounded(0, MAX_LENGTH_MM)
+_Strict = StrictFileModel
 
 
 class Feeds(_Strict):
-    rapid: Positive
-    measure: Positive
+    rapid: Feed_mm_min
+    measure: Feed_mm_min
 
 
 class LaunchUnitGuess(_Strict):
@@ -43,45 +72,62 @@ class LaunchUnitGuess(_Strict):
 
 
 class InterferometerRanges(_Strict):
-    max_range_mm: Positive = 4000.0
-    straightness_range_um: Positive = 250.0
-    angle_range_urad: Positive = 500.0
+    max_range_mm: Distance_mm = 4000.0
+    straightness_range_um: Micrometres = 250.0
+    angle_range_urad: Microradians = 500.0
+
+    def channel_limits(self) -> Vec:
+        """The largest credible reading of each channel (roles.CHANNELS order), shape (6,).
+
+        Twice the instrument's ranges (um, urad): a reading beyond is a
+        corrupted value, not a measurement.
+        """
+        return 2.0 * np.array(
+            [1000.0 * self.max_range_mm, *[self.straightness_range_um] * 2]
+            + [self.angle_range_urad] * 3
+        )
+
+
+class Thermal(_Strict):
+    """Normalisation of linear errors to 20 °C: the expansion of the machine's scales."""
+
+    expansion_ppm_per_k: Expansion_ppm_per_k = 0.0
 
 
 class Uncertainty(_Strict):
     """Standard uncertainties (k = 1) of what identification is built from."""
 
-    encoder_urad: Positive = 10.0
-    machine_position_um: Positive = 20.0
-    unit_kinematics_um: Positive = 10.0
-    encoder_zero_offset_urad: Positive = 100.0
-    distance_um: Positive = 20.0
-    straightness_um: Positive = 2.0
+    encoder_urad: Microradians = 10.0
+    machine_position_um: Micrometres = 20.0
+    unit_kinematics_um: Micrometres = 10.0
+    encoder_zero_offset_urad: Microradians = 100.0
+    distance_um: Micrometres = 20.0
+    straightness_um: Micrometres = 2.0
     # the machine's own errors at the identification positions (docs/identification.md)
-    tool_rotation_urad: Positive = 15.0
-    tool_rotation_common_urad: Positive = 18.0
-    machine_common_um: Positive = 15.0
-    beam_collimation_urad: Positive = 20.0
+    tool_rotation_urad: Microradians = 15.0
+    tool_rotation_common_urad: Microradians = 18.0
+    machine_common_um: Micrometres = 15.0
+    beam_collimation_urad: Microradians = 20.0
     # interferometer channels, used by ``xmalign post`` to weight and propagate (GUM)
-    channel_linear_um: Positive = 0.5
-    channel_straightness_um: Positive = 1.0
-    channel_angle_urad: Positive = 1.0
-    channel_roll_urad: Positive = 2.5
+    channel_linear_um: Micrometres = 0.5
+    channel_straightness_um: Micrometres = 1.0
+    channel_angle_urad: Microradians = 1.0
+    channel_roll_urad: Microradians = 2.5
 
 
 class Measurement(_Strict):
     """How ``xmalign program`` lays out the measuring lines."""
 
-    target_spacing_mm: Annotated[float, Field(gt=0, le=200)] = 100.0
+    target_spacing_mm: Spacing_mm = 100.0
     runs: Annotated[int, Field(ge=1, le=5)] = 2
     bidirectional: bool = True
-    dwell_s: Annotated[float, Field(ge=0)] = 1.0
-    overrun_mm: Annotated[float, Field(ge=0)] = 5.0
-    standoff_mm: Annotated[float, Field(ge=0)] = 150.0
+    dwell_s: Seconds = 1.0
+    overrun_mm: Overrun_mm = 5.0
+    standoff_mm: NonNegativeLength_mm = 150.0
     irregular_spacing: bool = False
-    min_line_mm: Annotated[float, Field(gt=0)] = 100.0
-    straightness_allowance_um: Annotated[float, Field(ge=0)] = 50.0
-    angle_allowance_urad: Annotated[float, Field(ge=0)] = 100.0
+    min_line_mm: Distance_mm = 100.0
+    straightness_allowance_um: Allowance_um = 50.0
+    angle_allowance_urad: Allowance_urad = 100.0
 
 
 class Machine(_Strict):
@@ -93,8 +139,9 @@ class Machine(_Strict):
     feed_mm_min: Feeds
     controller: Literal["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"]
     receiver_offset_mm: Vector3
-    spindle_angle_deg: float = 0.0
+    spindle_angle_deg: Angle_deg = 0.0
     launch_unit: LaunchUnitGuess | None = None
+    thermal: Thermal = Thermal()
     interferometer: InterferometerRanges = InterferometerRanges()
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
@@ -130,6 +177,8 @@ class Machine(_Strict):
         for axis, (low, high) in travel.items():
             if not (math.isfinite(low) and math.isfinite(high) and low < high):
                 raise ValueError(f"{axis}: [{low}, {high}] must be finite with min < max")
+            if high - low > MAX_LENGTH_MM:
+                raise ValueError(f"{axis}: a travel of {high - low:g} mm is more than 100 m")
         return travel
 
     @property
@@ -162,13 +211,13 @@ class Machine(_Strict):
 def parse_machine(data: object, source: str = "<machine>") -> Machine:
     """Validate a machine mapping; raises InputError naming ``source`` and the key."""
     if not isinstance(data, dict):
-        raise InputError(f"{source}: expected a YAML mapping of machine keys")
+        raise InputError(located(source, "top level", "expected a YAML mapping of machine keys"))
     return validate(Machine, data, source)
 
 
 def load_machine(path: str | Path) -> Machine:
     """Read and validate a machine YAML file."""
-    return parse_machine(read_yaml(path, "machine file"), str(path))
+    return parse_machine(read_yaml(path), str(path))
 
 
 def default_machine_path() -> Path:

@@ -112,7 +112,7 @@ def test_example_units_config_loads() -> None:
         ("launch: {transport: usb, host: x}", "key 'launch'"),
         (
             "launch: {transport: modbus-tcp, host: x, speed: 3}",
-            "unknown key 'launch.modbus-tcp.speed'",
+            "key 'launch.modbus-tcp.speed': not a known key",
         ),
     ],
 )

@@ -103,7 +103,7 @@ def test_run_never_replaces_measurements(dry, tmp_path):
     assert existing.read_bytes() == before
     assert_one_line_error(_run_sim(dry, tmp_path), str(tmp_path), "is a folder")
     assert_one_line_error(_run_sim(dry, tmp_path / "new.csv", "--resume"), "does not exist yet")
-    assert_one_line_error(_run_sim(dry, tmp_path / "n.csv", "--seed", "-5"), "--seed -5")
+    assert_one_line_error(_run_sim(dry, tmp_path / "n.csv", "--seed", "-5"), "--seed: -5")
     assert not (tmp_path / "n.csv").exists()
 
 
@@ -159,7 +159,7 @@ def test_ctrl_c_keeps_every_saved_point_and_says_how_to_go_on(dry, tmp_path):
     saved = len(read_measurements(out))
     assert process.returncode == 130, stderr
     assert stderr.strip().splitlines() == [
-        f"stopped: {saved} points kept in {out}; go on with --resume"
+        f"xmalign: stopped: {saved} points kept in {out}; go on with --resume"
     ]
     resumed = _run_sim(dry, out, "--resume")
     assert resumed.returncode == 0, resumed.stderr
@@ -298,7 +298,7 @@ def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, refe
 
 def test_program_finds_pose_json_in_the_working_folder(dry, tmp_path):
     missing = run_cli("program", cwd=tmp_path)
-    assert_one_line_error(missing, "pose.json does not exist", "xmalign identify", "--pose")
+    assert_one_line_error(missing, "pose.json: cannot read: no such file", "xmalign identify", "--pose")
     shutil.copy(dry / "pose.json", tmp_path / "pose.json")
     result = run_cli("program", "--plan-out", "plan.json", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -321,7 +321,7 @@ def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
     (line,) = stderr.strip().splitlines()
     csv_path = folder / "measurements.csv"
     saved = len(read_measurements(csv_path))
-    assert line.startswith(f"stopped: {saved} points kept in {csv_path}; go on with --resume (")
+    assert line.startswith(f"xmalign: stopped: {saved} points kept in {csv_path}; go on with --resume (")
     command = line[line.index("(xmalign ") + len("(xmalign ") : -1].split()
     finished = _main(*command)
     assert finished.returncode == 0, finished.stderr
@@ -331,7 +331,7 @@ def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
     )
     assert_one_line_error(_main("dry-run", "--out", str(folder)), "already holds a dry run")
     assert_one_line_error(
-        _main("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed -5"
+        _main("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed: -5"
     )
 
 
@@ -341,7 +341,7 @@ BAD_OPTIONS = [
     (["--program", "."], "cannot read G-code program (Is a directory)"),
     (["--dialect", "klingon"], "--dialect 'klingon' is not known"),
     (["--config", "units.yaml"], "give either --sim or --config"),
-    (["--seed", "-5"], "--seed -5: give a seed of 0 or more"),
+    (["--seed", "-5"], "option --seed: -5 must be 0 or more"),
 ]
 
 

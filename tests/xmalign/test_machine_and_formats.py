@@ -30,8 +30,8 @@ def test_reference_machine_loads(reference_machine):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda d: d.pop("chain"), "missing key 'chain'"),
-        (lambda d: d.update(spindel_angle_deg=0), "unknown key 'spindel_angle_deg'"),
+        (lambda d: d.pop("chain"), "key 'chain': missing"),
+        (lambda d: d.update(spindel_angle_deg=0), "key 'spindel_angle_deg': not a known key"),
         (lambda d: d["travel_mm"].update(X=[10, 5]), "key 'travel_mm'"),
         (lambda d: d["feed_mm_min"].update(measure=0), "key 'feed_mm_min.measure'"),
         (lambda d: d.update(receiver_offset_mm=[0, 0]), "key 'receiver_offset_mm'"),
@@ -84,14 +84,14 @@ def test_session_round_trip(tmp_path):
 @pytest.mark.parametrize(
     ("text", "error", "message"),
     [
-        ("{not json", InputError, "line 1 column 2"),
+        ("{not json", InputError, "line 1: not valid JSON at column 2"),
         ('{"format": "xmalign.identify-session/2"}', FormatError, "version '2'"),
         ('{"format": "xmalign.plan/1"}', FormatError, "not a xmalign.identify-session"),
-        ('{"alignments": []}', FormatError, "missing key 'format'"),
+        ('{"alignments": []}', FormatError, "key 'format': missing"),
         (
             '{"format": "xmalign.identify-session/1", "alignments": []}',
             InputError,
-            "missing key 'receiver_offset_mm'",
+            "key 'receiver_offset_mm': missing",
         ),
     ],
 )
@@ -183,3 +183,49 @@ def test_error_tables_round_trip(tmp_path):
     path.write_text("name,position_mm,value,unit,u95\nEXX,0,1,urad,\n")
     with pytest.raises(InputError, match="line 2: EXX is in um"):
         read_error_tables(path)
+
+
+def test_channel_limits_are_twice_the_ranges(reference_machine):
+    limits = reference_machine.interferometer.channel_limits()
+    np.testing.assert_allclose(limits, [8e6, 500, 500, 1000, 1000, 1000])
+
+
+def test_an_interrupted_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
+    import xmalign.formats.common as common
+
+    path = tmp_path / "pose.json"
+    path.write_text("old\n")
+
+    def interrupted(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(common.os, "fsync", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        common.atomic_write_text(path, "new\n")
+    assert path.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["pose.json"]
+
+
+def test_yaml_duplicate_keys_and_bom(tmp_path):
+    from xmalign.formats.common import read_yaml
+
+    path = tmp_path / "a.yaml"
+    path.write_bytes(b"\xef\xbb\xbfa: 1\nb: {c: 2}\n")
+    assert read_yaml(path) == {"a": 1, "b": {"c": 2}}
+    path.write_text("a: 1\nb:\n  c: 2\n  c: 3\n")
+    with pytest.raises(
+        InputError, match=r"a.yaml: line 4: key 'c' given twice \(first on line 3\)"
+    ):
+        read_yaml(path)
+    path.write_text("a: {b: 1, b: 2}\n")
+    with pytest.raises(InputError, match="a.yaml: line 1: key 'b' given twice"):
+        read_yaml(path)
+
+
+def test_json_with_nan_is_not_written(tmp_path):
+    from xmalign.errors import OutputError
+    from xmalign.formats.common import write_json
+
+    with pytest.raises(OutputError, match="p.json: cannot write: a value is not a finite"):
+        write_json(tmp_path / "p.json", {"x": float("nan")})
+    assert not (tmp_path / "p.json").exists()

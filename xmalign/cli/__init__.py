@@ -1,15 +1,20 @@
 """The ``xmalign`` command line: wires the core, the drivers and the simulator together.
 
 Each command lives in its own module with a ``register(app)`` function. Any
-:class:`~xmalign.errors.XmalignError` becomes one line on stderr and exit code 2.
+:class:`~xmalign.errors.XmalignError`, and any OSError (a disk or permission
+problem), becomes one line on stderr and exit code 2; Ctrl-C becomes one line
+and exit code 130. A command that wants to say more on Ctrl-C (e.g. how many
+points were kept) raises ``KeyboardInterrupt("stopped: ...")``: that message
+is printed instead of the generic one.
 """
 
 from __future__ import annotations
 
 import sys
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+from typer.core import TyperGroup
 
 from xmalign import __version__
 from xmalign.cli import align, identify
@@ -18,9 +23,34 @@ from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
 from xmalign.cli import run as run_command
 from xmalign.cli import sim as sim_command
-from xmalign.errors import XmalignError
+from xmalign.errors import InputError, XmalignError
+from xmalign.formats.common import os_problem
+
+
+def _is_usage_error(error: Exception) -> bool:
+    """A click usage error (by name: recent typer versions vendor their own click)."""
+    names = {cls.__name__ for cls in type(error).__mro__}
+    return "UsageError" in names and "NoArgsIsHelpError" not in names
+
+
+class _OneLineUsageErrors(TyperGroup):
+    """A command-line mistake (unknown option, bad value) as one line, like a bad file."""
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except Exception as error:
+            if not _is_usage_error(error):
+                raise
+            context = getattr(error, "ctx", None) or ctx
+            where = context.command_path
+            raise InputError(
+                f"{where}: {error.format_message()} (see '{where} --help')"  # type: ignore[attr-defined]
+            ) from error
+
 
 app = typer.Typer(
+    cls=_OneLineUsageErrors,
     name="xmalign",
     help="Automatic setup and evaluation of a 6-DOF laser calibrator on positioning units.",
     no_args_is_help=True,
@@ -61,13 +91,50 @@ for command_module in (
     command_module.register(app)
 
 
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT), as shells report it.
+EXIT_INTERRUPTED = 130
+
+
+def _interrupt_of(stop: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt behind an exit (typer turns Ctrl-C into exit code 130)."""
+    seen: BaseException | None = stop
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def _say(line: str) -> None:
+    # plain write: one line however narrow the terminal (rich would wrap it)
+    sys.stderr.write(f"xmalign: {line}\n")
+
+
+def _stopped(interrupt: KeyboardInterrupt | None) -> None:
+    message = str(interrupt.args[0]) if interrupt is not None and interrupt.args else ""
+    _say(message or "stopped by Ctrl-C")
+    sys.exit(EXIT_INTERRUPTED)
+
+
 def main() -> None:
     """Console-script entry point."""
     try:
         app()
+    except SystemExit as stop:
+        if stop.code == EXIT_INTERRUPTED:
+            _stopped(_interrupt_of(stop))
+        raise
+    except KeyboardInterrupt as interrupt:
+        _stopped(interrupt)
     except XmalignError as error:
-        # plain write: one line however narrow the terminal (rich would wrap it)
-        sys.stderr.write(f"xmalign: error: {error}\n")
+        _say(f"error: {error}")
+        sys.exit(2)
+    except OSError as error:
+        where = error.filename if error.filename is not None else "file"
+        _say(f"error: {where}: {os_problem(error)}")
+        sys.exit(2)
+    except UnicodeDecodeError as error:  # a reader that did not go through read_text
+        _say(f"error: an input file is not UTF-8 text (byte 0x{error.object[error.start]:02x})")
         sys.exit(2)
 
 

@@ -29,7 +29,7 @@ from xmalign.alignment import (
     range_used,
     sensitivity,
 )
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import check_seed, console, machine_or_default
 from xmalign.errors import InputError, XmalignError
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
@@ -228,6 +228,7 @@ def register(app: typer.Typer) -> None:
         """Fine-align the launch and receiver units on the interferometer channels."""
         if sim == live:
             raise InputError("choose one of --sim and --live")
+        check_seed(seed)
         machine = machine_or_default(machine_file)
         settings = FineAlignmentSettings(timeout_s=timeout_s)
         try:

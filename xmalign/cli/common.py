@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 from rich.console import Console
 
-from xmalign.errors import InputError
+from xmalign.errors import InputError, OutputError
+from xmalign.formats.common import located, os_problem
 from xmalign.formats.plan import Plan
 from xmalign.machine import Machine, default_machine_path, load_machine
 
 console = Console()
 error_console = Console(stderr=True)
+
+#: Paths given to one option: none, one, or several (a repeated option).
+PathsOf = Path | Sequence[Path] | None
 
 
 def machine_or_default(path: Path | None) -> Machine:
@@ -35,3 +41,75 @@ def machine_for_plan(path: Path | None, plan: Plan, plan_path: Path) -> Machine:
         f"{plan_path} was made for machine '{plan.machine}'{identity}, not for {given}"
         f" ('{machine.name}'): give the machine file the plan was made with (--machine)"
     )
+def _each(paths: PathsOf) -> Iterable[Path]:
+    if paths is None:
+        return ()
+    if isinstance(paths, Path | str):
+        return (Path(paths),)
+    return (Path(p) for p in paths)
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """True when two paths name one file (links followed; a missing file by its full path)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a.resolve() == b.resolve()
+
+
+def refuse_overwriting(inputs: Mapping[str, PathsOf], outputs: Mapping[str, PathsOf]) -> None:
+    """Refuse a command whose output would replace one of its inputs or another output.
+
+    ``inputs`` and ``outputs`` map an option name (``"--data"``) to the path(s)
+    given, None for an option left out. Call it before anything is read or written.
+
+    Raises
+    ------
+    InputError
+        Naming the file and both options.
+    """
+    written: list[tuple[str, Path]] = []
+    for out_option, out_paths in outputs.items():
+        for out_path in _each(out_paths):
+            for in_option, in_paths in inputs.items():
+                if any(same_file(out_path, in_path) for in_path in _each(in_paths)):
+                    raise InputError(
+                        located(
+                            out_path,
+                            out_option,
+                            f"is also the {in_option} file; it would be replaced"
+                            " (write to another file)",
+                        )
+                    )
+            for other_option, other in written:
+                if same_file(out_path, other):
+                    raise InputError(
+                        located(out_path, out_option, f"is also the {other_option} file")
+                    )
+            written.append((out_option, out_path))
+
+
+def output_folder(path: Path, option: str) -> Path:
+    """An output folder, created if missing; a file in its place is refused.
+
+    Raises
+    ------
+    InputError
+        ``path`` is an existing file.
+    OutputError
+        The folder cannot be created (no permission, read-only, disk full).
+    """
+    if path.exists() and not path.is_dir():
+        raise InputError(located(path, option, "is a file; give a folder for the output files"))
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise OutputError(located(path, "cannot create the folder", os_problem(error))) from error
+    return path
+
+
+def check_seed(seed: int, option: str = "--seed") -> int:
+    """A seed of the random generators must be 0 or more (numpy's rule)."""
+    if seed < 0:
+        raise InputError(f"option {option}: {seed} must be 0 or more")
+    return seed

@@ -14,10 +14,10 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import check_seed, console, machine_or_default, refuse_overwriting
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
-from xmalign.formats.session import Session, read_session
+from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
@@ -228,6 +228,11 @@ def identify_command(
         raise InputError("give one of --input SESSION.json, --sim or --live")
     if live and (config is None or session_file is None):
         raise InputError("--live needs --config UNITS.yaml and --session SESSION.json")
+    check_seed(seed)
+    refuse_overwriting(
+        {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
+        {"--out": out, "--session-out": session_out},
+    )
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,
@@ -252,7 +257,12 @@ def identify_command(
             session = _live_identification(machine_model, config, alignments, session_file)
             source = str(session_file)
         else:
-            session, source = read_session(input), str(input)
+            range_um = (
+                machine_model.interferometer.straightness_range_um
+                if machine_model is not None
+                else NOMINAL_STRAIGHTNESS_RANGE_UM
+            )
+            session, source = read_session(input, range_um), str(input)
         result = identify(session, method, uncertainty, source)
     print_result(result, session, truth)
     if out is not None:

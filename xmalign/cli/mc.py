@@ -17,7 +17,14 @@ from rich import box
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, error_console, machine_or_default
+from xmalign.cli.common import (
+    check_seed,
+    console,
+    error_console,
+    machine_or_default,
+    output_folder,
+    refuse_overwriting,
+)
 from xmalign.errors import InputError, TransportError
 from xmalign.formats.common import atomic_write_text
 
@@ -223,6 +230,10 @@ def mc(
         raise InputError("--error-scale and --squareness-urad must not be negative")
     if workers < 0:
         raise InputError(f"--workers {workers}: must be 0 (every core) or more")
+    check_seed(seed)
+    written_names = ("mc.json", "histograms.png", "envelopes.png", "volumetric.png")
+    refuse_overwriting({"--machine": machine}, {"--out": [out / name for name in written_names]})
+    output_folder(out, "--out")
     settings = StudySettings(
         mode=mode,
         max_trials=trials,

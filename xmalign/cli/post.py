@@ -10,9 +10,15 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, machine_for_plan, machine_or_default
+from xmalign.cli.common import (
+    console,
+    machine_for_plan,
+    machine_or_default,
+    output_folder,
+    refuse_overwriting,
+)
 from xmalign.comp import WRITERS, writer
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
@@ -58,6 +64,10 @@ def post(
     report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from six lines."""
+    refuse_overwriting(
+        {"--plan": plan, "--data": data, "--machine": machine},
+        {"--out": out, "--report": report},
+    )
     plan_ = read_plan(plan)
     machine_ = machine_for_plan(machine, plan_, plan)
     with _progress() as progress:
@@ -94,8 +104,11 @@ def comp(
     machine_ = machine_or_default(machine)
     module = writer(controller or machine_.controller)
     files = module.render(read_error_tables(errors), Chain.parse(machine_.chain))
-    for name, text in files.items():
-        atomic_write_text(out / name, text)
+    output_folder(out, "--out")
+    refuse_overwriting(
+        {"--errors": errors, "--machine": machine}, {"--out": [out / name for name in files]}
+    )
+    atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
     console.print(f"{module.NAME}: wrote {', '.join(sorted(files))} in {out}")
 
 

@@ -14,7 +14,7 @@ from trajectories.gcode import DIALECTS, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
-from xmalign.cli.common import console, error_console, machine_or_default
+from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.common import atomic_write_text, write_json
 from xmalign.formats.plan import write_plan
@@ -74,9 +74,12 @@ def program(
     ] = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code."""
+    refuse_overwriting(
+        {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
+    )
     if not pose.exists():
         raise InputError(
-            f"no launch pose: {pose} does not exist; identify the launch unit first"
+            f"{pose}: cannot read: no such file; identify the launch unit first"
             f" (xmalign identify ... --out {pose}) or give --pose POSE.json"
         )
     machine_model = machine_or_default(machine)
@@ -116,6 +119,7 @@ def plan_identify(
     ] = None,
 ) -> None:
     """Propose machine positions for identification that minimise the pose uncertainty."""
+    refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
     with error_console.status("optimising the identification positions"):
         design = design_identification(machine_model, count)

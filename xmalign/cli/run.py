@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
@@ -14,7 +13,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
-from xmalign.cli.common import console, error_console, machine_for_plan, machine_or_default
+from xmalign.cli.common import (
+    check_seed,
+    console,
+    error_console,
+    machine_for_plan,
+    machine_or_default,
+)
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
@@ -41,14 +46,13 @@ def _point_count(plan: Plan) -> int:
     )
 
 
-def _stopped(out: Path, also: str = "") -> typer.Exit:
-    """Ctrl-C: one line saying what is kept and how to go on; exit code 130."""
+def _stopped(out: Path, also: str = "") -> KeyboardInterrupt:
+    """Ctrl-C: one line saying what is kept and how to go on (printed by the CLI, exit 130)."""
     try:
         saved = len(load_measurements(out, torn_ok=True).rows)
     except XmalignError:
         saved = 0
-    sys.stderr.write(f"stopped: {saved} points kept in {out}; go on with --resume{also}\n")
-    return typer.Exit(130)
+    return KeyboardInterrupt(f"stopped: {saved} points kept in {out}; go on with --resume{also}")
 
 
 def _kept(error: XmalignError, output: RunOutput) -> XmalignError:
@@ -157,11 +161,6 @@ def read_text(path: Path, what: str) -> str:
         raise InputError(f"{path}: cannot read {what} ({error.strerror})") from error
 
 
-def _check_seed(seed: int) -> None:
-    if seed < 0:
-        raise InputError(f"--seed {seed}: give a seed of 0 or more")
-
-
 def run_command(
     plan: Annotated[Path, typer.Option(help="Measurement plan JSON (xmalign program --plan-out).")],
     out: Annotated[
@@ -192,7 +191,7 @@ def run_command(
     """
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
-    _check_seed(seed)
+    check_seed(seed)
     check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
@@ -257,11 +256,10 @@ def _results_table(report: object) -> Table:
 
 def _dry_run_stopped(
     out: Path, stage: str, seed: int, machine: Path | None, dialect: str | None
-) -> typer.Exit:
+) -> KeyboardInterrupt:
     """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
     if stage != "run":
-        sys.stderr.write(f"stopped during {stage}: the files so far are in {out}/\n")
-        return typer.Exit(130)
+        return KeyboardInterrupt(f"stopped during {stage}: the files so far are in {out}/")
     options = f" --machine {machine}" if machine else ""
     options += f" --dialect {dialect}" if dialect else ""
     return _stopped(
@@ -285,7 +283,7 @@ def dry_run_command(
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
-    _check_seed(seed)
+    check_seed(seed)
     machine_model = machine_or_default(machine)
     check_dry_run_folder(out)
     options = DryRunOptions(

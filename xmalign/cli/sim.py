@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 
 import typer
 
-from xmalign.cli.common import console, machine_or_default
+from xmalign.cli.common import check_seed, console, machine_or_default
 from xmalign.errors import InputError
 
 sim_app = typer.Typer(help="The simulator: virtual machine, positioning units, interferometer.")
@@ -55,6 +55,7 @@ def serve(
         raise InputError(f"--unit '{unit}': expected launch or receiver")
     if modbus is None and canopen is None and not interferometer_pty:
         raise InputError("nothing to serve: give --modbus, --canopen and/or --interferometer-pty")
+    check_seed(seed)
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
     world = build_world(
         machine_or_default(machine), seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg)

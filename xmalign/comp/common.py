@@ -48,7 +48,7 @@ class Grid:
 def table(tables: ErrorTableSet, name: str) -> Table:
     """The table ``name``; InputError naming it when the error file lacks it."""
     if name not in tables.tables:
-        raise InputError(f"the error tables have no {name} (run xmalign post on all six lines)")
+        raise InputError(f"{tables.source}: no table {name} (run xmalign post on all six lines)")
     return tables.tables[name]
 
 

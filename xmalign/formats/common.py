@@ -1,54 +1,230 @@
-"""Shared reading and writing helpers for xmalign's files."""
+"""Reading, validating and writing xmalign's files: the one layer every format goes through.
+
+Readers get their text from :func:`read_text` (a missing file, a folder, no
+permission or bytes that are not UTF-8 become one line naming the file),
+their data from :func:`read_json` or :func:`read_yaml` (duplicate keys and
+non-finite numbers refused, naming the key) and validate it with a pydantic
+model through :func:`validate`. Every message has the shape ``FILE: WHERE:
+PROBLEM`` (:func:`located`), WHERE being a key or a line.
+
+Writers go through :func:`atomic_write_bytes`: a temporary file in the same
+folder, fsync, then ``os.replace``, with the mode a plain ``open`` would give
+(``0666 & ~umask``). A failed write leaves the old file as it was.
+
+The bounds below are what a real machine and instrument can have; a value
+outside them is a typing or unit mistake, refused before it reaches a
+controller (docs/formats.md, "Validation").
+"""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
+import math
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from xmalign.errors import FormatError, InputError
+from xmalign.errors import FormatError, InputError, OutputError
+
+#: Largest travel, position or distance, mm (100 m).
+MAX_LENGTH_MM = 100_000.0
+#: Largest angle an encoder or a file may report, degrees (two turns either way).
+MAX_ANGLE_DEG = 720.0
+#: Largest translation error in an error table, mm (1 mm).
+MAX_ERROR_MM = 1.0
+#: Largest rotation or squareness error in an error table, rad (10 mrad).
+MAX_ERROR_RAD = 0.01
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Length_mm = Annotated[float, Field(ge=-MAX_LENGTH_MM, le=MAX_LENGTH_MM, allow_inf_nan=False)]
+Distance_mm = Annotated[float, Field(gt=0, le=MAX_LENGTH_MM, allow_inf_nan=False)]
+Angle_deg = Annotated[float, Field(ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG, allow_inf_nan=False)]
+Vector3_mm = Annotated[list[Length_mm], Field(min_length=3, max_length=3)]
 
 M = TypeVar("M", bound=BaseModel)
+
+
+class FileModel(BaseModel):
+    """Base of the models of xmalign's files: finite numbers only."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+
+class StrictFileModel(FileModel):
+    """A file model that refuses keys it does not know (YAML written by people)."""
+
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid", frozen=True)
+
+
+def located(source: str | Path, where: str, problem: str) -> str:
+    """The one shape of every file error: ``FILE: WHERE: PROBLEM`` (WHERE: a key or a line)."""
+    return f"{source}: {where}: {problem}"
+
+
+def key_error(source: str | Path, key: str, problem: str) -> InputError:
+    """An InputError naming the file and the key."""
+    return InputError(located(source, f"key '{key}'", problem))
+
+
+def line_error(source: str | Path, line: int, problem: str) -> InputError:
+    """An InputError naming the file and the line (1-based)."""
+    return InputError(located(source, f"line {line}", problem))
+
+
+_OS_PROBLEMS = {
+    errno.ENOENT: "no such file",
+    errno.EISDIR: "is a folder, not a file",
+    errno.ENOTDIR: "a part of the path is not a folder",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+    errno.EROFS: "read-only file system",
+    errno.ENOSPC: "disk full",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EEXIST: "exists",
+}
+
+
+def os_problem(error: OSError) -> str:
+    """A short reason for an OSError (no errno numbers, no Python words)."""
+    return _OS_PROBLEMS.get(error.errno or -1) or error.strerror or str(error)
+
+
+def read_text(path: str | Path) -> str:
+    """The UTF-8 text of a file (a leading byte-order mark is dropped).
+
+    Raises
+    ------
+    InputError
+        The file is missing, a folder, unreadable, or not UTF-8 (naming the line).
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise InputError(located(path, "cannot read", os_problem(error))) from error
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise line_error(path, line, f"byte 0x{data[error.start]:02x} is not UTF-8 text") from error
+
+
+def _walk_finite(data: object, source: str, key: str) -> None:
+    if isinstance(data, float) and not math.isfinite(data):
+        raise key_error(source, key or "(top level)", f"{data} is not a finite number")
+    if isinstance(data, dict):
+        for name, value in data.items():
+            _walk_finite(value, source, f"{key}.{name}" if key else str(name))
+    elif isinstance(data, list):
+        for index, value in enumerate(data):
+            _walk_finite(value, source, f"{key}.{index}" if key else str(index))
+
+
+def check_finite(data: object, source: str) -> None:
+    """Refuse NaN and Infinity anywhere in a decoded document, naming the key."""
+    _walk_finite(data, source, "")
+
+
+def describe_problem(first: Any) -> str:
+    """What is wrong, in words, for one entry of ``ValidationError.errors()``."""
+    kind = first["type"]
+    if kind == "missing":
+        return "missing"
+    if kind == "extra_forbidden":
+        return "not a known key"
+    if kind == "finite_number":
+        return f"{first['input']} is not a finite number"
+    if kind in ("too_short", "too_long"):
+        context = first.get("ctx", {})
+        bound = "at least" if kind == "too_short" else "at most"
+        count = context.get("min_length" if kind == "too_short" else "max_length")
+        return f"must have {bound} {count} values, not {context.get('actual_length')}"
+    message = first["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
+    if message.startswith("Input should be"):
+        value = first.get("input")
+        shown = f"{value!r} " if isinstance(value, int | float | str) else ""
+        message = shown + message.replace("Input should be", "must be", 1)
+    return message
 
 
 def describe_validation_error(error: ValidationError, source: str) -> str:
     """One line naming the file, the first offending key and what is wrong with it."""
     first = error.errors()[0]
     key = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    if first["type"] == "missing":
-        return f"{source}: missing key '{key}'"
-    if first["type"] == "extra_forbidden":
-        return f"{source}: unknown key '{key}'"
-    message = first["msg"].removeprefix("Value error, ")
-    return f"{source}: key '{key}': {message}"
+    return located(source, f"key '{key}'", describe_problem(first))
 
 
-def validate(model: type[M], data: object, source: str) -> M:
+def validate(model: type[M], data: object, source: str, context: dict | None = None) -> M:
     """``model.model_validate(data)`` with an InputError naming ``source`` and the key."""
+    check_finite(data, source)
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context=context)
     except ValidationError as error:
         raise InputError(describe_validation_error(error, source)) from error
 
 
-def read_yaml(path: str | Path, what: str = "file") -> object:
-    """Parse a YAML file; errors name the file (and the line of a syntax error)."""
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A SafeLoader that refuses a key given twice in one mapping."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: dict[object, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.get(key)
+            except TypeError:  # unhashable: SafeLoader itself explains it
+                continue
+            if first is not None:
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"key '{key}' given twice (first on line {first})",
+                    key_node.start_mark,
+                )
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: str | Path) -> object:
+    """Parse a YAML file; errors name the file and the line (duplicate keys refused)."""
     path = Path(path)
+    text = read_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read {what} ({error.strerror})") from error
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{path}: not valid YAML{where}") from error
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.MarkedYAMLError as error:
+        mark = error.problem_mark or error.context_mark
+        where = f"line {mark.line + 1}" if mark is not None else "not valid YAML"
+        problem = error.problem if "given twice" in (error.problem or "") else None
+        raise InputError(
+            located(path, where, problem or f"not valid YAML ({error.problem or error.context})")
+        ) from error
+    except RecursionError as error:
+        raise InputError(located(path, "not valid YAML", "nested too deeply")) from error
+    except (yaml.YAMLError, ValueError) as error:  # e.g. a date like 2024-13-45
+        raise InputError(located(path, "not valid YAML", str(error).splitlines()[0])) from error
+    return data
+
+
+class _DuplicateKeyError(ValueError):
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    result: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in result:
+            raise _DuplicateKeyError(key)
+        result[key] = value
+    return result
 
 
 def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
@@ -57,23 +233,28 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
     Raises
     ------
     InputError
-        The file is missing or not JSON (with line and column).
+        The file cannot be read, is not JSON (with line and column), repeats a
+        key or holds a non-finite number.
     FormatError
         The format name or version is not ``expected_format``.
     """
     path = Path(path)
+    text = read_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from error
-    try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_unique_pairs)
+    except _DuplicateKeyError as error:
+        raise key_error(path, error.key, "given twice") from error
     except json.JSONDecodeError as error:
-        raise InputError(
-            f"{path}: not valid JSON at line {error.lineno} column {error.colno}: {error.msg}"
+        raise line_error(
+            path, error.lineno, f"not valid JSON at column {error.colno}: {error.msg}"
         ) from error
+    except RecursionError as error:
+        raise InputError(located(path, "not valid JSON", "nested too deeply")) from error
+    except ValueError as error:  # e.g. an integer of thousands of digits
+        problem = "a number has too many digits" if "digits" in str(error) else str(error)
+        raise InputError(located(path, "not valid JSON", problem)) from error
     if not isinstance(data, dict):
-        raise FormatError(f"{path}: expected a JSON object with a 'format' key")
+        raise FormatError(located(path, "top level", "expected a JSON object with a 'format' key"))
     check_format(data.get("format"), expected_format, str(path))
     return data
 
@@ -82,33 +263,126 @@ def check_format(found: object, expected_format: str, source: str) -> None:
     """Refuse a missing, foreign or newer ``format`` value with a clear message."""
     name, _, version = expected_format.partition("/")
     if found is None:
-        raise FormatError(f"{source}: missing key 'format' (expected '{expected_format}')")
+        raise FormatError(
+            located(source, "key 'format'", f"missing (expected '{expected_format}')")
+        )
     found_name, _, found_version = str(found).partition("/")
     if found_name != name:
-        raise FormatError(f"{source}: format '{found}' is not a {name} file")
+        raise FormatError(located(source, "key 'format'", f"'{found}' is not a {name} file"))
     if found_version != version:
         raise FormatError(
-            f"{source}: format version '{found_version}' of {name} is not supported"
-            f" (this xmalign reads version {version})"
+            located(
+                source,
+                "key 'format'",
+                f"version '{found_version}' of {name} is not supported"
+                f" (this xmalign reads version {version})",
+            )
         )
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` so that a reader never sees half a file (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+def _new_file_mode() -> int:
+    """``0666 & ~umask``: the mode ``open(path, "w")`` would give a new file."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _sync_folder(folder: Path) -> None:
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems cannot sync a folder; the rename is done all the same
+    finally:
+        os.close(fd)
+
+
+def _write_temporary(path: Path, data: bytes) -> Path:
+    """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
+    if path.is_dir():
+        raise OutputError(located(path, "cannot write", "is a folder; give a file name"))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as error:
+        raise OutputError(located(path, "cannot write", os_problem(error))) from error
+    tmp = Path(name)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            os.fchmod(handle.fileno(), _new_file_mode())
+            handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as error:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            raise OutputError(located(path, "cannot write", os_problem(error))) from error
         raise
+    return tmp
+
+
+def atomic_write_files(files: Mapping[Path, bytes]) -> None:
+    """Write several files so that either all are replaced or none is.
+
+    Every file is first written to a synced temporary file next to it (mode
+    ``0666 & ~umask``, as a plain ``open`` would give: a controller running as
+    another user can read it); only when all are written are they renamed
+    over their targets. Folders are created if missing.
+
+    Raises
+    ------
+    OutputError
+        A target is a folder, or a folder is read-only, the disk full...;
+        every old file is then left as it was and no temporary file remains.
+    """
+    written: dict[Path, Path] = {}
+    try:
+        for path, data in files.items():
+            written[Path(path)] = _write_temporary(Path(path), data)
+        for path, tmp in list(written.items()):
+            try:
+                os.replace(tmp, path)
+            except OSError as error:
+                raise OutputError(located(path, "cannot write", os_problem(error))) from error
+            del written[path]
+    finally:
+        for tmp in written.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+    for folder in {Path(path).parent for path in files}:
+        _sync_folder(folder)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write one file so that a reader sees the old file or the whole new one, never half.
+
+    See :func:`atomic_write_files` (temporary file, fsync, rename; umask honoured).
+    """
+    atomic_write_files({Path(path): data})
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """:func:`atomic_write_bytes` of UTF-8 text."""
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def write_json(path: str | Path, data: dict[str, Any]) -> None:
-    """Write a JSON document atomically, indented for people."""
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+    """Write a JSON document atomically, indented for people.
+
+    Raises
+    ------
+    OutputError
+        A value is NaN or infinite: strict JSON has no such number, and
+        xmalign's readers would refuse the file.
+    """
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False) + "\n"
+    except ValueError as error:
+        raise OutputError(
+            located(path, "cannot write", "a value is not a finite number")
+        ) from error
+    atomic_write_text(path, text)

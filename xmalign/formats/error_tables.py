@@ -8,15 +8,29 @@ after the name.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from xmalign.errors import FormatError, InputError
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import (
+    MAX_ERROR_MM,
+    MAX_ERROR_RAD,
+    FileModel,
+    Finite,
+    Length_mm,
+    atomic_write_text,
+    describe_problem,
+    line_error,
+    located,
+    read_text,
+)
 from xmalign.geometry import Vec
 from xmalign.rigid_body import MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
 
@@ -37,6 +51,10 @@ def _scale(unit: str) -> float:
     return UM_PER_MM if unit == "um" else URAD_PER_RAD
 
 
+#: The largest value (and u95) a row may hold, in the file's units.
+_LIMITS = {"um": MAX_ERROR_MM * UM_PER_MM, "urad": MAX_ERROR_RAD * URAD_PER_RAD}
+
+
 @dataclass
 class Table:
     """One error table: positions mm (M,), values and u95 in mm or rad (M,)."""
@@ -48,10 +66,14 @@ class Table:
 
 @dataclass
 class ErrorTableSet:
-    """All tables of an error CSV, keyed by file name (``EXX``, ``EXX+``, ``EC0Y``)."""
+    """All tables of an error CSV, keyed by file name (``EXX``, ``EXX+``, ``EC0Y``).
+
+    ``source`` names the file they were read from (for messages).
+    """
 
     tables: dict[str, Table] = field(default_factory=dict)
     squareness: dict[str, tuple[float, float]] = field(default_factory=dict)
+    source: str = "the error tables"
 
     def model(self, direction: str = "") -> ErrorTables:
         """The interpolating error model of one direction (``""``, ``"+"`` or ``"-"``).
@@ -68,52 +90,92 @@ class ErrorTableSet:
         )
 
 
-def _validate_name(name: str, where: str) -> str:
-    base = name.rstrip("+-")
-    if base not in MOTION_NAMES and base not in SQUARENESS_NAMES or len(name) - len(base) > 1:
-        raise InputError(f"{where}: unknown error name '{name}'")
-    return base
+class _RowModel(FileModel):
+    """One row of the file, in the file's units (um or urad)."""
+
+    name: str
+    position_mm: Length_mm | None
+    value: Finite
+    unit: str
+    u95: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None
+
+    @field_validator("name")
+    @classmethod
+    def _known_name(cls, name: str) -> str:
+        base = name.rstrip("+-")
+        if base not in MOTION_NAMES and base not in SQUARENESS_NAMES or len(name) - len(base) > 1:
+            raise ValueError(f"unknown error name '{name}'")
+        return name
+
+    @field_validator("position_mm", "u95", mode="before")
+    @classmethod
+    def _empty_is_none(cls, text: str) -> str | None:
+        return text or None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> _RowModel:
+        expected = file_unit(self.name)
+        if self.unit != expected:
+            raise ValueError(f"{self.name} is in {expected}, not '{self.unit}'")
+        squareness = self.name.rstrip("+-") in SQUARENESS_NAMES
+        if squareness != (self.position_mm is None):
+            raise ValueError(
+                f"{self.name}: position_mm must be "
+                + ("empty for a squareness" if squareness else "given")
+            )
+        limit = _LIMITS[self.unit]
+        for what, number in (("value", self.value), ("u95", self.u95)):
+            if number is not None and abs(number) > limit:
+                raise ValueError(
+                    f"{what} {number:g} {self.unit} is more than a machine can have"
+                    f" ({limit:g} {self.unit})"
+                )
+        return self
+
+
+def _parse_row(fields: list[str], path: Path, line: int) -> _RowModel:
+    if len(fields) != len(HEADER):
+        raise line_error(path, line, f"expected {len(HEADER)} fields, found {len(fields)}")
+    try:
+        return _RowModel.model_validate(dict(zip(HEADER, (f.strip() for f in fields), strict=True)))
+    except ValidationError as error:
+        first = error.errors()[0]
+        key = ".".join(str(part) for part in first["loc"])
+        problem = describe_problem(first)
+        raise line_error(path, line, f"{key}: {problem}" if key else problem) from error
 
 
 def read_error_tables(path: str | Path) -> ErrorTableSet:
-    """Read an error-table CSV; a bad row raises InputError with its line number."""
+    """Read an error-table CSV; a bad or repeated row raises InputError with its line number."""
     path = Path(path)
+    reader = csv.reader(io.StringIO(read_text(path), newline=""))
     try:
-        handle = path.open(newline="", encoding="utf-8")
-    except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from error
-    rows: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
-    result = ErrorTableSet()
-    with handle:
-        reader = csv.reader(handle)
         header = next(reader, None)
         if header is None or tuple(h.strip() for h in header) != HEADER:
-            raise FormatError(f"{path}: line 1: header must be {','.join(HEADER)}")
+            raise FormatError(located(path, "line 1", f"header must be {','.join(HEADER)}"))
+        rows: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
+        first_line: dict[tuple[str, float | None], int] = {}
+        result = ErrorTableSet(source=str(path))
         for fields in reader:
             if not fields:
                 continue
-            where = f"{path}: line {reader.line_num}"
-            if len(fields) != len(HEADER):
-                raise InputError(f"{where}: expected 5 fields, found {len(fields)}")
-            name, position, value, unit, u95 = (f.strip() for f in fields)
-            base = _validate_name(name, where)
-            if unit != file_unit(name):
-                raise InputError(f"{where}: {name} is in {file_unit(name)}, not '{unit}'")
-            try:
-                scale = _scale(unit)
-                value_n = float(value) / scale
-                u95_n = float(u95) / scale if u95 else math.nan
-                if base in SQUARENESS_NAMES:
-                    result.squareness[name] = (value_n, u95_n)
-                else:
-                    rows[name].append((float(position), value_n, u95_n))
-            except ValueError as error:
-                raise InputError(f"{where}: {error}") from error
+            row = _parse_row(fields, path, reader.line_num)
+            seen = first_line.setdefault((row.name, row.position_mm), reader.line_num)
+            if seen != reader.line_num:
+                at = "" if row.position_mm is None else f" at {row.position_mm:g} mm"
+                raise line_error(path, reader.line_num, f"{row.name}{at} repeats line {seen}")
+            scale = _scale(row.unit)
+            value, u95 = row.value / scale, math.nan if row.u95 is None else row.u95 / scale
+            if row.position_mm is None:
+                result.squareness[row.name] = (value, u95)
+            else:
+                rows[row.name].append((row.position_mm, value, u95))
+    except csv.Error as error:
+        raise line_error(path, reader.line_num, f"not valid CSV ({error})") from error
     for name, entries in rows.items():
-        entries.sort()
-        data = np.array(entries)
-        if np.any(np.diff(data[:, 0]) <= 0):
-            raise InputError(f"{path}: {name} has a repeated position")
+        if len(entries) < 2:
+            raise InputError(located(path, name, "a table needs at least two positions"))
+        data = np.array(sorted(entries))
         result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2])
     return result
 

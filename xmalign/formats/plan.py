@@ -8,13 +8,26 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
-from xmalign.formats.common import read_json, validate, write_json
+from xmalign.formats.common import (
+    Angle_deg,
+    FileModel,
+    Finite,
+    Length_mm,
+    Vector3_mm,
+    read_json,
+    validate,
+    write_json,
+)
 from xmalign.geometry import Vec
 
 PLAN_FORMAT = "xmalign.plan/1"
-_V3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+#: How far a line frame may be from orthonormal (rounding of the written digits).
+FRAME_TOLERANCE = 1e-6
+#: How far the targets may reach beyond the line's end (rounding), mm.
+TARGET_TOLERANCE_MM = 1e-3
+_V3 = Vector3_mm
 _KNOWN_LINE_KEYS = {
     "id",
     "start_mm",
@@ -29,33 +42,68 @@ _KNOWN_LINE_KEYS = {
 }
 
 
-class _FrameModel(BaseModel):
-    u: _V3
-    v: _V3
-    w: _V3
+class _FrameModel(FileModel):
+    u: Annotated[list[Finite], Field(min_length=3, max_length=3)]
+    v: Annotated[list[Finite], Field(min_length=3, max_length=3)]
+    w: Annotated[list[Finite], Field(min_length=3, max_length=3)]
+
+    @model_validator(mode="after")
+    def _orthonormal(self) -> _FrameModel:
+        frame = np.array([self.u, self.v, self.w])
+        if np.max(np.abs(frame @ frame.T - np.eye(3))) > FRAME_TOLERANCE:
+            raise ValueError("u, v, w are not orthonormal")
+        if np.linalg.det(frame) < 0:
+            raise ValueError("u, v, w are a left-handed frame (w must be u x v)")
+        return self
 
 
-class _LineModel(BaseModel):
-    model_config = ConfigDict(extra="allow")
-    id: str
+class _LineModel(FileModel):
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    id: Annotated[str, Field(min_length=1)]
     start_mm: _V3
     end_mm: _V3
     frame: _FrameModel
-    launch_deg: Annotated[list[float], Field(min_length=2, max_length=2)]
-    receiver_deg: Annotated[list[float], Field(min_length=3, max_length=3)]
-    targets_mm: Annotated[list[float], Field(min_length=2)]
+    launch_deg: Annotated[list[Angle_deg], Field(min_length=2, max_length=2)]
+    receiver_deg: Annotated[list[Angle_deg], Field(min_length=3, max_length=3)]
+    targets_mm: Annotated[list[Length_mm], Field(min_length=2)]
     runs: Annotated[int, Field(ge=1, le=5)] = 1
     bidirectional: bool = False
-    dwell_s: Annotated[float, Field(ge=0)] = 0.0
+    dwell_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = 0.0
+
+    @field_validator("targets_mm")
+    @classmethod
+    def _increasing(cls, targets: list[float]) -> list[float]:
+        if np.any(np.diff(targets) <= 0):
+            raise ValueError("targets must increase strictly")
+        return targets
+
+    @model_validator(mode="after")
+    def _targets_on_the_line(self) -> _LineModel:
+        length_mm = float(np.linalg.norm(np.subtract(self.end_mm, self.start_mm)))
+        low, high = self.targets_mm[0], self.targets_mm[-1]
+        if low < -TARGET_TOLERANCE_MM or high > length_mm + TARGET_TOLERANCE_MM:
+            raise ValueError(
+                f"targets_mm [{low:g} .. {high:g}] leave the line (0 .. {length_mm:g} mm)"
+            )
+        return self
 
 
-class _PlanModel(BaseModel):
-    model_config = ConfigDict(extra="allow")
+class _PlanModel(FileModel):
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
     format: str
     machine: str
     receiver_offset_mm: _V3
-    spindle_angle_deg: float = 0.0
+    spindle_angle_deg: Angle_deg = 0.0
     lines: Annotated[list[_LineModel], Field(min_length=1)]
+
+    @field_validator("lines")
+    @classmethod
+    def _unique_ids(cls, lines: list[_LineModel]) -> list[_LineModel]:
+        ids = [line.id for line in lines]
+        repeated = sorted({i for i in ids if ids.count(i) > 1})
+        if repeated:
+            raise ValueError(f"line id '{repeated[0]}' is given twice")
+        return lines
 
 
 @dataclass

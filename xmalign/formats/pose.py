@@ -8,10 +8,18 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from xmalign.errors import InputError
-from xmalign.formats.common import read_json, validate, write_json
+from xmalign.formats.common import (
+    Angle_deg,
+    FileModel,
+    Finite,
+    Vector3_mm,
+    key_error,
+    read_json,
+    validate,
+    write_json,
+)
 from xmalign.geometry import Vec
 from xmalign.kinematics import EncoderOffsets
 
@@ -19,19 +27,29 @@ POSE_FORMAT = "xmalign.launch-pose/1"
 OFFSET_NAMES = ("c2", "c3", "c4")
 
 
-class _PoseModel(BaseModel):
-    model_config = ConfigDict(extra="ignore")
+class _PoseModel(FileModel):
     format: str
-    position_mm: Annotated[list[float], Field(min_length=3, max_length=3)]
-    gamma_deg: float
+    position_mm: Vector3_mm
+    gamma_deg: Angle_deg
     covariance: Annotated[
-        list[Annotated[list[float], Field(min_length=4, max_length=4)]],
+        list[Annotated[list[Finite], Field(min_length=4, max_length=4)]],
         Field(min_length=4, max_length=4),
     ]
-    encoder_offsets_deg: dict[str, float] = {}
+    encoder_offsets_deg: dict[str, Angle_deg] = {}
     method: str = "unknown"
-    residual_rms_um: float | None = None
-    n_alignments: int | None = None
+    residual_rms_um: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] | None = None
+    n_alignments: Annotated[int, Field(ge=0)] | None = None
+
+
+def check_covariance(covariance: Vec, source: str, key: str) -> None:
+    """Refuse a covariance that is not symmetric positive semi-definite, naming the key."""
+    scale = float(np.max(np.abs(covariance))) or 1.0
+    if not np.allclose(covariance, covariance.T, rtol=1e-6, atol=1e-12 * scale):
+        raise key_error(source, key, "not symmetric")
+    if np.any(np.diag(covariance) < 0):
+        raise key_error(source, key, "a variance on the diagonal is negative")
+    if np.min(np.linalg.eigvalsh((covariance + covariance.T) / 2)) < -1e-9 * scale:
+        raise key_error(source, key, "not positive semi-definite (a negative eigenvalue)")
 
 
 @dataclass
@@ -59,13 +77,13 @@ def parse_pose(data: dict, source: str) -> LaunchPose:
     model = validate(_PoseModel, data, source)
     unknown = set(model.encoder_offsets_deg) - set(OFFSET_NAMES)
     if unknown:
-        raise InputError(
-            f"{source}: key 'encoder_offsets_deg': unknown offset {sorted(unknown)[0]}"
-            f" (known: {', '.join(OFFSET_NAMES)})"
+        raise key_error(
+            source,
+            f"encoder_offsets_deg.{sorted(unknown)[0]}",
+            f"not a known offset (known: {', '.join(OFFSET_NAMES)})",
         )
     covariance = np.array(model.covariance, dtype=float)
-    if not np.allclose(covariance, covariance.T, rtol=1e-6, atol=1e-15):
-        raise InputError(f"{source}: key 'covariance' is not symmetric")
+    check_covariance(covariance, source, "covariance")
     return LaunchPose(
         position_mm=np.array(model.position_mm, dtype=float),
         gamma_rad=math.radians(model.gamma_deg),

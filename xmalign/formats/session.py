@@ -8,28 +8,47 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field, ValidationInfo, field_validator
 
-from xmalign.formats.common import read_json, validate, write_json
+from xmalign.formats.common import (
+    Angle_deg,
+    Distance_mm,
+    FileModel,
+    Finite,
+    Vector3_mm,
+    read_json,
+    validate,
+    write_json,
+)
 from xmalign.geometry import Vec
 
 SESSION_FORMAT = "xmalign.identify-session/1"
+#: The nominal straightness range of the instrument, um (a machine file may set another).
+NOMINAL_STRAIGHTNESS_RANGE_UM = 250.0
 
 
-class _AlignmentModel(BaseModel):
-    model_config = ConfigDict(extra="ignore")
-    machine_mm: Annotated[list[float], Field(min_length=3, max_length=3)]
-    launch_deg: Annotated[list[float], Field(min_length=2, max_length=2)]
-    receiver_deg: Annotated[list[float], Field(min_length=2, max_length=3)]
-    distance_mm: Annotated[float, Field(gt=0)] | None = None
-    straightness_um: Annotated[list[float], Field(min_length=2, max_length=2)] | None = None
+class _AlignmentModel(FileModel):
+    machine_mm: Vector3_mm
+    launch_deg: Annotated[list[Angle_deg], Field(min_length=2, max_length=2)]
+    receiver_deg: Annotated[list[Angle_deg], Field(min_length=2, max_length=3)]
+    distance_mm: Distance_mm | None = None
+    straightness_um: Annotated[list[Finite], Field(min_length=2, max_length=2)] | None = None
+
+    @field_validator("straightness_um")
+    @classmethod
+    def _within_twice_the_range(
+        cls, value: list[float] | None, info: ValidationInfo
+    ) -> list[float] | None:
+        limit = 2 * (info.context or {}).get("straightness_range_um", NOMINAL_STRAIGHTNESS_RANGE_UM)
+        if value is not None and max(abs(v) for v in value) > limit:
+            raise ValueError(f"{value} is more than twice the instrument's range ({limit:g} um)")
+        return value
 
 
-class _SessionModel(BaseModel):
-    model_config = ConfigDict(extra="ignore")
+class _SessionModel(FileModel):
     format: str
-    spindle_angle_deg: float = 0.0
-    receiver_offset_mm: Annotated[list[float], Field(min_length=3, max_length=3)]
+    spindle_angle_deg: Angle_deg = 0.0
+    receiver_offset_mm: Vector3_mm
     alignments: list[_AlignmentModel]
 
 
@@ -68,9 +87,15 @@ def _alignment_from_model(m: _AlignmentModel) -> Alignment:
     )
 
 
-def parse_session(data: dict, source: str) -> Session:
-    """Build a Session from a decoded JSON document (format already checked)."""
-    model = validate(_SessionModel, data, source)
+def parse_session(
+    data: dict, source: str, straightness_range_um: float = NOMINAL_STRAIGHTNESS_RANGE_UM
+) -> Session:
+    """Build a Session from a decoded JSON document (format already checked).
+
+    A straightness residual beyond twice ``straightness_range_um`` is refused.
+    """
+    context = {"straightness_range_um": straightness_range_um}
+    model = validate(_SessionModel, data, source, context)
     return Session(
         receiver_offset_mm=np.array(model.receiver_offset_mm, dtype=float),
         spindle_angle_rad=math.radians(model.spindle_angle_deg),
@@ -78,9 +103,11 @@ def parse_session(data: dict, source: str) -> Session:
     )
 
 
-def read_session(path: str | Path) -> Session:
+def read_session(
+    path: str | Path, straightness_range_um: float = NOMINAL_STRAIGHTNESS_RANGE_UM
+) -> Session:
     """Read and validate an identification session file."""
-    return parse_session(read_json(path, SESSION_FORMAT), str(path))
+    return parse_session(read_json(path, SESSION_FORMAT), str(path), straightness_range_um)
 
 
 def session_to_dict(session: Session) -> dict:
