@@ -5,6 +5,7 @@ One source for the driver and the simulated units.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntFlag
 from functools import cache
@@ -32,12 +33,16 @@ class Register:
 
 @dataclass(frozen=True)
 class RegisterMap:
+    """The register map, bit meanings and watchdog timing of registers.yaml."""
+
     device: dict[str, Register]
     axis_stride: int
     axis_registers: dict[str, Register]
     fault_codes: dict[int, str]
     heartbeat_period_s: float
     watchdog_timeout_s: float
+    quick_stop_start_s: float
+    quick_stop_rad_s2: float
     device_types: dict[str, int]
 
     def axis(self, n: int, name: str) -> Register:
@@ -69,6 +74,8 @@ def load_register_map(path: Path = REGISTER_MAP_PATH) -> RegisterMap:
         fault_codes={int(k): v for k, v in data["fault_codes"].items()},
         heartbeat_period_s=data["watchdog"]["heartbeat_period_ms"] / 1000.0,
         watchdog_timeout_s=data["watchdog"]["timeout_ms"] / 1000.0,
+        quick_stop_start_s=data["watchdog"]["quick_stop_start_ms"] / 1000.0,
+        quick_stop_rad_s2=math.radians(data["watchdog"]["quick_stop_deg_s2"]),
         device_types=data["device_types"],
     )
 
