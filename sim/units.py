@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-
 from numpy.typing import ArrayLike
 
 from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
@@ -467,6 +466,12 @@ class SimUnit:
                 axis.home()
             elif Control.START in edges.rising and Control.STOP not in value:
                 axis.start()
+
+    def quick_stop(self, n: int) -> None:
+        """Stop axis ``n`` at the quick-stop deceleration; it is disabled and locked at rest."""
+        with self.lock:
+            self.control(n, Control(0))
+            self.axes[n - 1].stop(deceleration_rad_s2=self.register_map.quick_stop_rad_s2)
 
     def _image(self) -> dict[int, int]:
         """The register image: address -> 16-bit word."""
