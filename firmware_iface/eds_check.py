@@ -141,9 +141,8 @@ class _Checker:
         for key in _BOOLEANS:
             self.integer("DeviceInfo", key, 0, 1)
         self.integer("DeviceInfo", "Granularity", 0, 64)
-        if not any(self.get("DeviceInfo", f"BaudRate_{r}") == "1" for r in (125, 250, 500, 1000)):
-            if not any(self.get("DeviceInfo", key) == "1" for key in _BOOLEANS[:8]):
-                self.fail("DeviceInfo", "supports no baud rate")
+        if not any(self.get("DeviceInfo", key) == "1" for key in _BOOLEANS[:8]):
+            self.fail("DeviceInfo", "supports no baud rate")
         for n in range(1, 8):
             self.integer("DummyUsage", f"Dummy{n:04d}", 0, 1)
 
