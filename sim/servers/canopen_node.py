@@ -73,8 +73,8 @@ _COMMANDS: tuple[tuple[int, int, dict[str, str]], ...] = (
             OPERATION_ENABLED: READY_TO_SWITCH_ON,
         },
     ),
-    (0x8F, 0x07, {READY_TO_SWITCH_ON: SWITCHED_ON, OPERATION_ENABLED: SWITCHED_ON}),  # 3, 5
-    (0x8F, 0x0F, {SWITCHED_ON: OPERATION_ENABLED, READY_TO_SWITCH_ON: OPERATION_ENABLED}),  # 4, 3+4
+    (0x8F, 0x07, {READY_TO_SWITCH_ON: SWITCHED_ON, OPERATION_ENABLED: SWITCHED_ON}),  # on: 3, 5
+    (0x8F, 0x0F, {SWITCHED_ON: OPERATION_ENABLED}),  # enable operation: transition 4
     (  # disable voltage: transitions 7, 9, 10, 12
         0x82,
         0x00,
