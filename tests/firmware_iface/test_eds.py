@@ -1,4 +1,4 @@
-"""The EDS against CiA 306 (our checker: no eds-validate exists) and the canopen library's import."""
+"""The EDS against CiA 306 (our checker; no eds-validate exists) and canopen's EDS import."""
 
 from pathlib import Path
 

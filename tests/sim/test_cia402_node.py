@@ -20,7 +20,7 @@ COMMANDS = sorted({*State402.TRANSITIONTABLE.values(), 0x0F, 0x07, 0x06, 0x02, 0
 
 
 def diagram():
-    """canopen's CiA 402 transition table, restricted to commanded transitions between our states."""
+    """canopen's CiA 402 transition table, restricted to the transitions between our states."""
     return {
         pair: word
         for pair, word in State402.TRANSITIONTABLE.items()
