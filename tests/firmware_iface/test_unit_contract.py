@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import socket
-import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
