@@ -1,6 +1,8 @@
 """Each server driven by an independent client over loopback / a virtual bus / a pty."""
 
+import socket
 import time
+import uuid
 
 import canopen
 import numpy as np
@@ -175,4 +177,23 @@ def test_interferometer_on_a_pty(machine):
         port.write(b"STREAM OFF\n")
     finally:
         port.close()
+        server.stop()
+
+
+def test_canopen_over_udp_multicast_stays_on_this_computer():
+    group = "239.74.{}.{}".format(*uuid.uuid4().bytes[:2])  # a group of its own per run
+    server = CanopenUnitServer(
+        [SimUnit("launch", SimClock(real_time=True))], group, "udp_multicast"
+    )
+    server.start()
+    network = canopen.Network()
+    network.connect(interface="udp_multicast", channel=group, hop_limit=0)
+    try:
+        sockets = [server.network.bus._multicast._socket, network.bus._multicast._socket]
+        assert [s.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) for s in sockets] == [0, 0]
+        node = canopen.RemoteNode(2, str(EDS_PATH))
+        network.add_node(node)
+        assert node.sdo[0x6502].raw == 0x121  # frames go round on loopback
+    finally:
+        network.disconnect()
         server.stop()
