@@ -28,7 +28,7 @@ LogFileOption = Annotated[
     typer.Option(
         "--log-file",
         help="Append every register, SDO and serial line that crosses the wire, "
-        "with a UTC timestamp, to this file (docs/hardware.md, "Wire log").",
+        "with a UTC timestamp, to this file (docs/hardware.md, Wire log).",
     ),
 ]
 
