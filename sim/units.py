@@ -11,7 +11,7 @@ Firmware rules (docs/registers.md): ``start``, ``home`` and ``fault_reset`` act
 on their rising edge; ``start`` needs ``enable | unlock`` and no fault;
 clearing ``unlock`` stops the axis and it is locked once at rest. The watchdog
 runs from power-on: until the heartbeat register has changed, ``enable`` and
-``unlock`` are ignored; 400 ms after the last change (or power-on) every axis
+``unlock`` are ignored; 350 ms after the last change (or power-on) every axis
 quick-stops and brakes (fault 4), so it is at rest and locked by 500 ms.
 """
 
@@ -566,7 +566,9 @@ class _SimRotaryAxis:
 
     def position_rad(self) -> float:
         self.host.beat()
-        return float(self.unit.reported_rad()[self.n - 1])
+        with self.unit.lock:
+            self.unit.check_watchdog()
+            return self._axis.reported_rad()
 
     def move_to(self, angle_rad: float) -> None:
         self.host.beat()
@@ -671,6 +673,10 @@ class SimPositioningUnit(AxisGroup):
         self._last_beat_s = now
         self._heartbeat_value = self._heartbeat_value % 0xFFFF + 1
         self.unit.heartbeat(self._heartbeat_value)
+
+    def angles_rad(self) -> Vec:
+        self.beat()
+        return self.unit.reported_rad()
 
     def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
         """Move every axis; nothing moves if a target is out of range (one deadline per move)."""
