@@ -16,6 +16,7 @@ import asyncio
 import contextvars
 import logging
 import threading
+import time
 from typing import Any
 
 from pymodbus.constants import ExcCodes
@@ -33,20 +34,39 @@ log = logging.getLogger(__name__)
 _connection: contextvars.ContextVar[object] = contextvars.ContextVar("modbus_connection")
 
 
+#: A serial line never closes: its master is taken as gone after this long without a request.
+SERIAL_MASTER_GONE_S = 1.0
+
+
 class ControllingHost:
-    """Which connection controls the unit: the first that writes, until it closes."""
+    """Which connection controls the unit: the first that writes, until it closes.
+
+    One per unit, shared by every server of it (TCP and RTU). A serial line's
+    master also gives the unit up after :data:`SERIAL_MASTER_GONE_S` of silence.
+    """
 
     def __init__(self) -> None:
         self.owner: object | None = None
+        self._owner_seen_s = 0.0
         self._lock = threading.Lock()
 
     def may_write(self, connection: object) -> bool:
         """Claim the unit for ``connection`` if free; whether it controls the unit."""
         with self._lock:
+            silent_s = time.monotonic() - self._owner_seen_s
+            if getattr(self.owner, "serial", False) and silent_s > SERIAL_MASTER_GONE_S:
+                log.info("the serial master has been silent for %.1f s; the unit is free", silent_s)
+                self.owner = None
             if self.owner is None:
                 self.owner = connection
                 log.info("connection %s now controls the unit", id(connection))
             return self.owner is connection
+
+    def seen(self, connection: object) -> None:
+        """Any request of ``connection`` (reads too)."""
+        with self._lock:
+            if self.owner is connection:
+                self._owner_seen_s = time.monotonic()
 
     def release(self, connection: object) -> None:
         with self._lock:
@@ -68,6 +88,7 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         connection = _connection.get(None)
+        host.seen(connection)
         if set_values and not host.may_write(connection):
             log.debug(
                 "fc %d @%d <- %s from %s: busy", function_code, address, set_values, id(connection)
@@ -97,9 +118,10 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
 class _Handler(ServerRequestHandler):
     """A connection: serves its requests as itself and frees the unit when it closes."""
 
-    def __init__(self, owner: Any, host: ControllingHost) -> None:
+    def __init__(self, owner: Any, host: ControllingHost, serial: bool = False) -> None:
         super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)
         self.host = host
+        self.serial = serial
 
     async def handle_request(self) -> None:
         _connection.set(self)
@@ -125,7 +147,7 @@ class _SerialServer(ModbusSerialServer):
         super().__init__(*args, **kwargs)
 
     def callback_new_connection(self) -> _Handler:
-        return _Handler(self, self.host)
+        return _Handler(self, self.host, serial=True)
 
 
 class ModbusUnitServer:
@@ -139,14 +161,23 @@ class ModbusUnitServer:
         Where to listen (``127.0.0.1`` unless the user asks otherwise).
     device_id : int
         The Modbus unit id the unit answers to.
+    controlling_host : ControllingHost, optional
+        Shared with the unit's other servers (a new one by default).
     """
 
-    def __init__(self, unit: SimUnit, host: str, port: int, device_id: int = 1) -> None:
+    def __init__(
+        self,
+        unit: SimUnit,
+        host: str,
+        port: int,
+        device_id: int = 1,
+        controlling_host: ControllingHost | None = None,
+    ) -> None:
         self.unit = unit
         self.host = host
         self.port = port
         self.device_id = device_id
-        self.controlling_host = ControllingHost()
+        self.controlling_host = controlling_host or ControllingHost()
         self.where = f"{host}:{port}"
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
         self._loop = asyncio.new_event_loop()
@@ -192,12 +223,19 @@ class ModbusUnitServer:
 class ModbusRtuUnitServer(ModbusUnitServer):
     """Serve a unit over Modbus RTU on a new pty; a client opens :attr:`port` (e.g. /dev/pts/7).
 
-    A serial line has one master, so the controlling host is whoever uses the line.
+    The line's master is one host; it controls the unit once it writes, until it
+    has been silent for :data:`SERIAL_MASTER_GONE_S`.
     """
 
-    def __init__(self, unit: SimUnit, device_id: int = 1, baudrate: int = 115200) -> None:
+    def __init__(
+        self,
+        unit: SimUnit,
+        device_id: int = 1,
+        baudrate: int = 115200,
+        controlling_host: ControllingHost | None = None,
+    ) -> None:
         self.pair = PtyPair("modbus-rtu")
-        super().__init__(unit, "", 0, device_id)
+        super().__init__(unit, "", 0, device_id, controlling_host)
         self.baudrate = baudrate
         self.port = self.pair.client_port
         self.where = self.port

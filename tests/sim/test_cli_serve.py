@@ -1,18 +1,27 @@
+"""``xmalign sim serve`` as a separate process, driven over every protocol it serves."""
+
 import os
 import re
 import signal
 import subprocess
 import sys
+import textwrap
+import uuid
 
+import numpy as np
 import serial
 from pymodbus.client import ModbusTcpClient
 
+from firmware_iface.config import load_units_config, open_devices
 from firmware_iface.modbus import ModbusUnit, rtu_transport
 from firmware_iface.xm_line_protocol import Reply, decode_line
+from xmalign.machine import default_machine_path, load_machine
+from xmalign.safety import units_locked_on_exit
 
 
-def test_sim_serve_runs_until_sigint(free_port, tmp_path):
+def test_sim_serve_over_every_protocol_until_sigint(free_port, tmp_path):
     log_file = tmp_path / "wire.log"
+    group = "239.74.{}.{}".format(*uuid.uuid4().bytes[:2])  # a multicast group of its own
     process = subprocess.Popen(
         [
             sys.executable,
@@ -25,6 +34,8 @@ def test_sim_serve_runs_until_sigint(free_port, tmp_path):
             "--modbus",
             str(free_port),  # on --host, 127.0.0.1 by default
             "--rtu",
+            "--canopen",
+            group,  # udp_multicast with TTL 0: this computer only
             "--interferometer-pty",
             "--log-file",
             str(log_file),
@@ -47,12 +58,14 @@ def test_sim_serve_runs_until_sigint(free_port, tmp_path):
         assert client.connect()
         assert client.read_holding_registers(0, count=3, device_id=1).registers == [1, 256, 2]
         client.close()
-        rtu = ModbusUnit(rtu_transport(rtu_path, "launch unit"), expected_kind="launch")
-        assert [axis.name for axis in rtu.axes] == ["a1", "a2"]
-        rtu.close()
         with serial.Serial(pty_path, timeout=2.0) as port:
             port.write(b"ZERO\n")
             assert decode_line(port.readline()) == Reply(True, "ZERO")
+        live_devices_of_a_units_yaml(tmp_path, free_port, group, pty_path)
+        # the TCP host has closed: the unit is free for a host on the RTU line
+        rtu = ModbusUnit(rtu_transport(rtu_path, "launch unit"), expected_kind="launch")
+        assert [axis.name for axis in rtu.axes] == ["a1", "a2"]
+        rtu.close()
         process.send_signal(signal.SIGINT)
         assert process.wait(timeout=10) == 0
     finally:
@@ -65,6 +78,34 @@ def test_sim_serve_runs_until_sigint(free_port, tmp_path):
     assert all(re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z ", line) for line in logged)
     assert any("sim.servers.modbus DEBUG fc 3 @0 x3 -> [1, 256, 2]" in line for line in logged)
     assert any("fc 16 @3 <- [1]" in line for line in logged)  # the RTU host's first heartbeat
+    assert any(
+        "sim.servers.canopen_node DEBUG node 3 SDO write 0x6040:0 <- 6" in line for line in logged
+    )
+
+
+def live_devices_of_a_units_yaml(tmp_path, modbus_port, group, pty_path):
+    """Both drivers across processes, opened from a units.yaml: Modbus TCP for the launch
+    unit, CANopen for the receiver."""
+    config_path = tmp_path / "units.yaml"
+    config_path.write_text(
+        textwrap.dedent(f"""\
+        format: xmalign.units/1
+        launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {modbus_port}}}
+        receiver: {{transport: canopen, interface: udp_multicast, channel: "{group}"}}
+        interferometer: {{port: {pty_path}}}
+        """)
+    )
+    live = open_devices(load_units_config(config_path), load_machine(default_machine_path()))
+    try:
+        with units_locked_on_exit(live.launch, live.receiver):
+            live.launch.move_to([0.01, -0.01], timeout_s=5.0)
+            live.receiver.move_to([-0.01, 0.005, 0.002], timeout_s=5.0)
+        np.testing.assert_allclose(live.launch.angles_rad(), [0.01, -0.01], atol=1e-4)
+        np.testing.assert_allclose(live.receiver.angles_rad(), [-0.01, 0.005, 0.002], atol=1e-4)
+        assert all(axis.is_locked() for axis in (*live.launch.axes, *live.receiver.axes))
+        assert live.interferometer.read().channels.shape == (6,)
+    finally:
+        live.close()
 
 
 def test_sim_serve_bad_option_is_one_line():

@@ -197,3 +197,36 @@ def test_canopen_over_udp_multicast_stays_on_this_computer():
     finally:
         network.disconnect()
         server.stop()
+
+
+def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
+    from pymodbus.client import ModbusSerialClient
+
+    from sim.servers import modbus as servers
+
+    monkeypatch.setattr(servers, "SERIAL_MASTER_GONE_S", 0.6)
+    unit = SimUnit("launch", SimClock(real_time=True))
+    host = servers.ControllingHost()
+    tcp = ModbusUnitServer(unit, "127.0.0.1", free_port, controlling_host=host)
+    rtu = servers.ModbusRtuUnitServer(unit, controlling_host=host)
+    tcp.start()
+    rtu.start()
+    tcp_client = ModbusTcpClient("127.0.0.1", port=free_port, timeout=2)
+    rtu_client = ModbusSerialClient(rtu.port, baudrate=115200, timeout=2)
+    try:
+        assert tcp_client.connect() and rtu_client.connect()
+        assert not tcp_client.write_registers(3, [1], device_id=1).isError()
+        assert rtu_client.write_registers(3, [2], device_id=1).exception_code == 6
+        assert rtu_client.read_holding_registers(3, count=1, device_id=1).registers == [1]
+        tcp_client.close()
+        assert wait_for(lambda: not rtu_client.write_registers(3, [2], device_id=1).isError())
+        assert tcp_client.connect()
+        rtu_client.read_holding_registers(0, count=1, device_id=1)  # the master is still there
+        assert tcp_client.write_registers(3, [3], device_id=1).exception_code == 6
+        time.sleep(0.7)  # the serial master is silent: taken as gone
+        assert not tcp_client.write_registers(3, [3], device_id=1).isError()
+    finally:
+        tcp_client.close()
+        rtu_client.close()
+        tcp.stop()
+        rtu.stop()

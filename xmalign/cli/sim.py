@@ -92,17 +92,22 @@ def serve(
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     with ExitStack() as servers:
         servers.callback(stop_log_file, log_handler)
+        from sim.servers.modbus import ControllingHost
+
+        controlling_host = ControllingHost()  # one per unit, whichever server it writes on
         if address is not None:
             from sim.servers.modbus import ModbusUnitServer
 
-            server = ModbusUnitServer(getattr(world, kind), *address, device_id)
+            server = ModbusUnitServer(getattr(world, kind), *address, device_id, controlling_host)
             server.start()
             servers.callback(server.stop)
             console.print(f"modbus {kind} unit on {server.where} (device id {device_id})")
         if rtu:
             from sim.servers.modbus import ModbusRtuUnitServer
 
-            rtu_server = ModbusRtuUnitServer(getattr(world, kind), device_id)
+            rtu_server = ModbusRtuUnitServer(
+                getattr(world, kind), device_id, controlling_host=controlling_host
+            )
             rtu_server.start()
             servers.callback(rtu_server.stop)
             console.print(
