@@ -340,12 +340,15 @@ class SimUnit:
     def keep_heartbeat(self, on: bool) -> None:
         """An in-process host's background heartbeat: while on, the heartbeat is never stale.
 
-        Stands for the drivers' heartbeat thread, which virtual time would outrun.
+        Stands for the drivers' heartbeat thread, which virtual time would outrun;
+        the register keeps the value the host last wrote.
         """
         with self.lock:
             self.check_watchdog()
             if on or self._host_beating:
-                self.heartbeat(self._heartbeat % 0xFFFF + 1)
+                self._heartbeat_time_s = self.clock.now()
+                self.heartbeat_seen = True
+                self._watchdog_tripped = False
             self._host_beating = on
 
     def check_watchdog(self) -> None:
@@ -658,6 +661,7 @@ class SimPositioningUnit(AxisGroup):
         self._heartbeat_value = 0
         self._last_beat_s = -math.inf
         self._axes = tuple(_SimRotaryAxis(self, n) for n in range(1, len(unit.axes) + 1))
+        self.beat()
         self.unit.keep_heartbeat(True)
         self.clear_heartbeat_faults()
 
