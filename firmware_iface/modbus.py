@@ -315,7 +315,9 @@ class ModbusUnit(AxisGroup):
         register_map: RegisterMap | None = None,
     ) -> None:
         self.transport = transport
-        self.device_name = device_name or getattr(transport, "device_name", "positioning unit")
+        self.device_name: str = device_name or str(
+            getattr(transport, "device_name", "positioning unit")
+        )
         self.clock = clock or WallClock()
         self.poll_s = poll_s
         self.register_map = register_map or load_register_map()
@@ -324,7 +326,10 @@ class ModbusUnit(AxisGroup):
         self._heartbeat_thread: threading.Thread | None = None
         self._heartbeat_stop = threading.Event()
         self._heartbeat_failure: Exception | None = None
-        kinds = {code: kind for kind, code in self.register_map.device_types.items()}
+        kinds: dict[int, Literal["launch", "receiver"]] = {
+            code: kind  # type: ignore[misc]  # registers.yaml names exactly these two
+            for kind, code in self.register_map.device_types.items()
+        }
         device_type = self._read_device("device_type")
         if device_type not in kinds:
             raise DeviceError(

@@ -48,7 +48,8 @@ class AxisGroup:
 
     def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
         """Move every axis and wait; ``timeout_s`` is one deadline for the whole move."""
-        move_axes(self._axes, angles_rad, timeout_s, self.device_name, self.clock)
+        angles = np.asarray(angles_rad, dtype=float)
+        move_axes(self._axes, angles, timeout_s, self.device_name, self.clock)
 
     def lock(self) -> None:
         for axis in self._axes:

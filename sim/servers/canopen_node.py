@@ -351,7 +351,7 @@ class CanopenUnitServer:
             if self.nodes[node_id].nmt.state != "OPERATIONAL":
                 return  # PDOs only in NMT operational
             log.debug("node %d RPDO1 <- %s", node_id, bytes(data).hex())
-            axis.on_rpdo(data)
+            axis.on_rpdo(bytes(data))
 
         return on_rpdo
 

@@ -237,8 +237,9 @@ class ModbusRtuUnitServer(ModbusUnitServer):
         self.pair = PtyPair("modbus-rtu")
         super().__init__(unit, "", 0, device_id, controlling_host)
         self.baudrate = baudrate
-        self.port = self.pair.client_port
-        self.where = self.port
+        #: the pty a client opens (``port`` is the TCP port of the base class, unused here)
+        self.serial_port = self.pair.client_port
+        self.where = self.serial_port
 
     def _build(self) -> ModbusTcpServer | ModbusSerialServer:
         device = unit_device(self.unit, self.controlling_host, self.device_id)

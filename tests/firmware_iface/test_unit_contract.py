@@ -68,7 +68,9 @@ def modbus_rtu() -> Iterator[Implementation]:
     firmware = _powered_on_long_ago(clock)
     server = ModbusRtuUnitServer(firmware)
     server.start()
-    unit = ModbusUnit(rtu_transport(server.port, "launch unit", timeout_s=2.0), expected_kind=KIND)
+    unit = ModbusUnit(
+        rtu_transport(server.serial_port, "launch unit", timeout_s=2.0), expected_kind=KIND
+    )
     unit.start_heartbeat()
     yield Implementation(unit, firmware, clock, unit.stop_heartbeat)
     unit.close()

@@ -212,7 +212,7 @@ def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
     tcp.start()
     rtu.start()
     tcp_client = ModbusTcpClient("127.0.0.1", port=free_port, timeout=2)
-    rtu_client = ModbusSerialClient(rtu.port, baudrate=115200, timeout=2)
+    rtu_client = ModbusSerialClient(rtu.serial_port, baudrate=115200, timeout=2)
     try:
         assert tcp_client.connect() and rtu_client.connect()
         assert not tcp_client.write_registers(3, [1], device_id=1).isError()

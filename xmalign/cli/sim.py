@@ -111,7 +111,7 @@ def serve(
             rtu_server.start()
             servers.callback(rtu_server.stop)
             console.print(
-                f"modbus-rtu {kind} unit on {rtu_server.port} (device id {device_id})",
+                f"modbus-rtu {kind} unit on {rtu_server.serial_port} (device id {device_id})",
                 highlight=False,
             )
         if canopen is not None:
