@@ -61,6 +61,15 @@ def damaged(tmp_path: Path, old: str, new: str) -> Path:
         ),
         ("CreationDate=01-01-2025", "CreationDate=2025-01-01", "CreationDate"),
         ("EDSVersion=4.0", "EDSVersion=3.0", "EDSVersion must be 4.0"),
+        ("[DummyUsage]", "[Dummies]", "[DummyUsage] section missing"),
+        ("24=0x6502\n", "24=0x2502\n", "0x2502 does not belong in this list"),
+        (
+            "DataType=0x0007\nAccessType=ro\nDefaultValue=0x00000121",
+            "DataType=0x0030\nAccessType=ro\nDefaultValue=0x00000121",
+            "DataType 0x0030 unknown",
+        ),
+        ("ObjectType=0x7\nDataType=0x0009", "ObjectType=0x3\nDataType=0x0009", "is not VAR"),
+        ("[1A00]\n", "[1A01]\n", "no mapping object 0x1A00"),
         (
             "[1016sub0]\nParameterName=Highest sub-index supported\nObjectType=0x7\nDataType=0x0005"
             "\nAccessType=ro\nDefaultValue=1",
@@ -73,3 +82,11 @@ def damaged(tmp_path: Path, old: str, new: str) -> Path:
 def test_the_checker_finds_each_kind_of_defect(tmp_path, old, new, problem):
     problems = check_eds(damaged(tmp_path, old, new))
     assert any(problem in p for p in problems), problems
+
+
+def test_a_device_without_a_baud_rate_is_flagged(tmp_path):
+    text = EDS_PATH.read_text(encoding="ascii").replace("BaudRate_500=1", "BaudRate_500=0")
+    path = tmp_path / "silent.eds"
+    path.write_text(text.replace("BaudRate_1000=1", "BaudRate_1000=0"), encoding="ascii")
+    assert "[DeviceInfo] supports no baud rate" in check_eds(path)
+    assert main([str(path)]) == 1
