@@ -27,13 +27,10 @@ from typing import Literal, TypeVar
 import can
 import canopen
 
-from firmware_iface.register_map import load_register_map
-from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup
+from firmware_iface.unit import AxisGroup, axis_fault
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
-    DriveFaultError,
-    HeartbeatError,
     OutOfRangeError,
     TransportError,
 )
@@ -144,13 +141,7 @@ class CanopenAxis:
         """The statusword; raises the node's fault as DriveFaultError or HeartbeatError."""
         status = self._read(STATUSWORD)
         if status & FAULT:
-            code = self._read(ERROR_CODE) - FAULT_CODE_BASE
-            text = load_register_map().fault_text(code)
-            if code == HEARTBEAT_FAULT:
-                raise HeartbeatError(
-                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
-                )
-            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+            raise axis_fault(self.label, self._read(ERROR_CODE) - FAULT_CODE_BASE)
         return status
 
     def fault_code(self) -> int:

@@ -28,11 +28,10 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from firmware_iface.register_map import Control, Register, RegisterMap, Status, load_register_map
-from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup
+from firmware_iface.unit import AxisGroup, axis_fault
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
-    DriveFaultError,
     HeartbeatError,
     OutOfRangeError,
     TransportError,
@@ -243,13 +242,7 @@ class ModbusAxis:
         """Status of the axis; raises the axis's fault as a DriveFaultError or HeartbeatError."""
         status = self.status()
         if Status.FAULT in status:
-            code = self.unit.read(self.number, "fault_code")
-            text = self.unit.register_map.fault_text(code)
-            if code == HEARTBEAT_FAULT:
-                raise HeartbeatError(
-                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
-                )
-            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+            raise axis_fault(self.label, self.unit.read(self.number, "fault_code"))
         return status
 
     def stop(self) -> None:

@@ -7,11 +7,25 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from firmware_iface.register_map import load_register_map
+from xmalign.errors import DriveFaultError, HeartbeatError
 from xmalign.geometry import Vec
 from xmalign.roles import Clock, move_axes
 
 #: Fault code of the heartbeat watchdog (registers.yaml, docs/registers.md).
 HEARTBEAT_FAULT = 4
+
+
+def axis_fault(label: str, code: int) -> DriveFaultError:
+    """The error every unit implementation raises for fault ``code`` of the axis ``label``.
+
+    Fault 4 is a :class:`HeartbeatError` (a DriveFaultError: the unit stopped and
+    locked its axes because the host heartbeat went stale), any other a DriveFaultError.
+    """
+    text = load_register_map().fault_text(code)
+    if code == HEARTBEAT_FAULT:
+        return HeartbeatError(f"{label} stopped: {text} (the host heartbeat went stale)")
+    return DriveFaultError(f"{label} reports fault {code}: {text}")
 
 
 class AxisGroup:

@@ -27,14 +27,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
-from firmware_iface.unit import AxisGroup
+from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
 from sim import motion
 from sim.clock import SimClock
 from sim.imperfections import UnitImperfections
 from xmalign.errors import (
     DeviceTimeoutError,
-    DriveFaultError,
-    HeartbeatError,
     InputError,
     OutOfRangeError,
 )
@@ -43,7 +41,6 @@ from xmalign.roles import Clock
 
 COUNTS_PER_REV = 1 << 23
 FIRMWARE_VERSION = 0x0100
-FAULT_HEARTBEAT = 4
 FAULT_NOT_HOMED = 6
 FAULT_NO_TRACKING = 7
 IN_POSITION_COUNTS = 2
@@ -364,7 +361,7 @@ class SimUnit:
         if self.clock.now() >= expiry_s:
             self._watchdog_tripped = True
             for axis in self.axes:
-                axis.fault(FAULT_HEARTBEAT, expiry_s, self.register_map.quick_stop_rad_s2)
+                axis.fault(HEARTBEAT_FAULT, expiry_s, self.register_map.quick_stop_rad_s2)
             self._control = [c & ~Control.UNLOCK for c in self._control]
 
     # register-level API -------------------------------------------------------
@@ -629,18 +626,9 @@ class _SimRotaryAxis:
 
     def _raise_fault(self) -> None:
         self.unit.check_watchdog()
-        code = self._axis.fault_code
-        text = self.unit.register_map.fault_text(code)
-        if code == FAULT_HEARTBEAT:
-            raise HeartbeatError(
-                f"axis {self.name} of the simulated {self.unit.kind} unit stopped: {text}"
-                " (the host heartbeat went stale)"
-            )
-        if code:
-            raise DriveFaultError(
-                f"axis {self.name} of the simulated {self.unit.kind} unit reports fault {code}: "
-                f"{text}"
-            )
+        if self._axis.fault_code:
+            label = f"axis {self.name} of the simulated {self.unit.kind} unit"
+            raise axis_fault(label, self._axis.fault_code)
 
 
 class SimPositioningUnit(AxisGroup):
