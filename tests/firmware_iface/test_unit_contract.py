@@ -46,7 +46,9 @@ def _free_port() -> int:
 
 def _powered_on_long_ago(clock: SimClock) -> SimUnit:
     firmware = SimUnit(KIND, clock, seed=7)
-    clock.sleep(0.6)  # the watchdog has stopped and locked everything (fault 4)
+    clock.sleep(firmware.register_map.quick_stop_start_s + 0.01)  # the watchdog has tripped
+    firmware.check_watchdog()
+    assert all(axis.fault_code == 4 for axis in firmware.axes)
     return firmware
 
 
