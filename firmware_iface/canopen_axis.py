@@ -11,11 +11,14 @@ PDO configuration:
 * homing (``0x6060`` = 6), fault reset, and locking = *switched on* (brake applied).
 
 The host heartbeat (CAN id ``0x77F``) that the nodes' watchdog consumes is
-produced by :class:`CanopenUnit` while it is open.
+produced by :class:`CanopenUnit` while it is open; opening clears a heartbeat
+fault left from power-on or an earlier host. Every SDO read and write is logged
+on the ``firmware_iface.canopen_axis`` logger at DEBUG.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -24,13 +27,10 @@ from typing import Literal, TypeVar
 import can
 import canopen
 
-from firmware_iface.register_map import load_register_map
-from firmware_iface.unit import AxisGroup
+from firmware_iface.unit import AxisGroup, axis_fault
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
-    DriveFaultError,
-    HeartbeatError,
     OutOfRangeError,
     TransportError,
 )
@@ -52,13 +52,14 @@ STATE_MASK, SWITCHED_ON_STATE, OPERATION_ENABLED = 0x6F, 0x23, 0x27
 ABORT_VALUE_RANGE = 0x06090030
 #: ``0x603F`` holds ``FAULT_CODE_BASE + fault code`` of registers.yaml.
 FAULT_CODE_BASE = 0xFF00
-HEARTBEAT_FAULT = 4
 #: The host's heartbeat: node 127, state operational, every 100 ms (the nodes allow 500 ms).
 HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S = 0x77F, b"\x05", 0.1
 #: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
 
 
 class CanopenAxis:
@@ -90,7 +91,7 @@ class CanopenAxis:
         self.clock = clock or WallClock()
         self.poll_s = poll_s
         self._mode: int | None = None
-        self.counts_per_rev = int(self._sdo(lambda: node.sdo[ENCODER_RESOLUTION][1].raw, "read"))
+        self.counts_per_rev = self._read(ENCODER_RESOLUTION, 1)
 
     # --- SDO access with errors that name the axis ----------------------------------------
     def _sdo(self, action: Callable[[], T], verb: str) -> T:
@@ -105,13 +106,20 @@ class CanopenAxis:
         except (can.CanError, OSError) as error:
             raise TransportError(f"lost the CAN bus of {self.label}: {error}") from error
 
-    def _read(self, index: int) -> int:
-        return int(self._sdo(lambda: self.node.sdo[index].raw, f"read of 0x{index:04X}"))
+    def _read(self, index: int, subindex: int = 0) -> int:
+        def read() -> int:
+            entry = self.node.sdo[index]
+            return int((entry[subindex] if subindex else entry).raw)
+
+        value = self._sdo(read, f"read of 0x{index:04X}")
+        log.debug("%s: SDO read 0x%04X:%d -> %d (0x%X)", self.label, index, subindex, value, value)
+        return value
 
     def _write(self, index: int, value: int) -> None:
         def write() -> None:
             self.node.sdo[index].raw = value
 
+        log.debug("%s: SDO write 0x%04X:0 <- %d (0x%X)", self.label, index, value, value)
         self._sdo(write, f"write of 0x{index:04X}")
 
     def _set_mode(self, mode: int) -> None:
@@ -133,14 +141,13 @@ class CanopenAxis:
         """The statusword; raises the node's fault as DriveFaultError or HeartbeatError."""
         status = self._read(STATUSWORD)
         if status & FAULT:
-            code = self._read(ERROR_CODE) - FAULT_CODE_BASE
-            text = load_register_map().fault_text(code)
-            if code == HEARTBEAT_FAULT:
-                raise HeartbeatError(
-                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
-                )
-            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+            raise axis_fault(self.label, self._read(ERROR_CODE) - FAULT_CODE_BASE)
         return status
+
+    def fault_code(self) -> int:
+        """The node's fault code (registers.yaml numbering), 0 when it has none."""
+        error_code = self._read(ERROR_CODE)
+        return error_code - FAULT_CODE_BASE if error_code else 0
 
     def move_to(self, angle_rad: float) -> None:
         """Profile-position move to a reported angle (returns once the node took the target)."""
@@ -240,6 +247,7 @@ class CanopenUnit(AxisGroup):
     ) -> None:
         self.kind = kind
         self.device_name = device_name or f"{kind} unit"
+        self.clock = clock or WallClock()
         first = FIRST_AXIS[kind]
         ids = (
             list(node_ids)
@@ -258,6 +266,7 @@ class CanopenUnit(AxisGroup):
             )
             for i, node_id in enumerate(ids)
         )
+        self.clear_heartbeat_faults()
 
     def close(self) -> None:
         """Stop producing the heartbeat (the nodes lock themselves 500 ms later)."""

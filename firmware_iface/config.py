@@ -12,6 +12,7 @@
       channel: can0
       bitrate: 500000              # default 500000
       node_ids: [3, 4, 5]          # default: the axis numbers a3, a4, a5
+      # hop_limit: 0               # udp_multicast only: TTL, default 0 (this computer only)
     interferometer:
       port: /dev/ttyUSB0           # or a pyserial URL (socket://host:port)
       baudrate: 115200             # default 115200
@@ -81,6 +82,8 @@ class CanopenUnitConfig(_Strict):
     channel: str
     bitrate: Annotated[int, Field(gt=0)] = 500000
     node_ids: list[Annotated[int, Field(ge=1, le=127)]] | None = None
+    #: udp_multicast only: TTL of the frames; 0 keeps the bus on this computer.
+    hop_limit: Annotated[int, Field(ge=0, le=255)] = 0
 
 
 UnitConfig = Annotated[
@@ -187,8 +190,14 @@ def _open_unit(
         if key not in networks:
             network = canopen.Network()
             try:
+                options = (
+                    {"hop_limit": config.hop_limit} if config.interface == "udp_multicast" else {}
+                )
                 network.connect(
-                    interface=config.interface, channel=config.channel, bitrate=config.bitrate
+                    interface=config.interface,
+                    channel=config.channel,
+                    bitrate=config.bitrate,
+                    **options,
                 )
             except (can.CanError, OSError, ValueError) as error:
                 raise TransportError(

@@ -14,11 +14,15 @@ Recorded streams are CSV files (``xmalign.interferometer-stream``)::
 :class:`RecordingInterferometer` writes one while it reads another
 interferometer; :class:`ReplayInterferometer` plays one back through the same
 role, so captured data can be re-run through alignment or a measurement.
+
+Every line sent and received is logged on the ``firmware_iface.interferometer``
+logger at DEBUG (``>`` host to instrument, ``<`` instrument to host).
 """
 
 from __future__ import annotations
 
 import csv
+import logging
 import math
 from pathlib import Path
 from typing import Protocol
@@ -34,6 +38,8 @@ from xmalign.roles import CHANNELS, Interferometer, InterferometerReading, mean_
 STREAM_HEADER = ("time_s", *CHANNELS, "beam_ok")
 #: Consecutive corrupted lines tolerated (each is discarded) before the line counts as broken.
 MAX_CORRUPTED_LINES = 5
+
+log = logging.getLogger(__name__)
 
 
 class LineConnection(Protocol):
@@ -96,8 +102,10 @@ class SerialInterferometer:
         return mean_reading(samples)
 
     def _send(self, command: Command) -> None:
+        line = encode_command(command)
+        log.debug("%s > %r", self.device_name, line)
         try:
-            self.connection.write(encode_command(command))
+            self.connection.write(line)
         except (serial.SerialException, OSError) as error:
             raise TransportError(
                 f"lost the connection to the {self.device_name}: {error}"
@@ -132,6 +140,7 @@ class SerialInterferometer:
                 raise TransportError(
                     f"lost the connection to the {self.device_name}: {error}"
                 ) from error
+            log.debug("%s < %r", self.device_name, raw)
             if not raw.endswith(b"\n"):
                 raise DeviceTimeoutError(f"the {self.device_name} did not answer in time")
             try:

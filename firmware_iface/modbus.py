@@ -10,10 +10,15 @@ The heartbeat is written from :meth:`ModbusUnit.beat`, which every driver call
 and every wait loop invokes, so it keeps pace with simulated time too; for
 hardware, :meth:`ModbusUnit.start_heartbeat` adds a background thread that
 beats while the host is busy elsewhere (e.g. waiting for the operator).
+Opening a unit clears a heartbeat fault left from power-on or an earlier host.
+
+Every register read and write is logged on the ``firmware_iface.modbus``
+logger at DEBUG (register name, address and words); reconnects at WARNING.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Callable, Sequence
@@ -23,11 +28,10 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from firmware_iface.register_map import Control, Register, RegisterMap, Status, load_register_map
-from firmware_iface.unit import AxisGroup
+from firmware_iface.unit import AxisGroup, axis_fault
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
-    DriveFaultError,
     HeartbeatError,
     OutOfRangeError,
     TransportError,
@@ -37,12 +41,14 @@ from xmalign.roles import Clock, WallClock
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
-#: Fault code of REGISTERS' firmware documentation for an expired heartbeat watchdog.
-HEARTBEAT_FAULT = 4
+#: Modbus exception code "server device busy": another host controls the unit.
+SERVER_DEVICE_BUSY = 6
 #: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 _UINT16 = 1 << 16
 _UINT32 = 1 << 32
+
+log = logging.getLogger(__name__)
 
 
 class RegisterTransport(Protocol):
@@ -128,6 +134,9 @@ class ModbusTransport:
                     response = request(self.client)
                 except (ModbusException, OSError, TransportError) as error:
                     last = error
+                    log.warning(
+                        "%s: %s at register %d failed: %s", self.device_name, verb, address, error
+                    )
                     self.client.close()
                     continue
                 if response.isError():
@@ -139,6 +148,12 @@ class ModbusTransport:
 
     def _refusal(self, verb: str, address: int, response: object) -> XmalignError:
         code = getattr(response, "exception_code", None)
+        log.debug("%s: %s at %d answered exception %s", self.device_name, verb, address, code)
+        if code == SERVER_DEVICE_BUSY:
+            return DeviceError(
+                f"the {self.device_name} refused the {verb} at register {address}: another host"
+                " controls it (Modbus exception 6, server device busy)"
+            )
         if code == ILLEGAL_DATA_VALUE:
             return OutOfRangeError(
                 f"the {self.device_name} refused the {verb} at register {address}:"
@@ -196,6 +211,9 @@ class ModbusAxis:
     def status(self) -> Status:
         return Status(self.unit.read(self.number, "status"))
 
+    def fault_code(self) -> int:
+        return self.unit.read(self.number, "fault_code")
+
     def move_to(self, angle_rad: float) -> None:
         counts = self.unit.rad_to_counts(angle_rad)
         try:
@@ -224,13 +242,7 @@ class ModbusAxis:
         """Status of the axis; raises the axis's fault as a DriveFaultError or HeartbeatError."""
         status = self.status()
         if Status.FAULT in status:
-            code = self.unit.read(self.number, "fault_code")
-            text = self.unit.register_map.fault_text(code)
-            if code == HEARTBEAT_FAULT:
-                raise HeartbeatError(
-                    f"{self.label} stopped: {text} (the host heartbeat went stale)"
-                )
-            raise DriveFaultError(f"{self.label} reports fault {code}: {text}")
+            raise axis_fault(self.label, self.unit.read(self.number, "fault_code"))
         return status
 
     def stop(self) -> None:
@@ -296,7 +308,9 @@ class ModbusUnit(AxisGroup):
         register_map: RegisterMap | None = None,
     ) -> None:
         self.transport = transport
-        self.device_name = device_name or getattr(transport, "device_name", "positioning unit")
+        self.device_name: str = device_name or str(
+            getattr(transport, "device_name", "positioning unit")
+        )
         self.clock = clock or WallClock()
         self.poll_s = poll_s
         self.register_map = register_map or load_register_map()
@@ -305,7 +319,10 @@ class ModbusUnit(AxisGroup):
         self._heartbeat_thread: threading.Thread | None = None
         self._heartbeat_stop = threading.Event()
         self._heartbeat_failure: Exception | None = None
-        kinds = {code: kind for kind, code in self.register_map.device_types.items()}
+        kinds: dict[int, Literal["launch", "receiver"]] = {
+            code: kind  # type: ignore[misc]  # registers.yaml names exactly these two
+            for kind, code in self.register_map.device_types.items()
+        }
         device_type = self._read_device("device_type")
         if device_type not in kinds:
             raise DeviceError(
@@ -321,6 +338,7 @@ class ModbusUnit(AxisGroup):
         n_axes = self._read_device("axis_count")
         first = FIRST_AXIS[self.kind]
         self._axes = tuple(ModbusAxis(self, n, f"a{first + n - 1}") for n in range(1, n_axes + 1))
+        self.clear_heartbeat_faults()
 
     # --- conversions and register access -------------------------------------------------
     def counts_to_rad(self, counts: int) -> float:
@@ -331,17 +349,39 @@ class ModbusUnit(AxisGroup):
 
     def read(self, axis: int, name: str) -> int:
         self.beat()
-        register = self.register_map.axis(axis, name)
-        return decode(register, self.transport.read_registers(register.address, register.width))
+        return self._read_register(self.register_map.axis(axis, name))
 
     def write(self, axis: int, name: str, value: int) -> None:
         self.beat()
-        register = self.register_map.axis(axis, name)
-        self.transport.write_registers(register.address, encode(register, value))
+        self._write_register(self.register_map.axis(axis, name), value)
 
     def _read_device(self, name: str) -> int:
-        register = self.register_map.device[name]
-        return decode(register, self.transport.read_registers(register.address, register.width))
+        return self._read_register(self.register_map.device[name])
+
+    def _read_register(self, register: Register) -> int:
+        words = self.transport.read_registers(register.address, register.width)
+        value = decode(register, words)
+        log.debug(
+            "%s: read %s @%d -> %s = %d",
+            self.device_name,
+            register.name,
+            register.address,
+            list(words),
+            value,
+        )
+        return value
+
+    def _write_register(self, register: Register, value: int) -> None:
+        words = encode(register, value)
+        log.debug(
+            "%s: write %s @%d <- %s = %d",
+            self.device_name,
+            register.name,
+            register.address,
+            words,
+            value,
+        )
+        self.transport.write_registers(register.address, words)
 
     # --- heartbeat ------------------------------------------------------------------------
     def beat(self) -> None:
@@ -354,9 +394,9 @@ class ModbusUnit(AxisGroup):
         if now - self._last_beat_s < self.register_map.heartbeat_period_s / 2.0:
             return
         self._last_beat_s = now
-        self._heartbeat_value = (self._heartbeat_value + 1) % _UINT16
-        register = self.register_map.device["heartbeat"]
-        self.transport.write_registers(register.address, [self._heartbeat_value])
+        # 1..65535: the power-on value 0 never comes back, so every beat is a change
+        self._heartbeat_value = self._heartbeat_value % (_UINT16 - 1) + 1
+        self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
 
     def start_heartbeat(self) -> None:
         """Beat from a background thread (wall time) until :meth:`stop_heartbeat`."""

@@ -5,12 +5,15 @@ One source for the driver and the simulated units.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntFlag
 from functools import cache
 from pathlib import Path
 
 import yaml
+
+from xmalign.errors import FormatError
 
 REGISTER_MAP_PATH = Path(__file__).with_name("registers.yaml")
 
@@ -32,12 +35,16 @@ class Register:
 
 @dataclass(frozen=True)
 class RegisterMap:
+    """The register map, bit meanings and watchdog timing of registers.yaml."""
+
     device: dict[str, Register]
     axis_stride: int
     axis_registers: dict[str, Register]
     fault_codes: dict[int, str]
     heartbeat_period_s: float
     watchdog_timeout_s: float
+    quick_stop_start_s: float
+    quick_stop_rad_s2: float
     device_types: dict[str, int]
 
     def axis(self, n: int, name: str) -> Register:
@@ -47,10 +54,6 @@ class RegisterMap:
 
     def fault_text(self, code: int) -> str:
         return self.fault_codes.get(code, f"unknown fault code {code}")
-
-
-def _bits(name: str, mapping: dict[str, int]) -> type[IntFlag]:
-    return IntFlag(name, {key.upper(): 1 << bit for key, bit in mapping.items()})
 
 
 @cache
@@ -69,12 +72,49 @@ def load_register_map(path: Path = REGISTER_MAP_PATH) -> RegisterMap:
         fault_codes={int(k): v for k, v in data["fault_codes"].items()},
         heartbeat_period_s=data["watchdog"]["heartbeat_period_ms"] / 1000.0,
         watchdog_timeout_s=data["watchdog"]["timeout_ms"] / 1000.0,
+        quick_stop_start_s=data["watchdog"]["quick_stop_start_ms"] / 1000.0,
+        quick_stop_rad_s2=math.radians(data["watchdog"]["quick_stop_deg_s2"]),
         device_types=data["device_types"],
     )
 
 
-_RAW = yaml.safe_load(REGISTER_MAP_PATH.read_text(encoding="utf-8"))
-#: Bits of an axis's control register (ENABLE, UNLOCK, START, STOP, FAULT_RESET, HOME, TRACK).
-Control = _bits("Control", _RAW["control_bits"])
-#: Bits of an axis's status register (ENABLED, IN_POSITION, MOVING, FAULT, LOCKED, HOMED, ...).
-Status = _bits("Status", _RAW["status_bits"])
+class Control(IntFlag):
+    """Bits of an axis's control register (registers.yaml ``control_bits``)."""
+
+    ENABLE = 1 << 0
+    UNLOCK = 1 << 1
+    START = 1 << 2
+    STOP = 1 << 3
+    FAULT_RESET = 1 << 4
+    HOME = 1 << 5
+    TRACK = 1 << 6
+
+
+class Status(IntFlag):
+    """Bits of an axis's status register (registers.yaml ``status_bits``)."""
+
+    ENABLED = 1 << 0
+    IN_POSITION = 1 << 1
+    MOVING = 1 << 2
+    FAULT = 1 << 3
+    LOCKED = 1 << 4
+    HOMED = 1 << 5
+    AT_LIMIT = 1 << 6
+    TRACKING = 1 << 7
+
+
+def check_bits(path: Path = REGISTER_MAP_PATH) -> None:
+    """FormatError unless the bits of ``path`` are those of :class:`Control` and :class:`Status`.
+
+    The classes are static so that type checkers know them; the YAML stays the reference.
+    """
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    for flags, key in ((Control, "control_bits"), (Status, "status_bits")):
+        declared = {name.upper(): 1 << bit for name, bit in data[key].items()}
+        if declared != {flag.name: flag.value for flag in flags}:
+            raise FormatError(
+                f"{path}: {key} differ from firmware_iface.register_map.{flags.__name__}"
+            )
+
+
+check_bits()

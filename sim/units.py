@@ -1,16 +1,18 @@
-"""Simulated positioning units with the firmware semantics of REGISTERS.md.
+"""Simulated positioning units with the firmware semantics of docs/registers.md.
 
 :class:`SimAxis` is one axis (drive + brake + encoder), evaluated analytically
 at ``clock.now()``; :class:`SimUnit` holds the axes of a launch (2) or receiver
 (3) unit, the register image served over Modbus, the heartbeat watchdog and the
 unit's true geometry; :class:`SimPositioningUnit` is the in-process
-``PositioningUnit`` role on top of it. Angles inside are rad; the registers
-speak encoder counts.
+``PositioningUnit`` role on top of it (it is the host, so it beats too). Angles
+inside are rad; the registers speak encoder counts.
 
-Firmware rules where REGISTERS.md is silent (docs/conventions-notes.md, Simulator):
-``start``, ``home`` and ``fault_reset`` act on their rising edge; ``start``
-needs ``enable | unlock`` and no fault; clearing ``unlock`` stops the axis and
-it is locked once at rest; the watchdog is armed by the first heartbeat write.
+Firmware rules (docs/registers.md): ``start``, ``home`` and ``fault_reset`` act
+on their rising edge; ``start`` needs ``enable | unlock`` and no fault;
+clearing ``unlock`` stops the axis and it is locked once at rest. The watchdog
+runs from power-on: until the heartbeat register has changed, ``enable`` and
+``unlock`` are ignored; 350 ms after the last change (or power-on) every axis
+quick-stops and brakes (fault 4), so it is at rest and locked by 500 ms.
 """
 
 from __future__ import annotations
@@ -22,18 +24,23 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
+from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
 from sim import motion
 from sim.clock import SimClock
 from sim.imperfections import UnitImperfections
-from xmalign.errors import DeviceTimeoutError, DriveFaultError, InputError, OutOfRangeError
+from xmalign.errors import (
+    DeviceTimeoutError,
+    InputError,
+    OutOfRangeError,
+)
 from xmalign.geometry import Vec, rot_x, rot_y, rot_z
 from xmalign.roles import Clock
 
 COUNTS_PER_REV = 1 << 23
 FIRMWARE_VERSION = 0x0100
-FAULT_HEARTBEAT = 4
 FAULT_NOT_HOMED = 6
 FAULT_NO_TRACKING = 7
 IN_POSITION_COUNTS = 2
@@ -230,16 +237,22 @@ class SimAxis:
             self.limits.acceleration_rad_s2,
         )
 
-    def stop(self, time_s: float | None = None) -> None:
-        """Decelerate to rest from the state at ``time_s`` (default now)."""
+    def stop(self, time_s: float | None = None, deceleration_rad_s2: float | None = None) -> None:
+        """Decelerate to rest from the state at ``time_s`` (default now).
+
+        ``deceleration_rad_s2`` defaults to the axis's acceleration (a quick stop is faster).
+        """
         when = self.clock.now() if time_s is None else time_s
-        self.profile = motion.stop(self.profile, when, self.limits.acceleration_rad_s2)
+        deceleration = deceleration_rad_s2 or self.limits.acceleration_rad_s2
+        self.profile = motion.stop(self.profile, when, deceleration)
         self._homing = False
         self.target_rad = self.profile.final_position
 
-    def fault(self, code: int, time_s: float | None = None) -> None:
-        """Stop, apply the brake and report ``code``."""
-        self.stop(time_s)
+    def fault(
+        self, code: int, time_s: float | None = None, deceleration_rad_s2: float | None = None
+    ) -> None:
+        """Stop, apply the brake (on rest) and report ``code``."""
+        self.stop(time_s, deceleration_rad_s2)
         self.unlocked = False
         self.fault_code = code
 
@@ -303,30 +316,52 @@ class SimUnit:
             )
         )
         self._control = [Control(0)] * len(self.axes)
-        self._heartbeat: int | None = None
-        self._heartbeat_time_s = 0.0
+        self._heartbeat = 0
+        self.heartbeat_seen = False
+        self._heartbeat_time_s = self.clock.now()
         self._watchdog_tripped = False
+        self._host_beating = False
         self.lock = threading.RLock()
 
     # watchdog ---------------------------------------------------------------
     def heartbeat(self, value: int) -> None:
-        """The host's heartbeat; a change re-arms the watchdog (the first one arms it)."""
+        """The host's heartbeat register; a change (from power-on 0 too) re-arms the watchdog."""
         with self.lock:
             self.check_watchdog()
             if value != self._heartbeat:
                 self._heartbeat = value
                 self._heartbeat_time_s = self.clock.now()
+                self.heartbeat_seen = True
                 self._watchdog_tripped = False
 
+    def keep_heartbeat(self, on: bool) -> None:
+        """An in-process host's background heartbeat: while on, the heartbeat is never stale.
+
+        Stands for the drivers' heartbeat thread, which virtual time would outrun;
+        the register keeps the value the host last wrote.
+        """
+        with self.lock:
+            self.check_watchdog()
+            if on or self._host_beating:
+                self._heartbeat_time_s = self.clock.now()
+                self.heartbeat_seen = True
+                self._watchdog_tripped = False
+            self._host_beating = on
+
     def check_watchdog(self) -> None:
-        """Stop and lock every axis (fault 4) if the heartbeat stalled past the timeout."""
-        if self._heartbeat is None or self._watchdog_tripped:
+        """Quick-stop and brake every axis (fault 4) once the heartbeat is stale.
+
+        Evaluated retroactively: the stop begins at the expiry, however late it is noticed.
+        """
+        if self._host_beating:
+            self._heartbeat_time_s = self.clock.now()
+        if self._watchdog_tripped:
             return
-        expiry_s = self._heartbeat_time_s + self.register_map.watchdog_timeout_s
+        expiry_s = self._heartbeat_time_s + self.register_map.quick_stop_start_s
         if self.clock.now() >= expiry_s:
             self._watchdog_tripped = True
             for axis in self.axes:
-                axis.fault(FAULT_HEARTBEAT, min(expiry_s, self.clock.now()))
+                axis.fault(HEARTBEAT_FAULT, expiry_s, self.register_map.quick_stop_rad_s2)
             self._control = [c & ~Control.UNLOCK for c in self._control]
 
     # register-level API -------------------------------------------------------
@@ -413,6 +448,8 @@ class SimUnit:
     def control(self, n: int, value: Control) -> None:
         """Apply a control-register write to axis ``n`` (1-based)."""
         with self.lock:
+            if not self.heartbeat_seen:  # no host heartbeat yet: the axis stays disabled, locked
+                value &= ~(Control.ENABLE | Control.UNLOCK)
             axis = self.axes[n - 1]
             edges = _Edges(rising=value & ~self._control[n - 1], value=value)
             self._control[n - 1] = value
@@ -430,6 +467,12 @@ class SimUnit:
             elif Control.START in edges.rising and Control.STOP not in value:
                 axis.start()
 
+    def quick_stop(self, n: int) -> None:
+        """Stop axis ``n`` at the quick-stop deceleration; it is disabled and locked at rest."""
+        with self.lock:
+            self.control(n, Control(0))
+            self.axes[n - 1].stop(deceleration_rad_s2=self.register_map.quick_stop_rad_s2)
+
     def _image(self) -> dict[int, int]:
         """The register image: address -> 16-bit word."""
         rmap = self.register_map
@@ -446,7 +489,7 @@ class SimUnit:
         put(device["device_type"].address, "uint16", rmap.device_types[self.kind])
         put(device["firmware_version"].address, "uint16", FIRMWARE_VERSION)
         put(device["axis_count"].address, "uint16", len(self.axes))
-        put(device["heartbeat"].address, "uint16", self._heartbeat or 0)
+        put(device["heartbeat"].address, "uint16", self._heartbeat)
         put(device["counts_per_rev"].address, "uint32", COUNTS_PER_REV)
         for n, axis in enumerate(self.axes, start=1):
             values = {
@@ -505,22 +548,32 @@ class SimUnit:
 
 
 class _SimRotaryAxis:
-    """The ``RotaryAxis`` role for axis ``n`` of a :class:`SimUnit` (angles are reported rad)."""
+    """The ``RotaryAxis`` role for axis ``n`` of a :class:`SimUnit` (angles are reported rad).
 
-    def __init__(self, unit: SimUnit, n: int) -> None:
-        self.unit = unit
+    It is the host's side: every call beats the shared heartbeat, and waits beat
+    at least every half heartbeat period, as the drivers do.
+    """
+
+    def __init__(self, host: SimPositioningUnit, n: int) -> None:
+        self.host = host
+        self.unit = host.unit
         self.n = n
-        self.name = unit.axes[n - 1].name
+        self.name = self.unit.axes[n - 1].name
 
     @property
     def _axis(self) -> SimAxis:
         return self.unit.axes[self.n - 1]
 
     def position_rad(self) -> float:
-        return float(self.unit.reported_rad()[self.n - 1])
+        self.host.beat()
+        with self.unit.lock:
+            self.unit.check_watchdog()
+            return self._axis.reported_rad()
 
     def move_to(self, angle_rad: float) -> None:
+        self.host.beat()
         with self.unit.lock:
+            self._raise_fault()
             self._axis.set_target(angle_rad)
             self.unit.control(self.n, Control.ENABLE | Control.UNLOCK)
             self.unit.control(self.n, Control.ENABLE | Control.UNLOCK | Control.START)
@@ -528,67 +581,99 @@ class _SimRotaryAxis:
 
     def wait_in_position(self, timeout_s: float) -> None:
         clock = self.unit.clock
-        with self.unit.lock:
-            self.unit.check_watchdog()
-            self._raise_fault()
-            remaining = self._axis.profile.end_s - clock.now()
-        if remaining > timeout_s:
-            clock.sleep(timeout_s)
-            raise DeviceTimeoutError(f"axis {self.name} not in position after {timeout_s:g} s")
-        clock.sleep(max(0.0, remaining))
-        with self.unit.lock:
-            self.unit.check_watchdog()
-            self._raise_fault()
+        deadline_s = clock.now() + timeout_s
+        step_s = self.unit.register_map.heartbeat_period_s / 2.0
+        while True:
+            self.host.beat()
+            with self.unit.lock:
+                self._raise_fault()
+                remaining_s = self._axis.profile.end_s - clock.now()
+            if remaining_s <= 0.0:
+                return
+            if clock.now() >= deadline_s:
+                raise DeviceTimeoutError(f"axis {self.name} not in position after {timeout_s:g} s")
+            clock.sleep(min(remaining_s, step_s, deadline_s - clock.now()))
 
     def stop(self) -> None:
+        self.host.beat()
         with self.unit.lock:
             self.unit.control(self.n, Control.ENABLE | Control.UNLOCK | Control.STOP)
 
     def lock(self) -> None:
+        self.host.beat()
         with self.unit.lock:
             self.unit.control(self.n, Control.ENABLE)
 
     def is_locked(self) -> bool:
+        self.host.beat()
         with self.unit.lock:
             return self._axis.is_locked()
 
+    def enable(self) -> None:
+        self.host.beat()
+        self.unit.control(self.n, Control.ENABLE)
+
+    def fault_code(self) -> int:
+        self.host.beat()
+        with self.unit.lock:
+            self.unit.check_watchdog()
+            return self._axis.fault_code
+
+    def reset_fault(self) -> None:
+        self.host.beat()
+        self.unit.control(self.n, Control.ENABLE | Control.FAULT_RESET)
+        self.unit.control(self.n, Control.ENABLE)
+
     def _raise_fault(self) -> None:
-        code = self._axis.fault_code
-        if code:
-            raise DriveFaultError(
-                f"axis {self.name} fault {code}: {self.unit.register_map.fault_text(code)}"
-            )
+        self.unit.check_watchdog()
+        if self._axis.fault_code:
+            label = f"axis {self.name} of the simulated {self.unit.kind} unit"
+            raise axis_fault(label, self._axis.fault_code)
 
 
-class SimPositioningUnit:
-    """In-process ``PositioningUnit`` on a :class:`SimUnit` (reported angles, rad)."""
+class SimPositioningUnit(AxisGroup):
+    """In-process ``PositioningUnit`` on a :class:`SimUnit` (reported angles, rad).
+
+    It plays the host: it changes the unit's heartbeat from every call (at most
+    every half heartbeat period of the unit's clock) and, like the drivers opened
+    from a ``units.yaml``, keeps a background heartbeat until :meth:`stop_heartbeat`
+    (a host that stalls or closes). Opening it clears a heartbeat fault left from
+    power-on, as the drivers do when they connect.
+    """
 
     def __init__(self, unit: SimUnit) -> None:
         self.unit = unit
         self.kind = unit.kind
-        self._axes = tuple(_SimRotaryAxis(unit, n) for n in range(1, len(unit.axes) + 1))
+        self.clock = unit.clock
+        self.device_name = f"simulated {unit.kind} unit"
+        self._heartbeat_value = 0
+        self._last_beat_s = -math.inf
+        self._axes = tuple(_SimRotaryAxis(self, n) for n in range(1, len(unit.axes) + 1))
+        self.beat()
+        self.unit.keep_heartbeat(True)
+        self.clear_heartbeat_faults()
 
-    @property
-    def axes(self) -> tuple[_SimRotaryAxis, ...]:
-        return self._axes
+    def stop_heartbeat(self) -> None:
+        """Stop the background heartbeat; the calls still beat."""
+        self.unit.keep_heartbeat(False)
+
+    def beat(self) -> None:
+        """Change the heartbeat if half a heartbeat period has passed on the unit's clock."""
+        now = self.clock.now()
+        if now - self._last_beat_s < self.unit.register_map.heartbeat_period_s / 2.0:
+            return
+        self._last_beat_s = now
+        self._heartbeat_value = self._heartbeat_value % 0xFFFF + 1
+        self.unit.heartbeat(self._heartbeat_value)
 
     def angles_rad(self) -> Vec:
+        self.beat()
         return self.unit.reported_rad()
 
-    def move_to(self, angles_rad: Vec, timeout_s: float) -> None:
+    def move_to(self, angles_rad: ArrayLike, timeout_s: float) -> None:
+        """Move every axis; nothing moves if a target is out of range (one deadline per move)."""
         targets = np.asarray(angles_rad, dtype=float)
-        if targets.shape != (len(self._axes),):
-            raise InputError(
-                f"the {self.kind} unit takes {len(self._axes)} angles, not {targets.shape}"
-            )
-        for axis, target in zip(self._axes, targets, strict=True):
-            axis._axis.check_target(float(target))
-        for axis, target in zip(self._axes, targets, strict=True):
-            axis.move_to(float(target))
-        deadline = self.unit.clock.now() + timeout_s
-        for axis in self._axes:
-            axis.wait_in_position(max(0.0, deadline - self.unit.clock.now()))
-
-    def lock(self) -> None:
-        for axis in self._axes:
-            axis.lock()
+        if targets.shape == (len(self._axes),):
+            for axis, target in zip(self._axes, targets, strict=True):
+                axis._axis.check_target(float(target))
+        super().move_to(targets, timeout_s)

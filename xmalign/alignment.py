@@ -325,7 +325,7 @@ def _recover(
     )
     try:
         for target in candidates:
-            _move_units(launch, receiver, target, settings.move_timeout_s)
+            _move_units(launch, receiver, target, settings.move_timeout_s, clock)
             clock.sleep(settings.settle_s)
             reading = interferometer.average(settings.average_s)
             if reading.beam_ok:
@@ -464,15 +464,19 @@ def fine_align(
         )
         last_step = (correction_urad[:2], error)
         setpoint = setpoint + correction_urad * 1e-6
-        _move_units(launch, receiver, setpoint, settings.move_timeout_s)
+        _move_units(launch, receiver, setpoint, settings.move_timeout_s, clock)
         clock.sleep(settings.settle_s)
 
 
 def _move_units(
-    launch: PositioningUnit, receiver: PositioningUnit, setpoint_rad: Vec, timeout_s: float
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    setpoint_rad: Vec,
+    timeout_s: float,
+    clock: Clock,
 ) -> None:
     axes: list[RotaryAxis] = [*launch.axes, *receiver.axes][: len(setpoint_rad)]
-    move_axes(axes, setpoint_rad, timeout_s, "positioning units")
+    move_axes(axes, setpoint_rad, timeout_s, "positioning units", clock)
 
 
 # --- manual mode ----------------------------------------------------------------------------

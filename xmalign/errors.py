@@ -54,5 +54,12 @@ class DeviceTimeoutError(TransportError, TimeoutError):
     """A device did not answer or did not finish in time."""
 
 
-class HeartbeatError(DeviceTimeoutError):
-    """The heartbeat watchdog of a device expired."""
+class HeartbeatError(DriveFaultError):
+    """A unit's heartbeat watchdog stopped and locked its axes (fault 4): the host went stale.
+
+    A device fault, not a transport failure: the unit answers and says its axes
+    are stopped and locked; reconnecting alone does not undo it, a fault reset
+    after the heartbeat is running again does (docs/registers.md, "Watchdog").
+    Every implementation of a positioning unit (Modbus, CANopen, simulated)
+    raises this class for it.
+    """

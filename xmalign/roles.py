@@ -102,7 +102,10 @@ class PositioningUnit(Protocol):
         ...
 
     def move_to(self, angles_rad: Vec, timeout_s: float) -> None:
-        """Move all axes to reported angles and wait until they are in position."""
+        """Move all axes to reported angles and wait until they are in position.
+
+        ``timeout_s`` is one deadline for the whole move (not one per axis).
+        """
         ...
 
     def lock(self) -> None:
@@ -152,19 +155,27 @@ class MachineMover(MachinePositionSource, Protocol):
 
 
 def move_axes(
-    axes: Sequence[RotaryAxis], angles_rad: Sequence[float] | Vec, timeout_s: float, device: str
+    axes: Sequence[RotaryAxis],
+    angles_rad: Sequence[float] | Vec,
+    timeout_s: float,
+    device: str,
+    clock: Clock,
 ) -> None:
     """Start every axis towards its reported angle, then wait until all are in position.
 
-    Raises InputError when the number of angles is not the number of axes.
+    ``timeout_s`` is one deadline for the whole move, counted on ``clock`` from
+    this call: each axis waits for what is left of it (every implementation of
+    ``PositioningUnit.move_to`` means this). Raises InputError when the number
+    of angles is not the number of axes.
     """
     angles = np.asarray(angles_rad, dtype=float)
     if angles.shape != (len(axes),):
         raise InputError(f"{device}: expected {len(axes)} angles, got {angles.size}")
+    deadline_s = clock.now() + timeout_s
     for axis, angle in zip(axes, angles, strict=True):
         axis.move_to(float(angle))
     for axis in axes:
-        axis.wait_in_position(timeout_s)
+        axis.wait_in_position(max(0.0, deadline_s - clock.now()))
 
 
 def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading:

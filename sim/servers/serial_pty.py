@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import select
 import threading
+import time
 import tty
 
 from firmware_iface.xm_line_protocol import (
@@ -24,6 +25,7 @@ from xmalign.roles import Interferometer
 
 IDENTIFICATION = "XMALIGN-SIM XM-60 class 1.0"
 _POLL_S = 0.05
+_MAX_LATE_S = 0.25
 
 
 class PtyInterferometerServer:
@@ -109,6 +111,14 @@ class PtyInterferometerServer:
                     self.handle(line)
 
     def _serve_stream(self) -> None:
-        while not self._stop.wait(1.0 / self.rate_hz):
+        """Send samples on a fixed schedule, so a busy computer does not lower the rate."""
+        next_s = time.monotonic()
+        while True:
+            next_s += 1.0 / self.rate_hz
+            late_s = time.monotonic() - next_s
+            if late_s > _MAX_LATE_S:  # far behind: start afresh rather than send a burst
+                next_s = time.monotonic()
+            if self._stop.wait(max(0.0, next_s - time.monotonic())):
+                return
             if self.streaming:
                 self._send(encode_sample(self.interferometer.read()))

@@ -1,6 +1,8 @@
 """Each server driven by an independent client over loopback / a virtual bus / a pty."""
 
+import socket
 import time
+import uuid
 
 import canopen
 import numpy as np
@@ -66,6 +68,10 @@ def test_modbus_move_lock_and_refusals(modbus):
     control = RMAP.axis(2, "control").address
     assert not client.write_registers(target, words(rad_to_counts(0.05)), device_id=1).isError()
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
+    assert Status.ENABLED not in mb_status(client, 2)  # no heartbeat yet: not enabled
+    client.write_registers(3, [1], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.FAULT_RESET], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
     assert Status.MOVING in mb_status(client, 2)
     assert wait_for(lambda: Status.IN_POSITION in mb_status(client, 2))
@@ -81,14 +87,18 @@ def test_modbus_heartbeat_stall_stops_and_locks(modbus):
     control = RMAP.axis(1, "control").address
     client.write_registers(RMAP.axis(1, "target").address, words(rad_to_counts(3.0)), device_id=1)
     client.write_registers(3, [1], device_id=1)
+    client.write_registers(control, [Control.ENABLE | Control.FAULT_RESET], device_id=1)
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
-    for beat in range(2, 5):
+    for beat in range(2, 10):
         time.sleep(0.15)
         client.write_registers(3, [beat], device_id=1)
+    last_beat_s = unit.clock.now()  # just after the unit took the last heartbeat
     assert Status.MOVING in mb_status(client, 1)
-    time.sleep(1.0)
+    time.sleep(0.6)
     bits = mb_status(client, 1)
+    at_rest_s = unit.axes[0].profile.end_s  # the firmware's own clock: when the stop ended
+    assert at_rest_s - last_beat_s < 0.5
     assert Status.FAULT in bits and Status.LOCKED in bits and Status.MOVING not in bits
     fault = client.read_holding_registers(RMAP.axis(1, "fault_code").address, count=1, device_id=1)
     assert fault.registers == [4]
@@ -105,7 +115,14 @@ def test_canopen_nodes_move_refuse_and_watch_the_heartbeat():
         assert server.node_ids == [1, 2, 3, 4, 5]
         node = canopen.RemoteNode(4, str(EDS_PATH))
         network.add_node(node)
-        assert node.sdo[0x6041].raw & 0x6F == 0x40  # switch on disabled
+        assert node.sdo[0x6041].raw & 0x4F == 0x40  # switch on disabled
+        node.sdo[0x6040].raw = 0x06
+        node.sdo[0x6040].raw = 0x07
+        assert node.sdo[0x6041].raw & 0x6F == 0x21  # no host heartbeat: no further than ready
+        beat = network.send_periodic(0x77F, [0x05], 0.1)
+        time.sleep(0.15)
+        if node.sdo[0x6041].raw & 0x08:  # powered on long ago: the watchdog's fault 4
+            node.sdo[0x6040].raw = 0x80
         for word in (0x06, 0x07, 0x0F):
             node.sdo[0x6040].raw = word
         assert node.sdo[0x6041].raw & 0x6F == 0x27  # operation enabled
@@ -118,9 +135,7 @@ def test_canopen_nodes_move_refuse_and_watch_the_heartbeat():
         assert abs(node.sdo[0x6064].raw - rad_to_counts(0.04)) <= 200
         node.sdo[0x6040].raw = 0x07  # disable operation = lock
         assert units[1].axes[1].is_locked()
-        # heartbeat: host node 127 beats, then stops while a move runs
-        beat = network.send_periodic(0x77F, [0x05], 0.1)
-        time.sleep(0.3)
+        # the host heartbeat stops while a move runs
         node.sdo[0x6040].raw = 0x0F
         node.sdo[0x607A].raw = rad_to_counts(-1.0)
         node.sdo[0x6040].raw = 0x1F
@@ -163,3 +178,55 @@ def test_interferometer_on_a_pty(machine):
     finally:
         port.close()
         server.stop()
+
+
+def test_canopen_over_udp_multicast_stays_on_this_computer():
+    group = "239.74.{}.{}".format(*uuid.uuid4().bytes[:2])  # a group of its own per run
+    server = CanopenUnitServer(
+        [SimUnit("launch", SimClock(real_time=True))], group, "udp_multicast"
+    )
+    server.start()
+    network = canopen.Network()
+    network.connect(interface="udp_multicast", channel=group, hop_limit=0)
+    try:
+        sockets = [server.network.bus._multicast._socket, network.bus._multicast._socket]
+        assert [s.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) for s in sockets] == [0, 0]
+        node = canopen.RemoteNode(2, str(EDS_PATH))
+        network.add_node(node)
+        assert node.sdo[0x6502].raw == 0x121  # frames go round on loopback
+    finally:
+        network.disconnect()
+        server.stop()
+
+
+def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
+    from pymodbus.client import ModbusSerialClient
+
+    from sim.servers import modbus as servers
+
+    monkeypatch.setattr(servers, "SERIAL_MASTER_GONE_S", 0.6)
+    unit = SimUnit("launch", SimClock(real_time=True))
+    host = servers.ControllingHost()
+    tcp = ModbusUnitServer(unit, "127.0.0.1", free_port, controlling_host=host)
+    rtu = servers.ModbusRtuUnitServer(unit, controlling_host=host)
+    tcp.start()
+    rtu.start()
+    tcp_client = ModbusTcpClient("127.0.0.1", port=free_port, timeout=2)
+    rtu_client = ModbusSerialClient(rtu.serial_port, baudrate=115200, timeout=2)
+    try:
+        assert tcp_client.connect() and rtu_client.connect()
+        assert not tcp_client.write_registers(3, [1], device_id=1).isError()
+        assert rtu_client.write_registers(3, [2], device_id=1).exception_code == 6
+        assert rtu_client.read_holding_registers(3, count=1, device_id=1).registers == [1]
+        tcp_client.close()
+        assert wait_for(lambda: not rtu_client.write_registers(3, [2], device_id=1).isError())
+        assert tcp_client.connect()
+        rtu_client.read_holding_registers(0, count=1, device_id=1)  # the master is still there
+        assert tcp_client.write_registers(3, [3], device_id=1).exception_code == 6
+        time.sleep(0.7)  # the serial master is silent: taken as gone
+        assert not tcp_client.write_registers(3, [3], device_id=1).isError()
+    finally:
+        tcp_client.close()
+        rtu_client.close()
+        tcp.stop()
+        rtu.stop()

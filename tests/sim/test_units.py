@@ -7,7 +7,7 @@ from firmware_iface.register_map import Control, Status, load_register_map
 from sim.clock import SimClock
 from sim.imperfections import UnitImperfections
 from sim.units import COUNTS_PER_REV, SimPositioningUnit, SimUnit, rad_to_counts
-from xmalign.errors import DeviceTimeoutError, DriveFaultError, InputError, OutOfRangeError
+from xmalign.errors import DeviceTimeoutError, HeartbeatError, InputError, OutOfRangeError
 from xmalign.roles import PositioningUnit
 
 RMAP = load_register_map()
@@ -20,6 +20,24 @@ def words(value):
 
 def status(unit, n=1):
     return Status(unit.read_registers(RMAP.axis(n, "status").address, 1)[0])
+
+
+class Host:
+    """A host at the register level: it changes the heartbeat every 100 ms of simulated time."""
+
+    def __init__(self, unit):
+        self.unit = unit
+        self.beats = 0
+        self.beat()
+
+    def beat(self):
+        self.beats += 1
+        self.unit.write_registers(3, [self.beats])
+
+    def run_for(self, seconds):
+        for _ in range(round(seconds / 0.1)):
+            self.unit.clock.sleep(0.1)
+            self.beat()
 
 
 def start_move(unit, n, angle_rad):
@@ -41,10 +59,11 @@ def test_device_registers():
 def test_move_lock_and_status_sequence():
     clock = SimClock()
     unit = SimUnit("launch", clock)
+    host = Host(unit)
     start_move(unit, 2, 0.3)
-    clock.sleep(0.1)
+    host.run_for(0.1)
     assert Status.MOVING in status(unit, 2) and Status.LOCKED not in status(unit, 2)
-    clock.sleep(20.0)
+    host.run_for(20.0)
     assert Status.IN_POSITION in status(unit, 2)
     actual = unit.read_registers(RMAP.axis(2, "actual").address, 2)
     assert (actual[0] << 16 | actual[1]) == rad_to_counts(0.3)
@@ -55,11 +74,12 @@ def test_move_lock_and_status_sequence():
 def test_velocity_limit_sets_the_move_time():
     clock = SimClock()
     unit = SimUnit("launch", clock)
+    host = Host(unit)
     unit.write_registers(RMAP.axis(1, "velocity_limit").address, words(rad_to_counts(0.1)))
     start_move(unit, 1, 1.0)
-    clock.sleep(9.0)
+    host.run_for(9.0)
     assert Status.MOVING in status(unit)
-    clock.sleep(2.0)
+    host.run_for(2.0)
     assert Status.IN_POSITION in status(unit)
     with pytest.raises(OutOfRangeError):
         unit.write_registers(RMAP.axis(1, "velocity_limit").address, words(rad_to_counts(10.0)))
@@ -85,42 +105,85 @@ def test_read_only_and_unknown_registers():
         unit.read_registers(40, 10)
 
 
-def test_heartbeat_watchdog_stops_and_locks():
+def test_no_enable_before_the_first_heartbeat_and_power_on_watchdog():
     clock = SimClock()
     unit = SimUnit("launch", clock)
-    start_move(unit, 1, 2.0)
-    clock.sleep(2.0)  # no heartbeat yet: the watchdog is not armed
-    assert Status.MOVING in status(unit)
-    unit.write_registers(3, [1])
-    clock.sleep(0.4)
-    unit.write_registers(3, [2])
-    clock.sleep(0.4)
-    assert Status.MOVING in status(unit)
-    clock.sleep(0.2)
-    assert status(unit) & (Status.FAULT | Status.MOVING) == Status.FAULT | Status.MOVING
-    clock.sleep(1.0)
+    start_move(unit, 1, 1.0)  # no heartbeat yet: enable and unlock are ignored
+    clock.sleep(0.1)
+    assert status(unit) & (Status.ENABLED | Status.MOVING | Status.LOCKED) == Status.LOCKED
+    unit.write_registers(3, [0])  # the power-on value: not a change, not a heartbeat
+    clock.sleep(0.35)
     bits = status(unit)
-    assert Status.LOCKED in bits and Status.MOVING not in bits
+    assert Status.FAULT in bits and Status.LOCKED in bits
     assert unit.read_registers(RMAP.axis(1, "fault_code").address, 1) == [4]
-    # stopped where a stop begun at the expiry (t = 2.9 s) ends, however late it is looked at
-    limits = unit.axes[0].limits
-    v, a = limits.max_velocity_rad_s, limits.acceleration_rad_s2
-    expected = v * v / (2 * a) + v * (2.9 - v / a) + v * v / (2 * a)
-    assert unit.axes[0].motor_rad() == pytest.approx(expected, abs=1e-9)
-    unit.write_registers(3, [3])
+    host = Host(unit)
+    unit.write_registers(16, [Control.ENABLE | Control.FAULT_RESET])
+    start_move(unit, 1, 0.1)
+    host.run_for(0.2)
+    assert Status.MOVING in status(unit)
+
+
+def _full_speed_stale_heartbeat(unit, clock):
+    """Axis 1 cruising at full speed when the heartbeat stops; the time of its last change."""
+    host = Host(unit)
+    start_move(unit, 1, 4.0)
+    host.run_for(2.0)
+    assert unit.axes[0].profile.state(clock.now())[1] == pytest.approx(math.radians(30.0))
+    return clock.now()
+
+
+@pytest.mark.parametrize("looked_at_after_s", [0.3, 0.4, 0.5, 3.0])
+def test_stale_heartbeat_at_full_speed_is_stopped_and_locked_within_500_ms(looked_at_after_s):
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    last_beat_s = _full_speed_stale_heartbeat(unit, clock)
+    clock.sleep(looked_at_after_s)
+    bits = status(unit)
+    if looked_at_after_s < RMAP.quick_stop_start_s:
+        assert bits & (Status.MOVING | Status.FAULT) == Status.MOVING
+        return
+    assert Status.FAULT in bits
+    assert unit.read_registers(RMAP.axis(1, "fault_code").address, 1) == [4]
+    at_rest_s = unit.axes[0].profile.end_s - last_beat_s
+    assert at_rest_s <= RMAP.watchdog_timeout_s
+    if looked_at_after_s >= RMAP.watchdog_timeout_s:
+        assert Status.LOCKED in bits and Status.MOVING not in bits
+    # a quick stop begun at the expiry, however late it is looked at
+    v, a = math.radians(30.0), RMAP.quick_stop_rad_s2
+    assert unit.axes[0].profile.end_s == pytest.approx(
+        last_beat_s + RMAP.quick_stop_start_s + v / a
+    )
+
+
+def test_watchdog_budget_covers_every_axis_at_full_speed():
+    from sim.units import AXIS_LIMITS
+
+    for limits in (limit for kind in AXIS_LIMITS.values() for limit in kind):
+        stop_s = limits.max_velocity_rad_s / RMAP.quick_stop_rad_s2
+        assert RMAP.quick_stop_start_s + stop_s <= RMAP.watchdog_timeout_s
+
+
+def test_fault_reset_after_the_heartbeat_resumes():
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    _full_speed_stale_heartbeat(unit, clock)
+    clock.sleep(1.0)
+    unit.write_registers(3, [999])
     unit.write_registers(16, [Control.ENABLE | Control.FAULT_RESET])
     assert unit.axes[0].fault_code == 0
+    assert Status.LOCKED in status(unit)
 
 
 def test_homing_and_not_homed_fault():
     clock = SimClock()
     unit = SimUnit("receiver", clock, seed=3, homed=False)
+    host = Host(unit)
     start_move(unit, 1, 0.1)
     assert unit.axes[0].fault_code == 6
     unit.write_registers(16, [Control.ENABLE | Control.FAULT_RESET])
     unit.write_registers(16, [Control.ENABLE | Control.UNLOCK])
     unit.write_registers(16, [Control.ENABLE | Control.UNLOCK | Control.HOME])
-    clock.sleep(5.0)
+    host.run_for(5.0)
     assert Status.HOMED in status(unit)
     assert unit.reported_rad()[0] == pytest.approx(0.0, abs=1e-12)
 
@@ -146,11 +209,21 @@ def test_positioning_unit_role_with_imperfections():
         role.move_to(np.array([-3.0, 0.0, 0.0]), timeout_s=1.0)
 
 
-def test_role_raises_drive_fault():
+def test_role_raises_heartbeat_error_when_the_host_stalls():
     clock = SimClock()
     unit = SimUnit("launch", clock)
     role = SimPositioningUnit(unit)
-    unit.heartbeat(1)
-    clock.sleep(1.0)
-    with pytest.raises(DriveFaultError, match="heartbeat"):
+    role.stop_heartbeat()
+    clock.sleep(1.0)  # the host does nothing for a second
+    with pytest.raises(HeartbeatError, match="a1 of the simulated launch unit stopped: heartbeat"):
         role.move_to(np.array([0.1, 0.1]), timeout_s=10.0)
+
+
+def test_role_opens_over_a_power_on_heartbeat_fault_and_moves_for_long():
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    clock.sleep(5.0)  # powered on long ago: fault 4 on every axis
+    role = SimPositioningUnit(unit)
+    role.stop_heartbeat()
+    role.move_to(np.array([2.0, 0.5]), timeout_s=60.0)  # the calls beat while it waits
+    np.testing.assert_allclose(role.angles_rad(), [2.0, 0.5], atol=1e-5)

@@ -87,8 +87,14 @@ def test_align_live_over_modbus_and_the_serial_line(tmp_path) -> None:  # noqa: 
             str(machine_path),
             "--distance-mm",
             "1500",
+            "--log-file",
+            str(tmp_path / "wire.log"),
         )
         assert result.returncode == 0, result.stderr
+        wire = (tmp_path / "wire.log").read_text()
+        assert "firmware_iface.modbus DEBUG launch unit at 127.0.0.1" in wire
+        assert "write axis1.control @16 <- [9] = 9" in wire  # the lock on exit
+        assert "firmware_iface.interferometer DEBUG interferometer on" in wire
         assert "s of wall time" in result.stdout and "units locked" in result.stdout
         world.launch.check_watchdog()
         assert all(axis.is_locked() for axis in (*world.launch.axes, *world.receiver.axes))

@@ -298,7 +298,9 @@ def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, refe
 
 def test_program_finds_pose_json_in_the_working_folder(dry, tmp_path):
     missing = run_cli("program", cwd=tmp_path)
-    assert_one_line_error(missing, "pose.json: cannot read: no such file", "xmalign identify", "--pose")
+    assert_one_line_error(
+        missing, "pose.json: cannot read: no such file", "xmalign identify", "--pose"
+    )
     shutil.copy(dry / "pose.json", tmp_path / "pose.json")
     result = run_cli("program", "--plan-out", "plan.json", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -321,7 +323,9 @@ def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
     (line,) = stderr.strip().splitlines()
     csv_path = folder / "measurements.csv"
     saved = len(read_measurements(csv_path))
-    assert line.startswith(f"xmalign: stopped: {saved} points kept in {csv_path}; go on with --resume (")
+    assert line.startswith(
+        f"xmalign: stopped: {saved} points kept in {csv_path}; go on with --resume ("
+    )
     command = line[line.index("(xmalign ") + len("(xmalign ") : -1].split()
     finished = _main(*command)
     assert finished.returncode == 0, finished.stderr

@@ -29,7 +29,14 @@ from xmalign.alignment import (
     range_used,
     sensitivity,
 )
-from xmalign.cli.common import check_seed, console, machine_or_default
+from xmalign.cli.common import (
+    LogFileOption,
+    check_seed,
+    console,
+    machine_or_default,
+    start_log_file,
+    stop_log_file,
+)
 from xmalign.errors import InputError, XmalignError
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
@@ -224,6 +231,7 @@ def register(app: typer.Typer) -> None:
             ),
         ] = None,
         timeout_s: Annotated[float, typer.Option("--timeout", help="Give up after, s.")] = 5.0,
+        log_file: LogFileOption = None,
     ) -> None:
         """Fine-align the launch and receiver units on the interferometer channels."""
         if sim == live:
@@ -231,6 +239,7 @@ def register(app: typer.Typer) -> None:
         check_seed(seed)
         machine = machine_or_default(machine_file)
         settings = FineAlignmentSettings(timeout_s=timeout_s)
+        log_handler = start_log_file(log_file)
         try:
             if sim:
                 _, devices = simulated_setup(
@@ -246,6 +255,8 @@ def register(app: typer.Typer) -> None:
             _align_live(config, machine, settings, distance_mm or 1000.0, manual)
         except KeyboardInterrupt as error:
             raise interrupted(error) from error
+        finally:
+            stop_log_file(log_handler)
 
 
 def _align_live(

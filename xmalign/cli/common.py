@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Annotated
 
+import typer
 from rich.console import Console
 
 from xmalign.errors import InputError, OutputError
@@ -41,6 +45,8 @@ def machine_for_plan(path: Path | None, plan: Plan, plan_path: Path) -> Machine:
         f"{plan_path} was made for machine '{plan.machine}'{identity}, not for {given}"
         f" ('{machine.name}'): give the machine file the plan was made with (--machine)"
     )
+
+
 def _each(paths: PathsOf) -> Iterable[Path]:
     if paths is None:
         return ()
@@ -113,3 +119,49 @@ def check_seed(seed: int, option: str = "--seed") -> int:
     if seed < 0:
         raise InputError(f"option {option}: {seed} must be 0 or more")
     return seed
+
+
+#: The ``--log-file PATH`` option of every command that talks to devices.
+LogFileOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--log-file",
+        help="Append every register, SDO and serial line that crosses the wire, "
+        "with a UTC timestamp, to this file (docs/hardware.md, Wire log).",
+    ),
+]
+
+#: Packages whose loggers record the wire traffic (drivers, simulated servers, core).
+WIRE_LOGGERS = ("firmware_iface", "sim", "xmalign")
+_LOG_FORMAT = "%(asctime)s.%(msecs)03dZ %(name)s %(levelname)s %(message)s"
+
+
+def start_log_file(path: Path | None) -> logging.Handler | None:
+    """Log the wire traffic (DEBUG) of :data:`WIRE_LOGGERS` to ``path``; None does nothing.
+
+    Returns the handler (for :func:`stop_log_file`). An unwritable path is an InputError.
+    """
+    if path is None:
+        return None
+    try:
+        handler = logging.FileHandler(path, encoding="utf-8")
+    except OSError as error:
+        raise InputError(f"--log-file {path}: cannot write it ({error.strerror})") from error
+    formatter = logging.Formatter(_LOG_FORMAT, datefmt="%Y-%m-%dT%H:%M:%S")
+    formatter.converter = time.gmtime
+    handler.setFormatter(formatter)
+    handler.setLevel(logging.DEBUG)
+    for name in WIRE_LOGGERS:
+        logger = logging.getLogger(name)
+        logger.setLevel(logging.DEBUG)
+        logger.addHandler(handler)
+    return handler
+
+
+def stop_log_file(handler: logging.Handler | None) -> None:
+    """Detach and close a handler of :func:`start_log_file`."""
+    if handler is None:
+        return
+    for name in WIRE_LOGGERS:
+        logging.getLogger(name).removeHandler(handler)
+    handler.close()

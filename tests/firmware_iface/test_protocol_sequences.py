@@ -1,0 +1,133 @@
+"""The exact register and SDO sequences of the firmware contract (docs/registers.md,
+docs/canopen-axis.md), pinned with scripted protocols that fail on any other request
+and on leftover steps."""
+
+from __future__ import annotations
+
+import pytest
+
+from firmware_iface.canopen_axis import CanopenAxis
+from firmware_iface.modbus import ModbusUnit
+from sim.clock import SimClock
+from tests.firmware_iface.scripted import ExpectedRegisters, ExpectedSdo
+from xmalign.errors import DeviceError, HeartbeatError
+
+ENABLE, UNLOCK, START, STOP, FAULT_RESET = 1, 2, 4, 8, 16
+ENABLED, IN_POSITION, MOVING, FAULT, LOCKED, HOMED = 1, 2, 4, 8, 16, 32
+TARGET_COUNTS = 133509  # 0.1 rad at 2**23 counts per revolution (133508.6)
+OPEN_LAUNCH_UNIT = [
+    ("read", 0, 1, [1]),  # device type: launch unit
+    ("read", 4, 2, [0x0080, 0x0000]),  # counts per revolution, high word first
+    ("read", 1, 1, [0x0100]),  # firmware version
+    ("read", 2, 1, [2]),  # axis count
+    ("write", 3, [1], None),  # first heartbeat: 1, never the power-on 0
+    ("read", 24, 1, [4]),  # axis 1 fault code: the power-on watchdog
+    ("write", 16, [ENABLE | FAULT_RESET], None),  # fault reset on the rising edge...
+    ("write", 16, [ENABLE], None),  # ...and back, still locked
+    ("read", 40, 1, [0]),  # axis 2 fault code: none
+]
+
+
+def opened(script: ExpectedRegisters, clock: SimClock) -> ModbusUnit:
+    return ModbusUnit(script, clock=clock, poll_s=0.05)
+
+
+def test_modbus_open_move_heartbeat_and_lock() -> None:
+    clock = SimClock()
+    move = [
+        ("write", 18, [TARGET_COUNTS >> 16, TARGET_COUNTS & 0xFFFF], None),  # axis 1 target
+        ("write", 16, [ENABLE | UNLOCK], None),
+        ("write", 16, [ENABLE | UNLOCK | START], None),  # start acts on its rising edge
+        ("write", 34, [0xFFFF, 0xFFFF], None),  # axis 2 target: -1 count, two's complement
+        ("write", 32, [ENABLE | UNLOCK], None),
+        ("write", 32, [ENABLE | UNLOCK | START], None),
+        ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0
+        ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0.05
+        ("write", 3, [2], None),  # t = 0.1: half a heartbeat period since the last change
+        ("read", 17, 1, [ENABLED | IN_POSITION | HOMED]),
+        ("read", 33, 1, [ENABLED | IN_POSITION | HOMED]),
+    ]
+    lock = [("write", 16, [ENABLE | STOP], None), ("write", 32, [ENABLE | STOP], None)]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *move, *lock]) as script:
+        unit = opened(script, clock)
+        unit.move_to([0.1, -2 * 3.141592653589793 / 2**23], timeout_s=1.0)
+        unit.lock()
+
+
+def test_modbus_a_heartbeat_fault_is_read_and_named() -> None:
+    clock = SimClock()
+    check = [("read", 17, 1, [FAULT | LOCKED | HOMED]), ("read", 24, 1, [4])]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *check]) as script:
+        unit = opened(script, clock)
+        with pytest.raises(HeartbeatError, match="axis a1 .* heartbeat watchdog expired"):
+            unit.axes[0].check()
+
+
+def test_a_leftover_step_fails() -> None:
+    clock = SimClock()
+    with pytest.raises(AssertionError, match="1 scripted steps left over"):  # noqa: SIM117
+        with ExpectedRegisters([*OPEN_LAUNCH_UNIT, ("read", 17, 1, [0])]) as script:
+            opened(script, clock)
+
+
+def test_a_different_request_fails() -> None:
+    with pytest.raises(AssertionError, match=r"step 1: expected \('read', 1, 1\)"):
+        ModbusUnit(ExpectedRegisters([("read", 1, 1, [1])]), clock=SimClock())
+
+
+def test_modbus_exception_6_names_the_other_host() -> None:
+    from firmware_iface.modbus import ModbusTransport
+
+    class Busy:
+        exception_code = 6
+
+        def isError(self) -> bool:  # noqa: N802 (pymodbus's name)
+            return True
+
+    class Client:
+        connected = True
+
+        def write_registers(self, *args: object, **kwargs: object) -> Busy:
+            return Busy()
+
+    transport = ModbusTransport(Client(), "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
+    with pytest.raises(DeviceError, match="another host controls it .*exception 6"):
+        transport.write_registers(3, [1])
+
+
+SWITCH_ON_DISABLED, OPERATION_ENABLED = 0x0240, 0x0237
+
+
+def test_cia402_profile_position_move_and_lock() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),  # encoder increments per revolution
+        ("write", 0x6060, 0, 1, None),  # profile position
+        ("read", 0x6041, 0, SWITCH_ON_DISABLED),
+        ("write", 0x6040, 0, 0x06, None),  # shutdown (transition 2)
+        ("write", 0x6040, 0, 0x07, None),  # switch on (transition 3): enabled, braked
+        ("write", 0x607A, 0, TARGET_COUNTS, None),
+        ("write", 0x6040, 0, 0x0F, None),  # enable operation (4): brake released
+        ("write", 0x6040, 0, 0x1F, None),  # new set-point
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x1000),  # set-point acknowledged
+        ("write", 0x6040, 0, 0x0F, None),
+        ("read", 0x6041, 0, OPERATION_ENABLED),
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # target reached
+        ("write", 0x6040, 0, 0x07, None),  # disable operation (5) = lock
+    ]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock(), poll_s=0.01)  # type: ignore[arg-type]
+        axis.move_to(0.1)
+        axis.wait_in_position(1.0)
+        axis.lock()
+
+
+def test_cia402_heartbeat_fault_reads_the_error_code() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("read", 0x6041, 0, 0x0218),  # fault
+        ("read", 0x603F, 0, 0xFF04),  # fault code 4 of registers.yaml
+    ]
+    with ExpectedSdo(3, steps) as node:
+        axis = CanopenAxis(node, "a3", "receiver unit", SimClock())  # type: ignore[arg-type]
+        with pytest.raises(HeartbeatError, match=r"a3 \(CANopen node 3\) .* stopped"):
+            axis.wait_in_position(1.0)
