@@ -23,6 +23,7 @@ half reversal ``h``: an axis moving forward sees ``mean + h``, moving backward
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,13 @@ K_EXPANSION = 2.0
 #: Cholesky pivots below this (columns scaled to unit norm) mean a parameter the lines
 #: cannot determine.
 _RANK_TOLERANCE = 1e-10
+#: Eigenvalues of the scaled normal matrix below this fraction of the largest span its
+#: null space.
+_NULL_TOLERANCE = 1e-9
+#: A column whose unit vector has more than this squared component in the null space is named.
+_INVOLVED = 1e-4
+#: At most this many setup terms are named in one message.
+_MAX_NAMED = 4
 _KNOT_DECIMALS = 6
 
 
@@ -126,19 +134,25 @@ class ParameterLayout:
         self.squareness_columns = n + np.arange(3)
         self.n_columns = n + 3
 
-    def describe(self, column: int) -> str:
-        """A person's name for a column (for error messages)."""
+    def table_name(self, column: int) -> str | None:
+        """The ISO 230-1 name of the table (or squareness) a column belongs to; None if none."""
         if column in self.squareness_columns:
             return SQUARENESS_NAMES[column - self.squareness_columns[0]]
         for axis, kinds in self.column.items():
             for kind, columns in kinds.items():
                 hit = np.argwhere(columns == column)
                 if len(hit):
-                    error, knot = hit[0]
-                    what = "" if kind == "mean" else " reversal"
-                    position = self.knots[axis][knot]
-                    return f"{error_names(axis)[error]}{what} at {position:g} mm"
-        return f"column {column}"
+                    return error_names(axis)[hit[0][0]] + ("" if kind == "mean" else " reversal")
+        return None
+
+    def describe(self, column: int) -> str:
+        """A person's name for a column, with its knot (for error messages)."""
+        for axis, kinds in self.column.items():
+            for columns in kinds.values():
+                hit = np.argwhere(columns == column)
+                if len(hit):
+                    return f"{self.table_name(column)} at {self.knots[axis][hit[0][1]]:g} mm"
+        return self.table_name(column) or f"column {column}"
 
 
 def _sensitivities(frame: Vec, arms_mm: Vec) -> Vec:
@@ -217,25 +231,51 @@ class TableFit:
     n_parameters: int
 
 
-def _undetermined(normal: Vec, layout: ParameterLayout) -> GeometryError:
-    """An error naming the parameter most involved in the weakest direction of the system."""
-    _, vectors = np.linalg.eigh(normal)
-    column = int(np.argmax(np.abs(vectors[:, 0])))
+def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> GeometryError:
+    """An error naming every error table and setup term in the null space of the system.
+
+    A column takes part when its unit vector has a component in the null space;
+    that component does not depend on which basis of the null space the
+    eigensolver returns, so the message is the same on every machine and BLAS.
+    """
+    eigenvalues, vectors = np.linalg.eigh(normal)
+    null = vectors[:, eigenvalues <= _NULL_TOLERANCE * eigenvalues[-1]]
+    if null.shape[1] == 0:
+        null = vectors[:, :1]
+    involved = np.flatnonzero(np.sum(null**2, axis=1) > _INVOLVED)
+    errors = _unique(layout.table_name(int(c)) for c in involved)
+    if errors:
+        lines = _unique(setup.line_of(int(c)) for c in involved)
+        what = ", ".join(errors)
+        if lines:
+            plural = "s" if len(lines) > 1 else ""
+            what += f" (they trade with the setup terms of line{plural} {', '.join(lines)})"
+    else:
+        terms = _unique(setup.describe(int(c)) for c in involved)
+        what = ", ".join(terms[:_MAX_NAMED]) + (" and more" if len(terms) > _MAX_NAMED else "")
     return GeometryError(
-        f"the lines cannot determine {layout.describe(column)}; measure the three axis lines"
+        f"the lines cannot determine {what}; measure the three axis lines"
         " and the three face diagonals"
     )
 
 
-def _factorise(normal: Vec, layout: ParameterLayout) -> tuple[Vec, bool]:
+def _describe(column: int, layout: ParameterLayout, setup: SetupLayout) -> str:
+    return setup.describe(column) or layout.describe(column)
+
+
+def _unique(names: Iterable[str | None]) -> list[str]:
+    return list(dict.fromkeys(name for name in names if name is not None))
+
+
+def _factorise(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> tuple[Vec, bool]:
     """Cholesky factor of the (column-scaled) normal matrix; GeometryError when singular."""
     try:
         factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
     except np.linalg.LinAlgError as error:
-        raise _undetermined(normal, layout) from error
+        raise _undetermined(normal, layout, setup) from error
     pivots = np.diag(factor[0]) ** 2
     if pivots.min() < _RANK_TOLERANCE * pivots.max():
-        raise _undetermined(normal, layout)
+        raise _undetermined(normal, layout, setup)
     return factor
 
 
@@ -279,12 +319,13 @@ def fit_error_tables(
     observed = np.concatenate([d.channels.ravel() for d in lines]) * weights
     norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
     if np.any(norms == 0):
+        unseen = _describe(int(np.argmin(norms)), layout, setup)
         raise GeometryError(
-            f"no measurement sees {layout.describe(int(np.argmin(norms)))}; measure the three"
-            " axis lines and the three face diagonals"
+            f"no measurement sees {unseen}; measure the three axis lines and the three face"
+            " diagonals"
         )
     scaled = design @ scipy.sparse.diags(1.0 / norms)
-    factor = _factorise((scaled.T @ scaled).toarray(), layout)
+    factor = _factorise((scaled.T @ scaled).toarray(), layout, setup)
     solution_scaled = scipy.linalg.cho_solve(factor, scaled.T @ observed)
     residual = observed - scaled @ solution_scaled
     dof = max(n_rows - n_columns, 1)

@@ -125,13 +125,22 @@ def test_u95_covers_the_scatter_of_repeated_measurements(reference_machine, trut
     assert np.median(values.std(axis=0, ddof=1) / predicted) < 1.0
 
 
-def test_without_diagonals_the_squareness_is_refused(reference_machine, truth):
+@pytest.mark.parametrize(
+    ("missing", "named"),
+    [
+        (("XY", "YZ", "XZ"), "EC0Y, EA0Z, EB0Z (they trade with the setup terms of lines Y, Z)"),
+        (("YZ", "XZ"), "EA0Z, EB0Z (they trade with the setup terms of line Z)"),
+        (("XY",), "EC0Y (they trade with the setup terms of lines Y, YZ)"),
+    ],
+)
+def test_without_diagonals_the_squareness_is_refused(reference_machine, truth, missing, named):
+    """The message names the undetermined errors whichever null-space basis the BLAS returns."""
     layout = six_line_plan(reference_machine, 10, runs=1, bidirectional=False)
-    layout.lines = layout.lines[:3]
+    layout.lines = [line for line in layout.lines if line.id not in missing]
     rows = measure(layout, Chain.parse("FYXZ"), truth, np.random.default_rng(0))
-    undetermined = "cannot determine (EC0Y|EA0Z|EB0Z)|no measurement sees"
-    with pytest.raises(GeometryError, match=undetermined):
+    with pytest.raises(GeometryError) as caught:
         post_process(reference_machine, layout, rows, "m.csv")
+    assert str(caught.value).startswith(f"the lines cannot determine {named};")
 
 
 def test_a_missing_axis_line_is_named(reference_machine, truth):
