@@ -96,7 +96,7 @@ class SetupLayout:
         column = first_column
         for data in lines:
             runs = sorted({int(r) for r in data.run})
-            self._layouts.append(_LineLayout(data.line.id, column, runs))
+            self._layouts.append(_LineLayout(data.label, column, runs))
             column += 7 + len(runs)
         self.first_column = first_column
         self.n_columns = column - first_column

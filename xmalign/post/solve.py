@@ -59,6 +59,8 @@ _INVOLVED = 1e-4
 #: At most this many setup terms are named in one message.
 _MAX_NAMED = 4
 _KNOT_DECIMALS = 6
+#: A travel end closer than this to the outermost knot adds no extrapolated point.
+_TRAVEL_TOLERANCE_MM = 1e-3
 
 
 def error_names(axis: str) -> tuple[str, ...]:
@@ -67,7 +69,11 @@ def error_names(axis: str) -> tuple[str, ...]:
 
 
 def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
-    """Compensation points of each axis: the targets of its axis lines, projected on it.
+    """Compensation points of each axis, wherever any line measured it.
+
+    The targets of its axis lines, projected on it; where a diagonal reaches
+    beyond them, more points over that stretch at the axis line's mean spacing
+    (a diagonal that moves the axis sees its errors there too).
 
     Raises
     ------
@@ -85,11 +91,38 @@ def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
             f"the measurement has no line along {', '.join(missing)}: post needs one line per"
             " axis (and the three face diagonals for the squareness)"
         )
-    return {axis: np.unique(np.round(p, _KNOT_DECIMALS)) for axis, p in points.items()}
+    knots = {}
+    for axis, on_axis in points.items():
+        reached = np.concatenate(
+            [d.machine_mm[:, AXIS_INDEX[axis]] for d in lines if axis in d.moving_axes()]
+        )
+        knots[axis] = _extended(np.unique(np.round(on_axis, _KNOT_DECIMALS)), reached)
+    return knots
+
+
+def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
+    """Knots, plus points at their mean spacing out to the farthest positions reached.
+
+    A stretch shorter than half the spacing gets no point: the end segment's
+    extrapolation covers it (a short segment would be poorly determined).
+    """
+    spacing = (knots_mm[-1] - knots_mm[0]) / (len(knots_mm) - 1)
+    low, high = reached_mm.min(), reached_mm.max()
+    below = knots_mm[0] - low
+    above = high - knots_mm[-1]
+    parts = [knots_mm]
+    if below > spacing / 2:
+        parts.insert(0, np.linspace(low, knots_mm[0], int(np.ceil(below / spacing)) + 1)[:-1])
+    if above > spacing / 2:
+        parts.append(np.linspace(knots_mm[-1], high, int(np.ceil(above / spacing)) + 1)[1:])
+    return np.round(np.concatenate(parts), _KNOT_DECIMALS)
 
 
 def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
-    """Triangular (degree-1 B-spline) basis at positions, held constant outside the knots.
+    """Triangular (degree-1 B-spline) basis at positions; the end segments extrapolate.
+
+    A diagonal reaches parts of an axis's travel that its axis line does not
+    measure; holding the end value there would model a sloped table as a step.
 
     Returns
     -------
@@ -97,8 +130,8 @@ def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
         ``B[i, m]`` weight of the value at knot ``m`` for position ``i``.
     """
     t = np.concatenate([[knots_mm[0]], knots_mm, [knots_mm[-1]]])
-    x = np.clip(position_mm, knots_mm[0], knots_mm[-1])
-    return BSpline.design_matrix(x, t, 1).tocoo()
+    x = np.asarray(position_mm, dtype=float)
+    return BSpline.design_matrix(x, t, 1, extrapolate=True).tocoo()
 
 
 def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
@@ -280,21 +313,27 @@ def _factorise(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> tupl
 
 
 def fit_error_tables(
-    lines: list[LineData], chain: Chain, tool_offset_mm: Vec, channel_sigma: Vec
+    lines: list[LineData],
+    chain: Chain,
+    channel_sigma: Vec,
+    travel_mm: tuple[Vec, Vec] | None = None,
 ) -> TableFit:
     """Weighted least-squares fit of the error tables, squareness and setup terms.
 
     Parameters
     ----------
     lines : list of LineData
-        Channels in mm / rad.
+        Channels in mm / rad, from one or more launch-unit stations; every line
+        has its own setup terms. The lever arms include each line's receiver
+        offset (``LineData.tool_offset_mm``), which removes the Abbe offsets; the
+        tables are for ``t = 0``.
     chain : Chain
-    tool_offset_mm : ndarray, shape (3,)
-        Receiver cp from the CNC tool point in the MCS (receiver offset turned by
-        the spindle angle), mm: the lever arms include it, which removes the Abbe
-        offsets; the tables are for ``t = 0``.
     channel_sigma : ndarray, shape (6,)
         Standard uncertainty of each channel, mm / rad.
+    travel_mm : (ndarray, ndarray), each shape (3,), optional
+        Travel minimum and maximum: the tables get a point at each travel end
+        beyond the measured stroke, linearly extrapolated (``Table.measured``
+        False), with the u95 the extrapolation propagates.
     """
     knots = compensation_points(lines)
     bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
@@ -304,7 +343,7 @@ def fit_error_tables(
     n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     triplets = Triplets()
     for data, first_row in zip(lines, first_rows, strict=True):
-        arms = chain.lever_arms(data.machine_mm, tool_offset_mm)
+        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
         for axis in AXES:
             _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
         _add_squareness_columns(data, first_row, layout, triplets)
@@ -334,7 +373,7 @@ def fit_error_tables(
     covariance *= max(1.0, sigma0**2)
     solution = solution_scaled / norms
     return TableFit(
-        tables=_tables(layout, solution, covariance),
+        tables=_tables(layout, solution, covariance, travel_mm),
         setup=setup.unpack(solution),
         residual_rms=_residual_rms(lines, first_rows, residual / weights),
         sigma0=sigma0,
@@ -343,42 +382,54 @@ def fit_error_tables(
     )
 
 
-def _values(columns: np.ndarray, solution: Vec, covariance: Vec) -> tuple[Vec, Vec]:
-    """Values and covariance of one table (fixed knots are exactly 0)."""
+def _output_positions(knots_mm: Vec, low_mm: float, high_mm: float) -> tuple[Vec, np.ndarray]:
+    """Table positions: the knots, extended to the travel ends; and which are measured."""
+    before = [low_mm] if low_mm < knots_mm[0] - _TRAVEL_TOLERANCE_MM else []
+    after = [high_mm] if high_mm > knots_mm[-1] + _TRAVEL_TOLERANCE_MM else []
+    positions = np.concatenate([before, knots_mm, after])
+    measured = np.concatenate(
+        [np.zeros(len(before), bool), np.ones(len(knots_mm), bool), np.zeros(len(after), bool)]
+    )
+    return positions, measured
+
+
+def _evaluate(
+    parts: list[tuple[np.ndarray, Vec]], solution: Vec, covariance: Vec
+) -> tuple[Vec, Vec]:
+    """Values and u95 of ``sum(weights @ solution[columns])`` over parts (fixed knots: -1)."""
+    columns = np.concatenate([c for c, _ in parts])
+    weights = np.hstack([w for _, w in parts])
     free = columns >= 0
-    values = np.zeros(len(columns))
-    values[free] = solution[columns[free]]
-    cov = np.zeros((len(columns), len(columns)))
-    cov[np.ix_(free, free)] = covariance[np.ix_(columns[free], columns[free])]
-    return values, cov
+    columns, weights = columns[free], weights[:, free]
+    values = weights @ solution[columns]
+    variance = np.einsum("ij,jk,ik->i", weights, covariance[np.ix_(columns, columns)], weights)
+    return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
-def _cross_covariance(a: np.ndarray, b: np.ndarray, covariance: Vec) -> Vec:
-    """Diagonal of cov(table a, table b) knot by knot."""
-    both = (a >= 0) & (b >= 0)
-    out = np.zeros(len(a))
-    out[both] = covariance[a[both], b[both]]
-    return out
-
-
-def _tables(layout: ParameterLayout, solution: Vec, covariance: Vec) -> ErrorTableSet:
+def _tables(
+    layout: ParameterLayout, solution: Vec, covariance: Vec, travel_mm: tuple[Vec, Vec] | None
+) -> ErrorTableSet:
+    """The tables at the knots and, linearly extrapolated, at the travel ends (if given)."""
     result = ErrorTableSet()
     for axis in AXES:
-        positions = layout.knots[axis]
+        knots = layout.knots[axis]
+        i = AXIS_INDEX[axis]
+        low, high = (
+            (knots[0], knots[-1]) if travel_mm is None else (travel_mm[0][i], travel_mm[1][i])
+        )
+        positions, measured = _output_positions(knots, low, high)
+        basis = hat_basis(knots, positions).toarray()
         kinds = layout.column[axis]
         for error, name in enumerate(error_names(axis)):
-            mean, cov_mean = _values(kinds["mean"][error], solution, covariance)
-            var_mean = np.diag(cov_mean)
-            result.tables[name] = Table(positions, mean, K_EXPANSION * np.sqrt(var_mean))
-            if "half" not in kinds:
-                continue
-            half, cov_half = _values(kinds["half"][error], solution, covariance)
-            cross = _cross_covariance(kinds["mean"][error], kinds["half"][error], covariance)
-            for sign, suffix in ((1.0, "+"), (-1.0, "-")):
-                variance = np.maximum(var_mean + np.diag(cov_half) + 2 * sign * cross, 0.0)
-                result.tables[name + suffix] = Table(
-                    positions, mean + sign * half, K_EXPANSION * np.sqrt(variance)
-                )
+            mean = (kinds["mean"][error], basis)
+            variants = {"": [mean]}
+            if "half" in kinds:
+                half = kinds["half"][error]
+                variants["+"] = [mean, (half, basis)]
+                variants["-"] = [mean, (half, -basis)]
+            for suffix, parts in variants.items():
+                values, u95 = _evaluate(parts, solution, covariance)
+                result.tables[name + suffix] = Table(positions, values, u95, measured)
     for name, column in zip(SQUARENESS_NAMES, layout.squareness_columns, strict=True):
         result.squareness[name] = (
             float(solution[column]),
@@ -392,5 +443,5 @@ def _residual_rms(lines: list[LineData], first_rows: list[int], residual: Vec) -
     out = {}
     for data, first_row in zip(lines, first_rows, strict=True):
         part = residual[first_row : first_row + N_CHANNELS * len(data.run)].reshape(-1, 6)
-        out[data.line.id] = np.sqrt(np.mean(part**2, axis=0)) * scale
+        out[data.label] = np.sqrt(np.mean(part**2, axis=0)) * scale
     return out

@@ -11,13 +11,13 @@ import pytest
 from typer.testing import CliRunner
 
 from sim.machine import VirtualMachine
+from sim.synthetic import measure, six_line_plan
 from xmalign.cli import app
 from xmalign.comp import WRITERS
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.measurements import write_measurements
 from xmalign.formats.plan import write_plan
-from xmalign.post.synthetic import measure, six_line_plan
 from xmalign.rigid_body import Chain
 
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from sim.machine import ErrorAmplitudes, VirtualMachine
+from sim.synthetic import measure, six_line_plan
 from xmalign.errors import GeometryError, InputError
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import post_process
-from xmalign.post.synthetic import measure, six_line_plan
 from xmalign.rigid_body import Chain, ErrorTables
 
 BACKLASH_MM = np.array([0.004, 0.003, 0.002])
