@@ -12,11 +12,12 @@ from rich.table import Table as RichTable
 
 from xmalign.cli.common import console, machine_or_default
 from xmalign.comp import WRITERS, writer
+from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
-from xmalign.post.evaluate import PostResult, post_process
+from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import Chain
 
 MachineOption = Annotated[
@@ -50,21 +51,44 @@ def _summary(result: PostResult) -> RichTable:
     return summary
 
 
+def _stations(plans: list[Path], data: list[Path]) -> list[Station]:
+    """One station per ``--plan``/``--data`` pair, in the order given."""
+    if len(plans) != len(data):
+        raise InputError(
+            f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
+            " launch-unit station, in the same order"
+        )
+    return [
+        Station(read_plan(plan), read_measurements(path), str(path))
+        for plan, path in zip(plans, data, strict=True)
+    ]
+
+
 def post(
-    plan: Annotated[Path, typer.Option(help="Measurement plan (xmalign.plan/1 JSON).")],
-    data: Annotated[Path, typer.Option(help="Measurement CSV written by xmalign run.")],
+    plan: Annotated[
+        list[Path],
+        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
+    ],
+    data: Annotated[
+        list[Path],
+        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
+    ],
     out: Annotated[Path, typer.Option(help="Error-table CSV to write.")],
     machine: MachineOption = None,
     report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
 ) -> None:
-    """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from six lines."""
+    """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
+
+    Repeat --plan and --data for a second launch-unit station: one set of error
+    tables is fitted to all lines, each line with its own setup terms.
+    """
     machine_ = machine_or_default(machine)
     with _progress() as progress:
-        task = progress.add_task("reading plan and measurements", total=None)
-        plan_ = read_plan(plan)
-        rows = read_measurements(data)
-        progress.update(task, description=f"fitting {len(rows)} points")
-        result = post_process(machine_, plan_, rows, str(data))
+        task = progress.add_task("reading plans and measurements", total=None)
+        stations = _stations(plan, data)
+        points = sum(len(station.rows) for station in stations)
+        progress.update(task, description=f"fitting {points} points")
+        result = post_stations(machine_, stations)
         write_error_tables(out, result.fit.tables)
         if report is not None:
             progress.update(task, description="drawing the report")
@@ -73,6 +97,8 @@ def post(
 
             write_report(report, machine_, result, machine_.controller)
     console.print(_summary(result))
+    for warning in result.warnings:
+        console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )

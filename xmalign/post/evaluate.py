@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -10,6 +10,7 @@ from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
+from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
@@ -28,11 +29,14 @@ class PostResult:
         ISO 230-2 figures of every axis line (um).
     lines : list of LineData
         The measurement, grouped by line (mm / rad).
+    warnings : list of str
+        What the user should know about the data (e.g. a re-zeroed linear datum).
     """
 
     fit: TableFit
     positioning: list[PositioningFigures]
     lines: list[LineData]
+    warnings: list[str] = field(default_factory=list)
 
 
 def channel_sigma(machine: Machine) -> Vec:
@@ -84,7 +88,7 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
         for data in lines
         if data.axis() is not None
     ]
-    return PostResult(fit=fit, positioning=positioning, lines=lines)
+    return PostResult(fit=fit, positioning=positioning, lines=lines, warnings=datum_warnings(lines))
 
 
 def post_process(

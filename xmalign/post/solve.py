@@ -72,8 +72,9 @@ def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
     """Compensation points of each axis, wherever any line measured it.
 
     The targets of its axis lines, projected on it; where a diagonal reaches
-    beyond them, more points over that stretch at the axis line's mean spacing
-    (a diagonal that moves the axis sees its errors there too).
+    beyond them while its other axis stays on that axis's own line, more points
+    over that stretch at the axis line's mean spacing (the diagonal sees the
+    errors there, and the other axis's are known).
 
     Raises
     ------
@@ -91,13 +92,31 @@ def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
             f"the measurement has no line along {', '.join(missing)}: post needs one line per"
             " axis (and the three face diagonals for the squareness)"
         )
-    knots = {}
-    for axis, on_axis in points.items():
-        reached = np.concatenate(
-            [d.machine_mm[:, AXIS_INDEX[axis]] for d in lines if axis in d.moving_axes()]
-        )
-        knots[axis] = _extended(np.unique(np.round(on_axis, _KNOT_DECIMALS)), reached)
-    return knots
+    base = {axis: np.unique(np.round(p, _KNOT_DECIMALS)) for axis, p in points.items()}
+    return {axis: _extended(base[axis], _determinable_reach(lines, axis, base)) for axis in AXES}
+
+
+def _determinable_reach(lines: list[LineData], axis: str, base: dict[str, Vec]) -> Vec:
+    """Positions of ``axis`` where a line measured while every other axis it moves was
+    inside that axis's own line (else two unknown tables would share one line's channels)."""
+    reached = []
+    for data in lines:
+        moving = data.moving_axes()
+        if axis not in moving:
+            continue
+        inside = np.ones(len(data.run), dtype=bool)
+        for other in moving:
+            if other != axis:
+                knots = base[other]
+                margin = 0.5 * _mean_spacing(knots)
+                position = data.machine_mm[:, AXIS_INDEX[other]]
+                inside &= (position >= knots[0] - margin) & (position <= knots[-1] + margin)
+        reached.append(data.machine_mm[inside, AXIS_INDEX[axis]])
+    return np.concatenate(reached)
+
+
+def _mean_spacing(knots_mm: Vec) -> float:
+    return float(knots_mm[-1] - knots_mm[0]) / (len(knots_mm) - 1)
 
 
 def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
@@ -106,7 +125,7 @@ def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
     A stretch shorter than half the spacing gets no point: the end segment's
     extrapolation covers it (a short segment would be poorly determined).
     """
-    spacing = (knots_mm[-1] - knots_mm[0]) / (len(knots_mm) - 1)
+    spacing = _mean_spacing(knots_mm)
     low, high = reached_mm.min(), reached_mm.max()
     below = knots_mm[0] - low
     above = high - knots_mm[-1]
