@@ -425,6 +425,24 @@ def _evaluate(
     return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
+def _extrapolation_u(knots_mm: Vec, positions_mm: Vec, values: Vec) -> Vec:
+    """Standard uncertainty of the linear continuation beyond the knots, shape (P,).
+
+    The table's RMS curvature over the knots, kept up over the distance ``d``
+    from the nearest knot: ``kappa * d**2 / 2`` (0 between the knots).
+    """
+    at_knots = np.interp(knots_mm, positions_mm, values)
+    if len(knots_mm) < 3:
+        return np.zeros(len(positions_mm))
+    slopes = np.diff(at_knots) / np.diff(knots_mm)
+    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
+    kappa = float(np.sqrt(np.mean(curvature**2)))
+    distance = np.maximum(knots_mm[0] - positions_mm, 0) + np.maximum(
+        positions_mm - knots_mm[-1], 0
+    )
+    return 0.5 * kappa * distance**2
+
+
 def _tables(
     layout: ParameterLayout, solution: Vec, covariance: Vec, travel_mm: tuple[Vec, Vec] | None
 ) -> ErrorTableSet:
@@ -448,6 +466,7 @@ def _tables(
                 variants["-"] = [mean, (half, -basis)]
             for suffix, parts in variants.items():
                 values, u95 = _evaluate(parts, solution, covariance)
+                u95 = np.hypot(u95, K_EXPANSION * _extrapolation_u(knots, positions, values))
                 result.tables[name + suffix] = Table(positions, values, u95, measured)
     for name, column in zip(SQUARENESS_NAMES, layout.squareness_columns, strict=True):
         result.squareness[name] = (
