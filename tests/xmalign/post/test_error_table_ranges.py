@@ -61,3 +61,12 @@ def test_an_unknown_range_is_refused(tmp_path):
     path.write_text("name,position_mm,value,unit,u95,range\nEXX,0,0,um,0,guessed\n")
     with pytest.raises(InputError, match="bad.csv: line 2: range must be"):
         read_error_tables(path)
+
+
+def test_the_report_names_the_measured_and_extrapolated_ranges(short_lines, reference_machine):
+    from xmalign.report import render_report
+
+    html = render_report(reference_machine, short_lines, "sinumerik")
+    ranges = html[html.index("<th>measured / mm</th>") :]
+    x_row = ranges[ranges.index("<td>X</td>") :].split("</tr>")[0]
+    assert "0 to 1636.36" in x_row and "1636.36 to 2000" in x_row
