@@ -12,7 +12,11 @@ RMS volumetric difference after removing a rigid motion
 (:func:`xmalign.post.compare.volumetric_rms_um`), on a grid over the measured
 strokes (the box the station-1 axis lines span) and over the whole travel.
 
-Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_accuracy.py [--seeds 5]``.
+With ``--dry-run`` the two-station calibration runs end to end on the
+simulator instead (:func:`sim.two_stations.simulate_two_stations`: identify,
+program, run on the virtual CNC and units at both stations, then post), FYXZ.
+
+Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_accuracy.py [--seeds 5] [--dry-run]``.
 Targets: <= 0.6 um over the strokes, <= 1.0 um over the travel with two stations.
 """
 
@@ -118,7 +122,33 @@ def run(seeds: int) -> list[Figures]:
     return results
 
 
+def run_dry(seeds: int) -> list[Figures]:
+    """Two stations end to end on the simulator, seeds 1..``seeds``."""
+    import tempfile
+    from pathlib import Path
+
+    from sim.dry_run import DryRunOptions
+    from sim.two_stations import simulate_two_stations
+
+    machine = load_machine(default_machine_path())
+    results = []
+    print("dry run, two stations: seed  strokes_um  travel_um  station 1 / 2 min")
+    for seed in range(1, seeds + 1):
+        with tempfile.TemporaryDirectory() as folder:
+            report = simulate_two_stations(machine, Path(folder), DryRunOptions(seed=seed))
+        minutes = " / ".join(f"{s.on_machine_s / 60:.1f}" for s in report.stations)
+        print(f"{seed:29d}  {report.strokes_um:10.2f}  {report.travel_um:9.2f}  {minutes}")
+        results.append(Figures(machine.chain, seed, 2, report.strokes_um, report.travel_um))
+    print(
+        f"worst: strokes {max(f.strokes_um for f in results):.2f} um,"
+        f" travel {max(f.travel_um for f in results):.2f} um (target {TRAVEL_TARGET_UM})"
+    )
+    return results
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
-    run(parser.parse_args().seeds)
+    parser.add_argument("--dry-run", action="store_true", help="end to end on the simulator")
+    arguments = parser.parse_args()
+    (run_dry if arguments.dry_run else run)(arguments.seeds)
