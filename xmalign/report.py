@@ -26,6 +26,7 @@ from xmalign.formats.error_tables import ErrorTableSet, Table, file_unit
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult
+from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows
 from xmalign.rigid_body import (
     AXES,
     AXIS_INDEX,
@@ -54,32 +55,9 @@ def _scale(name: str) -> float:
     return 1e3 if file_unit(name) == "um" else 1e6
 
 
-def measured_range_mm(table: Table) -> tuple[float, float]:
-    """First and last measured position of a table, mm."""
-    positions = table.positions_mm[table.measured_mask()]
-    return float(positions[0]), float(positions[-1])
-
-
 def _shade_extrapolated(panel: Axes, table: Table | None) -> None:
-    if table is None:
-        return
-    low, high = measured_range_mm(table)
-    for a, b in ((table.positions_mm[0], low), (high, table.positions_mm[-1])):
-        if b > a:
-            panel.axvspan(a, b, color="0.5", alpha=0.2, linewidth=0)
-
-
-def _ranges_table(tables: ErrorTableSet) -> str:
-    rows = []
-    for axis in AXES:
-        table = tables.tables.get(TRANSLATION_NAMES[axis][AXES.index(axis)])
-        if table is None:
-            continue
-        low, high = measured_range_mm(table)
-        first, last = float(table.positions_mm[0]), float(table.positions_mm[-1])
-        extrapolated = [f"{a:g} to {b:g}" for a, b in ((first, low), (high, last)) if b > a]
-        rows.append([axis, f"{low:g} to {high:g}", ", ".join(extrapolated) or "none"])
-    return _html_table(["axis", "measured / mm", "extrapolated / mm"], rows)
+    for a, b in extrapolated_spans_mm(table) if table is not None else []:
+        panel.axvspan(a, b, color="0.5", alpha=0.2, linewidth=0)
 
 
 def error_curves_figure(tables: ErrorTableSet, axis: str) -> Figure:
@@ -204,7 +182,7 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
         " distance (shaded grey in the plots, <code>range = extrapolated</code> in the"
         " error-table file).</p>"
     )
-    parts.append(_ranges_table(tables))
+    parts.append(_html_table(RANGES_HEADER, range_rows(tables)))
     parts.extend(_png(error_curves_figure(tables, axis)) for axis in AXES)
     parts.append("<h2>Volumetric error before and after compensation</h2>")
     parts.append(
