@@ -24,15 +24,6 @@ N_CHANNELS = 6
 _LINEAR, _STRAIGHT_V, _STRAIGHT_W = 0, 1, 2
 #: Slopes are fitted per metre of travel, which keeps the columns well scaled.
 _MM_PER_M = 1000.0
-_TERM_NAMES = (
-    "straightness v offset",
-    "straightness w offset",
-    "straightness v slope",
-    "straightness w slope",
-    "angle u offset",
-    "angle v offset",
-    "angle w offset",
-)
 
 
 @dataclass
@@ -114,15 +105,6 @@ class SetupLayout:
                 out.add(point_rows + 3 + k, c + 4 + k, 1.0)
             for i, run in enumerate(layout.runs):
                 out.add(point_rows[data.run == run] + _LINEAR, c + 7 + i, 1.0)
-
-    def describe(self, column: int) -> str | None:
-        """Which setup term a column is (for error messages); None if not a setup column."""
-        for layout in self._layouts:
-            k = column - layout.first_column
-            if 0 <= k < 7 + len(layout.runs):
-                term = _TERM_NAMES[k] if k < 7 else f"linear offset of run {layout.runs[k - 7]}"
-                return f"the {term} of line {layout.line_id}"
-        return None
 
     def line_of(self, column: int) -> str | None:
         """The line whose setup term a column is; None if not a setup column."""

@@ -56,8 +56,6 @@ _RANK_TOLERANCE = 1e-10
 _NULL_TOLERANCE = 1e-9
 #: A column whose unit vector has more than this squared component in the null space is named.
 _INVOLVED = 1e-4
-#: At most this many setup terms are named in one message.
-_MAX_NAMED = 4
 _KNOT_DECIMALS = 6
 #: A travel end closer than this to the outermost knot adds no extrapolated point.
 _TRAVEL_TOLERANCE_MM = 1e-3
@@ -303,8 +301,8 @@ def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> G
             plural = "s" if len(lines) > 1 else ""
             what += f" (they trade with the setup terms of line{plural} {', '.join(lines)})"
     else:
-        terms = _unique(setup.describe(int(c)) for c in involved)
-        what = ", ".join(terms[:_MAX_NAMED]) + (" and more" if len(terms) > _MAX_NAMED else "")
+        lines = _unique(setup.line_of(int(c)) for c in involved)
+        what = f"the setup terms of line{'s' if len(lines) > 1 else ''} {', '.join(lines)}"
     return GeometryError(
         f"the lines cannot determine {what}; measure the three axis lines"
         " and the three face diagonals"
@@ -312,7 +310,8 @@ def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> G
 
 
 def _describe(column: int, layout: ParameterLayout, setup: SetupLayout) -> str:
-    return setup.describe(column) or layout.describe(column)
+    line = setup.line_of(column)
+    return f"the setup terms of line {line}" if line else layout.describe(column)
 
 
 def _unique(names: Iterable[str | None]) -> list[str]:
