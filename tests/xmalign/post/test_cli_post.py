@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from sim.machine import VirtualMachine
-from sim.synthetic import measure, six_line_plan
+from sim.synthetic import SetupDisturbance, measure, six_line_plan
 from xmalign.cli import app
 from xmalign.comp import WRITERS
 from xmalign.errors import InputError
@@ -177,3 +177,30 @@ def test_unpaired_plan_and_data_are_refused(files):
     result = _post(files, "--plan", str(files["plan"]))
     assert isinstance(result.exception, InputError)
     assert "2 --plan but 1 --data" in str(result.exception)
+
+
+def test_a_rezeroed_minus_pass_is_reported(files, reference_machine):
+    plan = six_line_plan(reference_machine, 10, runs=1, bidirectional=True)
+    rows = measure(
+        plan,
+        Chain.parse(reference_machine.chain),
+        VirtualMachine(reference_machine, seed=4),
+        np.random.default_rng(11),
+        setup=SetupDisturbance(rezero_each_pass=True),
+    )
+    write_plan(files["dir"] / "plan-rz.json", plan)
+    write_measurements(files["dir"] / "m-rz.csv", rows)
+    result = CliRunner().invoke(
+        app,
+        [
+            "post",
+            "--plan",
+            str(files["dir"] / "plan-rz.json"),
+            "--data",
+            str(files["dir"] / "m-rz.csv"),
+            "--out",
+            str(files["dir"] / "e-rz.csv"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "warning:" in result.output and "re-zeroed" in result.output.replace("\n", " ")

@@ -63,10 +63,11 @@ def test_an_unknown_range_is_refused(tmp_path):
         read_error_tables(path)
 
 
-def test_the_report_names_the_measured_and_extrapolated_ranges(short_lines, reference_machine):
-    from xmalign.report import render_report
+def test_the_report_names_the_measured_and_extrapolated_ranges(short_lines):
+    from xmalign.post.ranges import range_rows
+    from xmalign.report import error_curves_figure
 
-    html = render_report(reference_machine, short_lines, "sinumerik")
-    ranges = html[html.index("<th>measured / mm</th>") :]
-    x_row = ranges[ranges.index("<td>X</td>") :].split("</tr>")[0]
-    assert "0 to 1636.36" in x_row and "1636.36 to 2000" in x_row
+    rows = {row[0]: row[1:] for row in range_rows(short_lines.fit.tables)}
+    assert rows["X"] == ["0 to 1636.36", "1636.36 to 2000"]
+    figure = error_curves_figure(short_lines.fit.tables, "X")
+    assert all(len(panel.patches) == 1 for panel in figure.axes)  # the grey extrapolated span
