@@ -73,6 +73,10 @@ class SetupDisturbance:
     #: Zero the linear channel again at the start of every pass (a mistake: the
     #: interferometer should count on through the run).
     rezero_each_pass: bool = False
+    #: The machine's positioning repeatability (standard deviation per axis and point),
+    #: as :class:`sim.machine.ErrorAmplitudes` ``repeatability_um`` (0: a perfectly
+    #: repeatable machine).
+    repeatability_um: float = 0.0
 
 
 class _Approached:
@@ -128,6 +132,7 @@ def measure(
                 dp, rotation = deviation(
                     chain, points[order], t, _Approached(model, backlash_mm, signs)
                 )
+                dp = dp + rng.normal(0.0, setup.repeatability_um * 1e-3, dp.shape)
                 local = dp @ line.frame.T
                 if reference is None or setup.rezero_each_pass:
                     reference = local[0, 0]
