@@ -38,6 +38,12 @@ IRREGULAR_FRACTION = 0.25
 IRREGULAR_SEED = 2302
 #: Components of a line direction below this count as zero (line parallel to that axis plane).
 _ZERO_COMPONENT = 1e-12
+#: Resolution of the G-code coordinates (3 decimals in mm): every target lies on this grid.
+PROGRAM_RESOLUTION_MM = 1e-3
+#: The grid step along a line is chosen among this many resolution units at most.
+_MAX_GRID_STEPS = 10_000
+#: A grid step whose direction is within this of the wanted one (rad) is taken at once.
+_GRID_ANGLE_RAD = 1e-7
 
 
 @dataclass(frozen=True)
@@ -174,6 +180,47 @@ def target_distances(length_mm: float, spacing_mm: float, irregular: bool) -> Ve
     return targets
 
 
+def _grid_start(start_mm: Vec, step_mm: Vec, overrun_mm: float, machine: Machine) -> Vec:
+    """The grid point nearest the start, moved on by grid steps until the overrun fits."""
+    u = step_mm / np.linalg.norm(step_mm)
+    start = np.round(start_mm / PROGRAM_RESOLUTION_MM) * PROGRAM_RESOLUTION_MM
+    for _ in range(_MAX_GRID_STEPS):
+        if machine.within_travel(start - overrun_mm * u, tol_mm=0.0):
+            return start
+        start = start + step_mm
+    raise GeometryError(
+        f"no point of the program's {PROGRAM_RESOLUTION_MM * 1000:g} um grid near"
+        f" {np.round(start_mm, 4).tolist()} mm leaves the overrun inside the travel"
+    )
+
+
+def grid_step(u: Vec) -> Vec:
+    """The shortest step on the program's grid along ``u`` (within 0.1 urad), mm, shape (3,).
+
+    From a start on the grid, every whole multiple of it is on the grid too,
+    so the plan's targets are exactly the coordinates the G-code commands. An
+    axis line gets one resolution unit; a face diagonal of a 2000 x 1500 mm
+    face (4:3) gets (4, 3) units; a direction with no short grid step gets the
+    closest one within :data:`_MAX_GRID_STEPS` units.
+    """
+    u = np.asarray(u, dtype=float)
+    lengths = np.arange(1, _MAX_GRID_STEPS + 1)[:, None]
+    candidates = np.round(lengths * u)
+    norms = np.linalg.norm(candidates, axis=1)
+    norms[norms == 0] = np.inf
+    angle = np.linalg.norm(candidates / norms[:, None] - u, axis=1)
+    close = np.flatnonzero(angle < _GRID_ANGLE_RAD)
+    best = int(close[0]) if len(close) else int(np.argmin(angle))
+    return candidates[best] * PROGRAM_RESOLUTION_MM
+
+
+def snap_targets(targets_mm: Vec, step_mm: float) -> Vec:
+    """Target distances moved to whole grid steps; the last one never beyond its place."""
+    steps = np.round(np.asarray(targets_mm) / step_mm)
+    steps[-1] = np.floor(targets_mm[-1] / step_mm + 1e-9)
+    return np.unique(steps) * step_mm
+
+
 def _coverage(line_id: str, length_mm: float, machine: Machine) -> float:
     stroke = machine.travel_max_mm - machine.travel_min_mm
     indices = [AXES.index(letter) for letter in line_id]
@@ -199,15 +246,22 @@ def plan_line(line_id: str, launch_cp_mm: Vec, machine: Machine) -> LineLayout:
     best = max(candidates, key=lambda s: s.length)
     if best.length < measurement.min_line_mm:
         raise GeometryError(_too_short_message(line_id, best, machine))
-    u = best.sense * best.e
-    targets = target_distances(
-        best.length, measurement.target_spacing_mm, measurement.irregular_spacing
+    step = grid_step(best.sense * best.e)
+    u = step / np.linalg.norm(step)
+    exact_start = launch_cp + best.shift + best.near * u - receiver_offset_mcs(machine)
+    start = _grid_start(exact_start, step, measurement.overrun_mm, machine)
+    inside = min(
+        best.length - float((start - exact_start) @ u),
+        _travel_interval(start, u, machine)[1] - measurement.overrun_mm,
     )
-    first_receiver_cp = launch_cp + best.shift + best.near * u
+    targets = snap_targets(
+        target_distances(inside, measurement.target_spacing_mm, measurement.irregular_spacing),
+        float(np.linalg.norm(step)),
+    )
     middle = 0.5 * (best.near + best.far)
     return LineLayout(
         id=line_id,
-        start_mm=first_receiver_cp - receiver_offset_mcs(machine),
+        start_mm=start,
         u=u,
         targets_mm=targets,
         aim_receiver_cp_mm=launch_cp + best.shift + middle * u,

@@ -17,14 +17,16 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from xmalign.comp import remaining_errors
 from xmalign.formats.common import atomic_write_text
-from xmalign.formats.error_tables import ErrorTableSet, file_unit
+from xmalign.formats.error_tables import ErrorTableSet, Table, file_unit
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult
+from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows
 from xmalign.rigid_body import (
     AXES,
     AXIS_INDEX,
@@ -53,6 +55,11 @@ def _scale(name: str) -> float:
     return 1e3 if file_unit(name) == "um" else 1e6
 
 
+def _shade_extrapolated(panel: Axes, table: Table | None) -> None:
+    for a, b in extrapolated_spans_mm(table) if table is not None else []:
+        panel.axvspan(a, b, color="0.5", alpha=0.2, linewidth=0)
+
+
 def error_curves_figure(tables: ErrorTableSet, axis: str) -> Figure:
     """Six panels: the error motions of one axis with their u95 bands."""
     figure = Figure(figsize=(13, 6))
@@ -70,12 +77,16 @@ def error_curves_figure(tables: ErrorTableSet, axis: str) -> Figure:
             panel.fill_between(
                 table.positions_mm, values - band, values + band, color=colour, alpha=0.15
             )
+        _shade_extrapolated(panel, tables.tables.get(name))
         panel.set_title(f"{name} / {file_unit(name)}")
         panel.grid(True, alpha=0.3)
         panel.legend(fontsize=7)
     for panel in panels[1]:
         panel.set_xlabel(f"{axis} / mm")
-    figure.suptitle(f"Error motions of {axis} (bands: expanded uncertainty, k = 2)")
+    figure.suptitle(
+        f"Error motions of {axis} (bands: expanded uncertainty, k = 2;"
+        " grey: extrapolated beyond the measured range)"
+    )
     return figure
 
 
@@ -160,7 +171,18 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
                 ],
             )
         )
+    if result.warnings:
+        parts.append("<h2>Warnings</h2><ul>")
+        parts.extend(f"<li>{html.escape(w)}</li>" for w in result.warnings)
+        parts.append("</ul>")
     parts.append("<h2>Error motions</h2>")
+    parts.append(
+        "<p>The tables cover the whole travel; beyond the range the lines measured they are"
+        " the linear continuation of the end segment, with a U95 that grows with the"
+        " distance (shaded grey in the plots, <code>range = extrapolated</code> in the"
+        " error-table file).</p>"
+    )
+    parts.append(_html_table(RANGES_HEADER, range_rows(tables)))
     parts.extend(_png(error_curves_figure(tables, axis)) for axis in AXES)
     parts.append("<h2>Volumetric error before and after compensation</h2>")
     parts.append(

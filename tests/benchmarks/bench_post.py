@@ -12,10 +12,10 @@ import time
 import numpy as np
 
 from sim.machine import VirtualMachine
+from sim.synthetic import measure, six_line_plan
 from xmalign.machine import default_machine_path, load_machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import post_process
-from xmalign.post.synthetic import measure, six_line_plan
 from xmalign.rigid_body import Chain, ErrorTables
 
 TARGET_S = 3.0

@@ -96,3 +96,25 @@ def test_plan_identify_command_writes_the_positions(tmp_path):
     written = json.loads((tmp_path / "d.json").read_text())
     assert written["format"] == "xmalign.identify-design/1"
     assert np.array(written["machine_mm"]).shape == (3, 3)
+
+
+def test_program_proposes_a_second_station_and_plans_only_the_lines_asked(tmp_path):
+    pose_path, plan_path = tmp_path / "pose.json", tmp_path / "plan.json"
+    write_pose(pose_path, make_pose())
+    first = runner.invoke(app, ["program", "--pose", str(pose_path), "--out", str(tmp_path / "a")])
+    assert first.exit_code == 0, first.output
+    assert "second station" in first.output and "--lines Z,YZ,XZ" in first.output
+    second = runner.invoke(
+        app,
+        ["program", "--pose", str(pose_path), "--lines", "z, yz", "--plan-out", str(plan_path)],
+    )
+    assert second.exit_code == 0, second.output
+    assert [line.id for line in read_plan(plan_path).lines] == ["Z", "YZ"]
+    assert "second station" not in second.output
+
+
+def test_unknown_lines_are_refused(tmp_path):
+    pose_path = tmp_path / "pose.json"
+    write_pose(pose_path, make_pose())
+    result = runner.invoke(app, ["program", "--pose", str(pose_path), "--lines", "X,Q"])
+    assert result.exit_code != 0 and "--lines 'X,Q'" in str(result.exception)

@@ -6,7 +6,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.trajectories.conftest import make_pose
-from trajectories.lines import LINE_IDS, plan_line, receiver_offset_mcs, target_distances
+from trajectories.lines import (
+    LINE_IDS,
+    grid_step,
+    plan_line,
+    receiver_offset_mcs,
+    target_distances,
+)
+from trajectories.lines import (
+    PROGRAM_RESOLUTION_MM as GRID_MM,
+)
 from trajectories.planner import plan_measurement
 from xmalign.errors import GeometryError
 from xmalign.machine import default_machine_path, load_machine
@@ -20,13 +29,15 @@ def test_reference_machine_gives_six_lines_through_the_launch_cp(machine, pose):
         receiver = layout.target_points_mm() + receiver_offset_mcs(machine)
         beam = receiver - pose.position_mm
         lateral = beam - np.outer(beam @ layout.u, layout.u)
-        assert np.max(np.linalg.norm(lateral, axis=1)) < 1e-9
+        # the start is snapped to the program's grid (half a grid cell's diagonal)
+        assert np.max(np.linalg.norm(lateral, axis=1)) < np.sqrt(3) / 2 * GRID_MM
         assert np.all(machine.within_travel(layout.target_points_mm()))
         distances = np.linalg.norm(beam, axis=1)
         m = machine.measurement
-        assert distances.min() >= m.standoff_mm + m.overrun_mm - 1e-9
+        assert distances.min() >= m.standoff_mm + m.overrun_mm - GRID_MM
         assert distances.max() <= machine.interferometer.max_range_mm
-        assert np.max(np.diff(layout.targets_mm)) <= machine.measurement.target_spacing_mm + 1e-9
+        step = np.linalg.norm(grid_step(layout.u))
+        assert np.max(np.diff(layout.targets_mm)) <= machine.measurement.target_spacing_mm + step
         assert planned.envelope.within
 
 
@@ -99,3 +110,21 @@ def test_any_reachable_launch_position_gives_lines_inside_travel_and_range(x, y,
     assert layout.length_mm >= m.min_line_mm
     near, far = layout.beam_distance_mm
     assert near >= m.standoff_mm and far <= _MACHINE.interferometer.max_range_mm + 1e-9
+
+
+@pytest.mark.parametrize("irregular", [False, True])
+def test_targets_lie_on_the_programs_grid(machine, pose, irregular):
+    """Plan, G-code and measurement file name the same coordinates (1 um grid)."""
+    measurement = machine.measurement.model_copy(update={"irregular_spacing": irregular})
+    planned = plan_measurement(machine.model_copy(update={"measurement": measurement}), pose)
+    for line in planned.plan.lines:
+        points_um = line.target_points_mm() / GRID_MM
+        np.testing.assert_allclose(points_um, np.round(points_um), atol=1e-6)
+
+
+@given(st.floats(0.05, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
+def test_a_grid_step_is_on_the_grid_and_along_the_direction(a, b, c):
+    u = np.array([a, b, c]) / np.linalg.norm([a, b, c])
+    step_um = grid_step(u) / GRID_MM
+    np.testing.assert_allclose(step_um, np.round(step_um), atol=1e-9)
+    assert np.linalg.norm(step_um / np.linalg.norm(step_um) - u) < 1e-4

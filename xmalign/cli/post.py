@@ -18,11 +18,13 @@ from xmalign.cli.common import (
     refuse_overwriting,
 )
 from xmalign.comp import WRITERS, writer
+from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
-from xmalign.post.evaluate import PostResult, post_process
+from xmalign.machine import Machine
+from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import Chain
 
 MachineOption = Annotated[
@@ -56,28 +58,57 @@ def _summary(result: PostResult) -> RichTable:
     return summary
 
 
+def _stations(
+    plans: list[Path], data: list[Path], machine: Path | None
+) -> tuple[Machine, list[Station]]:
+    """The machine and one station per ``--plan``/``--data`` pair, in the order given.
+
+    Every plan must be for the machine given; every data file recorded for its plan.
+    """
+    if len(plans) != len(data):
+        raise InputError(
+            f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
+            " launch-unit station, in the same order"
+        )
+    read = [(read_plan(plan_path), plan_path) for plan_path in plans]
+    machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
+    limits = ChannelLimits.of_ranges(**machine_.interferometer.model_dump())
+    stations = []
+    for (plan_, _), path in zip(read, data, strict=True):
+        recorded = load_measurements(path, limits)
+        check_recorded_plan(recorded, plan_, check_points=False)
+        stations.append(Station(plan_, recorded.rows, str(path)))
+    return machine_, stations
+
+
 def post(
-    plan: Annotated[Path, typer.Option(help="Measurement plan (xmalign.plan/1 JSON).")],
-    data: Annotated[Path, typer.Option(help="Measurement CSV written by xmalign run.")],
+    plan: Annotated[
+        list[Path],
+        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
+    ],
+    data: Annotated[
+        list[Path],
+        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
+    ],
     out: Annotated[Path, typer.Option(help="Error-table CSV to write.")],
     machine: MachineOption = None,
     report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
 ) -> None:
-    """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from six lines."""
+    """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
+
+    Repeat --plan and --data for a second launch-unit station: one set of error
+    tables is fitted to all lines, each line with its own setup terms.
+    """
     refuse_overwriting(
         {"--plan": plan, "--data": data, "--machine": machine},
         {"--out": out, "--report": report},
     )
-    plan_ = read_plan(plan)
-    machine_ = machine_for_plan(machine, plan_, plan)
     with _progress() as progress:
-        task = progress.add_task("reading plan and measurements", total=None)
-        limits = ChannelLimits.of_ranges(**machine_.interferometer.model_dump())
-        recorded = load_measurements(data, limits)
-        check_recorded_plan(recorded, plan_, check_points=False)
-        rows = recorded.rows
-        progress.update(task, description=f"fitting {len(rows)} points")
-        result = post_process(machine_, plan_, rows, str(data))
+        task = progress.add_task("reading plans and measurements", total=None)
+        machine_, stations = _stations(plan, data, machine)
+        points = sum(len(station.rows) for station in stations)
+        progress.update(task, description=f"fitting {points} points")
+        result = post_stations(machine_, stations)
         write_error_tables(out, result.fit.tables)
         if report is not None:
             progress.update(task, description="drawing the report")
@@ -86,6 +117,8 @@ def post(
 
             write_report(report, machine_, result, machine_.controller)
     console.print(_summary(result))
+    for warning in result.warnings:
+        console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )

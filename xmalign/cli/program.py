@@ -13,12 +13,15 @@ from rich.table import Table
 from trajectories.gcode import DIALECTS, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.stations import propose_second_station
 from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.common import atomic_write_text, write_json
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
+from xmalign.machine import Machine
 
 DESIGN_FORMAT = "xmalign.identify-design/1"
 
@@ -72,8 +75,16 @@ def program(
     strict: Annotated[
         bool, typer.Option(help="Refuse, instead of warn, when an envelope leaves the range.")
     ] = False,
+    lines: Annotated[
+        str | None,
+        typer.Option(help="Comma-separated lines to plan, e.g. Z,YZ,XZ (default: all six)."),
+    ] = None,
 ) -> None:
-    """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code."""
+    """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
+
+    With all six lines it also proposes a second launch-unit station whose lines
+    complete the strokes (docs/post.md); plan that station with --lines.
+    """
     refuse_overwriting(
         {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
     )
@@ -84,8 +95,14 @@ def program(
         )
     machine_model = machine_or_default(machine)
     dialect_name = resolve_dialect(machine_model, dialect)
-    measurement = plan_measurement(machine_model, read_pose(pose))
+    line_ids = _line_ids(lines)
+    launch_pose = read_pose(pose)
+    measurement = plan_measurement(machine_model, launch_pose, line_ids)
     error_console.print(_plan_table(measurement))
+    if line_ids == LINE_IDS:
+        error_console.print(
+            _second_station(machine_model, launch_pose.position_mm), highlight=False
+        )
     for planned in measurement.lines:
         if "note" in planned.line.extra:
             error_console.print(f"note: line {planned.line.id}: {planned.line.extra['note']}")
@@ -100,6 +117,30 @@ def program(
         atomic_write_text(out, text)
     else:
         sys.stdout.write(text)
+
+
+def _line_ids(text: str | None) -> tuple[str, ...]:
+    if text is None:
+        return LINE_IDS
+    chosen = tuple(part.strip().upper() for part in text.split(",") if part.strip())
+    unknown = [line for line in chosen if line not in LINE_IDS]
+    if unknown or not chosen or len(set(chosen)) != len(chosen):
+        raise InputError(
+            f"--lines '{text}': give distinct lines out of {', '.join(LINE_IDS)}, comma-separated"
+        )
+    return chosen
+
+
+def _second_station(machine: Machine, first_mm: np.ndarray) -> str:
+    proposal = propose_second_station(machine, first_mm)
+    where = ", ".join(f"{v:.0f}" for v in proposal.position_mm)
+    covered = ", ".join(f"{axis} {100 * v:.0f} %" for axis, v in proposal.coverage.items())
+    return (
+        f"second station (optional, for tables over the whole travel): launch cp at [{where}] mm;"
+        f" set launch_unit.position_mm to it, identify again and program"
+        f" --lines {','.join(proposal.line_ids)}; both stations together cover {covered} of"
+        " the strokes"
+    )
 
 
 def _design_table(design: IdentificationDesign) -> Table:

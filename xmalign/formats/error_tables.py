@@ -1,8 +1,10 @@
-"""Error-table CSV of FORMATS.md: ``name,position_mm,value,unit,u95``.
+"""Error-table CSV of FORMATS.md: ``name,position_mm,value,unit,u95[,range]``.
 
 Values are um (translations) or urad (rotations, squareness) in the file and
 mm / rad in :class:`ErrorTableSet`. Directional tables carry ``+`` or ``-``
-after the name.
+after the name. The optional last column ``range`` says ``measured`` or
+``extrapolated`` (beyond the measured stroke); files without it (written
+before it existed) are read as all measured (docs/error-tables.md).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -35,6 +37,8 @@ from xmalign.geometry import Vec
 from xmalign.rigid_body import MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
 
 HEADER = ("name", "position_mm", "value", "unit", "u95")
+RANGE_COLUMN = "range"
+RANGES = ("measured", "extrapolated")
 UM_PER_MM = 1000.0
 URAD_PER_RAD = 1e6
 
@@ -57,11 +61,22 @@ _LIMITS = {"um": MAX_ERROR_MM * UM_PER_MM, "urad": MAX_ERROR_RAD * URAD_PER_RAD}
 
 @dataclass
 class Table:
-    """One error table: positions mm (M,), values and u95 in mm or rad (M,)."""
+    """One error table: positions mm (M,), values and u95 in mm or rad (M,).
+
+    ``measured`` (M,) bool is False at points extrapolated beyond the measured
+    stroke (None: all measured).
+    """
 
     positions_mm: Vec
     values: Vec
     u95: Vec
+    measured: np.ndarray | None = None
+
+    def measured_mask(self) -> np.ndarray:
+        """Which points lie in the measured range, shape (M,) bool."""
+        if self.measured is None:
+            return np.ones(len(self.positions_mm), dtype=bool)
+        return np.asarray(self.measured, dtype=bool)
 
 
 @dataclass
@@ -98,6 +113,7 @@ class _RowModel(FileModel):
     value: Finite
     unit: str
     u95: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None
+    range: Literal["measured", "extrapolated"] | None = None
 
     @field_validator("name")
     @classmethod
@@ -107,7 +123,7 @@ class _RowModel(FileModel):
             raise ValueError(f"unknown error name '{name}'")
         return name
 
-    @field_validator("position_mm", "u95", mode="before")
+    @field_validator("position_mm", "u95", "range", mode="before")
     @classmethod
     def _empty_is_none(cls, text: str) -> str | None:
         return text or None
@@ -133,11 +149,12 @@ class _RowModel(FileModel):
         return self
 
 
-def _parse_row(fields: list[str], path: Path, line: int) -> _RowModel:
-    if len(fields) != len(HEADER):
-        raise line_error(path, line, f"expected {len(HEADER)} fields, found {len(fields)}")
+def _parse_row(fields: list[str], header: tuple[str, ...], path: Path, line: int) -> _RowModel:
+    if len(fields) != len(header):
+        raise line_error(path, line, f"expected {len(header)} fields, found {len(fields)}")
+    values = dict(zip(header, (f.strip() for f in fields), strict=True))
     try:
-        return _RowModel.model_validate(dict(zip(HEADER, (f.strip() for f in fields), strict=True)))
+        return _RowModel.model_validate(values)
     except ValidationError as error:
         first = error.errors()[0]
         key = ".".join(str(part) for part in first["loc"])
@@ -150,16 +167,18 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
     path = Path(path)
     reader = csv.reader(io.StringIO(read_text(path), newline=""))
     try:
-        header = next(reader, None)
-        if header is None or tuple(h.strip() for h in header) != HEADER:
-            raise FormatError(located(path, "line 1", f"header must be {','.join(HEADER)}"))
-        rows: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
+        header = tuple(h.strip() for h in next(reader, None) or ())
+        if header not in (HEADER, (*HEADER, RANGE_COLUMN)):
+            raise FormatError(
+                located(path, "line 1", f"header must be {','.join(HEADER)}[,{RANGE_COLUMN}]")
+            )
+        rows: dict[str, list[tuple[float, float, float, bool]]] = defaultdict(list)
         first_line: dict[tuple[str, float | None], int] = {}
         result = ErrorTableSet(source=str(path))
         for fields in reader:
             if not fields:
                 continue
-            row = _parse_row(fields, path, reader.line_num)
+            row = _parse_row(fields, header, path, reader.line_num)
             seen = first_line.setdefault((row.name, row.position_mm), reader.line_num)
             if seen != reader.line_num:
                 at = "" if row.position_mm is None else f" at {row.position_mm:g} mm"
@@ -169,14 +188,14 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
             if row.position_mm is None:
                 result.squareness[row.name] = (value, u95)
             else:
-                rows[row.name].append((row.position_mm, value, u95))
+                rows[row.name].append((row.position_mm, value, u95, row.range != "extrapolated"))
     except csv.Error as error:
         raise line_error(path, reader.line_num, f"not valid CSV ({error})") from error
     for name, entries in rows.items():
         if len(entries) < 2:
             raise InputError(located(path, name, "a table needs at least two positions"))
         data = np.array(sorted(entries))
-        result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2])
+        result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2], data[:, 3] > 0)
     return result
 
 
@@ -185,16 +204,19 @@ def _number(value: float) -> str:
 
 
 def error_tables_to_csv(tables: ErrorTableSet) -> str:
-    lines = [",".join(HEADER)]
+    lines = [",".join((*HEADER, RANGE_COLUMN))]
     for name, table in tables.tables.items():
         unit = file_unit(name)
         scale = _scale(unit)
-        for position, value, u95 in zip(table.positions_mm, table.values, table.u95, strict=True):
+        for position, value, u95, measured in zip(
+            table.positions_mm, table.values, table.u95, table.measured_mask(), strict=True
+        ):
             lines.append(
-                f"{name},{position:.3f},{_number(value * scale)},{unit},{_number(u95 * scale)}"
+                f"{name},{position:.3f},{_number(value * scale)},{unit},{_number(u95 * scale)},"
+                + RANGES[0 if measured else 1]
             )
     for name, (value, u95) in tables.squareness.items():
-        lines.append(f"{name},,{_number(value * URAD_PER_RAD)},urad,{_number(u95 * URAD_PER_RAD)}")
+        lines.append(f"{name},,{_number(value * URAD_PER_RAD)},urad,{_number(u95 * URAD_PER_RAD)},")
     return "\n".join(lines) + "\n"
 
 

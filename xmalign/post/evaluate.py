@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
-from xmalign.geometry import Vec, rot_z
+from xmalign.geometry import Vec
 from xmalign.machine import Machine
+from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
@@ -28,11 +29,14 @@ class PostResult:
         ISO 230-2 figures of every axis line (um).
     lines : list of LineData
         The measurement, grouped by line (mm / rad).
+    warnings : list of str
+        What the user should know about the data (e.g. a re-zeroed linear datum).
     """
 
     fit: TableFit
     positioning: list[PositioningFigures]
     lines: list[LineData]
+    warnings: list[str] = field(default_factory=list)
 
 
 def channel_sigma(machine: Machine) -> Vec:
@@ -50,27 +54,48 @@ def channel_sigma(machine: Machine) -> Vec:
     )
 
 
-def tool_offset_mm(plan: Plan) -> Vec:
-    """Receiver cp from the CNC tool point in the MCS during the measurement, mm (3,)."""
-    return rot_z(plan.spindle_angle_rad) @ plan.receiver_offset_mm
+@dataclass(frozen=True)
+class Station:
+    """The measurement from one launch-unit station: its plan, rows and file name."""
+
+    plan: Plan
+    rows: list[MeasurementRow]
+    source: str
+
+
+def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
+    """Fit one set of error tables to the measurements of one or more stations.
+
+    Every line keeps its own setup terms (the beam, the mountings and the
+    interferometer's datum change with the station); the error tables and the
+    squareness are shared. ``Station.source`` names the file in error messages.
+    """
+    lines = [
+        data
+        for index, station in enumerate(stations)
+        for data in group_by_line(station.plan, station.rows, station.source, index)
+    ]
+    fit = fit_error_tables(
+        lines,
+        Chain.parse(machine.chain),
+        channel_sigma(machine),
+        (machine.travel_min_mm, machine.travel_max_mm),
+    )
+    positioning = [
+        positioning_figures(
+            data.label, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
+        )
+        for data in lines
+        if data.axis() is not None
+    ]
+    return PostResult(fit=fit, positioning=positioning, lines=lines, warnings=datum_warnings(lines))
 
 
 def post_process(
     machine: Machine, plan: Plan, rows: list[MeasurementRow], source: str
 ) -> PostResult:
-    """Fit the error tables to the rows of a measurement of ``plan``.
+    """Fit the error tables to the rows of a measurement of ``plan`` (one station).
 
     ``source`` names the measurement file in error messages.
     """
-    lines = group_by_line(plan, rows, source)
-    fit = fit_error_tables(
-        lines, Chain.parse(machine.chain), tool_offset_mm(plan), channel_sigma(machine)
-    )
-    positioning = [
-        positioning_figures(
-            data.line.id, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
-        )
-        for data in lines
-        if data.axis() is not None
-    ]
-    return PostResult(fit=fit, positioning=positioning, lines=lines)
+    return post_stations(machine, [Station(plan, rows, source)])

@@ -9,7 +9,7 @@ import numpy as np
 from xmalign.errors import InputError
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan, PlanLine
-from xmalign.geometry import Vec
+from xmalign.geometry import Vec, rot_z
 from xmalign.rigid_body import AXES
 
 UM_PER_MM = 1e3
@@ -41,6 +41,10 @@ class LineData:
         Channels in mm and rad (linear, straightness v, w, angle u, v, w).
     segment : ndarray of int, shape (N,)
         Setup segment of each point (0 unless the units were re-aligned on a resume).
+    tool_offset_mm : ndarray, shape (3,)
+        Receiver cp from the CNC tool point in the MCS during the measurement.
+    station : int
+        Launch-unit station the line was measured from (0 for the first).
     """
 
     line: PlanLine
@@ -51,6 +55,13 @@ class LineData:
     machine_mm: Vec
     channels: Vec
     segment: np.ndarray
+    tool_offset_mm: Vec
+    station: int = 0
+
+    @property
+    def label(self) -> str:
+        """The line id, with its station from the second station on (``X``, ``X@2``)."""
+        return self.line.id if self.station == 0 else f"{self.line.id}@{self.station + 1}"
 
     @property
     def frame(self) -> Vec:
@@ -74,7 +85,14 @@ class LineData:
         return [name for i, name in enumerate(AXES) if abs(self.frame[0][i]) > 1e-9]
 
 
-def _line_data(line: PlanLine, rows: list[MeasurementRow], source: str) -> LineData:
+def tool_offset_mm(plan: Plan) -> Vec:
+    """Receiver cp from the CNC tool point in the MCS during the measurement, mm (3,)."""
+    return rot_z(plan.spindle_angle_rad) @ plan.receiver_offset_mm
+
+
+def _line_data(
+    plan: Plan, line: PlanLine, rows: list[MeasurementRow], source: str, station: int
+) -> LineData:
     index = np.array([row.index for row in rows])
     if np.any((index < 0) | (index >= len(line.targets_mm))):
         bad = rows[int(np.argmax((index < 0) | (index >= len(line.targets_mm))))]
@@ -100,11 +118,15 @@ def _line_data(line: PlanLine, rows: list[MeasurementRow], source: str) -> LineD
         machine_mm=machine,
         channels=np.array([row.channels for row in rows]) * CHANNEL_TO_SI,
         segment=np.array([row.segment for row in rows]),
+        tool_offset_mm=tool_offset_mm(plan),
+        station=station,
     )
 
 
-def group_by_line(plan: Plan, rows: list[MeasurementRow], source: str) -> list[LineData]:
-    """The rows of every plan line that has data, in plan order.
+def group_by_line(
+    plan: Plan, rows: list[MeasurementRow], source: str, station: int = 0
+) -> list[LineData]:
+    """The rows of every plan line that has data, in plan order (``station`` 0-based).
 
     Raises
     ------
@@ -123,4 +145,8 @@ def group_by_line(plan: Plan, rows: list[MeasurementRow], source: str) -> list[L
         by_line[row.line].append(row)
     if not rows:
         raise InputError(f"{source}: no measurement rows")
-    return [_line_data(line, by_line[line.id], source) for line in plan.lines if by_line[line.id]]
+    return [
+        _line_data(plan, line, by_line[line.id], source, station)
+        for line in plan.lines
+        if by_line[line.id]
+    ]

@@ -105,7 +105,7 @@ class SetupLayout:
                 mine = data.segment == segment
                 runs = sorted({int(r) for r in data.run[mine]})
                 has_slope = len(np.unique(data.distance_mm[mine])) > 1
-                layout = _SegmentLayout(data.line.id, segment, column, runs, has_slope)
+                layout = _SegmentLayout(data.label, segment, column, runs, has_slope)
                 segments.append(layout)
                 column += layout.n_columns
             self._layouts.append(segments)
@@ -131,6 +131,13 @@ class SetupLayout:
                     out.add(point_rows + 3 + k, c + 2 + k, 1.0)
                 for i, run in enumerate(layout.runs):
                     out.add(point_rows[data.run[mine] == run] + _LINEAR, c + 5 + i, 1.0)
+
+    def line_of(self, column: int) -> str | None:
+        """The line whose setup term a column is; None if not a setup column."""
+        for layout in (layout for segments in self._layouts for layout in segments):
+            if 0 <= column - layout.first_column < layout.n_columns:
+                return layout.line_id
+        return None
 
     def unpack(self, x: Vec) -> list[SetupTerms]:
         """The fitted setup terms from the solution vector (mm, rad, mm/m) in file units."""

@@ -23,6 +23,7 @@ half reversal ``h``: an axis moving forward sees ``mean + h``, moving backward
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +51,14 @@ K_EXPANSION = 2.0
 #: Cholesky pivots below this (columns scaled to unit norm) mean a parameter the lines
 #: cannot determine.
 _RANK_TOLERANCE = 1e-10
+#: Eigenvalues of the scaled normal matrix below this fraction of the largest span its
+#: null space.
+_NULL_TOLERANCE = 1e-9
+#: A column whose unit vector has more than this squared component in the null space is named.
+_INVOLVED = 1e-4
 _KNOT_DECIMALS = 6
+#: A travel end closer than this to the outermost knot adds no extrapolated point.
+_TRAVEL_TOLERANCE_MM = 1e-3
 
 
 def error_names(axis: str) -> tuple[str, ...]:
@@ -59,7 +67,12 @@ def error_names(axis: str) -> tuple[str, ...]:
 
 
 def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
-    """Compensation points of each axis: the targets of its axis lines, projected on it.
+    """Compensation points of each axis, wherever any line measured it.
+
+    The targets of its axis lines, projected on it; where a diagonal reaches
+    beyond them while its other axis stays on that axis's own line, more points
+    over that stretch at the axis line's mean spacing (the diagonal sees the
+    errors there, and the other axis's are known).
 
     Raises
     ------
@@ -77,11 +90,56 @@ def compensation_points(lines: list[LineData]) -> dict[str, Vec]:
             f"the measurement has no line along {', '.join(missing)}: post needs one line per"
             " axis (and the three face diagonals for the squareness)"
         )
-    return {axis: np.unique(np.round(p, _KNOT_DECIMALS)) for axis, p in points.items()}
+    base = {axis: np.unique(np.round(p, _KNOT_DECIMALS)) for axis, p in points.items()}
+    return {axis: _extended(base[axis], _determinable_reach(lines, axis, base)) for axis in AXES}
+
+
+def _determinable_reach(lines: list[LineData], axis: str, base: dict[str, Vec]) -> Vec:
+    """Positions of ``axis`` where a line measured while every other axis it moves was
+    inside that axis's own line (else two unknown tables would share one line's channels)."""
+    reached = []
+    for data in lines:
+        moving = data.moving_axes()
+        if axis not in moving:
+            continue
+        inside = np.ones(len(data.run), dtype=bool)
+        for other in moving:
+            if other != axis:
+                knots = base[other]
+                margin = 0.5 * _mean_spacing(knots)
+                position = data.machine_mm[:, AXIS_INDEX[other]]
+                inside &= (position >= knots[0] - margin) & (position <= knots[-1] + margin)
+        reached.append(data.machine_mm[inside, AXIS_INDEX[axis]])
+    return np.concatenate(reached)
+
+
+def _mean_spacing(knots_mm: Vec) -> float:
+    return float(knots_mm[-1] - knots_mm[0]) / (len(knots_mm) - 1)
+
+
+def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
+    """Knots, plus points at their mean spacing out to the farthest positions reached.
+
+    A stretch shorter than half the spacing gets no point: the end segment's
+    extrapolation covers it (a short segment would be poorly determined).
+    """
+    spacing = _mean_spacing(knots_mm)
+    low, high = reached_mm.min(), reached_mm.max()
+    below = knots_mm[0] - low
+    above = high - knots_mm[-1]
+    parts = [knots_mm]
+    if below > spacing / 2:
+        parts.insert(0, np.linspace(low, knots_mm[0], int(np.ceil(below / spacing)) + 1)[:-1])
+    if above > spacing / 2:
+        parts.append(np.linspace(knots_mm[-1], high, int(np.ceil(above / spacing)) + 1)[1:])
+    return np.round(np.concatenate(parts), _KNOT_DECIMALS)
 
 
 def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
-    """Triangular (degree-1 B-spline) basis at positions, held constant outside the knots.
+    """Triangular (degree-1 B-spline) basis at positions; the end segments extrapolate.
+
+    A diagonal reaches parts of an axis's travel that its axis line does not
+    measure; holding the end value there would model a sloped table as a step.
 
     Returns
     -------
@@ -89,8 +147,8 @@ def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
         ``B[i, m]`` weight of the value at knot ``m`` for position ``i``.
     """
     t = np.concatenate([[knots_mm[0]], knots_mm, [knots_mm[-1]]])
-    x = np.clip(position_mm, knots_mm[0], knots_mm[-1])
-    return BSpline.design_matrix(x, t, 1).tocoo()
+    x = np.asarray(position_mm, dtype=float)
+    return BSpline.design_matrix(x, t, 1, extrapolate=True).tocoo()
 
 
 def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
@@ -126,19 +184,25 @@ class ParameterLayout:
         self.squareness_columns = n + np.arange(3)
         self.n_columns = n + 3
 
-    def describe(self, column: int) -> str:
-        """A person's name for a column (for error messages)."""
+    def table_name(self, column: int) -> str | None:
+        """The ISO 230-1 name of the table (or squareness) a column belongs to; None if none."""
         if column in self.squareness_columns:
             return SQUARENESS_NAMES[column - self.squareness_columns[0]]
         for axis, kinds in self.column.items():
             for kind, columns in kinds.items():
                 hit = np.argwhere(columns == column)
                 if len(hit):
-                    error, knot = hit[0]
-                    what = "" if kind == "mean" else " reversal"
-                    position = self.knots[axis][knot]
-                    return f"{error_names(axis)[error]}{what} at {position:g} mm"
-        return f"column {column}"
+                    return error_names(axis)[hit[0][0]] + ("" if kind == "mean" else " reversal")
+        return None
+
+    def describe(self, column: int) -> str:
+        """A person's name for a column, with its knot (for error messages)."""
+        for axis, kinds in self.column.items():
+            for columns in kinds.values():
+                hit = np.argwhere(columns == column)
+                if len(hit):
+                    return f"{self.table_name(column)} at {self.knots[axis][hit[0][1]]:g} mm"
+        return self.table_name(column) or f"column {column}"
 
 
 def _sensitivities(frame: Vec, arms_mm: Vec) -> Vec:
@@ -217,44 +281,77 @@ class TableFit:
     n_parameters: int
 
 
-def _undetermined(normal: Vec, layout: ParameterLayout) -> GeometryError:
-    """An error naming the parameter most involved in the weakest direction of the system."""
-    _, vectors = np.linalg.eigh(normal)
-    column = int(np.argmax(np.abs(vectors[:, 0])))
+def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> GeometryError:
+    """An error naming every error table and setup term in the null space of the system.
+
+    A column takes part when its unit vector has a component in the null space;
+    that component does not depend on which basis of the null space the
+    eigensolver returns, so the message is the same on every machine and BLAS.
+    """
+    eigenvalues, vectors = np.linalg.eigh(normal)
+    null = vectors[:, eigenvalues <= _NULL_TOLERANCE * eigenvalues[-1]]
+    if null.shape[1] == 0:
+        null = vectors[:, :1]
+    involved = np.flatnonzero(np.sum(null**2, axis=1) > _INVOLVED)
+    errors = _unique(layout.table_name(int(c)) for c in involved)
+    if errors:
+        lines = _unique(setup.line_of(int(c)) for c in involved)
+        what = ", ".join(errors)
+        if lines:
+            plural = "s" if len(lines) > 1 else ""
+            what += f" (they trade with the setup terms of line{plural} {', '.join(lines)})"
+    else:
+        lines = _unique(setup.line_of(int(c)) for c in involved)
+        what = f"the setup terms of line{'s' if len(lines) > 1 else ''} {', '.join(lines)}"
     return GeometryError(
-        f"the lines cannot determine {layout.describe(column)}; measure the three axis lines"
+        f"the lines cannot determine {what}; measure the three axis lines"
         " and the three face diagonals"
     )
 
 
-def _factorise(normal: Vec, layout: ParameterLayout) -> tuple[Vec, bool]:
+def _describe(column: int, layout: ParameterLayout, setup: SetupLayout) -> str:
+    line = setup.line_of(column)
+    return f"the setup terms of line {line}" if line else layout.describe(column)
+
+
+def _unique(names: Iterable[str | None]) -> list[str]:
+    return list(dict.fromkeys(name for name in names if name is not None))
+
+
+def _factorise(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> tuple[Vec, bool]:
     """Cholesky factor of the (column-scaled) normal matrix; GeometryError when singular."""
     try:
         factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
     except np.linalg.LinAlgError as error:
-        raise _undetermined(normal, layout) from error
+        raise _undetermined(normal, layout, setup) from error
     pivots = np.diag(factor[0]) ** 2
     if pivots.min() < _RANK_TOLERANCE * pivots.max():
-        raise _undetermined(normal, layout)
+        raise _undetermined(normal, layout, setup)
     return factor
 
 
 def fit_error_tables(
-    lines: list[LineData], chain: Chain, tool_offset_mm: Vec, channel_sigma: Vec
+    lines: list[LineData],
+    chain: Chain,
+    channel_sigma: Vec,
+    travel_mm: tuple[Vec, Vec] | None = None,
 ) -> TableFit:
     """Weighted least-squares fit of the error tables, squareness and setup terms.
 
     Parameters
     ----------
     lines : list of LineData
-        Channels in mm / rad.
+        Channels in mm / rad, from one or more launch-unit stations; every line
+        has its own setup terms. The lever arms include each line's receiver
+        offset (``LineData.tool_offset_mm``), which removes the Abbe offsets; the
+        tables are for ``t = 0``.
     chain : Chain
-    tool_offset_mm : ndarray, shape (3,)
-        Receiver cp from the CNC tool point in the MCS (receiver offset turned by
-        the spindle angle), mm: the lever arms include it, which removes the Abbe
-        offsets; the tables are for ``t = 0``.
     channel_sigma : ndarray, shape (6,)
         Standard uncertainty of each channel, mm / rad.
+    travel_mm : (ndarray, ndarray), each shape (3,), optional
+        Travel minimum and maximum: the tables get a point at each travel end
+        beyond the measured stroke, linearly extrapolated (``Table.measured``
+        False), with the u95 the extrapolation propagates.
     """
     knots = compensation_points(lines)
     bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
@@ -264,7 +361,7 @@ def fit_error_tables(
     n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     triplets = Triplets()
     for data, first_row in zip(lines, first_rows, strict=True):
-        arms = chain.lever_arms(data.machine_mm, tool_offset_mm)
+        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
         for axis in AXES:
             _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
         _add_squareness_columns(data, first_row, layout, triplets)
@@ -279,12 +376,13 @@ def fit_error_tables(
     observed = np.concatenate([d.channels.ravel() for d in lines]) * weights
     norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
     if np.any(norms == 0):
+        unseen = _describe(int(np.argmin(norms)), layout, setup)
         raise GeometryError(
-            f"no measurement sees {layout.describe(int(np.argmin(norms)))}; measure the three"
-            " axis lines and the three face diagonals"
+            f"no measurement sees {unseen}; measure the three axis lines and the three face"
+            " diagonals"
         )
     scaled = design @ scipy.sparse.diags(1.0 / norms)
-    factor = _factorise((scaled.T @ scaled).toarray(), layout)
+    factor = _factorise((scaled.T @ scaled).toarray(), layout, setup)
     solution_scaled = scipy.linalg.cho_solve(factor, scaled.T @ observed)
     residual = observed - scaled @ solution_scaled
     dof = max(n_rows - n_columns, 1)
@@ -293,7 +391,7 @@ def fit_error_tables(
     covariance *= max(1.0, sigma0**2)
     solution = solution_scaled / norms
     return TableFit(
-        tables=_tables(layout, solution, covariance),
+        tables=_tables(layout, solution, covariance, travel_mm),
         setup=setup.unpack(solution),
         residual_rms=_residual_rms(lines, first_rows, residual / weights),
         sigma0=sigma0,
@@ -302,42 +400,73 @@ def fit_error_tables(
     )
 
 
-def _values(columns: np.ndarray, solution: Vec, covariance: Vec) -> tuple[Vec, Vec]:
-    """Values and covariance of one table (fixed knots are exactly 0)."""
+def _output_positions(knots_mm: Vec, low_mm: float, high_mm: float) -> tuple[Vec, np.ndarray]:
+    """Table positions: the knots, extended to the travel ends; and which are measured."""
+    before = [low_mm] if low_mm < knots_mm[0] - _TRAVEL_TOLERANCE_MM else []
+    after = [high_mm] if high_mm > knots_mm[-1] + _TRAVEL_TOLERANCE_MM else []
+    positions = np.concatenate([before, knots_mm, after])
+    measured = np.concatenate(
+        [np.zeros(len(before), bool), np.ones(len(knots_mm), bool), np.zeros(len(after), bool)]
+    )
+    return positions, measured
+
+
+def _evaluate(
+    parts: list[tuple[np.ndarray, Vec]], solution: Vec, covariance: Vec
+) -> tuple[Vec, Vec]:
+    """Values and u95 of ``sum(weights @ solution[columns])`` over parts (fixed knots: -1)."""
+    columns = np.concatenate([c for c, _ in parts])
+    weights = np.hstack([w for _, w in parts])
     free = columns >= 0
-    values = np.zeros(len(columns))
-    values[free] = solution[columns[free]]
-    cov = np.zeros((len(columns), len(columns)))
-    cov[np.ix_(free, free)] = covariance[np.ix_(columns[free], columns[free])]
-    return values, cov
+    columns, weights = columns[free], weights[:, free]
+    values = weights @ solution[columns]
+    variance = np.einsum("ij,jk,ik->i", weights, covariance[np.ix_(columns, columns)], weights)
+    return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
-def _cross_covariance(a: np.ndarray, b: np.ndarray, covariance: Vec) -> Vec:
-    """Diagonal of cov(table a, table b) knot by knot."""
-    both = (a >= 0) & (b >= 0)
-    out = np.zeros(len(a))
-    out[both] = covariance[a[both], b[both]]
-    return out
+def _extrapolation_u(knots_mm: Vec, positions_mm: Vec, values: Vec) -> Vec:
+    """Standard uncertainty of the linear continuation beyond the knots, shape (P,).
+
+    The table's RMS curvature over the knots, kept up over the distance ``d``
+    from the nearest knot: ``kappa * d**2 / 2`` (0 between the knots).
+    """
+    at_knots = np.interp(knots_mm, positions_mm, values)
+    if len(knots_mm) < 3:
+        return np.zeros(len(positions_mm))
+    slopes = np.diff(at_knots) / np.diff(knots_mm)
+    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
+    kappa = float(np.sqrt(np.mean(curvature**2)))
+    distance = np.maximum(knots_mm[0] - positions_mm, 0) + np.maximum(
+        positions_mm - knots_mm[-1], 0
+    )
+    return 0.5 * kappa * distance**2
 
 
-def _tables(layout: ParameterLayout, solution: Vec, covariance: Vec) -> ErrorTableSet:
+def _tables(
+    layout: ParameterLayout, solution: Vec, covariance: Vec, travel_mm: tuple[Vec, Vec] | None
+) -> ErrorTableSet:
+    """The tables at the knots and, linearly extrapolated, at the travel ends (if given)."""
     result = ErrorTableSet()
     for axis in AXES:
-        positions = layout.knots[axis]
+        knots = layout.knots[axis]
+        i = AXIS_INDEX[axis]
+        low, high = (
+            (knots[0], knots[-1]) if travel_mm is None else (travel_mm[0][i], travel_mm[1][i])
+        )
+        positions, measured = _output_positions(knots, low, high)
+        basis = hat_basis(knots, positions).toarray()
         kinds = layout.column[axis]
         for error, name in enumerate(error_names(axis)):
-            mean, cov_mean = _values(kinds["mean"][error], solution, covariance)
-            var_mean = np.diag(cov_mean)
-            result.tables[name] = Table(positions, mean, K_EXPANSION * np.sqrt(var_mean))
-            if "half" not in kinds:
-                continue
-            half, cov_half = _values(kinds["half"][error], solution, covariance)
-            cross = _cross_covariance(kinds["mean"][error], kinds["half"][error], covariance)
-            for sign, suffix in ((1.0, "+"), (-1.0, "-")):
-                variance = np.maximum(var_mean + np.diag(cov_half) + 2 * sign * cross, 0.0)
-                result.tables[name + suffix] = Table(
-                    positions, mean + sign * half, K_EXPANSION * np.sqrt(variance)
-                )
+            mean = (kinds["mean"][error], basis)
+            variants = {"": [mean]}
+            if "half" in kinds:
+                half = kinds["half"][error]
+                variants["+"] = [mean, (half, basis)]
+                variants["-"] = [mean, (half, -basis)]
+            for suffix, parts in variants.items():
+                values, u95 = _evaluate(parts, solution, covariance)
+                u95 = np.hypot(u95, K_EXPANSION * _extrapolation_u(knots, positions, values))
+                result.tables[name + suffix] = Table(positions, values, u95, measured)
     for name, column in zip(SQUARENESS_NAMES, layout.squareness_columns, strict=True):
         result.squareness[name] = (
             float(solution[column]),
@@ -351,5 +480,5 @@ def _residual_rms(lines: list[LineData], first_rows: list[int], residual: Vec) -
     out = {}
     for data, first_row in zip(lines, first_rows, strict=True):
         part = residual[first_row : first_row + N_CHANNELS * len(data.run)].reshape(-1, 6)
-        out[data.line.id] = np.sqrt(np.mean(part**2, axis=0)) * scale
+        out[data.label] = np.sqrt(np.mean(part**2, axis=0)) * scale
     return out

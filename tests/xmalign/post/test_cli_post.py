@@ -11,13 +11,13 @@ import pytest
 from typer.testing import CliRunner
 
 from sim.machine import VirtualMachine
+from sim.synthetic import SetupDisturbance, measure, six_line_plan
 from xmalign.cli import app
 from xmalign.comp import WRITERS
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.measurements import write_measurements
 from xmalign.formats.plan import write_plan
-from xmalign.post.synthetic import measure, six_line_plan
 from xmalign.rigid_body import Chain
 
 
@@ -152,3 +152,55 @@ def test_unknown_controller(files):
         ],
     )
     assert isinstance(result.exception, InputError) and "mazak" in str(result.exception)
+
+
+def test_two_stations_are_fitted_together(files, reference_machine):
+    """A second --plan/--data pair is used (not silently dropped), with its own setup terms."""
+    plan = six_line_plan(reference_machine, 12, runs=1, bidirectional=False)
+    plan.lines = [line for line in plan.lines if line.id in ("Z", "YZ", "XZ")]
+    rows = measure(
+        plan,
+        Chain.parse(reference_machine.chain),
+        VirtualMachine(reference_machine, seed=4),
+        np.random.default_rng(10),
+    )
+    write_plan(files["dir"] / "plan2.json", plan)
+    write_measurements(files["dir"] / "m2.csv", rows)
+    result = _post(
+        files, "--plan", str(files["dir"] / "plan2.json"), "--data", str(files["dir"] / "m2.csv")
+    )
+    assert result.exit_code == 0, result.output
+    assert "line Z@2" in result.output and "line X@2" not in result.output
+
+
+def test_unpaired_plan_and_data_are_refused(files):
+    result = _post(files, "--plan", str(files["plan"]))
+    assert isinstance(result.exception, InputError)
+    assert "2 --plan but 1 --data" in str(result.exception)
+
+
+def test_a_rezeroed_minus_pass_is_reported(files, reference_machine):
+    plan = six_line_plan(reference_machine, 10, runs=1, bidirectional=True)
+    rows = measure(
+        plan,
+        Chain.parse(reference_machine.chain),
+        VirtualMachine(reference_machine, seed=4),
+        np.random.default_rng(11),
+        setup=SetupDisturbance(rezero_each_pass=True),
+    )
+    write_plan(files["dir"] / "plan-rz.json", plan)
+    write_measurements(files["dir"] / "m-rz.csv", rows)
+    result = CliRunner().invoke(
+        app,
+        [
+            "post",
+            "--plan",
+            str(files["dir"] / "plan-rz.json"),
+            "--data",
+            str(files["dir"] / "m-rz.csv"),
+            "--out",
+            str(files["dir"] / "e-rz.csv"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "warning:" in result.output and "re-zeroed" in result.output.replace("\n", " ")

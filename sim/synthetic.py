@@ -1,4 +1,4 @@
-"""Six-line measurements of a machine with known errors (for tests and benchmarks).
+"""Six-line measurements of a virtual machine with known errors (tests and benchmarks).
 
 Pure: a plan of the three axis lines and three face diagonals of a machine's
 travel, and the channels the interferometer would read on them for any
@@ -70,6 +70,13 @@ class SetupDisturbance:
     angle_offset_urad: float = 100.0
     dead_path_um: float = 2.0
     noise: tuple[float, ...] = (0.2, 0.5, 0.5, 0.5, 0.5, 1.0)
+    #: Zero the linear channel again at the start of every pass (a mistake: the
+    #: interferometer should count on through the run).
+    rezero_each_pass: bool = False
+    #: The machine's positioning repeatability (standard deviation per axis and point),
+    #: as :class:`sim.machine.ErrorAmplitudes` ``repeatability_um`` (0: a perfectly
+    #: repeatable machine).
+    repeatability_um: float = 0.0
 
 
 class _Approached:
@@ -125,8 +132,9 @@ def measure(
                 dp, rotation = deviation(
                     chain, points[order], t, _Approached(model, backlash_mm, signs)
                 )
+                dp = dp + rng.normal(0.0, setup.repeatability_um * 1e-3, dp.shape)
                 local = dp @ line.frame.T
-                if reference is None:
+                if reference is None or setup.rezero_each_pass:
                     reference = local[0, 0]
                 distance = line.targets_mm[order]
                 channels = np.column_stack(

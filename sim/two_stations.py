@@ -1,0 +1,154 @@
+"""The calibration from two launch-unit stations on the virtual machine, end to end.
+
+Station 1 is the dry run's (identify, program, run); then the technician moves
+the launch unit to where :func:`trajectories.stations.propose_second_station`
+says (within the dry run's placement scatter, at a new azimuth), and the
+routine identifies it again and measures that station's lines. ``post`` fits
+one set of tables to both measurements. The machine, its errors and the units
+stay the same; only the launch unit's pose changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sim.dry_run import (
+    PLACEMENT_SCATTER_MM,
+    PROGRAM_SUFFIX,
+    DryRunOptions,
+    VirtualSetup,
+    identify_virtually,
+    measure_virtually,
+    measured_strokes,
+    virtual_setup,
+)
+from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode.program import write_program
+from trajectories.identification_design import design_identification
+from trajectories.lines import LINE_IDS
+from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.stations import StationProposal, propose_second_station
+from xmalign.calibration import open_run_output
+from xmalign.formats.common import atomic_write_text
+from xmalign.formats.error_tables import write_error_tables
+from xmalign.formats.measurements import read_measurements
+from xmalign.formats.plan import write_plan
+from xmalign.formats.pose import write_pose
+from xmalign.machine import Machine
+from xmalign.post.compare import grid_points, volumetric_rms_um
+from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.rigid_body import Chain
+
+
+@dataclass
+class StationRun:
+    """One station's plan and the file of its measurement."""
+
+    plan: MeasurementPlan
+    measurements: Path
+    on_machine_s: float
+
+
+@dataclass
+class TwoStationReport:
+    """Both stations and the tables from both, next to the simulator's truth.
+
+    ``strokes_um`` is the RMS volumetric difference over the station-1 axis
+    lines' strokes, ``travel_um`` over the whole travel (rigid motion removed).
+    """
+
+    stations: list[StationRun]
+    proposal: StationProposal
+    post: PostResult
+    strokes_um: float
+    travel_um: float
+
+
+def _measure_station(
+    setup: VirtualSetup,
+    machine: Machine,
+    workdir: Path,
+    name: str,
+    options: DryRunOptions,
+    line_ids: tuple[str, ...] | None = None,
+) -> StationRun:
+    clock = setup.world.clock
+    started = clock.now()
+    positions = design_identification(machine, options.identification_positions).machine_mm
+    session = workdir / f"{name}-session.json"
+    session.unlink(missing_ok=True)
+    result = identify_virtually(setup, machine, positions, session, options.method, options.seed)
+    write_pose(workdir / f"{name}-pose.json", result.to_pose())
+    plan = plan_measurement(machine, result.to_pose(), line_ids or LINE_IDS)
+    write_plan(workdir / f"{name}-plan.json", plan.plan)
+    dialect = resolve_dialect(machine, options.dialect)
+    program = write_program(plan.plan, machine, DIALECTS[dialect]())
+    atomic_write_text(workdir / f"{name}-run{PROGRAM_SUFFIX[dialect]}", program)
+    csv_path = workdir / f"{name}-measurements.csv"
+    with open_run_output(csv_path, plan.plan, resume=False) as output:
+        measure_virtually(setup, plan.plan, program, dialect, output)
+    return StationRun(plan, csv_path, clock.now() - started)
+
+
+def _move_launch_unit(setup: VirtualSetup, position_mm: np.ndarray, seed: int) -> VirtualSetup:
+    """The same machine and units with the launch unit placed near ``position_mm``."""
+    rng = np.random.default_rng(seed + 7919)
+    scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
+    scatter[2] = -abs(scatter[2])  # a low station must stay at least its stand-off low
+    gamma = float(rng.uniform(-math.pi, math.pi))
+    interferometer = setup.world.interferometer
+    interferometer.launch2mcs_mm = np.asarray(position_mm, dtype=float) + scatter
+    interferometer.gamma_rad = gamma
+    world = dataclasses.replace(
+        setup.world, launch2mcs_mm=interferometer.launch2mcs_mm, gamma_rad=gamma
+    )
+    return dataclasses.replace(setup, world=world)
+
+
+def simulate_two_stations(
+    machine: Machine, workdir: Path, options: DryRunOptions | None = None
+) -> TwoStationReport:
+    """Identify, program and run both stations, post both together, compare with the truth.
+
+    Files go to ``workdir`` with the prefixes ``station1-`` and ``station2-``,
+    and ``errors.csv``.
+    """
+    options = options or DryRunOptions()
+    workdir.mkdir(parents=True, exist_ok=True)
+    setup = virtual_setup(machine, options.seed, options.amplitudes)
+    first = _measure_station(setup, machine, workdir, "station1", options)
+    launch = first.plan.plan.extra["launch_position_mm"]
+    proposal = propose_second_station(machine, np.asarray(launch, dtype=float))
+    placed = machine.model_copy(
+        update={
+            "launch_unit": machine.launch_unit.model_copy(
+                update={"position_mm": [float(v) for v in proposal.position_mm]}
+            )
+        }
+    )
+    setup = _move_launch_unit(setup, proposal.position_mm, options.seed)
+    second = _measure_station(setup, placed, workdir, "station2", options, proposal.line_ids)
+    stations = [
+        Station(run.plan.plan, read_measurements(run.measurements), str(run.measurements))
+        for run in (first, second)
+    ]
+    post = post_stations(machine, stations)
+    write_error_tables(workdir / "errors.csv", post.fit.tables)
+    chain = Chain.parse(machine.chain)
+    truth = setup.world.machine
+    model = post.fit.tables.model()
+    low, high = measured_strokes(first.plan)
+    return TwoStationReport(
+        stations=[first, second],
+        proposal=proposal,
+        post=post,
+        strokes_um=volumetric_rms_um(chain, grid_points(low, high), model, truth),
+        travel_um=volumetric_rms_um(
+            chain, grid_points(machine.travel_min_mm, machine.travel_max_mm), model, truth
+        ),
+    )
