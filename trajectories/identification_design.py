@@ -335,7 +335,7 @@ def design_identification(machine: Machine, count: int = 6) -> IdentificationDes
         )
     best = min(feasible, key=lambda a: (not a.converged, a.objective))
     # ipopt honours bounds only to its tolerance: put the points exactly inside the travel.
-    machine_mm = np.clip(best.machine_mm, machine.travel_min_mm, machine.travel_max_mm)
+    machine_mm = np.clip(best.machine_mm, machine.travel_min_mm, machine.travel_max_mm) + 0.0
     covariance = predicted_pose_covariance(machine, machine_mm)
     if not np.all(np.isfinite(covariance)):
         raise GeometryError(

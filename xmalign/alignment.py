@@ -25,12 +25,14 @@ response must not multiply the loop gain).
 
 **Beam recovery.** When the beam leaves its range (before or during fine
 alignment), the units go back to the last angles at which the beam was in
-range; if it is not there (or was never seen), both units search a square
-spiral around those angles (:func:`search_offsets_urad`): the launch unit
-sweeps the beam across the receiver's position while the receiver turns with
-it so the angle channels stay as they were, in steps that let the beam's
-capture regions overlap, out to ``search_radius_urad`` (the units' pointing
-uncertainty). Only if the search fails is a person asked to jog the units.
+range (or the present ones, if it was never seen); if it is not there, the
+receiver alone searches a square spiral of angles (an angle channel out of
+range), then both units search a square spiral (:func:`search_offsets_urad`):
+the launch unit sweeps the beam across the receiver's position while the
+receiver turns with it so the angle channels stay as they were. The steps let
+the capture regions overlap; the spirals reach ``search_radius_urad`` plus
+``search_radius_um`` over the beam's length (the units' pointing uncertainty).
+Only if the search fails is a person asked to jog the units.
 """
 
 from __future__ import annotations
@@ -139,9 +141,10 @@ class FineAlignmentSettings:
         pointing uncertainty as an angle, plus a lateral uncertainty of where the
         receiver is (seen over the beam's length, which dominates on short
         beams). Both 0 disable the search.
-    beam_capture_um : float
-        How far off the receiver's centre a beam is still seen (a little inside
-        the interferometer's straightness range); sets the search step.
+    beam_capture_um, angle_capture_urad : float
+        How far off the receiver's centre a beam is still seen, and how far off
+        facing the receiver may turn (a little inside the interferometer's
+        straightness and angle ranges); they set the search steps.
     max_recoveries : int
         How often one fine alignment may recover a lost beam before giving up.
     steer_launch : bool
@@ -165,6 +168,7 @@ class FineAlignmentSettings:
     search_radius_urad: float = 1000.0
     search_radius_um: float = 500.0
     beam_capture_um: float = 200.0
+    angle_capture_urad: float = 400.0
     max_recoveries: int = 3
 
 
@@ -263,17 +267,25 @@ def search_offsets_urad(step_urad: float, radius_urad: float) -> Vec:
     return grid[np.hypot(grid[:, 0], grid[:, 1]) <= radius_urad + 1e-9]
 
 
-def _search_targets(centre_rad: Vec, offsets_urad: Vec, elevation_rad: float) -> Vec:
-    """Unit setpoints (N, n_axes) that move the beam by the offsets across the receiver.
+def _search_targets(
+    centre_rad: Vec, offsets_urad: Vec, elevation_rad: float, receiver_only: bool = False
+) -> Vec:
+    """Unit setpoints (N, n_axes) for a search pattern of offsets (N, 2), urad.
 
-    The launch azimuth step is scaled by 1/cos(elevation) so that the beam moves
-    the same lateral distance in both directions; the receiver turns with the beam
-    (a3 with a1, a4 against a2) so that the angle channels stay as they were.
+    Beam search (``receiver_only`` False): the launch unit moves the beam across the
+    receiver, the azimuth step scaled by 1/cos(elevation) so that the beam moves the
+    same lateral distance in both directions; the receiver turns with the beam (a3
+    with a1, a4 against a2) so that the angle channels stay as they were. Angle
+    search (``receiver_only``): the receiver alone turns (a3, a4), which changes the
+    angle channels ``angle_w``, ``angle_v`` by the offsets and not the straightness.
     """
     cos_e = max(abs(math.cos(elevation_rad)), _MIN_COS_ELEVATION)
     d1 = offsets_urad[:, 0] * 1e-6 / cos_e
     d2 = offsets_urad[:, 1] * 1e-6
     steps = np.zeros((len(offsets_urad), len(centre_rad)))
+    if receiver_only:
+        steps[:, 2], steps[:, 3] = d1, d2
+        return centre_rad + steps
     steps[:, 0], steps[:, 1] = d1, d2
     if len(centre_rad) >= 4:
         steps[:, 2], steps[:, 3] = d1, -d2
@@ -315,8 +327,13 @@ def _recover(
     step_urad = math.sqrt(2.0) * settings.beam_capture_um / distance_mm * 1e3
     radius_urad = settings.search_radius_urad + settings.search_radius_um / distance_mm * 1e3
     offsets = search_offsets_urad(step_urad, radius_urad)
-    targets = _search_targets(centre, offsets, float(centre[1]))
-    candidates = targets if recovery.last_in_range_rad is None else np.vstack([centre, targets])
+    angle_offsets = search_offsets_urad(math.sqrt(2.0) * settings.angle_capture_urad, radius_urad)
+    elevation = float(centre[1])
+    candidates = np.vstack(
+        ([centre[None, :]] if recovery.last_in_range_rad is not None else [])
+        + ([] if len(centre) < 4 else [_search_targets(centre, angle_offsets, elevation, True)])
+        + [_search_targets(centre, offsets, elevation)]
+    )
     logger.info(
         "beam lost (%s in range before); searching %d points, step %.0f urad",
         "was" if recovery.last_in_range_rad is not None else "never",
@@ -331,14 +348,14 @@ def _recover(
             if reading.beam_ok:
                 logger.info(
                     "beam found again %.1f urad from the last in-range angles",
-                    float(np.hypot(*((target - centre)[:2] * 1e6))),
+                    float(np.linalg.norm(target - centre) * 1e6),
                 )
                 return target, reading
     finally:
         recovery.search_s += clock.now() - started
     raise BeamLostError(
         "the beam was lost during fine alignment and not found again (back to the last"
-        f" in-range angles, then a spiral search of {len(offsets)} points out to"
+        f" in-range angles, then spiral searches of {len(candidates)} points out to"
         f" {radius_urad:.0f} urad); jog the units until every beam is in range"
         " (xmalign align --manual) and start again"
     )

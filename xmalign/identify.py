@@ -402,7 +402,7 @@ def _compiled(method: str, estimated: tuple[str, ...]) -> ca.Function:
     r = _MODELS[method](s)
     arguments = [s.theta, s.z, s.c, s.spindle, s.has_distance]
     outputs = [r, ca.jacobian(r, s.theta), ca.jacobian(r, s.z), ca.jacobian(r, s.c)]
-    return ca.Function(f"identify_{method}", arguments, outputs)
+    return ca.Function(f"identify_{method}", arguments, outputs, {"cse": True})
 
 
 def joint_model() -> ca.Function:
@@ -630,9 +630,17 @@ def _select_offsets(
     obs: Observations, start: Vec, u: IdentificationUncertainty
 ) -> tuple[tuple[str, ...], dict[str, str]]:
     """The encoder offsets the alignments can separate from the pose (rank and information test)."""
-    pose_only = _Model("joint", (), obs)
-    weights = _weights(pose_only, start, u)
-    values, _ = _relative_conditioning(_information(pose_only, start, weights))
+    # With every offset a parameter (all zero here) the information of any subset is a
+    # sub-matrix, and the weights are those of any subset: one evaluation serves all.
+    every = _Model("joint", OFFSET_NAMES, obs)
+    theta_every = np.concatenate([start, np.zeros(len(OFFSET_NAMES))])
+    full_information = _information(every, theta_every, _weights(every, theta_every, u))
+
+    def information_of(names: list[str]) -> Vec:
+        keep = [0, 1, 2, 3] + [4 + OFFSET_NAMES.index(name) for name in names]
+        return full_information[np.ix_(keep, keep)]
+
+    values, _ = _relative_conditioning(information_of([]))
     if values[0] < 1e-10 * values[-1]:
         raise GeometryError(
             "degenerate geometry: these alignments do not determine the launch pose (rank test); "
@@ -641,8 +649,7 @@ def _select_offsets(
     candidates = list(OFFSET_NAMES)
     reasons: dict[str, str] = {}
     while candidates:
-        theta = np.concatenate([start, np.zeros(len(candidates))])
-        information = _information(_Model("joint", tuple(candidates), obs), theta, weights)
+        information = information_of(candidates)
         values, vectors = _relative_conditioning(information)
         if values[0] < 1e-9 * values[-1]:
             worst = int(np.argmax(np.abs(vectors[4:, 0])))

@@ -86,12 +86,24 @@ def coverage(machine: Machine, count: int, n_sessions: int, seed: int) -> dict[s
     limit95 = stats.chi2.ppf(0.95, 4)
     covered = outliers = scaled = not_converged = 0
     reduced_chi2 = []
+    operator_after_search = 0
     for session_seed in range(seed, seed + n_sessions):
         setup = virtual_setup(machine, session_seed)
+        stages: list[tuple[int, str]] = []
         with tempfile.TemporaryDirectory() as workdir:
             result = identify_virtually(
-                setup, machine, positions, Path(workdir) / "session.json", seed=session_seed
+                setup,
+                machine,
+                positions,
+                Path(workdir) / "session.json",
+                seed=session_seed,
+                on_event=lambda e, stages=stages: stages.append((e.index, e.stage)),
             )
+        # "manual" right after "aligning": the beam search failed and a person helped
+        operator_after_search += sum(
+            after == (before[0], "manual") and before[1] == "aligning"
+            for before, after in zip(stages, stages[1:], strict=False)
+        )
         truth = setup.world
         delta = np.append(
             result.position_mm - truth.launch2mcs_mm, wrap_angle(result.gamma_rad - truth.gamma_rad)
@@ -107,6 +119,7 @@ def coverage(machine: Machine, count: int, n_sessions: int, seed: int) -> dict[s
         "scaled": scaled / n_sessions,
         "not_converged": not_converged / n_sessions,
         "mean_chi2_dof": float(np.mean(reduced_chi2)),
+        "operator_after_search": operator_after_search,
     }
 
 
@@ -116,14 +129,18 @@ def print_coverage(counts: list[int], n_sessions: int, seed: int) -> bool:
         f"\ncoverage on the virtual setup (machine errors on), {n_sessions} sessions per count,"
         f" seeds {seed}..{seed + n_sessions - 1}"
     )
-    print(f"{'alignments':>10}{'cover 95%':>11}{'outlier':>9}{'scaled':>8}{'chi2/dof':>10}")
+    print(
+        f"{'alignments':>10}{'cover 95%':>11}{'outlier':>9}{'scaled':>8}{'chi2/dof':>10}"
+        f"{'search failed':>15}"
+    )
     ok = True
     for count in counts:
         start = time.perf_counter()
         f = coverage(machine, count, n_sessions, seed)
         print(
             f"{count:>10}{f['coverage_95']:>11.3f}{f['outliers']:>9.3f}{f['scaled']:>8.3f}"
-            f"{f['mean_chi2_dof']:>10.2f}   ({time.perf_counter() - start:.0f} s)"
+            f"{f['mean_chi2_dof']:>10.2f}{f['operator_after_search']:>15d}"
+            f"   ({time.perf_counter() - start:.0f} s)"
         )
         low, high = COVERAGE_TARGET
         ok &= low <= f["coverage_95"] <= high and f["not_converged"] == 0

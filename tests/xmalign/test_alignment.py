@@ -94,6 +94,24 @@ def test_beam_out_of_range_at_the_start_is_found_by_the_search(reference_machine
     assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
 
 
+def test_angle_out_of_range_is_found_by_turning_the_receiver(reference_machine) -> None:  # noqa: ANN001
+    world, devices = simulated_setup(
+        reference_machine, POSITIONS[0], seed=3, start_um=0, start_urad=0
+    )
+    a3 = devices.receiver.axes[0]
+    elevation = devices.launch.angles_rad()[1]
+    a3.move_to(a3.position_rad() + 700e-6 / math.cos(elevation))  # angle_w about 700 urad
+    a3.wait_in_position(1.0)
+    assert not world.interferometer.read().beam_ok
+    settings = FineAlignmentSettings()
+    result = fine_align(
+        devices.launch, devices.receiver, devices.interferometer, devices.clock, 1000.0, settings
+    )
+    assert result.recoveries == 1
+    truth = aligned_error(_noise_free(world.interferometer.geometry()))
+    assert np.all(np.abs(truth[2:]) <= 2 * settings.angle_tol_urad)
+
+
 def _knock_the_launch_unit(world, at_step: int, angle_urad: float):  # noqa: ANN001, ANN202
     """An on_step callback that turns the launch unit's base once (someone bumps it)."""
     steps = []
@@ -155,7 +173,7 @@ def test_beam_not_found_by_the_search_asks_for_a_person(reference_machine) -> No
         reference_machine, POSITIONS[0], seed=1, start_um=600, start_urad=0
     )
     settings = FineAlignmentSettings(search_radius_urad=100.0, search_radius_um=0.0)
-    with pytest.raises(BeamLostError, match="not found again.*spiral search.*align --manual"):
+    with pytest.raises(BeamLostError, match="not found again.*spiral searches.*align --manual"):
         fine_align(
             devices.launch,
             devices.receiver,
