@@ -59,7 +59,8 @@ def test_a_file_without_the_range_column_is_all_measured(tmp_path):
 def test_an_unknown_range_is_refused(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("name,position_mm,value,unit,u95,range\nEXX,0,0,um,0,guessed\n")
-    with pytest.raises(InputError, match="bad.csv: line 2: range: .guessed. must be .measured. or .extrapolated."):
+    expected = "bad.csv: line 2: range: .guessed. must be .measured. or .extrapolated."
+    with pytest.raises(InputError, match=expected):
         read_error_tables(path)
 
 
