@@ -24,6 +24,7 @@ docs/environment.md describes both with the reference values of the tests.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -31,8 +32,12 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from xmalign.errors import InputError
+from xmalign.errors import InputError, TransportError
+from xmalign.formats.plan import PlanLine
 from xmalign.geometry import Vec
+from xmalign.roles import EnvironmentReading, EnvironmentSource
+
+_log = logging.getLogger(__name__)
 
 #: Vacuum wavelength of the HeNe laser of an XM-60-class interferometer, nm.
 HENE_VACUUM_WAVELENGTH_NM = 632.991
@@ -183,7 +188,8 @@ def check_sensor(name: str, value: float, source: str) -> float:
     if out_of_range(name, value):
         low, high = SENSOR_LIMITS[name]
         raise InputError(
-            f"{source}: {name} {value:g} is outside what the sensor can report ({low:g} to {high:g})"
+            f"{source}: {name} {value:g} is outside what the sensor can report"
+            f" ({low:g} to {high:g})"
         )
     return float(value)
 
@@ -199,9 +205,8 @@ class EnvironmentColumns:
 
     @property
     def has_air(self) -> bool:
-        return all(
-            c is not None for c in (self.air_temp_c, self.air_pressure_hpa, self.air_humidity_percent)
-        )
+        air = (self.air_temp_c, self.air_pressure_hpa, self.air_humidity_percent)
+        return all(c is not None for c in air)
 
     @property
     def has_material(self) -> bool:
@@ -339,6 +344,36 @@ def compensate_linear(
     return Compensation(linear, index, environment.has_air, environment.has_material, dead)
 
 
+def compensate_line(
+    line: PlanLine,
+    run: ArrayLike,
+    sign: ArrayLike,
+    index: ArrayLike,
+    linear_um: ArrayLike,
+    environment: EnvironmentColumns,
+    expansion_ppm_per_k: float,
+    method: IndexMethod = "edlen",
+) -> Compensation:
+    """:func:`compensate_linear` for the rows (N,) of one plan line.
+
+    The commanded displacement, the datum of each run and the dead path come
+    from the plan line (``targets_mm``, ``beam_distance_mm``).
+    """
+    index = np.asarray(index, dtype=int)
+    displacement = line.targets_mm[index] - line.targets_mm[0]
+    dead_path, beam_sign = beam_geometry(line.extra.get("beam_distance_mm"))
+    return compensate_linear(
+        linear_um,
+        displacement,
+        datum_rows(run, sign, index),
+        environment,
+        expansion_ppm_per_k,
+        dead_path,
+        beam_sign,
+        method,
+    )
+
+
 def beam_geometry(beam_distance_mm: ArrayLike | None) -> tuple[float, float]:
     """Dead path (mm) and beam sign from a plan line's ``beam_distance_mm`` [first, last].
 
@@ -403,3 +438,100 @@ def line_drift(
     if values.size == 0:
         raise InputError(f"line {line_id}: no re-measurement of the first target")
     return DriftCheck(line_id, float(values.mean() - datum_um), limit_um)
+
+
+@dataclass(frozen=True)
+class EnvironmentSample:
+    """The environment columns of one captured point and what was wrong with them.
+
+    ``values`` maps column names of :data:`ENVIRONMENT_COLUMNS` present in the
+    run to values; ``flags`` names every value that was held at its last good
+    reading, and why (empty when all were fresh).
+    """
+
+    values: dict[str, float]
+    flags: tuple[str, ...] = ()
+
+    @property
+    def flag_text(self) -> str:
+        """The flags as one CSV field (``;``-separated)."""
+        return "; ".join(self.flags)
+
+
+def _columns_of(reading: EnvironmentReading) -> dict[str, float]:
+    values = {
+        "air_temp_c": reading.air_temp_c,
+        "air_pressure_hpa": reading.air_pressure_hpa,
+        "air_humidity_percent": reading.air_humidity_percent,
+    }
+    if reading.material_temp_c:
+        material = np.asarray(reading.material_temp_c, dtype=float)
+        good = material[~out_of_range("material_temp_c", material)]
+        values["material_temp_c"] = float(good.mean()) if len(good) else math.nan
+    return values
+
+
+class EnvironmentMonitor:
+    """Samples an ``EnvironmentSource`` for every captured point; never loses a point.
+
+    :meth:`prime` takes the first reading before the run starts: it must be
+    complete and in range, else a one-line error. Afterwards a sensor that
+    reports nothing or a value it cannot report, or a station that stops
+    answering, keeps the last good value in the row and flags it.
+    """
+
+    def __init__(self, source: EnvironmentSource, name: str = "weather station") -> None:
+        self.source = source
+        self.name = name
+        self._last: dict[str, float] = {}
+        self._warned: set[str] = set()
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The columns this run writes (known after :meth:`prime`)."""
+        return tuple(name for name in ENVIRONMENT_COLUMNS if name in self._last)
+
+    def prime(self) -> EnvironmentSample:
+        """First reading; raises InputError naming the sensor when it is incomplete."""
+        try:
+            reading = self.source.read()
+        except TransportError as error:
+            raise type(error)(f"{self.name}: {error}") from error
+        values = _columns_of(reading)
+        for name, value in values.items():
+            if math.isnan(value):
+                raise InputError(f"{self.name}: no reading from the {name} sensor")
+            check_sensor(name, value, self.name)
+        self._last = dict(values)
+        return EnvironmentSample(dict(values))
+
+    def sample(self) -> EnvironmentSample:
+        """The environment now; held values are flagged (and logged once per cause)."""
+        if not self._last:
+            return self.prime()
+        try:
+            values = _columns_of(self.source.read())
+        except TransportError as error:
+            return self._held(tuple(self._last), f"{self.name} not answering ({error})")
+        flags = []
+        for name in self.columns:
+            value = values.get(name, math.nan)
+            if math.isnan(value):
+                flags.append(self._flag(name, "no reading"))
+            elif out_of_range(name, value):
+                flags.append(self._flag(name, f"{value:g} out of the sensor's range"))
+            else:
+                self._last[name] = value
+        return EnvironmentSample(dict(self._last), tuple(flags))
+
+    def _held(self, names: tuple[str, ...], reason: str) -> EnvironmentSample:
+        return EnvironmentSample(
+            dict(self._last), tuple(self._flag(name, reason) for name in names)
+        )
+
+    def _flag(self, name: str, reason: str) -> str:
+        text = f"{name} held: {reason}"
+        if reason not in self._warned:
+            self._warned.add(reason)
+            _log.warning("%s: %s; rows keep the last good value, flagged", self.name, text)
+        return text

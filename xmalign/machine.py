@@ -77,10 +77,19 @@ class Measurement(_Strict):
     angle_allowance_urad: Annotated[float, Field(ge=0)] = 100.0
 
 
+class Thermal(_Strict):
+    """Normalisation to 20 °C (docs/environment.md)."""
+
+    expansion_ppm_per_k: Annotated[float, Field(ge=0, le=100)] = 0.0
+    #: xmalign's own: warn when a line's first target drifts more than this, um.
+    drift_limit_um: Positive | None = None
+
+
 class Machine(_Strict):
     """A machine tool as xmalign sees it; lengths mm, angles as named."""
 
     name: str
+    serial: str | None = None
     chain: str
     travel_mm: dict[Literal["X", "Y", "Z"], TravelRange]
     feed_mm_min: Feeds
@@ -88,6 +97,7 @@ class Machine(_Strict):
     receiver_offset_mm: Vector3
     spindle_angle_deg: float = 0.0
     launch_unit: LaunchUnitGuess | None = None
+    thermal: Thermal = Thermal()
     interferometer: InterferometerRanges = InterferometerRanges()
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()

@@ -129,7 +129,9 @@ def test_compensation_recovers_the_geometric_displacement(
     reading = _optical_reading(geometric, dead_mm, sign, n, float(n[0]))
     linear = sign * reading - commanded_mm * 1e3
     environment = EnvironmentColumns(air, np.full(4, pressure), np.full(4, 40.0), material)
-    result = compensate_linear(linear, commanded_mm, np.zeros(4, int), environment, 11.5, dead_mm, sign)
+    result = compensate_linear(
+        linear, commanded_mm, np.zeros(4, int), environment, 11.5, dead_mm, sign
+    )
     np.testing.assert_allclose(result.linear_um, error_um, atol=1e-6)
     assert result.air and result.material
 

@@ -1,0 +1,173 @@
+"""Benchmark of the air and material compensation on a drifting shop.
+
+Run: python tests/benchmarks/bench_environment.py [--seeds 2]
+
+For each seed: identify the launch unit on the virtual reference machine,
+plan, then run the measurement program while the shop drifts (air 22 -> 25 °C
+with a ±0.2 K air-conditioning wave, pressure 975 -> 972 hPa, humidity
+45 -> 55 %, the machine 22 -> 23 °C, 11.5 ppm/K) and a simulated weather
+station reports it on every captured point. The same seed is measured again in
+a shop held at 20 °C. Prints the volumetric residual of the fitted tables
+against the truth over the measured strokes (rigid motion removed) for the
+20 °C shop (compensated) and the drifting shop with and without compensation,
+and the drift seen at the first target of each line; checks that the
+compensated drifting case is within 0.1 um of the 20 °C case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from sim.dry_run import identify_virtually, measured_strokes, virtual_setup
+from sim.environment import ShopClimate, SimEnvironment, SimWeatherStation
+from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode.program import write_program
+from trajectories.identification_design import design_identification
+from trajectories.planner import plan_measurement
+from xmalign.calibration import CalibrationRun, capture_program
+from xmalign.environment import (
+    ENVIRONMENT_COLUMNS,
+    EnvironmentColumns,
+    EnvironmentMonitor,
+    EnvironmentSample,
+    compensate_line,
+)
+from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.plan import Plan
+from xmalign.machine import Machine, default_machine_path, load_machine
+from xmalign.post.compare import grid_points, volumetric_rms_um
+from xmalign.post.evaluate import post_process
+from xmalign.rigid_body import Chain
+from xmalign.safety import units_locked_on_exit
+
+EXPANSION_PPM_PER_K = 11.5
+TARGET_UM = 0.1
+
+
+@dataclass
+class Measured:
+    rows: list[MeasurementRow]
+    samples: list[EnvironmentSample]
+
+
+def compensated_rows(
+    plan: Plan, measured: Measured, expansion: float, dead_path: bool = True
+) -> list[MeasurementRow]:
+    """The rows with ``linear_um`` compensated line by line (what ``post`` does).
+
+    Without ``dead_path`` the plan's beam distances are withheld (no dead-path term).
+    """
+    out = list(measured.rows)
+    for line in plan.lines:
+        if not dead_path:
+            line = replace(line, extra={})
+        members = [k for k, row in enumerate(measured.rows) if row.line == line.id]
+        if not members:
+            continue
+        rows = [measured.rows[k] for k in members]
+        environment = EnvironmentColumns(
+            *(
+                np.array([measured.samples[k].values[name] for k in members])
+                for name in ENVIRONMENT_COLUMNS
+            )
+        )
+        result = compensate_line(
+            line,
+            [r.run for r in rows],
+            [1.0 if r.direction == "+" else -1.0 for r in rows],
+            [r.index for r in rows],
+            [r.channels[0] for r in rows],
+            environment,
+            expansion,
+        )
+        for k, row, linear in zip(members, rows, result.linear_um, strict=True):
+            channels = row.channels.copy()
+            channels[0] = linear
+            out[k] = replace(row, channels=channels)
+    return out
+
+
+def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:
+    setup = virtual_setup(machine, seed)
+    with tempfile.TemporaryDirectory() as workdir:
+        positions = design_identification(machine, 6).machine_mm
+        pose = identify_virtually(setup, machine, positions, Path(workdir) / "s.json", seed=seed)
+    measurement_plan = plan_measurement(machine, pose.to_pose())
+    plan = measurement_plan.plan
+    dialect = resolve_dialect(machine, None)
+    program = write_program(plan, machine, DIALECTS[dialect]())
+    world = setup.world
+    environment = SimEnvironment(world.clock, climate, EXPANSION_PPM_PER_K, machine.travel_min_mm)
+    world.interferometer.environment = environment
+    monitor = EnvironmentMonitor(SimWeatherStation(environment, seed=seed))
+    monitor.prime()
+    measured = Measured([], [])
+
+    def record(row: MeasurementRow) -> None:
+        measured.rows.append(row)
+        measured.samples.append(monitor.sample())
+
+    started = world.clock.now()
+    with units_locked_on_exit(setup.launch, setup.receiver):
+        run = CalibrationRun(
+            plan, setup.launch, setup.receiver, world.interferometer, world.clock, record
+        )
+        capture_program(run, setup.cnc.run_program(program, dialect))
+    chain = Chain.parse(machine.chain)
+    points = grid_points(*measured_strokes(measurement_plan))
+    truth = world.machine
+    figures: dict = {"minutes": (world.clock.now() - started) / 60}
+    for name, rows in (
+        ("raw", measured.rows),
+        ("compensated", compensated_rows(plan, measured, EXPANSION_PPM_PER_K)),
+        ("no dead path", compensated_rows(plan, measured, EXPANSION_PPM_PER_K, False)),
+    ):
+        tables = post_process(machine, plan, rows, "bench").fit.tables
+        figures[name] = volumetric_rms_um(chain, points, truth, tables.model())
+    air = np.array([s.values["air_temp_c"] for s in measured.samples])
+    material = np.array([s.values["material_temp_c"] for s in measured.samples])
+    figures["air"] = (air.min(), air.max())
+    figures["material"] = (material.min(), material.max())
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=2)
+    args = parser.parse_args()
+    machine = load_machine(default_machine_path())
+    print(
+        f"{'seed':>4} {'20C comp um':>11} {'drift comp um':>13} {'drift raw um':>12}"
+        f" {'no dead path um':>15} {'|diff| um':>9} {'air C':>11} {'material C':>11}"
+        f" {'run min':>7} {'wall s':>6}"
+    )
+    worst = 0.0
+    for seed in range(1, args.seeds + 1):
+        start = time.perf_counter()
+        reference = calibrate(machine, seed, ShopClimate.reference())
+        drifting = calibrate(machine, seed, ShopClimate.drifting())
+        wall = time.perf_counter() - start
+        diff = abs(drifting["compensated"] - reference["compensated"])
+        worst = max(worst, diff)
+        air, material = drifting["air"], drifting["material"]
+        print(
+            f"{seed:>4} {reference['compensated']:>11.3f} {drifting['compensated']:>13.3f}"
+            f" {drifting['raw']:>12.1f} {drifting['no dead path']:>15.3f} {diff:>9.3f}"
+            f" {air[0]:>5.2f}-{air[1]:<5.2f}"
+            f" {material[0]:>5.2f}-{material[1]:<5.2f} {drifting['minutes']:>7.1f} {wall:>6.1f}"
+        )
+    verdict = "PASS" if worst <= TARGET_UM else "FAIL"
+    print(
+        f"{verdict}  compensated drifting shop within {TARGET_UM} um of 20 °C (worst {worst:.3f})"
+    )
+    raise SystemExit(0 if worst <= TARGET_UM else 1)
+
+
+if __name__ == "__main__":
+    main()
