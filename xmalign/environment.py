@@ -512,26 +512,26 @@ class EnvironmentMonitor:
         try:
             values = _columns_of(self.source.read())
         except TransportError as error:
-            return self._held(tuple(self._last), f"{self.name} not answering ({error})")
+            reason = f"{self.name} not answering ({error})"
+            return EnvironmentSample(
+                dict(self._last),
+                tuple(self._flag(name, reason, "station") for name in self.columns),
+            )
         flags = []
         for name in self.columns:
             value = values.get(name, math.nan)
             if math.isnan(value):
-                flags.append(self._flag(name, "no reading"))
+                flags.append(self._flag(name, "no reading", "missing"))
             elif out_of_range(name, value):
-                flags.append(self._flag(name, f"{value:g} out of the sensor's range"))
+                flags.append(self._flag(name, f"{value:g} out of the sensor's range", "range"))
             else:
                 self._last[name] = value
         return EnvironmentSample(dict(self._last), tuple(flags))
 
-    def _held(self, names: tuple[str, ...], reason: str) -> EnvironmentSample:
-        return EnvironmentSample(
-            dict(self._last), tuple(self._flag(name, reason) for name in names)
-        )
-
-    def _flag(self, name: str, reason: str) -> str:
+    def _flag(self, name: str, reason: str, cause: str) -> str:
+        """The flag text; logged the first time ``name`` is held for ``cause``."""
         text = f"{name} held: {reason}"
-        if reason not in self._warned:
-            self._warned.add(reason)
+        if f"{name}/{cause}" not in self._warned:
+            self._warned.add(f"{name}/{cause}")
             _log.warning("%s: %s; rows keep the last good value, flagged", self.name, text)
         return text
