@@ -11,7 +11,9 @@ sensors) with sensor noise, and can be told to fail a sensor or stop answering.
 from __future__ import annotations
 
 import math
+from contextlib import ExitStack
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -20,6 +22,12 @@ from xmalign.environment import REFERENCE_TEMP_C, IndexMethod, air_index
 from xmalign.errors import DeviceTimeoutError
 from xmalign.geometry import Vec
 from xmalign.roles import Clock, EnvironmentReading
+
+if TYPE_CHECKING:
+    from sim.world import World
+
+#: Material sensors of the simulated station.
+MATERIAL_SENSORS = 3
 
 
 @dataclass(frozen=True)
@@ -183,3 +191,26 @@ class SimWeatherStation:
             ),
             material_temp_c=material,
         )
+
+
+def attach_shop(world: World, climate: ShopClimate, seed: int | None = None) -> SimWeatherStation:
+    """Give a world's interferometer the shop's air and thermal growth; its weather station.
+
+    The machine grows about its travel's lower corner with its file's expansion coefficient.
+    """
+    machine = world.machine.machine
+    environment = SimEnvironment(
+        world.clock, climate, machine.thermal.expansion_ppm_per_k, machine.travel_min_mm
+    )
+    world.interferometer.environment = environment
+    return SimWeatherStation(environment, material_sensors=MATERIAL_SENSORS, seed=seed)
+
+
+def serve_station(world: World, servers: ExitStack) -> str:
+    """Serve the world's weather station (a drifting shop) on a pty; the pty's path."""
+    from sim.servers.weather_station import PtyStationServer
+
+    server = PtyStationServer(attach_shop(world, ShopClimate.drifting()))
+    server.start()
+    servers.callback(server.stop)
+    return server.port

@@ -5,7 +5,7 @@ Run: python tests/benchmarks/bench_environment.py [--seeds 2]
 For each seed: identify the launch unit on the virtual reference machine,
 plan, then run the measurement program while the shop drifts (air 22 -> 25 °C
 with a ±0.2 K air-conditioning wave, pressure 975 -> 972 hPa, humidity
-45 -> 55 %, the machine 22 -> 23 °C, 11.5 ppm/K) and a simulated weather
+45 -> 55 %, the machine 22 -> 23 °C, the machine file's 11.5 ppm/K) and a simulated weather
 station reports it on every captured point. The same seed is measured again in
 a shop held at 20 °C. Prints the volumetric residual of the fitted tables
 against the truth over the measured strokes (rigid motion removed) for the
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.dry_run import identify_virtually, measured_strokes, virtual_setup
-from sim.environment import ShopClimate, SimEnvironment, SimWeatherStation
+from sim.environment import ShopClimate, attach_shop
 from trajectories.gcode import DIALECTS, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
@@ -46,7 +46,6 @@ from xmalign.post.evaluate import post_process
 from xmalign.rigid_body import Chain
 from xmalign.safety import units_locked_on_exit
 
-EXPANSION_PPM_PER_K = 11.5
 TARGET_UM = 0.1
 
 
@@ -103,9 +102,7 @@ def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:
     dialect = resolve_dialect(machine, None)
     program = write_program(plan, machine, DIALECTS[dialect]())
     world = setup.world
-    environment = SimEnvironment(world.clock, climate, EXPANSION_PPM_PER_K, machine.travel_min_mm)
-    world.interferometer.environment = environment
-    monitor = EnvironmentMonitor(SimWeatherStation(environment, seed=seed))
+    monitor = EnvironmentMonitor(attach_shop(world, climate, seed))
     monitor.prime()
     measured = Measured([], [])
 
@@ -122,11 +119,12 @@ def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:
     chain = Chain.parse(machine.chain)
     points = grid_points(*measured_strokes(measurement_plan))
     truth = world.machine
+    expansion = machine.thermal.expansion_ppm_per_k
     figures: dict = {"minutes": (world.clock.now() - started) / 60}
     for name, rows in (
         ("raw", measured.rows),
-        ("compensated", compensated_rows(plan, measured, EXPANSION_PPM_PER_K)),
-        ("no dead path", compensated_rows(plan, measured, EXPANSION_PPM_PER_K, False)),
+        ("compensated", compensated_rows(plan, measured, expansion)),
+        ("no dead path", compensated_rows(plan, measured, expansion, False)),
     ):
         tables = post_process(machine, plan, rows, "bench").fit.tables
         figures[name] = volumetric_rms_um(chain, points, truth, tables.model())

@@ -46,6 +46,10 @@ def serve(
     seed: Annotated[int, typer.Option(help="Seed of the virtual setup.")] = 0,
     device_id: Annotated[int, typer.Option(help="Modbus unit id.")] = 1,
     gamma_deg: Annotated[float, typer.Option(help="True launch-unit azimuth, deg.")] = 0.0,
+    station_pty: Annotated[
+        bool,
+        typer.Option(help="Serve a weather station (drifting 22-25 °C shop) on a new pty."),
+    ] = False,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -53,8 +57,10 @@ def serve(
 
     if unit not in ("launch", "receiver"):
         raise InputError(f"--unit '{unit}': expected launch or receiver")
-    if modbus is None and canopen is None and not interferometer_pty:
-        raise InputError("nothing to serve: give --modbus, --canopen and/or --interferometer-pty")
+    if modbus is None and canopen is None and not interferometer_pty and not station_pty:
+        raise InputError(
+            "nothing to serve: give --modbus, --canopen, --interferometer-pty and/or --station-pty"
+        )
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
     world = build_world(
         machine_or_default(machine), seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg)
@@ -85,6 +91,11 @@ def serve(
             pty.start()
             servers.callback(pty.stop)
             console.print(f"interferometer on {pty.port}")
+        if station_pty:
+            from sim.environment import serve_station
+
+            port = serve_station(world, servers)
+            console.print(f"weather station on {port}")
         console.print("serving; Ctrl-C to stop", highlight=False)
         while not stopped.wait(0.2):
             pass
