@@ -26,14 +26,16 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.plan import PlanLine
+from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.plan import Plan, PlanLine
 from xmalign.geometry import Vec
 from xmalign.roles import EnvironmentReading, EnvironmentSource
 
@@ -535,3 +537,91 @@ class EnvironmentMonitor:
             self._warned.add(f"{name}/{cause}")
             _log.warning("%s: %s; rows keep the last good value, flagged", self.name, text)
         return text
+
+
+#: ``run`` of the row that re-measures a line's first target after its last run (drift check).
+DRIFT_RUN = 0
+
+
+@dataclass
+class StationCompensation:
+    """What :func:`compensate_station` did to one station's measurement.
+
+    Attributes
+    ----------
+    rows : list of MeasurementRow
+        The rows with ``linear_um`` compensated, drift-check rows removed.
+    lines : dict of str to Compensation
+        Per line id.
+    environment : dict of str to dict of str to Range
+        Per line id, min / mean / max of every environment column.
+    drift : list of DriftCheck
+        Lines that have a drift-check row.
+    """
+
+    rows: list[MeasurementRow]
+    lines: dict[str, Compensation]
+    environment: dict[str, dict[str, Range]]
+    drift: list[DriftCheck]
+
+    @property
+    def note(self) -> str:
+        """How the readings were treated (the first line's note; all lines share the columns)."""
+        return next(iter(self.lines.values())).note if self.lines else ""
+
+
+def _columns(environments: Sequence[Mapping[str, float]]) -> EnvironmentColumns:
+    present = [name for name in ENVIRONMENT_COLUMNS if environments and name in environments[0]]
+    return EnvironmentColumns(
+        **{name: np.array([float(e[name]) for e in environments]) for name in present}
+    )
+
+
+def compensate_station(
+    plan: Plan,
+    rows: Sequence[MeasurementRow],
+    environments: Sequence[Mapping[str, float]],
+    expansion_ppm_per_k: float,
+    drift_limit_um: float | None = None,
+    method: IndexMethod = "edlen",
+) -> StationCompensation:
+    """Compensate the rows of one plan (a station) for air, dead path and material.
+
+    ``environments`` gives each row's environment columns (an empty mapping
+    when the file has none). A row with ``run`` :data:`DRIFT_RUN` re-measures
+    the line's first target after the last run, relative to that run's datum:
+    its compensated reading is the line's drift, checked against ``drift_limit_um``.
+    """
+    out: list[MeasurementRow] = []
+    lines: dict[str, Compensation] = {}
+    summaries: dict[str, dict[str, Range]] = {}
+    drift: list[DriftCheck] = []
+    for line in plan.lines:
+        members = [k for k, row in enumerate(rows) if row.line == line.id]
+        if not members:
+            continue
+        line_rows = [rows[k] for k in members]
+        environment = _columns([environments[k] for k in members])
+        run = np.array([r.run for r in line_rows])
+        last = run[run != DRIFT_RUN].max(initial=1)
+        result = compensate_line(
+            line,
+            np.where(run == DRIFT_RUN, last, run),
+            [1.0 if r.direction == "+" else -1.0 for r in line_rows],
+            [r.index for r in line_rows],
+            [r.channels[0] for r in line_rows],
+            environment,
+            expansion_ppm_per_k,
+            method,
+        )
+        check = run == DRIFT_RUN
+        if check.any():
+            drift.append(line_drift(line.id, result.linear_um[check], 0.0, drift_limit_um))
+        for row, linear, is_check in zip(line_rows, result.linear_um, check, strict=True):
+            if not is_check:
+                channels = row.channels.copy()
+                channels[0] = linear
+                out.append(replace(row, channels=channels))
+        lines[line.id] = result
+        summaries[line.id] = summarise(environment.take(~check))
+    return StationCompensation(out, lines, summaries, drift)

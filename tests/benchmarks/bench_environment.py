@@ -31,13 +31,7 @@ from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
 from trajectories.planner import plan_measurement
 from xmalign.calibration import CalibrationRun, capture_program
-from xmalign.environment import (
-    ENVIRONMENT_COLUMNS,
-    EnvironmentColumns,
-    EnvironmentMonitor,
-    EnvironmentSample,
-    compensate_line,
-)
+from xmalign.environment import EnvironmentMonitor, EnvironmentSample, compensate_station
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
 from xmalign.machine import Machine, default_machine_path, load_machine
@@ -58,38 +52,11 @@ class Measured:
 def compensated_rows(
     plan: Plan, measured: Measured, expansion: float, dead_path: bool = True
 ) -> list[MeasurementRow]:
-    """The rows with ``linear_um`` compensated line by line (what ``post`` does).
-
-    Without ``dead_path`` the plan's beam distances are withheld (no dead-path term).
-    """
-    out = list(measured.rows)
-    for line in plan.lines:
-        if not dead_path:
-            line = replace(line, extra={})
-        members = [k for k, row in enumerate(measured.rows) if row.line == line.id]
-        if not members:
-            continue
-        rows = [measured.rows[k] for k in members]
-        environment = EnvironmentColumns(
-            *(
-                np.array([measured.samples[k].values[name] for k in members])
-                for name in ENVIRONMENT_COLUMNS
-            )
-        )
-        result = compensate_line(
-            line,
-            [r.run for r in rows],
-            [1.0 if r.direction == "+" else -1.0 for r in rows],
-            [r.index for r in rows],
-            [r.channels[0] for r in rows],
-            environment,
-            expansion,
-        )
-        for k, row, linear in zip(members, rows, result.linear_um, strict=True):
-            channels = row.channels.copy()
-            channels[0] = linear
-            out[k] = replace(row, channels=channels)
-    return out
+    """The rows compensated as ``post`` does; without ``dead_path`` no beam distances."""
+    if not dead_path:
+        plan = replace(plan, lines=[replace(line, extra={}) for line in plan.lines])
+    environments = [sample.values for sample in measured.samples]
+    return compensate_station(plan, measured.rows, environments, expansion).rows
 
 
 def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:

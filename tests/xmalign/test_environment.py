@@ -8,12 +8,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from xmalign.environment import (
+    DRIFT_RUN,
     EnvironmentColumns,
     air_index,
     beam_geometry,
     check_sensor,
     ciddor_index,
     compensate_linear,
+    compensate_station,
     datum_rows,
     edlen_index,
     line_drift,
@@ -23,6 +25,8 @@ from xmalign.environment import (
     summarise,
 )
 from xmalign.errors import InputError
+from xmalign.formats.measurements import MeasurementRow
+from xmalign.formats.plan import Plan, PlanLine
 
 # Reference values: the equations of the NIST Engineering Metrology Toolbox
 # ("Index of Refraction of Air", Stone & Zimmerman, Appendix A) as evaluated by
@@ -173,3 +177,64 @@ def test_summary() -> None:
     summary = summarise(EnvironmentColumns(air_temp_c=np.array([22.0, 23.0, 24.0])))
     assert summary["air_temp_c"].mean == pytest.approx(23.0)
     assert np.isnan(summary["material_temp_c"].mean)
+
+
+def _plan(beam_distance_mm: list[float]) -> Plan:
+    line = PlanLine(
+        id="X",
+        start_mm=np.zeros(3),
+        end_mm=np.array([300.0, 0.0, 0.0]),
+        frame=np.eye(3),
+        launch_rad=np.zeros(2),
+        receiver_rad=np.zeros(3),
+        targets_mm=np.array([0.0, 100.0, 200.0, 300.0]),
+        runs=2,
+        extra={"beam_distance_mm": beam_distance_mm},
+    )
+    return Plan("m", np.zeros(3), 0.0, [line])
+
+
+def _row(run: int, index: int, linear_um: float) -> MeasurementRow:
+    return MeasurementRow(
+        "X",
+        run,
+        "+",
+        index,
+        100.0 * index,
+        np.array([100.0 * index, 0, 0]),
+        np.array([linear_um, 0, 0, 0, 0, 0]),
+    )
+
+
+def test_station_compensation_with_a_drift_check() -> None:
+    plan = _plan([500.0, 800.0])
+    error_um = np.array([0.0, 1.0, 2.0, 1.0])
+    air = {"air_temp_c": 20.0, "air_pressure_hpa": 1013.25, "air_humidity_percent": 50.0}
+    n = float(edlen_index(20.0, 1013.25, 50.0))
+    rows, environments = [], []
+    for run in (1, 2):
+        for index in range(4):
+            geometric_um = 100e3 * index + error_um[index]
+            linear = n * geometric_um - 100e3 * index  # optical path, air constant
+            rows.append(_row(run, index, linear))
+            environments.append({**air, "material_temp_c": 20.0})
+    # the drift check: the first target read 1.5 um (optical) after the last run
+    rows.append(_row(DRIFT_RUN, 0, 1.5 * n))
+    environments.append({**air, "material_temp_c": 20.0})
+    result = compensate_station(plan, rows, environments, 11.5, drift_limit_um=1.0)
+    assert len(result.rows) == 8
+    np.testing.assert_allclose(
+        [r.channels[0] for r in result.rows], np.tile(error_um, 2), atol=1e-9
+    )
+    assert result.drift[0].drift_um == pytest.approx(1.5)
+    assert result.drift[0].exceeded
+    assert result.environment["X"]["air_temp_c"].mean == pytest.approx(20.0)
+    assert "modified Edlén" in result.note
+
+
+def test_station_without_environment_is_left_alone() -> None:
+    rows = [_row(1, i, 0.5 * i) for i in range(4)]
+    result = compensate_station(_plan([500.0, 800.0]), rows, [{}] * 4, 11.5)
+    assert [r.channels[0] for r in result.rows] == [0.0, 0.5, 1.0, 1.5]
+    assert result.drift == []
+    assert "already air-compensated" in result.note
