@@ -625,3 +625,64 @@ def compensate_station(
         lines[line.id] = result
         summaries[line.id] = summarise(environment.take(~check))
     return StationCompensation(out, lines, summaries, drift)
+
+
+@dataclass(frozen=True)
+class SensorUncertainty:
+    """Standard uncertainties (k = 1) behind the environment compensation.
+
+    Defaults: XC-80-class sensor accuracies (air ±0.2 °C, ±1 hPa, ±6 %,
+    material ±0.1 °C) taken as rectangular distributions, 10 % of the
+    expansion coefficient, and 1.5e-8 for the refractive-index equation itself.
+    """
+
+    air_temp_c: float = 0.2 / math.sqrt(3)
+    air_pressure_hpa: float = 1.0 / math.sqrt(3)
+    air_humidity_percent: float = 6.0 / math.sqrt(3)
+    material_temp_c: float = 0.1 / math.sqrt(3)
+    expansion_relative: float = 0.1
+    index_equation: float = 1.5e-8
+
+
+def index_uncertainty(
+    air_temp_c: float,
+    air_pressure_hpa: float,
+    air_humidity_percent: float,
+    sensors: SensorUncertainty | None = None,
+) -> float:
+    """Standard uncertainty of the refractive index from the sensors and the equation."""
+    u = sensors or SensorUncertainty()
+    point = np.array([air_temp_c, air_pressure_hpa, air_humidity_percent], dtype=float)
+    steps = np.array([u.air_temp_c, u.air_pressure_hpa, u.air_humidity_percent])
+    terms = [u.index_equation]
+    for k, step in enumerate(steps):
+        shifted = point.copy()
+        shifted[k] += step
+        terms.append(float(edlen_index(*shifted) - edlen_index(*point)))
+    return float(np.sqrt(np.sum(np.square(terms))))
+
+
+def linear_budget_um(
+    length_mm: float,
+    environment: Mapping[str, Range],
+    expansion_ppm_per_k: float,
+    sensors: SensorUncertainty | None = None,
+) -> dict[str, float]:
+    """Standard uncertainties (k = 1, um) the environment adds to a positioning error at ``L``.
+
+    ``environment`` holds the measured ranges (:func:`summarise`); a quantity
+    without data contributes nothing (the readings were taken as compensated).
+    """
+    u = sensors or SensorUncertainty()
+    out: dict[str, float] = {}
+    air = [environment.get(n) for n in ENVIRONMENT_COLUMNS[:3]]
+    if all(r is not None and math.isfinite(r.mean) for r in air):
+        n_u = index_uncertainty(*(r.mean for r in air), u)  # type: ignore[union-attr]
+        out["air refractive index"] = n_u * length_mm * 1e3
+    material = environment.get("material_temp_c")
+    if material is not None and math.isfinite(material.mean) and expansion_ppm_per_k:
+        alpha = expansion_ppm_per_k * 1e-3  # um per mm and K
+        out["material temperature"] = alpha * u.material_temp_c * length_mm
+        dt = abs(material.mean - REFERENCE_TEMP_C)
+        out["expansion coefficient"] = alpha * u.expansion_relative * dt * length_mm
+    return out

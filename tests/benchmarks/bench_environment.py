@@ -37,6 +37,7 @@ from xmalign.formats.plan import Plan
 from xmalign.machine import Machine, default_machine_path, load_machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import post_process
+from xmalign.report import RecordInfo, write_report
 from xmalign.rigid_body import Chain
 from xmalign.safety import units_locked_on_exit
 
@@ -59,7 +60,9 @@ def compensated_rows(
     return compensate_station(plan, measured.rows, environments, expansion).rows
 
 
-def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:
+def calibrate(
+    machine: Machine, seed: int, climate: ShopClimate, report: Path | None = None
+) -> dict:
     setup = virtual_setup(machine, seed)
     with tempfile.TemporaryDirectory() as workdir:
         positions = design_identification(machine, 6).machine_mm
@@ -99,12 +102,35 @@ def calibrate(machine: Machine, seed: int, climate: ShopClimate) -> dict:
     material = np.array([s.values["material_temp_c"] for s in measured.samples])
     figures["air"] = (air.min(), air.max())
     figures["material"] = (material.min(), material.max())
+    if report is not None:
+        write_record(report, machine, plan, measured)
     return figures
+
+
+def write_record(directory: Path, machine: Machine, plan: Plan, measured: Measured) -> None:
+    """The calibration record of a measurement (HTML and PDF), as ``post --report`` would."""
+    environments = [sample.values for sample in measured.samples]
+    compensation = compensate_station(
+        plan, measured.rows, environments, machine.thermal.expansion_ppm_per_k
+    )
+    result = post_process(machine, plan, compensation.rows, "bench")
+    info = RecordInfo(
+        operator="bench_environment.py",
+        instruments={"interferometer": "SIM-XM60", "weather station": "SIM-XC80"},
+        environment=compensation.environment,
+        compensation=compensation.note,
+        drift=compensation.drift,
+        vdi3441=True,
+    )
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in ("record.html", "record.pdf"):
+        write_report(directory / name, machine, result, machine.controller, info)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--report", type=Path, help="Write seed 1's record (HTML, PDF) here.")
     args = parser.parse_args()
     machine = load_machine(default_machine_path())
     print(
@@ -116,7 +142,9 @@ def main() -> None:
     for seed in range(1, args.seeds + 1):
         start = time.perf_counter()
         reference = calibrate(machine, seed, ShopClimate.reference())
-        drifting = calibrate(machine, seed, ShopClimate.drifting())
+        drifting = calibrate(
+            machine, seed, ShopClimate.drifting(), args.report if seed == 1 else None
+        )
         wall = time.perf_counter() - start
         diff = abs(drifting["compensated"] - reference["compensated"])
         worst = max(worst, diff)
