@@ -360,3 +360,15 @@ def open_environment(
         )
     closers.append(transport.close)
     return ModbusWeatherStation(transport)
+
+
+def record_serials(
+    instruments: dict[str, str], environment: EnvironmentConfig | None
+) -> dict[str, str]:
+    """Serial numbers for the calibration record from ``units.yaml``'s sections."""
+    serials = dict(instruments)
+    if environment is not None:
+        if environment.serial:
+            serials["weather station"] = environment.serial
+        serials.update({f"sensor {k}": v for k, v in environment.sensor_serials.items()})
+    return serials

@@ -38,6 +38,7 @@ from xmalign.environment import (
     DriftCheck,
     Range,
     SensorUncertainty,
+    StationCompensation,
     linear_budget_um,
 )
 from xmalign.formats.common import atomic_write_text
@@ -113,6 +114,20 @@ class RecordInfo:
     vdi3441: bool = False
     verification: PostResult | None = None
     sensors: SensorUncertainty = field(default_factory=SensorUncertainty)
+
+    @classmethod
+    def of_compensation(
+        cls, compensation: StationCompensation | None, **keys: object
+    ) -> RecordInfo:
+        """The record of a compensated measurement (``keys``: the other attributes)."""
+        if compensation is None or not compensation.lines:
+            return cls(**keys)  # type: ignore[arg-type]
+        return cls(
+            environment=compensation.environment,
+            compensation=compensation.note,
+            drift=compensation.drift,
+            **keys,  # type: ignore[arg-type]
+        )
 
 
 # ---------------------------------------------------------------- content

@@ -114,12 +114,10 @@ def write_record(directory: Path, machine: Machine, plan: Plan, measured: Measur
         plan, measured.rows, environments, machine.thermal.expansion_ppm_per_k
     )
     result = post_process(machine, plan, compensation.rows, "bench")
-    info = RecordInfo(
+    info = RecordInfo.of_compensation(
+        compensation,
         operator="bench_environment.py",
         instruments={"interferometer": "SIM-XM60", "weather station": "SIM-XC80"},
-        environment=compensation.environment,
-        compensation=compensation.note,
-        drift=compensation.drift,
         vdi3441=True,
     )
     directory.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from firmware_iface.weather_station import (
     encode_environment,
     encode_registers,
     open_environment,
+    record_serials,
 )
 from sim.clock import SimClock
 from sim.environment import ShopClimate, SimEnvironment, SimWeatherStation
@@ -168,6 +169,8 @@ def test_units_yaml_environment_section(tmp_path: Path) -> None:
     config = load_units_config(EXAMPLES / "units.yaml")
     assert config.environment is not None and config.environment.serial == "XC80-0042"
     assert config.instruments["interferometer"] == "XM60-1234"
+    serials = record_serials(config.instruments, config.environment)
+    assert serials["weather station"] == "XC80-0042" and serials["sensor air"] == "AT-1187"
     text = (EXAMPLES / "units.yaml").read_text().split("# Optional (docs/environment.md)")[0]
     path = tmp_path / "units.yaml"
     path.write_text(text + "environment:\n  source: file\n  file: env.txt\n")

@@ -238,3 +238,15 @@ def test_station_without_environment_is_left_alone() -> None:
     assert [r.channels[0] for r in result.rows] == [0.0, 0.5, 1.0, 1.5]
     assert result.drift == []
     assert "already air-compensated" in result.note
+
+
+def test_record_info_of_a_compensation() -> None:
+    from xmalign.report import RecordInfo
+
+    rows = [_row(1, i, 0.5 * i) for i in range(4)]
+    env = {"air_temp_c": 21.0, "air_pressure_hpa": 1000.0, "air_humidity_percent": 40.0}
+    compensation = compensate_station(_plan([500.0, 800.0]), rows, [env] * 4, 11.5)
+    info = RecordInfo.of_compensation(compensation, operator="me")
+    assert info.operator == "me" and "modified Edlén" in info.compensation
+    assert info.environment["X"]["air_temp_c"].max == 21.0
+    assert "already compensated" in RecordInfo.of_compensation(None).compensation
