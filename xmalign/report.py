@@ -68,6 +68,7 @@ _STYLE = (
     "img{max-width:100%;height:auto}"
     "table{border-collapse:collapse;font-size:8pt;margin-bottom:6pt;page-break-inside:avoid}"
     "td,th{border:1px solid #999;padding:1px 4px;text-align:right}"
+    "td:first-child{text-align:left}"
     "h2{page-break-after:avoid}"
 )
 #: The positioning errors that the air and the material affect.
