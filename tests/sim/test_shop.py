@@ -10,7 +10,12 @@ import pytest
 from sim.clock import SimClock
 from sim.environment import ShopClimate, SimEnvironment, SimWeatherStation
 from tests.sim.test_interferometer import setup
-from xmalign.environment import EnvironmentMonitor, edlen_index
+from xmalign.environment import (
+    EnvironmentColumns,
+    EnvironmentMonitor,
+    compensate_linear,
+    edlen_index,
+)
 from xmalign.errors import DeviceTimeoutError, InputError
 from xmalign.geometry import line_frame
 from xmalign.roles import EnvironmentSource
@@ -111,3 +116,42 @@ def test_monitor_refuses_to_start_without_a_complete_reading() -> None:
     station.answering = False
     with pytest.raises(DeviceTimeoutError, match="station: simulated weather station"):
         EnvironmentMonitor(station, "station").prime()
+
+
+def test_compensation_undoes_the_simulated_air_dead_path_and_growth(machine) -> None:
+    # the receiver moves away along the beam while the air heats by 10 K and the machine by 3 K;
+    # compensate_linear with the true environment gives the geometric move back
+    xm, cnc, aligned = setup(machine, cnc_mm=(600.0, 100.0, -450.0))
+    climate = ShopClimate(
+        air_start_c=20.0, air_end_c=30.0, material_start_c=21.0, material_end_c=24.0, ramp_s=40.0
+    )
+    env = SimEnvironment(xm.clock, climate, 11.5, reference_mm=cnc.position.copy())
+    xm.environment = env
+    xm.zero()
+    beam = line_frame(cnc.position + machine.receiver_offset - LAUNCH_MM)[0]
+    start = cnc.position.copy()
+    commanded, linear, columns = [], [], []
+    for step in range(5):
+        cnc.position = start + 100.0 * step * beam
+        commanded.append(100.0 * step)
+        linear.append(xm.read().channels[0] - 100e3 * step)
+        columns.append(
+            [
+                env.air_temp_c(),
+                env.air_pressure_hpa(),
+                env.air_humidity_percent(),
+                env.material_temp_c(),
+            ]
+        )
+        xm.clock.sleep(10.0)
+    columns_ = np.array(columns).T
+    raw = np.array(linear)
+    result = compensate_linear(
+        raw, commanded, np.zeros(5, int), EnvironmentColumns(*columns_), 11.5, aligned.distance_mm
+    )
+    assert np.max(np.abs(raw)) > 100.0  # the uncompensated reading is far off
+    np.testing.assert_allclose(result.linear_um, 0.0, atol=1e-6)
+    no_dead_path = compensate_linear(
+        raw, commanded, np.zeros(5, int), EnvironmentColumns(*columns_), 11.5, 0.0
+    )
+    assert np.max(np.abs(no_dead_path.linear_um)) > 1.0  # the dead path matters here
