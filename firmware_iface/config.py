@@ -24,6 +24,12 @@
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
+    environment:                   # optional; see docs/environment.md
+      source: serial               # fixed, file, serial, modbus-tcp or modbus-rtu
+      port: /dev/ttyUSB1
+      serial: XC80-0042            # for the calibration record
+    instruments:                   # optional serial numbers for the calibration record
+      interferometer: XM60-1234
 
 A Modbus RTU unit has ``transport: modbus-rtu``, ``serial_port`` and
 ``baudrate``. Every error names the file and the key (exit code 2).
@@ -45,6 +51,11 @@ from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
+from firmware_iface.weather_station import (
+    EnvironmentConfig,
+    open_environment,
+    resolve_environment,
+)
 from xmalign.errors import InputError, TransportError
 from xmalign.formats.common import (
     StrictFileModel,
@@ -54,7 +65,7 @@ from xmalign.formats.common import (
     validate,
 )
 from xmalign.machine import Machine
-from xmalign.roles import Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import EnvironmentSource, Interferometer, MachineMover, PositioningUnit
 
 UNITS_FORMAT = "xmalign.units/1"
 
@@ -129,6 +140,8 @@ class UnitsConfig(_Strict):
     interferometer: InterferometerConfig
     machine_position: MachinePositionConfig = MachinePositionConfig()
     timeouts: Timeouts = Timeouts()
+    environment: EnvironmentConfig | None = None
+    instruments: dict[str, str] = {}
 
 
 def parse_units_config(data: object, source: str, base_dir: Path | None = None) -> UnitsConfig:
@@ -147,6 +160,7 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
             "machine_position": config.machine_position.model_copy(
                 update={"file": _resolve(config.machine_position.file, base_dir)}
             ),
+            "environment": resolve_environment(config.environment, base_dir),
         }
     )
 
@@ -170,6 +184,7 @@ class LiveDevices:
     interferometer: Interferometer
     mover: MachineMover
     closers: list[Callable[[], None]] = field(default_factory=list)
+    environment: EnvironmentSource | None = None
 
     def close(self) -> None:
         """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
@@ -249,6 +264,11 @@ def open_devices(
         launch = _open_unit(config.launch, "launch", config.timeouts, networks, closers)
         receiver = _open_unit(config.receiver, "receiver", config.timeouts, networks, closers)
         interferometer = _open_interferometer(config.interferometer, config.timeouts, closers)
+        environment = (
+            None
+            if config.environment is None
+            else open_environment(config.environment, config.timeouts.io_s, closers)
+        )
     except BaseException:
         for close in reversed(closers):
             close()
@@ -257,4 +277,4 @@ def open_devices(
     mover = OperatorPrompt(
         machine, ask, tell, FilePositions(source.file) if source.file is not None else None
     )
-    return LiveDevices(launch, receiver, interferometer, mover, closers)
+    return LiveDevices(launch, receiver, interferometer, mover, closers, environment)

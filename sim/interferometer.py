@@ -4,7 +4,10 @@ The reading follows from the true geometry: the launch head's beam (unit
 angles, zero offsets, axis offset, beam misalignment), the receiver carried by
 the virtual machine's actual tool pose, and the CNC position. Channels are in
 the beam's line frame (``xmalign.geometry.line_frame`` of the beam direction):
-``linear_um`` is the displacement along the beam since :meth:`zero`,
+``linear_um`` is the displacement along the beam since :meth:`zero`, counted
+as an optical path (the air's refractive index times the length) when the
+interferometer sees a :class:`sim.environment.SimEnvironment` (whose thermal
+growth also moves the receiver),
 straightness the receiver's optical centre relative to the beam, angles the
 receiver's rotation relative to the launch head (zero when the units face each
 other with roll 0).
@@ -18,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from sim.environment import SimEnvironment
 from sim.machine import VirtualMachine
 from sim.units import SimUnit
 from xmalign.errors import InputError
@@ -49,11 +53,18 @@ class InterferometerNoise:
 
 @dataclass(frozen=True)
 class Geometry:
-    """True, noise-free state: channels (6,) with the full distance in ``linear``, beam status."""
+    """True, noise-free state: channels (6,) with the full optical path in ``linear``, beam status.
+
+    ``distance_mm`` is the geometric launch-to-receiver distance along the beam.
+    """
 
     distance_mm: float
     channels: Vec
     beam_ok: bool
+
+    @property
+    def optical_mm(self) -> float:
+        return float(self.channels[0]) / UM_PER_MM
 
 
 class SimInterferometer:
@@ -77,6 +88,8 @@ class SimInterferometer:
     rate_hz : float
         Sample rate of the stream that :meth:`average` uses.
     seed : int, optional
+    environment : SimEnvironment, optional
+        The shop's air and thermal growth; None: vacuum-like air at 20 °C.
     """
 
     def __init__(
@@ -92,6 +105,7 @@ class SimInterferometer:
         noise: InterferometerNoise | None = None,
         rate_hz: float = 50.0,
         seed: int | None = None,
+        environment: SimEnvironment | None = None,
     ) -> None:
         if launch.kind != "launch" or receiver.kind != "receiver":
             raise InputError("SimInterferometer needs a launch unit and a receiver unit")
@@ -107,6 +121,7 @@ class SimInterferometer:
         self.rate_hz = rate_hz
         self._rng = np.random.default_rng(seed)
         self._datum_mm = 0.0
+        self.environment = environment
 
     def geometry(self) -> Geometry:
         """The noise-free reading now."""
@@ -114,7 +129,12 @@ class SimInterferometer:
         head = self.launch.head_rotation(rot_z(self.gamma_rad))
         origin = self.launch.optical_centre(self.launch2mcs_mm, head)
         offset = rot_z(setup.spindle_angle_rad) @ setup.receiver_offset
-        cp, tool_rotation = self.machine.tool_pose(self.position.position_mm(), offset)
+        position = self.position.position_mm()
+        cp, tool_rotation = self.machine.tool_pose(position, offset)
+        index = 1.0
+        if self.environment is not None:
+            cp = cp + self.environment.growth_mm(position)
+            index = self.environment.air_index()
         mount = Rotation.from_rotvec(tool_rotation).as_matrix() @ rot_z(setup.spindle_angle_rad)
         receiver = self.receiver.head_rotation(mount)
         centre = self.receiver.optical_centre(cp, receiver)
@@ -124,6 +144,7 @@ class SimInterferometer:
         angles = frame @ (head @ relative)
         channels = np.concatenate([[along, across_v, across_w], angles * URAD_PER_RAD])
         channels[:3] *= UM_PER_MM
+        channels[0] *= index
         return Geometry(float(along), channels, self._in_range(float(along), channels))
 
     def _in_range(self, along_mm: float, channels: Vec) -> bool:
@@ -135,8 +156,8 @@ class SimInterferometer:
         )
 
     def zero(self) -> None:
-        """Set the linear datum at the receiver's present position."""
-        self._datum_mm = self.geometry().distance_mm
+        """Set the linear datum (its optical path) at the receiver's present position."""
+        self._datum_mm = self.geometry().optical_mm
 
     def _reading(self, geometry: Geometry, noise: Vec, time_s: float) -> InterferometerReading:
         channels = geometry.channels + noise

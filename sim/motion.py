@@ -90,10 +90,11 @@ def move(profile: Profile, time_s: float, target: float, v_max: float, accel: fl
     start_s = braked.end_s
     start = braked.final_position
     distance = target - start
-    if distance == 0.0:
-        return braked
-    sign = math.copysign(1.0, distance)
     v_peak = min(v_max, math.sqrt(abs(distance) * accel))
+    if v_peak == 0.0:  # no distance, or one too small to move at any representable speed
+        rest_at_target = Segment(start_s, target, 0.0, 0.0)
+        return Profile((*braked.segments[:-1], rest_at_target), start_s)
+    sign = math.copysign(1.0, distance)
     t_ramp = v_peak / accel
     t_cruise = (abs(distance) - v_peak * t_ramp) / v_peak
     segments = list(braked.segments[:-1])

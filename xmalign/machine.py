@@ -92,6 +92,8 @@ class Thermal(_Strict):
     """Normalisation of linear errors to 20 °C: the expansion of the machine's scales."""
 
     expansion_ppm_per_k: Expansion_ppm_per_k = 0.0
+    #: xmalign's own: warn when a line's first target drifts more than this, um.
+    drift_limit_um: Micrometres | None = None
 
 
 class Uncertainty(_Strict):
@@ -134,6 +136,7 @@ class Machine(_Strict):
     """A machine tool as xmalign sees it; lengths mm, angles as named."""
 
     name: str
+    serial: str | None = None
     chain: str
     travel_mm: dict[Literal["X", "Y", "Z"], TravelRange]
     feed_mm_min: Feeds

@@ -1,11 +1,19 @@
-"""The calibration report: one self-contained HTML page with matplotlib PNGs.
+"""The calibration report as a calibration record: HTML (A4 printable) and PDF.
 
-Shows each error table with its expanded uncertainty band (and the forward /
-reverse tables with bidirectional data), the squareness, the ISO 230-2 figures
-of the axis lines, the setup terms and residuals of the fit, and the
-volumetric error map over the travel before and after the controller's
-compensation tables. Figures are drawn with matplotlib's object interface
-(no pyplot, no global backend), so the report works headless.
+The record names when, with what and on what the calibration was made (date
+and time, xmalign version, machine name and serial, operator, instrument and
+sensor serials), the environment of every line (min / mean / max), how the
+readings were compensated, the drift of every line, the standard applied with
+its conditions (ISO 230-2 figures, a note below five runs; VDI/DGQ 3441 as an
+option), the uncertainty budget of every error, and, when a verification
+measurement exists, the as-found / as-left comparison. It then shows each
+error table with its expanded uncertainty band, the squareness, the
+volumetric error maps before and after compensation on one colour scale, and
+the setup terms and residuals of the fit.
+
+Figures are drawn with matplotlib's object interface (no pyplot, no global
+backend), so the report works headless. The PDF is laid out by matplotlib on
+A4 pages (text and tables as monospaced lines that always fit the page).
 """
 
 from __future__ import annotations
@@ -14,18 +22,34 @@ import base64
 import html
 import io
 import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
+import xmalign
 from xmalign.comp import remaining_errors
+from xmalign.environment import (
+    ENVIRONMENT_COLUMNS,
+    DriftCheck,
+    Range,
+    SensorUncertainty,
+    StationCompensation,
+    linear_budget_um,
+)
 from xmalign.formats.common import atomic_write_text
-from xmalign.formats.error_tables import ErrorTableSet, Table, file_unit
+from xmalign.formats.error_tables import ErrorTableSet, file_unit
+from xmalign.formats.error_tables import Table as ErrorTable
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult
+from xmalign.post.iso230_2 import ISO_230_2_RUNS, VdiFigures, runs_note, vdi3441_figures
+from xmalign.post.lines import UM_PER_MM
 from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows
 from xmalign.rigid_body import (
     AXES,
@@ -38,35 +62,339 @@ from xmalign.rigid_body import (
 )
 
 _MAP_POINTS = 41
+#: A4 portrait, inches.
+A4_IN = (8.27, 11.69)
+_MARGIN_IN = 0.6
 _STYLE = (
-    "body{font-family:sans-serif;max-width:1100px;margin:auto}"
-    "table{border-collapse:collapse}td,th{border:1px solid #999;padding:2px 6px;text-align:right}"
+    "@page{size:A4;margin:15mm}"
+    "body{font-family:sans-serif;max-width:180mm;margin:auto;font-size:10pt}"
+    "img{max-width:100%;height:auto}"
+    "table{border-collapse:collapse;font-size:8pt;margin-bottom:6pt;page-break-inside:avoid}"
+    "td,th{border:1px solid #999;padding:1px 4px;text-align:right}"
+    "td:first-child{text-align:left}"
+    "h2{page-break-after:avoid}"
 )
+#: The positioning errors that the air and the material affect.
+_LINEAR_ERRORS = {"X": "EXX", "Y": "EYY", "Z": "EZZ"}
+_COLUMN_LABEL = {
+    "air_temp_c": "air °C",
+    "air_pressure_hpa": "air hPa",
+    "air_humidity_percent": "humidity %",
+    "material_temp_c": "material °C",
+}
 
 
-def _png(figure: Figure) -> str:
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=90, bbox_inches="tight")
-    data = base64.b64encode(buffer.getvalue()).decode("ascii")
-    return f'<img alt="plot" src="data:image/png;base64,{data}">'
+@dataclass
+class RecordInfo:
+    """What the record says beyond the fit.
+
+    Attributes
+    ----------
+    operator : str
+    created : datetime
+        When the record was made (UTC).
+    instruments : dict of str to str
+        Instrument or sensor name -> serial number (``units.yaml``).
+    environment : dict of str to dict of str to Range
+        Per line id, the measured environment (empty: none measured).
+    compensation : str
+        How the readings were compensated (one sentence).
+    drift : list of DriftCheck
+    vdi3441 : bool
+        Also give the VDI/DGQ 3441 figures.
+    verification : PostResult, optional
+        A measurement after compensation (as left).
+    sensors : SensorUncertainty
+    """
+
+    operator: str = ""
+    created: datetime = field(default_factory=lambda: datetime.now(UTC))
+    instruments: dict[str, str] = field(default_factory=dict)
+    environment: dict[str, dict[str, Range]] = field(default_factory=dict)
+    compensation: str = (
+        "no environment columns: readings taken as already compensated for the air and at 20 °C"
+    )
+    drift: list[DriftCheck] = field(default_factory=list)
+    vdi3441: bool = False
+    verification: PostResult | None = None
+    sensors: SensorUncertainty = field(default_factory=SensorUncertainty)
+
+    @classmethod
+    def of_compensation(
+        cls, compensation: StationCompensation | None, **keys: object
+    ) -> RecordInfo:
+        """The record of a compensated measurement (``keys``: the other attributes)."""
+        if compensation is None or not compensation.lines:
+            return cls(**keys)  # type: ignore[arg-type]
+        return cls(
+            environment=compensation.environment,
+            compensation=compensation.note,
+            drift=compensation.drift,
+            **keys,  # type: ignore[arg-type]
+        )
+
+
+# ---------------------------------------------------------------- content
+
+
+@dataclass(frozen=True)
+class Table:
+    """A titled table of text cells."""
+
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    note: str = ""
+
+
+def _number(value: float, digits: int = 2) -> str:
+    return "–" if not math.isfinite(value) else f"{value:.{digits}f}"
 
 
 def _scale(name: str) -> float:
     return 1e3 if file_unit(name) == "um" else 1e6
 
 
-def _shade_extrapolated(panel: Axes, table: Table | None) -> None:
+def record_table(machine: Machine, info: RecordInfo) -> Table:
+    rows = [
+        ["date and time (UTC)", info.created.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S")],
+        ["software", f"xmalign {xmalign.__version__}"],
+        ["machine", machine.name],
+        ["machine serial", machine.serial or "not given"],
+        ["kinematic chain", machine.chain],
+        ["operator", info.operator or "not given"],
+        *([name, serial] for name, serial in sorted(info.instruments.items())),
+        ["compensation", info.compensation],
+    ]
+    return Table("Calibration record", ["item", "value"], rows)
+
+
+def environment_table(info: RecordInfo) -> Table:
+    header = ["line", *(f"{_COLUMN_LABEL[c]} min/mean/max" for c in ENVIRONMENT_COLUMNS)]
+    rows = [
+        [
+            line,
+            *(
+                "/".join(_number(v, 2) for v in (r.min, r.mean, r.max))
+                if (r := ranges.get(column)) is not None and math.isfinite(r.mean)
+                else "not measured"
+                for column in ENVIRONMENT_COLUMNS
+            ),
+        ]
+        for line, ranges in info.environment.items()
+    ]
+    note = "" if rows else "No environment was recorded with the measurement."
+    return Table("Environment per line", header, rows, note)
+
+
+def drift_table(info: RecordInfo) -> Table:
+    rows = [
+        [
+            d.line_id,
+            _number(d.drift_um),
+            "–" if d.limit_um is None else f"{d.limit_um:g}",
+            "EXCEEDED" if d.exceeded else "ok",
+        ]
+        for d in info.drift
+    ]
+    note = "" if rows else "No re-measurement of the first targets was recorded."
+    return Table(
+        "Drift at the first target of each line (um)", ["line", "drift", "limit", ""], rows, note
+    )
+
+
+def iso_table(result: PostResult) -> Table:
+    if not result.positioning:
+        return Table("ISO 230-2 positioning figures (um)", ["line"], [], "No axis line.")
+    names = list(result.positioning[0].as_dict())
+    rows = [
+        [f.line_id, str(f.runs), *(_number(v) for v in f.as_dict().values())]
+        for f in result.positioning
+    ]
+    notes = [n for f in result.positioning if (n := runs_note(f)) is not None]
+    conditions = (
+        f"ISO 230-2: bidirectional approach, {ISO_230_2_RUNS} runs per direction asked for;"
+        " deviations after the compensation stated in the record."
+    )
+    return Table(
+        "ISO 230-2 positioning figures (um)",
+        ["line", "runs", *names],
+        rows,
+        " ".join([conditions, *notes]),
+    )
+
+
+def vdi_figures(result: PostResult) -> list[VdiFigures]:
+    return [
+        vdi3441_figures(data.line.id, data.index, data.sign, data.channels[:, 0] * UM_PER_MM)
+        for data in result.lines
+        if data.axis() is not None
+    ]
+
+
+def vdi_table(result: PostResult) -> Table:
+    rows = [[v.line_id, *(_number(x) for x in v.as_dict().values())] for v in vdi_figures(result)]
+    return Table(
+        "VDI/DGQ 3441 figures (um)",
+        ["line", "P", "Ps", "U", "Pa"],
+        rows,
+        "P position uncertainty, Ps position scatter (6 s), U reversal span, Pa positional"
+        " deviation.",
+    )
+
+
+def _axis_length_mm(tables: ErrorTableSet, name: str) -> float:
+    table = tables.tables.get(name)
+    if table is None or len(table.positions_mm) == 0:
+        return 0.0
+    return float(np.ptp(table.positions_mm))
+
+
+def _line_environment(info: RecordInfo, axis: str) -> dict[str, Range]:
+    return info.environment.get(axis, {})
+
+
+def budget_table(machine: Machine, result: PostResult, info: RecordInfo) -> Table:
+    """What each source contributes to U95 (k = 2) of every error, at the end of its table."""
+    tables = result.fit.tables
+    sources = ("air refractive index", "material temperature", "expansion coefficient")
+    rows = []
+    for name in sorted(tables.tables):
+        if name[-1] in "+-":
+            continue
+        table = tables.tables[name]
+        scale = _scale(name)
+        fit_u95 = float(np.nanmax(np.nan_to_num(table.u95, nan=0.0))) * scale
+        extra: dict[str, float] = {}
+        axis = name[-1]
+        if _LINEAR_ERRORS.get(axis) == name:
+            extra = linear_budget_um(
+                _axis_length_mm(tables, name),
+                _line_environment(info, axis),
+                machine.thermal.expansion_ppm_per_k,
+                info.sensors,
+            )
+        parts = [fit_u95, *(2 * extra.get(s, 0.0) for s in sources)]
+        total = math.sqrt(sum(p * p for p in parts))
+        rows.append([name, file_unit(name), *(_number(p) for p in parts), _number(total)])
+    for name, (_, u95) in tables.squareness.items():
+        rows.append([name, "urad", _number(u95 * 1e6), "0.00", "0.00", "0.00", _number(u95 * 1e6)])
+    return Table(
+        "Uncertainty budget (U95, k = 2, largest along each table)",
+        ["error", "unit", "fit (channels)", "air index", "material T", "expansion α", "combined"],
+        rows,
+        "fit: the interferometer channels propagated through the fit (GUM), scaled by sigma0"
+        " above 1; air, material and α only enter the positioning errors, with the sensor"
+        " uncertainties of the environment section, over the whole stroke.",
+    )
+
+
+def squareness_table(result: PostResult) -> Table:
+    return Table(
+        "Squareness",
+        ["error", "value / urad", "U95 / urad"],
+        [
+            [n, _number(v * 1e6), _number(u * 1e6)]
+            for n, (v, u) in result.fit.tables.squareness.items()
+        ],
+    )
+
+
+def as_left_table(result: PostResult, verification: PostResult) -> Table:
+    before = {f.line_id: f for f in result.positioning}
+    rows = []
+    for after in verification.positioning:
+        found = before.get(after.line_id)
+        for figure in ("A", "E", "R", "B"):
+            old = getattr(found, figure) if found else math.nan
+            rows.append([after.line_id, figure, _number(old), _number(getattr(after, figure))])
+    squareness = verification.fit.tables.squareness
+    for name, (value, _) in result.fit.tables.squareness.items():
+        left = squareness.get(name, (math.nan, math.nan))[0]
+        rows.append([name, "urad", _number(value * 1e6), _number(left * 1e6)])
+    return Table(
+        "As found / as left (ISO 230-2 figures in um, squareness in urad)",
+        ["line / error", "figure", "as found", "as left"],
+        rows,
+    )
+
+
+def setup_table(result: PostResult) -> Table:
+    fit = result.fit
+    return Table(
+        "Setup terms and residuals per line",
+        [
+            "line",
+            "str. offset v,w um",
+            "slope v,w urad",
+            "angle offsets u,v,w urad",
+            "RMS lin,sv,sw um",
+            "RMS au,av,aw urad",
+        ],
+        [
+            [
+                s.line_id + (f" (setup segment {s.segment})" if s.segment else ""),
+                ", ".join(_number(v, 1) for v in s.straightness_offset_um),
+                ", ".join(_number(v, 1) for v in s.straightness_slope_urad),
+                ", ".join(_number(v, 1) for v in s.angle_offset_urad),
+                ", ".join(_number(v) for v in fit.residual_rms[s.line_id][:3]),
+                ", ".join(_number(v) for v in fit.residual_rms[s.line_id][3:]),
+            ]
+            for s in fit.setup
+        ],
+        f"{len(result.lines)} lines, {fit.n_observations} observations, {fit.n_parameters}"
+        f" parameters; a-posteriori sigma0 = {fit.sigma0:.2f} (uncertainties are scaled by it"
+        " when above 1).",
+    )
+
+
+def ranges_table(result: PostResult) -> Table:
+    return Table(
+        "Measured and extrapolated ranges",
+        list(RANGES_HEADER),
+        range_rows(result.fit.tables),
+        "The tables cover the whole travel; beyond the range the lines measured they are the"
+        " linear continuation of the end segment, with a U95 that grows with the distance"
+        " (shaded grey in the plots, range = extrapolated in the error-table file).",
+    )
+
+
+def report_tables(machine: Machine, result: PostResult, info: RecordInfo) -> list[Table]:
+    """Every table of the record, in order."""
+    tables = [
+        record_table(machine, info),
+        environment_table(info),
+        drift_table(info),
+        iso_table(result),
+    ]
+    if info.vdi3441:
+        tables.append(vdi_table(result))
+    tables += [
+        squareness_table(result),
+        ranges_table(result),
+        budget_table(machine, result, info),
+    ]
+    if result.warnings:
+        tables.append(Table("Warnings", ["warning"], [[w] for w in result.warnings]))
+    if info.verification is not None:
+        tables.append(as_left_table(result, info.verification))
+    return tables
+
+
+# ---------------------------------------------------------------- figures
+
+
+def _shade_extrapolated(panel: Axes, table: ErrorTable | None) -> None:
     for a, b in extrapolated_spans_mm(table) if table is not None else []:
         panel.axvspan(a, b, color="0.5", alpha=0.2, linewidth=0)
 
 
 def error_curves_figure(tables: ErrorTableSet, axis: str) -> Figure:
-    """Six panels: the error motions of one axis with their u95 bands."""
-    figure = Figure(figsize=(13, 6))
-    panels = figure.subplots(2, 3, sharex=True)
-    for panel, name in zip(
-        panels.ravel(), (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis]), strict=True
-    ):
+    """Six panels (3 x 2, fits A4 portrait): the error motions of one axis with u95 bands."""
+    figure = Figure(figsize=(7.0, 8.0), layout="constrained")
+    panels = figure.subplots(3, 2, sharex=True)
+    names = (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis])
+    for panel, name in zip(panels.T.ravel(), names, strict=True):
         scale = _scale(name)
         for suffix, colour in (("", "k"), ("+", "tab:blue"), ("-", "tab:red")):
             table = tables.tables.get(name + suffix)
@@ -78,14 +406,16 @@ def error_curves_figure(tables: ErrorTableSet, axis: str) -> Figure:
                 table.positions_mm, values - band, values + band, color=colour, alpha=0.15
             )
         _shade_extrapolated(panel, tables.tables.get(name))
-        panel.set_title(f"{name} / {file_unit(name)}")
+        panel.set_title(f"{name} / {file_unit(name)}", fontsize=9)
+        panel.tick_params(labelsize=7)
         panel.grid(True, alpha=0.3)
-        panel.legend(fontsize=7)
-    for panel in panels[1]:
-        panel.set_xlabel(f"{axis} / mm")
+        panel.legend(fontsize=6)
+    for panel in panels[-1]:
+        panel.set_xlabel(f"{axis} / mm", fontsize=8)
     figure.suptitle(
-        f"Error motions of {axis} (bands: expanded uncertainty, k = 2;"
-        " grey: extrapolated beyond the measured range)"
+        f"Error motions of {axis} (bands: U95, k = 2; grey: extrapolated beyond the measured"
+        " range)",
+        fontsize=10,
     )
     return figure
 
@@ -103,123 +433,238 @@ def _plane_points(machine: Machine, plane: tuple[str, str], at_mm: float) -> tup
     return ga, gb, points
 
 
-def volumetric_map_figure(
-    machine: Machine, before: ErrorModel, after: ErrorModel, controller: str
-) -> Figure:
-    """Length of the volumetric error (tool point) in the three faces, before and after."""
+_PLANES = ((("X", "Y"), "Z"), (("X", "Z"), "Y"), (("Y", "Z"), "X"))
+
+
+def volumetric_map_figure(machine: Machine, maps: list[tuple[str, ErrorModel]]) -> Figure:
+    """Length of the volumetric error in the three faces, one column per model, one colour scale.
+
+    ``maps`` are (label, model) pairs, e.g. before and after the controller's tables.
+    """
     chain = Chain.parse(machine.chain)
-    figure = Figure(figsize=(14, 8))
-    panels = figure.subplots(2, 3)
-    planes = ((("X", "Y"), "Z"), (("X", "Z"), "Y"), (("Y", "Z"), "X"))
-    for column, (plane, third) in enumerate(planes):
+    lengths = []
+    for plane, third in _PLANES:
         at = machine.travel_max_mm[AXIS_INDEX[third]]
         ga, gb, points = _plane_points(machine, plane, at)
-        for row, (model, label) in enumerate(
-            ((before, "before"), (after, f"after {controller} tables"))
-        ):
+        for _, model in maps:
             dp, _ = deviation(chain, points, np.zeros(3), model)
-            length_um = np.linalg.norm(dp, axis=1).reshape(ga.shape) * 1e3
-            image = panels[row, column].contourf(ga, gb, length_um, levels=20, cmap="viridis")
-            figure.colorbar(image, ax=panels[row, column], label="|error| / um")
-            panels[row, column].set_title(f"{label}: {''.join(plane)} at {third} = {at:g} mm")
-            panels[row, column].set_xlabel(f"{plane[0]} / mm")
-            panels[row, column].set_ylabel(f"{plane[1]} / mm")
-    figure.suptitle("Volumetric error of the tool point (from the error tables)")
-    figure.tight_layout()
+            lengths.append((plane, third, at, ga, gb, np.linalg.norm(dp, axis=1) * 1e3))
+    top = max(float(np.max(item[-1])) for item in lengths) or 1.0
+    levels = np.linspace(0.0, top, 21)
+    figure = Figure(figsize=(7.0, 9.0), layout="constrained")
+    panels = figure.subplots(3, len(maps), squeeze=False)
+    image = None
+    for k, (plane, third, at, ga, gb, length) in enumerate(lengths):
+        row, column = divmod(k, len(maps))
+        panel = panels[row, column]
+        image = panel.contourf(ga, gb, length.reshape(ga.shape), levels=levels, cmap="viridis")
+        panel.set_title(f"{maps[column][0]}: {''.join(plane)} at {third} = {at:g} mm", fontsize=8)
+        panel.set_xlabel(f"{plane[0]} / mm", fontsize=7)
+        panel.set_ylabel(f"{plane[1]} / mm", fontsize=7)
+        panel.tick_params(labelsize=6)
+    figure.colorbar(image, ax=panels, label="|error| / um", shrink=0.6)
+    figure.suptitle("Volumetric error of the tool point (one colour scale)", fontsize=10)
     return figure
 
 
-def _html_table(header: list[str], rows: list[list[str]]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>" for row in rows
+def _maps(machine: Machine, result: PostResult, info: RecordInfo, controller: str) -> list:
+    tables = result.fit.tables
+    if info.verification is not None:
+        return [
+            ("as found", tables.model("")),
+            ("as left", info.verification.fit.tables.model("")),
+        ]
+    return [
+        ("before", tables.model("")),
+        (f"after {controller} tables", remaining_errors(tables, controller)),
+    ]
+
+
+def report_figures(
+    machine: Machine, result: PostResult, info: RecordInfo, controller: str
+) -> list[tuple[str, Figure]]:
+    """Every figure of the report with its heading."""
+    figures = [
+        (f"Error motions of {axis}", error_curves_figure(result.fit.tables, axis)) for axis in AXES
+    ]
+    figures.append(
+        (
+            "Volumetric error before and after compensation",
+            volumetric_map_figure(machine, _maps(machine, result, info, controller)),
+        )
     )
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return figures
 
 
-def _number(value: float, digits: int = 2) -> str:
-    return "–" if not math.isfinite(value) else f"{value:.{digits}f}"
+# ---------------------------------------------------------------- HTML
 
 
-def render_report(machine: Machine, result: PostResult, controller: str) -> str:
-    """The HTML text of the report."""
-    fit = result.fit
-    tables = fit.tables
+def _png(figure: Figure) -> str:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110)
+    data = base64.b64encode(buffer.getvalue()).decode("ascii")
+    return f'<img alt="plot" src="data:image/png;base64,{data}">'
+
+
+def _html_table(table: Table) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in table.header)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>" for row in table.rows
+    )
+    note = f"<p><small>{html.escape(table.note)}</small></p>" if table.note else ""
+    grid = f"<table><tr>{head}</tr>{body}</table>" if table.rows else ""
+    return f"<h2>{html.escape(table.title)}</h2>{grid}{note}"
+
+
+def render_report(
+    machine: Machine, result: PostResult, controller: str, info: RecordInfo | None = None
+) -> str:
+    """The HTML text of the report (PNGs embedded, A4 printable)."""
+    info = info or RecordInfo()
     parts = [
-        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>xmalign report</title>"
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        f"<title>Calibration record: {html.escape(machine.name)}</title>"
         f"<style>{_STYLE}</style></head><body>",
         f"<h1>Calibration of {html.escape(machine.name)}</h1>",
-        f"<p>Chain {html.escape(machine.chain)}; {len(result.lines)} lines,"
-        f" {fit.n_observations} observations, {fit.n_parameters} parameters;"
-        f" a-posteriori sigma0 = {fit.sigma0:.2f} (uncertainties are scaled by it when"
-        " above 1).</p>",
-        "<h2>Squareness</h2>",
-        _html_table(
-            ["error", "value / urad", "U95 / urad"],
-            [[n, _number(v * 1e6), _number(u * 1e6)] for n, (v, u) in tables.squareness.items()],
-        ),
-        "<h2>ISO 230-2 positioning figures (um)</h2>",
     ]
-    if result.positioning:
-        names = list(result.positioning[0].as_dict())
-        parts.append(
-            _html_table(
-                ["line", "runs", *names],
-                [
-                    [f.line_id, str(f.runs), *(_number(v) for v in f.as_dict().values())]
-                    for f in result.positioning
-                ],
-            )
-        )
-    if result.warnings:
-        parts.append("<h2>Warnings</h2><ul>")
-        parts.extend(f"<li>{html.escape(w)}</li>" for w in result.warnings)
-        parts.append("</ul>")
-    parts.append("<h2>Error motions</h2>")
-    parts.append(
-        "<p>The tables cover the whole travel; beyond the range the lines measured they are"
-        " the linear continuation of the end segment, with a U95 that grows with the"
-        " distance (shaded grey in the plots, <code>range = extrapolated</code> in the"
-        " error-table file).</p>"
-    )
-    parts.append(_html_table(RANGES_HEADER, range_rows(tables)))
-    parts.extend(_png(error_curves_figure(tables, axis)) for axis in AXES)
-    parts.append("<h2>Volumetric error before and after compensation</h2>")
-    parts.append(
-        _png(
-            volumetric_map_figure(
-                machine, tables.model(""), remaining_errors(tables, controller), controller
-            )
-        )
-    )
-    parts.append("<h2>Setup terms and residuals per line</h2>")
-    parts.append(
-        _html_table(
-            [
-                "line",
-                "straightness offset v, w / um",
-                "alignment slope v, w / urad",
-                "angle offsets u, v, w / urad",
-                "residual RMS lin, sv, sw / um",
-                "residual RMS au, av, aw / urad",
-            ],
-            [
-                [
-                    s.line_id + (f" (setup segment {s.segment})" if s.segment else ""),
-                    ", ".join(_number(v, 1) for v in s.straightness_offset_um),
-                    ", ".join(_number(v, 1) for v in s.straightness_slope_urad),
-                    ", ".join(_number(v, 1) for v in s.angle_offset_urad),
-                    ", ".join(_number(v) for v in fit.residual_rms[s.line_id][:3]),
-                    ", ".join(_number(v) for v in fit.residual_rms[s.line_id][3:]),
-                ]
-                for s in fit.setup
-            ],
-        )
-    )
+    parts.extend(_html_table(table) for table in report_tables(machine, result, info))
+    for title, figure in report_figures(machine, result, info, controller):
+        parts.append(f"<h2>{html.escape(title)}</h2>{_png(figure)}")
+    parts.append(_html_table(setup_table(result)))
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def write_report(path: str | Path, machine: Machine, result: PostResult, controller: str) -> None:
-    """Write the HTML report (PNGs embedded)."""
-    atomic_write_text(path, render_report(machine, result, controller))
+# ---------------------------------------------------------------- PDF
+
+
+def _text_lines(table: Table, width: int) -> list[str]:
+    """A table as monospaced lines no wider than ``width`` (cells wrapped when needed)."""
+    cells = [table.header, *table.rows]
+    count = len(table.header)
+    widths = [max(len(row[k]) for row in cells) for k in range(count)]
+    while sum(widths) + 2 * (count - 1) > width and max(widths) > 8:
+        widths[int(np.argmax(widths))] -= 1
+    lines = []
+    for n, row in enumerate(cells):
+        wrapped = [_wrap(cell, w) for cell, w in zip(row, widths, strict=True)]
+        for k in range(max(len(w) for w in wrapped)):
+            parts = [(w[k] if k < len(w) else "").ljust(widths[i]) for i, w in enumerate(wrapped)]
+            lines.append("  ".join(parts).rstrip())
+        if n == 0:
+            lines.append("-" * min(width, sum(widths) + 2 * (count - 1)))
+    return lines
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    words, lines, line = text.split(), [], ""
+    for word in words:
+        while len(word) > width:
+            if line:
+                lines.append(line)
+                line = ""
+            lines.append(word[:width])
+            word = word[width:]
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    lines.append(line)
+    return lines
+
+
+@dataclass
+class _Page:
+    """Monospaced text laid out top to bottom on A4 pages."""
+
+    pdf: PdfPages
+    font_pt: float = 7.0
+    figure: Figure | None = None
+    y_in: float = 0.0
+
+    @property
+    def width_chars(self) -> int:
+        return int((A4_IN[0] - 2 * _MARGIN_IN) * 72 / (0.6 * self.font_pt))
+
+    def _new(self) -> None:
+        self.finish()
+        self.figure = Figure(figsize=A4_IN)
+        self.y_in = A4_IN[1] - _MARGIN_IN
+
+    def finish(self) -> None:
+        if self.figure is not None:
+            self.pdf.savefig(self.figure)
+            self.figure = None
+
+    def write(self, text: str, size: float | None = None, weight: str = "normal") -> None:
+        size = size or self.font_pt
+        step = 1.35 * size / 72
+        if self.figure is None or self.y_in - step < _MARGIN_IN:
+            self._new()
+        assert self.figure is not None
+        self.figure.text(
+            _MARGIN_IN / A4_IN[0],
+            self.y_in / A4_IN[1],
+            text,
+            family="monospace" if weight == "normal" else "sans-serif",
+            fontsize=size,
+            weight=weight,
+            va="top",
+        )
+        self.y_in -= step
+
+    def table(self, table: Table) -> None:
+        self.write("")
+        self.write(table.title, 10, "bold")
+        for line in _text_lines(table, self.width_chars) if table.rows else []:
+            self.write(line)
+        for line in _wrap(table.note, self.width_chars) if table.note else []:
+            self.write(line)
+
+
+def _pages(items: list[tuple[str, Figure]]) -> Iterator[Figure]:
+    """The figures on A4 pages within the margins (their suptitle is the heading)."""
+    for _, figure in items:
+        figure.set_size_inches(*A4_IN)
+        margin_x, margin_y = _MARGIN_IN / A4_IN[0], _MARGIN_IN / A4_IN[1]
+        engine = figure.get_layout_engine()
+        engine.set(rect=(margin_x, margin_y, 1 - 2 * margin_x, 1 - 2 * margin_y))  # type: ignore[union-attr]
+        yield figure
+
+
+def write_pdf(
+    path: str | Path,
+    machine: Machine,
+    result: PostResult,
+    controller: str,
+    info: RecordInfo | None = None,
+) -> None:
+    """Write the report as an A4 PDF (tables first, then one figure per page)."""
+    info = info or RecordInfo()
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    with PdfPages(partial) as pdf:
+        page = _Page(pdf)
+        page.write(f"Calibration of {machine.name}", 14, "bold")
+        for table in report_tables(machine, result, info):
+            page.table(table)
+        page.table(setup_table(result))
+        page.finish()
+        for figure in _pages(report_figures(machine, result, info, controller)):
+            pdf.savefig(figure)
+    partial.replace(path)
+
+
+def write_report(
+    path: str | Path,
+    machine: Machine,
+    result: PostResult,
+    controller: str,
+    info: RecordInfo | None = None,
+) -> None:
+    """Write the report: a PDF when ``path`` ends in ``.pdf``, else HTML (PNGs embedded)."""
+    if Path(path).suffix.lower() == ".pdf":
+        write_pdf(path, machine, result, controller, info)
+    else:
+        atomic_write_text(path, render_report(machine, result, controller, info))

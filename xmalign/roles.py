@@ -154,6 +154,31 @@ class MachineMover(MachinePositionSource, Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class EnvironmentReading:
+    """One reading of a weather station (XC-80 class): NaN where a sensor gave nothing.
+
+    ``material_temp_c`` holds one value per material sensor (up to three), °C.
+    """
+
+    time_s: float
+    air_temp_c: float
+    air_pressure_hpa: float
+    air_humidity_percent: float
+    material_temp_c: tuple[float, ...] = ()
+
+
+@runtime_checkable
+class EnvironmentSource(Protocol):
+    """Where the air and material conditions come from: typed values, a file or a station.
+
+    ``read`` raises :class:`xmalign.errors.DeviceTimeoutError` (or another
+    ``TransportError``) when the source does not answer.
+    """
+
+    def read(self) -> EnvironmentReading: ...
+
+
 def move_axes(
     axes: Sequence[RotaryAxis],
     angles_rad: Sequence[float] | Vec,

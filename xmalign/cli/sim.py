@@ -69,6 +69,10 @@ def serve(
     device_id: Annotated[int, typer.Option(help="Modbus unit id.")] = 1,
     gamma_deg: Annotated[float, typer.Option(help="True launch-unit azimuth, deg.")] = 0.0,
     log_file: LogFileOption = None,
+    station_pty: Annotated[
+        bool,
+        typer.Option(help="Serve a weather station (drifting 22-25 °C shop) on a new pty."),
+    ] = False,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -76,9 +80,11 @@ def serve(
 
     if unit not in ("launch", "receiver"):
         raise InputError(f"--unit '{unit}': expected launch or receiver")
-    if modbus is None and not rtu and canopen is None and not interferometer_pty:
+    nothing = modbus is None and not rtu and canopen is None
+    if nothing and not interferometer_pty and not station_pty:
         raise InputError(
-            "nothing to serve: give --modbus, --rtu, --canopen and/or --interferometer-pty"
+            "nothing to serve: give --modbus, --rtu, --canopen, --interferometer-pty"
+            " and/or --station-pty"
         )
     check_seed(seed)
     if can_hop_limit < 0:
@@ -135,6 +141,11 @@ def serve(
             pty.start()
             servers.callback(pty.stop)
             console.print(f"interferometer on {pty.port}", highlight=False)
+        if station_pty:
+            from sim.environment import serve_station
+
+            port = serve_station(world, servers)
+            console.print(f"weather station on {port}", highlight=False)
         console.print("serving; Ctrl-C to stop", highlight=False)
         while not stopped.wait(0.2):
             pass

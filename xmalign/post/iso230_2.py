@@ -113,3 +113,63 @@ def positioning_figures(
             - np.min(np.minimum(up.mean - 2 * up.std, down.mean - 2 * down.std))
         )
     return PositioningFigures(line_id=line_id, runs=runs, **values)
+
+
+#: ISO 230-2 asks for five runs in each direction (axes up to 2000 mm).
+ISO_230_2_RUNS = 5
+
+
+def runs_note(figures: PositioningFigures) -> str | None:
+    """The report's note when a line has fewer runs than ISO 230-2 asks for, else None."""
+    if figures.runs >= ISO_230_2_RUNS:
+        return None
+    return (
+        f"line {figures.line_id}: {figures.runs} run(s), ISO 230-2 asks for"
+        f" {ISO_230_2_RUNS}; the repeatability and accuracy figures rest on fewer samples"
+        " than the standard assumes"
+    )
+
+
+@dataclass(frozen=True)
+class VdiFigures:
+    """VDI/DGQ 3441 figures of one line, um (NaN where the data cannot give one).
+
+    ``P`` position uncertainty, ``Ps`` maximum position scatter, ``U`` maximum
+    reversal span, ``Pa`` positional deviation.
+    """
+
+    line_id: str
+    P: float = NAN
+    Ps: float = NAN
+    U: float = NAN
+    Pa: float = NAN
+
+    def as_dict(self) -> dict[str, float]:
+        return {"P": self.P, "Ps": self.Ps, "U": self.U, "Pa": self.Pa}
+
+
+def vdi3441_figures(line_id: str, index: np.ndarray, sign: Vec, deviation_um: Vec) -> VdiFigures:
+    """VDI/DGQ 3441 figures from the deviations of one bidirectional line.
+
+    Per target ``j``: mean ``x̄_j = (x̄_j↑ + x̄_j↓)/2``, scatter
+    ``Ps_j = 6·(s_j↑ + s_j↓)/2``, reversal ``U_j = |x̄_j↑ − x̄_j↓|``; then
+    ``Ps = max Ps_j``, ``U = max U_j``, ``Pa = max x̄_j − min x̄_j`` and
+    ``P = max(x̄_j + (U_j + Ps_j)/2) − min(x̄_j − (U_j + Ps_j)/2)``.
+    Arguments as :func:`positioning_figures`; one direction only gives NaN.
+    """
+    n = int(index.max()) + 1
+    if not (np.any(sign > 0) and np.any(sign < 0)):
+        return VdiFigures(line_id)
+    up = _statistics(index[sign > 0], deviation_um[sign > 0], n)
+    down = _statistics(index[sign < 0], deviation_um[sign < 0], n)
+    mean = 0.5 * (up.mean + down.mean)
+    scatter = 6.0 * 0.5 * (up.std + down.std)
+    reversal = np.abs(up.mean - down.mean)
+    half = 0.5 * (reversal + scatter)
+    return VdiFigures(
+        line_id,
+        P=float(np.max(mean + half) - np.min(mean - half)),
+        Ps=float(np.max(scatter)),
+        U=float(np.max(reversal)),
+        Pa=_span(mean),
+    )
