@@ -77,6 +77,13 @@ class Measurement(_Strict):
     angle_allowance_urad: Annotated[float, Field(ge=0)] = 100.0
 
 
+class Compensation(_Strict):
+    """The tool point compensation corrects, and the largest correction allowed."""
+
+    tool_offset_mm: Vector3 = [0.0, 0.0, 0.0]
+    max_correction_um: Positive = 100.0
+
+
 class Machine(_Strict):
     """A machine tool as xmalign sees it; lengths mm, angles as named."""
 
@@ -91,6 +98,7 @@ class Machine(_Strict):
     interferometer: InterferometerRanges = InterferometerRanges()
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
+    compensation: Compensation = Compensation()
 
     @field_validator("chain")
     @classmethod

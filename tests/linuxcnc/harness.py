@@ -205,6 +205,17 @@ def write_sim_config(folder: Path, machine: SimMachine | None = None) -> Path:
     return folder / "sim.ini"
 
 
+def share_with_linuxcnc_user(folder: Path) -> None:
+    """Let the LinuxCNC user write ``folder`` and read every file in it.
+
+    (xmalign writes its files through a private temporary file, mode 0600.)
+    """
+    folder.chmod(0o777)
+    for path in folder.iterdir():
+        if path.is_file():
+            path.chmod(path.stat().st_mode | 0o444)
+
+
 @dataclass
 class LinuxCNCRun:
     """What one LinuxCNC start produced.
@@ -286,6 +297,7 @@ def run_linuxcnc(
     and returns once the instance's processes are gone.
     """
     folder = ini.resolve().parent
+    share_with_linuxcnc_user(folder)
     actions_path, result_path = folder / "harness-actions.json", folder / "harness-result.json"
     actions_path.write_text(json.dumps(list(actions)))
     actions_path.chmod(0o644)

@@ -84,11 +84,21 @@ def comp(
     machine: MachineOption = None,
     controller: Annotated[
         str | None,
-        typer.Option(help=f"One of {', '.join(WRITERS)} (default: the machine file's)."),
+        typer.Option(
+            help=f"One of {', '.join(WRITERS)}, linuxcnc-volumetric (default: the machine file's)."
+        ),
+    ] = None,
+    ini: Annotated[
+        Path | None, typer.Option(help="linuxcnc-volumetric: the machine's LinuxCNC INI file.")
     ] = None,
 ) -> None:
     """Write compensation tables for a CNC controller from an error-table CSV."""
     machine_ = machine_or_default(machine)
+    if controller == "linuxcnc-volumetric":
+        from xmalign.cli.linuxcnc_volumetric import write_volumetric
+
+        write_volumetric(read_error_tables(errors), machine_, ini, out)
+        return
     module = writer(controller or machine_.controller)
     files = module.render(read_error_tables(errors), Chain.parse(machine_.chain))
     for name, text in files.items():
