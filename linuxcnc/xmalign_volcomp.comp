@@ -18,9 +18,13 @@ does not fit makes *loadrt* fail with the file, the line and the reason, so
 LinuxCNC does not start.
 
 Safe limits: while the tool point lies outside the range the tables cover, or
-the correction exceeds the file's bound, *ok* is FALSE, *enable-out* (wired to
-iocontrol.0.emc-enable-in) drops, LinuxCNC goes to E-stop and the correction is
-held at its last value instead of following. Before all joints are homed the
+the correction exceeds the file's bound, *ok* is FALSE and the correction is
+held at its last value instead of following. When *ok* falls the component
+trips: *enable-out* (wired to iocontrol.0.emc-enable-in) drops and LinuxCNC
+goes to E-stop. The operator's E-stop reset (*reset*, wired to
+iocontrol.0.user-request-enable) clears the trip, so the machine can be moved
+back (the correction stays held until the tool point is back where it is
+valid; a new trip needs *ok* to fall again). Before all joints are homed the
 correction is zero. The applied correction moves towards its target at most
 *max-rate* mm/s (no step when homing completes).
 
@@ -34,9 +38,11 @@ pin in float motor_pos_fb_in_#[16 : personality] "the drive's feedback";
 pin out float motor_pos_fb_out_#[16 : personality] "feedback less the correction, to joint.N.motor-pos-fb";
 pin in bit homed "motion.is-all-homed: corrections apply once every joint is homed";
 pin in bit enable_in "the E-stop chain's input (e.g. iocontrol.0.user-enable-out)";
-pin out bit enable_out "enable-in while ok, to iocontrol.0.emc-enable-in";
+pin out bit enable_out "enable-in unless tripped, to iocontrol.0.emc-enable-in";
 pin out bit ok "FALSE while the position is outside the tables or the correction exceeds its bound";
 pin out s32 fault "0 ok, 1 outside the tables, 2 correction beyond the bound";
+pin out bit tripped "set when ok falls; cleared by reset or while enable-in is FALSE";
+pin in bit reset "iocontrol.0.user-request-enable: the operator's E-stop reset clears the trip";
 pin out float correction_#[3] "applied correction X, Y, Z, mm";
 pin out float target_#[3] "model correction at the commanded point X, Y, Z, mm";
 pin in float max_rate = 1.0 "largest rate of change of the applied correction, mm/s";
@@ -82,6 +88,7 @@ static double squareness_rad[3];   /* EC0Y EA0Z EB0Z */
 static double bound_mm;
 static double cover_low_mm[3], cover_high_mm[3];
 static double applied_mm[3];
+static int last_code;
 
 static unsigned long crc32_update(unsigned long crc, const char *text) {
     for (; *text; text++) {
@@ -371,7 +378,12 @@ FUNCTION(_) {
         motor_pos_out(j) = motor_pos_cmd(j) + c;
         motor_pos_fb_out(j) = motor_pos_fb_in(j) - c;
     }
+    if (reset || !enable_in)
+        tripped = 0;
+    else if (code != 0 && last_code == 0)
+        tripped = 1;
+    last_code = code;
     fault = code;
     ok = code == 0;
-    enable_out = enable_in && code == 0;
+    enable_out = enable_in && !tripped;
 }

@@ -278,19 +278,59 @@ def _rewrites(joints: int) -> dict[str, str]:
     return pins
 
 
-def wiring_hal(joints: int) -> str:
-    """The HAL file that wires the motion controller's side of the component."""
+def _sources(joints: int) -> dict[str, str]:
+    """Motion controller output pins the component reads -> the component's input pin."""
+    pins = {
+        "motion.is-all-homed": "homed",
+        "iocontrol.0.user-request-enable": "reset",
+    }
+    for j in range(joints):
+        pins[f"joint.{j}.pos-cmd"] = f"joint-pos-cmd-{j}"
+        pins[f"joint.{j}.motor-pos-cmd"] = f"motor-pos-cmd-{j}"
+    return pins
+
+
+def _signal_of(hal_files: dict[str, str], pin: str) -> str | None:
+    """The signal a ``net`` line of the user's HAL files already puts ``pin`` on.
+
+    InputError when the pin is named otherwise (``linkps`` ...): it cannot be
+    shared safely.
+    """
+    for name, text in hal_files.items():
+        for number, line in enumerate(text.splitlines(), start=1):
+            if not _pin_pattern(pin).search(line.split("#", 1)[0]):
+                continue
+            words = line.split()
+            if words[0] != "net":
+                raise InputError(
+                    f"{name} line {number}: {pin} is wired other than by 'net'; the volumetric"
+                    " compensation needs to read it (use 'net SIGNAL ...')"
+                )
+            return words[1]
+    return None
+
+
+def wiring_hal(joints: int, signals: dict[str, str | None]) -> str:
+    """The HAL file that wires the motion controller's side of the component.
+
+    ``signals`` names, for a pin the user's HAL files already put on a signal,
+    that signal (the component joins it rather than making its own).
+    """
     lines = [
         "# xmalign: motion controller side of the volumetric compensation (xmalign_volcomp)",
-        f"net xmalign-homed motion.is-all-homed => {INSTANCE}.homed",
         f"net xmalign-enable {INSTANCE}.enable-out => iocontrol.0.emc-enable-in",
     ]
+    for pin, component_pin in _sources(joints).items():
+        signal = signals.get(pin)
+        if signal:
+            lines.append(f"net {signal} => {INSTANCE}.{component_pin}")
+        else:
+            own = "xmalign-" + component_pin
+            lines.append(f"net {own} {pin} => {INSTANCE}.{component_pin}")
     for j in range(joints):
-        lines += [
-            f"net xmalign-j{j}-pos joint.{j}.pos-cmd => {INSTANCE}.joint-pos-cmd-{j}",
-            f"net xmalign-j{j}-cmd joint.{j}.motor-pos-cmd => {INSTANCE}.motor-pos-cmd-{j}",
-            f"net xmalign-j{j}-fb {INSTANCE}.motor-pos-fb-out-{j} => joint.{j}.motor-pos-fb",
-        ]
+        lines.append(
+            f"net xmalign-fb-{j} {INSTANCE}.motor-pos-fb-out-{j} => joint.{j}.motor-pos-fb"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -305,13 +345,8 @@ def merge_hal(hal_files: dict[str, str], joints: int, table_path: Path) -> dict[
     loaded = False
     merged = {}
     for name, text in hal_files.items():
-        reserved_pins = [f"joint.{j}.pos-cmd" for j in range(joints)]
-        for reserved in (*reserved_pins, "motion.is-all-homed", COMPONENT):
-            if _pin_pattern(reserved).search(text):
-                raise InputError(
-                    f"{name}: names {reserved}, which the volumetric compensation wires itself"
-                    " (already merged?)"
-                )
+        if _pin_pattern(COMPONENT).search(text):
+            raise InputError(f"{name}: loads {COMPONENT} already (merge the original files)")
         out = []
         for line in text.splitlines():
             for pin, replacement in rewrites.items():
@@ -387,8 +422,9 @@ def merge_config(
     table_text = render_table(tables, chain, coordinates, tool_offset_mm, max_correction_um)
     table_path = out_dir.resolve() / TABLE_FILE
     merged = merge_hal(sources, len(coordinates), table_path)
+    signals = {pin: _signal_of(merged, pin) for pin in _sources(len(coordinates))}
     files = {_merged_name(name): text for name, text in merged.items()}
-    files[WIRING_FILE] = wiring_hal(len(coordinates))
+    files[WIRING_FILE] = wiring_hal(len(coordinates), signals)
     files[TABLE_FILE] = table_text
     ini_name = _merged_name(ini_path.name)
     files[ini_name] = _merged_ini(lines, folder, halfiles)
