@@ -427,17 +427,31 @@ def merge_config(
     files[WIRING_FILE] = wiring_hal(len(coordinates), signals)
     files[TABLE_FILE] = table_text
     ini_name = _merged_name(ini_path.name)
-    files[ini_name] = _merged_ini(lines, folder, halfiles)
-    warnings = _coverage_warnings(lines, parse_table(table_text), ini_path)
+    files[ini_name], warnings = _merged_ini(lines, folder)
+    warnings += _coverage_warnings(lines, parse_table(table_text), ini_path)
     return MergedConfig(files, ini_name, warnings)
 
 
-def _merged_ini(lines: list[IniLine], folder: Path, halfiles: list[str]) -> str:
-    out = []
-    last_halfile = max(i for i, line in enumerate(lines) if line.key == "HALFILE")
+#: Per-joint pitch tables: the component corrects positioning too, so they would count twice.
+PITCH_KEYS = ("COMP_FILE", "COMP_FILE_TYPE")
+
+
+def _merged_ini(lines: list[IniLine], folder: Path) -> tuple[str, list[str]]:
+    """The INI copy's text, and a warning per pitch table it leaves out."""
+    out, warnings = [], []
+    last_halfile = max(
+        i for i, line in enumerate(lines) if line.section == "HAL" and line.key == "HALFILE"
+    )
     for index, line in enumerate(lines):
         if line.section == "HAL" and line.key == "HALFILE":
             out.append(f"HALFILE = {_merged_name(line.value)}")
+        elif line.section.startswith("JOINT_") and line.key in PITCH_KEYS:
+            out.append(f"# xmalign: the volumetric compensation replaces: {line.text.strip()}")
+            if line.key == "COMP_FILE":
+                warnings.append(
+                    f"[{line.section}] COMP_FILE = {line.value} left out of the copy: the"
+                    " volumetric component corrects the positioning error too"
+                )
         elif line.key is not None and line.value:
             absolute = _absolute(line.value, folder)
             out.append(line.text if absolute == line.value else f"{line.key} = {absolute}")
@@ -448,7 +462,7 @@ def _merged_ini(lines: list[IniLine], folder: Path, halfiles: list[str]) -> str:
                 f"# xmalign: volumetric compensation ({TABLE_FILE})",
                 f"HALFILE = {WIRING_FILE}",
             ]
-    return "\n".join(out) + "\n"
+    return "\n".join(out) + "\n", warnings
 
 
 def _coverage_warnings(

@@ -177,6 +177,17 @@ def test_merge_joins_a_signal_the_user_already_has(tmp_path):
     assert f"net x-commanded => {INSTANCE}.joint-pos-cmd-0" in merged.files[WIRING_FILE]
 
 
+def test_merge_leaves_pitch_tables_out_of_the_copy(tmp_path):
+    ini = _config(tmp_path)
+    ini.write_text(ini.read_text() + "COMP_FILE = joint0.comp\nCOMP_FILE_TYPE = 0\n")
+    merged = merge_config(
+        ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60.0, tmp_path
+    )
+    text = merged.files["machine_volcomp.ini"]
+    assert "\nCOMP_FILE" not in text and "replaces: COMP_FILE = joint0.comp" in text
+    assert any("[JOINT_0] COMP_FILE = joint0.comp left out" in w for w in merged.warnings)
+
+
 def test_merge_warns_where_the_joint_limits_pass_the_tables(tmp_path):
     ini = _config(tmp_path, x_min=-10.0)
     merged = merge_config(
