@@ -16,9 +16,11 @@ import time
 import traceback
 
 import hal
+
 import linuxcnc
 
 POLL_S = 0.005
+IDLE_S = 0.05
 
 
 class ActionFailedError(Exception):
@@ -58,11 +60,19 @@ class Display:
             self.wait_for(lambda s: s.task_mode == mode, 5, f"task mode {mode}")
 
     def wait_idle(self, timeout_s):
-        self.wait_for(
-            lambda s: s.interp_state == linuxcnc.INTERP_IDLE and s.inpos and not s.queue,
-            timeout_s,
-            "the interpreter to be idle and the joints in position",
-        )
+        """Until task has taken the last command and stays idle and in position for 50 ms."""
+        serial = self.command.serial
+        self.wait_for(lambda s: s.echo_serial_number >= serial, 5, "task to take the command")
+        settled = []
+
+        def idle(s):
+            if s.interp_state == linuxcnc.INTERP_IDLE and s.inpos and not s.queue:
+                settled.append(time.monotonic())
+                return settled[-1] - settled[0] >= IDLE_S
+            settled.clear()
+            return False
+
+        self.wait_for(idle, timeout_s, "the interpreter to be idle and the joints in position")
 
     # -- actions ---------------------------------------------------------------------
     def op_estop_reset(self, action):

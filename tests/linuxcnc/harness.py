@@ -82,7 +82,8 @@ class SimMachine:
     ``coordinates`` names each joint's axis (``XYZ``; ``XYYZ`` is LinuxCNC's
     gantry with two Y joints). Travel limits (mm) are the same for the axis and
     its joints; every joint is homed where it stands (at 0, which must lie in
-    the travel).
+    the travel). LinuxCNC checks the following error against ``ferror_mm`` in
+    every servo period.
     """
 
     coordinates: str = "XYZ"
@@ -91,6 +92,8 @@ class SimMachine:
     )
     max_velocity_mm_s: float = 1000.0
     max_acceleration_mm_s2: float = 10000.0
+    #: following error limit (FERROR = MIN_FERROR); beyond it LinuxCNC turns the machine off
+    ferror_mm: float = 1.0
 
     @property
     def joints(self) -> int:
@@ -154,8 +157,8 @@ def _ini_text(machine: SimMachine, halfile: str) -> str:
                     "MAX_ACCELERATION": f"{a}",
                     "MIN_LIMIT": f"{low}",
                     "MAX_LIMIT": f"{high}",
-                    "FERROR": "1.0",
-                    "MIN_FERROR": "0.5",
+                    "FERROR": f"{machine.ferror_mm}",
+                    "MIN_FERROR": f"{machine.ferror_mm}",
                     "HOME": "0.0",
                     "HOME_OFFSET": "0.0",
                     "HOME_SEARCH_VEL": "0",

@@ -75,8 +75,12 @@ def _merged(
     max_correction_um: float = 100.0,
     x_tables_to_mm: float | None = None,
 ) -> tuple[Path, VolumetricTable]:
-    """The merged INI of a sim config and the table file it loads."""
-    ini = write_sim_config(folder, replace(SIM, coordinates=coordinates))
+    """The merged INI of a sim config and the table file it loads.
+
+    LinuxCNC turns the machine off on a following error above 1 nm in any servo period.
+    """
+    sim = replace(SIM, coordinates=coordinates, ferror_mm=1e-6)
+    ini = write_sim_config(folder, sim)
     machine = {
         "name": "LinuxCNC sim",
         "chain": chain,
