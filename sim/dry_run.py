@@ -21,12 +21,12 @@ from sim.cnc import SimulatedCnc
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
-from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import UNIT_MOVE_TIMEOUT_S, CalibrationRun, capture_program
-from xmalign.comp import writer as comp_writer
+from xmalign.comp import compensate
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
 from xmalign.formats.measurements import MeasurementWriter, read_measurements
 from xmalign.formats.plan import Plan, write_plan
@@ -320,7 +320,9 @@ def simulate_calibration(
     measurement_plan = plan_measurement(machine, result.to_pose())
     write_plan(workdir / "plan.json", measurement_plan.plan)
     dialect_name = resolve_dialect(machine, options.dialect)
-    program = write_program(measurement_plan.plan, machine, DIALECTS[dialect_name]())
+    program = write_program(
+        measurement_plan.plan, machine, make_dialect(dialect_name, machine, "run")
+    )
     program_path = workdir / f"run{PROGRAM_SUFFIX[dialect_name]}"
     program_path.write_text(program)
 
@@ -341,7 +343,7 @@ def simulate_calibration(
     comp_dir = workdir / "comp"
     comp_dir.mkdir(exist_ok=True)
     chain = Chain.parse(machine.chain)
-    for name, text in comp_writer(machine.controller).render(tables, chain).items():
+    for name, text in compensate(machine, tables, machine.controller).files.items():
         (comp_dir / name).write_text(text)
 
     low, high = measured_strokes(measurement_plan)

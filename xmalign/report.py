@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from xmalign.comp import remaining_errors
+from xmalign.comp import fit_for, remaining_errors
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.geometry import Vec
@@ -163,10 +163,16 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
     parts.append("<h2>Error motions</h2>")
     parts.extend(_png(error_curves_figure(tables, axis)) for axis in AXES)
     parts.append("<h2>Volumetric error before and after compensation</h2>")
+    fit = fit_for(machine, tables, controller)
+    parts.append(
+        f"<p>Predicted over the whole travel at the tool point (RMS, mean offset removed):"
+        f" {fit.before_um:.2f} um before, {fit.after_um:.2f} um after the {controller} tables"
+        f" ({100 * fit.removed_share:.0f} % removed).</p>"
+    )
     parts.append(
         _png(
             volumetric_map_figure(
-                machine, tables.model(""), remaining_errors(tables, controller), controller
+                machine, tables.model(""), remaining_errors(tables, controller, machine), controller
             )
         )
     )

@@ -62,7 +62,7 @@ def held_out_machine(chain: str) -> Machine:
     base.update(
         chain=chain,
         controller="linuxcnc",
-        compensation={"tool_offset_mm": TOOL_OFFSET_MM, "max_correction_um": 200.0},
+        cnc={"tool_offset_mm": TOOL_OFFSET_MM, "max_correction_um": 200.0},
     )
     return Machine.model_validate(base)
 
@@ -123,14 +123,7 @@ def live_corrections(
             )
         travel = {a: tuple(machine.travel_mm[a]) for a in AXES}
         ini = write_sim_config(folder, SimMachine(coordinates="XYZ", travel_mm=travel))
-        merged = merge_config(
-            ini,
-            tables,
-            Chain.parse(machine.chain),
-            machine.compensation.tool_offset_mm,
-            machine.compensation.max_correction_um,
-            folder,
-        )
+        merged = merge_config(ini, tables, machine, folder)
         for name, text in merged.files.items():
             atomic_write_text(folder / name, text)
         names = [f"{INSTANCE}.motor-pos-out-{j}" for j in range(3)]

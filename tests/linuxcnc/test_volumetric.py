@@ -88,7 +88,7 @@ def _merged(
         "feed_mm_min": {"rapid": 8000, "measure": 2000},
         "controller": "linuxcnc",
         "receiver_offset_mm": [0, 0, -100],
-        "compensation": {
+        "cnc": {
             "tool_offset_mm": TOOL_OFFSET_MM,
             "max_correction_um": max_correction_um,
         },

@@ -10,21 +10,13 @@ from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.machine import Machine
-from xmalign.rigid_body import Chain
 
 
 def write_volumetric(tables: ErrorTableSet, machine: Machine, ini: Path | None, out: Path) -> None:
     """Write the component's table file and the merged INI/HAL copies into ``out``."""
     if ini is None:
         raise InputError("--controller linuxcnc-volumetric needs --ini MACHINE.ini")
-    merged = merge_config(
-        ini,
-        tables,
-        Chain.parse(machine.chain),
-        machine.compensation.tool_offset_mm,
-        machine.compensation.max_correction_um,
-        out,
-    )
+    merged = merge_config(ini, tables, machine, out)
     for name, text in merged.files.items():
         atomic_write_text(out / name, text)
     for warning in merged.warnings:

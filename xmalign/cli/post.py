@@ -10,14 +10,15 @@ import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
-from xmalign.cli.common import console, machine_or_default
-from xmalign.comp import WRITERS, writer
+from xmalign.cli.common import console, error_console, machine_or_default
+from xmalign.comp import WRITERS, Compensation, compensate, linuxcnc
+from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
+from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, post_process
-from xmalign.rigid_body import Chain
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -89,21 +90,61 @@ def comp(
         ),
     ] = None,
     ini: Annotated[
-        Path | None, typer.Option(help="linuxcnc-volumetric: the machine's LinuxCNC INI file.")
+        Path | None,
+        typer.Option(
+            help="LinuxCNC: the machine's INI; writes a merged copy (linuxcnc-volumetric: needed)."
+        ),
     ] = None,
 ) -> None:
-    """Write compensation tables for a CNC controller from an error-table CSV."""
+    """Fit the controller's compensation model over the whole travel and write its tables."""
     machine_ = machine_or_default(machine)
-    if controller == "linuxcnc-volumetric":
+    name = controller or machine_.controller
+    if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import write_volumetric
 
         write_volumetric(read_error_tables(errors), machine_, ini, out)
         return
-    module = writer(controller or machine_.controller)
-    files = module.render(read_error_tables(errors), Chain.parse(machine_.chain))
-    for name, text in files.items():
-        atomic_write_text(out / name, text)
-    console.print(f"{module.NAME}: wrote {', '.join(sorted(files))} in {out}")
+    result = compensate(machine_, read_error_tables(errors), name)
+    files = dict(result.files)
+    if ini is not None:
+        files.update(_linuxcnc_ini(name, machine_, result, ini, out))
+    for file_name, text in files.items():
+        atomic_write_text(out / file_name, text)
+    fit = result.fit
+    console.print(
+        f"{name}: wrote {', '.join(sorted(files))} in {out}\n"
+        f"predicted volumetric error over the travel (RMS, both directions): before"
+        f" {fit.before_um:.2f} um, after these tables {fit.after_um:.2f} um"
+        f" ({100 * fit.removed_share:.0f} % removed; {fit.grid_points} grid points)"
+    )
+    if not fit.removes_enough:
+        error_console.print(
+            f"[yellow]warning:[/] {name}'s tables remove less than half of the predicted error"
+            f" ({fit.after_um:.2f} of {fit.before_um:.2f} um left)",
+            highlight=False,
+        )
+
+
+def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, out: Path) -> dict:
+    """The LinuxCNC comp files for the INI's joints and the merged INI (file name -> text)."""
+    if name != linuxcnc.NAME:
+        raise InputError(f"--ini is for the linuxcnc controller, not '{name}'")
+    try:
+        text = ini.read_text(encoding="utf-8")
+    except OSError as error:
+        raise InputError(f"{ini}: cannot read ({error.strerror})") from error
+    joints = linuxcnc.resolve_joints(machine, text.splitlines(), str(ini))
+    files = linuxcnc.render(result.fit, machine, joints)
+    merged = f"{ini.stem}-xmalign{ini.suffix}"
+    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini))
+    for joint in linuxcnc.backlash_joints(text, joints):
+        error_console.print(
+            f"[yellow]warning:[/] {ini}: [JOINT_{joint}] BACKLASH is set; the COMP_FILE's"
+            " reverse column already carries the reversal",
+            highlight=False,
+        )
+    console.print(f"joints {' '.join(joints)}; start LinuxCNC with {out / merged}")
+    return files
 
 
 def register(app: typer.Typer) -> None:

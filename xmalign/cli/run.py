@@ -59,14 +59,14 @@ def _run_sim(
     dialect: str | None,
 ) -> None:
     from sim.dry_run import measure_virtually, virtual_setup
-    from trajectories.gcode import DIALECTS, resolve_dialect
+    from trajectories.gcode import make_dialect, resolve_dialect
     from trajectories.gcode.program import write_program
 
     dialect_name = resolve_dialect(machine, dialect)
     text = (
         program.read_text(encoding="utf-8")
         if program is not None
-        else write_program(plan, machine, DIALECTS[dialect_name]())
+        else write_program(plan, machine, make_dialect(dialect_name, machine))
     )
     setup = virtual_setup(machine, seed)
     done = len(read_measurements(out)) if resume and out.exists() else 0

@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from xmalign.comp.common import directional, table
+from xmalign.comp import linuxcnc
 from xmalign.errors import FormatError, InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.geometry import Vec
+from xmalign.machine import Machine
 from xmalign.rigid_body import (
     AXES,
     MOTION_NAMES,
@@ -83,14 +84,14 @@ def mean_model(tables: ErrorTableSet) -> ErrorTables:
     """The 18 tables as one model: the mean table, or the mean of ``+`` and ``-``."""
     chosen = {}
     for name in MOTION_NAMES:
-        pair = directional(tables, name)
-        if name in tables.tables or pair is None:
-            source = table(tables, name)  # InputError naming a missing table
-            chosen[name] = (source.positions_mm, source.values)
-        else:
-            forward, reverse = pair
+        forward, reverse = tables.tables.get(name + "+"), tables.tables.get(name + "-")
+        if name in tables.tables:
+            chosen[name] = (tables.tables[name].positions_mm, tables.tables[name].values)
+        elif forward is not None and reverse is not None:
             reverse_values = np.interp(forward.positions_mm, reverse.positions_mm, reverse.values)
             chosen[name] = (forward.positions_mm, 0.5 * (forward.values + reverse_values))
+        else:
+            raise InputError(f"the error tables have no {name} (run xmalign post on all six lines)")
     return ErrorTables(chosen, tables.model("").squareness)
 
 
@@ -246,21 +247,24 @@ def ini_value(lines: list[IniLine], section: str, key: str, source: Path) -> str
     return values[0]
 
 
-def joint_coordinates(lines: list[IniLine], source: Path) -> str:
-    """Each joint's axis letter (``XYZ``, ``XYYZ``) of a trivkins INI."""
+def joint_coordinates(lines: list[IniLine], source: Path, machine: Machine) -> str:
+    """Each joint's axis letter (``XYZ``, ``XYYZ``) of a trivkins machine.
+
+    As the pitch tables: the machine file's ``cnc.joints``, else the INI's
+    ``coordinates=`` / ``[TRAJ] COORDINATES``, else X, Y, Z.
+    """
     kinematics = ini_value(lines, "KINS", "KINEMATICS", source).split()
     if not kinematics or kinematics[0] != "trivkins":
         raise InputError(
             f"{source}: [KINS] KINEMATICS is '{' '.join(kinematics)}'; the volumetric component"
             " supports trivkins machines only"
         )
-    joints = int(ini_value(lines, "KINS", "JOINTS", source))
-    given = [w.split("=", 1)[1] for w in kinematics[1:] if w.lower().startswith("coordinates=")]
-    coordinates = (given[0] if given else "XYZABCUVW"[:joints]).upper()
-    if len(coordinates) != joints or set(coordinates) != set(AXES):
+    coordinates = "".join(linuxcnc.resolve_joints(machine, [x.text for x in lines], str(source)))
+    joints = ini_value(lines, "KINS", "JOINTS", source)
+    if not joints.isdigit() or int(joints) != len(coordinates):
         raise InputError(
-            f"{source}: trivkins coordinates '{coordinates}' with JOINTS = {joints}: the component"
-            " needs one joint per letter, only X, Y and Z, each at least once"
+            f"{source}: [KINS] JOINTS = {joints} but {len(coordinates)} joints are mapped"
+            f" ({coordinates})"
         )
     return coordinates
 
@@ -392,17 +396,16 @@ class MergedConfig:
 
 
 def merge_config(
-    ini_path: Path,
-    tables: ErrorTableSet,
-    chain: Chain,
-    tool_offset_mm: ArrayLike,
-    max_correction_um: float,
-    out_dir: Path,
+    ini_path: Path, tables: ErrorTableSet, machine: Machine, out_dir: Path
 ) -> MergedConfig:
-    """The table file, the merged INI and HAL copies and the wiring file for ``out_dir``."""
+    """The table file, the merged INI and HAL copies and the wiring file for ``out_dir``.
+
+    The chain, the tool offset (``cnc.tool_offset_mm``), the bound
+    (``cnc.max_correction_um``) and the joints come from the machine file.
+    """
     lines = read_ini(ini_path)
     folder = ini_path.resolve().parent
-    coordinates = joint_coordinates(lines, ini_path)
+    coordinates = joint_coordinates(lines, ini_path, machine)
     halfiles = ini_values(lines, "HAL", "HALFILE")
     if not halfiles:
         raise InputError(f"{ini_path}: [HAL] HALFILE is missing")
@@ -419,7 +422,13 @@ def merge_config(
             sources[name] = path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(f"{ini_path}: [HAL] HALFILE = {name}: cannot read it ({exc})") from exc
-    table_text = render_table(tables, chain, coordinates, tool_offset_mm, max_correction_um)
+    table_text = render_table(
+        tables,
+        Chain.parse(machine.chain),
+        coordinates,
+        machine.cnc.tool_offset_mm,
+        machine.cnc.max_correction_um,
+    )
     table_path = out_dir.resolve() / TABLE_FILE
     merged = merge_hal(sources, len(coordinates), table_path)
     signals = {pin: _signal_of(merged, pin) for pin in _sources(len(coordinates))}

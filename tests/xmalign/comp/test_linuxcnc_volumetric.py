@@ -72,6 +72,20 @@ def _tables(rng: np.random.Generator, n: int = 9) -> ErrorTableSet:
     return result
 
 
+def _machine(chain: str = "FYXZ", **cnc):
+    return parse_machine(
+        {
+            "name": "test",
+            "chain": chain,
+            "travel_mm": {axis: list(limits) for axis, limits in TRAVEL.items()},
+            "feed_mm_min": {"rapid": 8000, "measure": 2000},
+            "controller": "linuxcnc",
+            "receiver_offset_mm": [0, 0, -100],
+            "cnc": {"tool_offset_mm": OFFSET, "max_correction_um": 60.0, **cnc},
+        }
+    )
+
+
 def _config(folder: Path, coordinates: str = "XYYZ", x_min: float = 0.0, hal: str | None = None):
     joints = len(coordinates)
     loops = "".join(
@@ -137,9 +151,7 @@ def test_a_bidirectional_table_enters_as_the_mean_of_both_directions():
 
 def test_merge_rewires_the_drives_through_the_component(tmp_path):
     ini = _config(tmp_path)
-    merged = merge_config(
-        ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60.0, tmp_path / "out"
-    )
+    merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path / "out")
     hal = merged.files["machine_volcomp.hal"].splitlines()
     motion = hal.index("addf motion-controller servo-thread")
     assert (
@@ -171,18 +183,14 @@ def test_merge_joins_a_signal_the_user_already_has(tmp_path):
     )
     extra = "net x-commanded joint.0.pos-cmd => some.display\n"
     ini = _config(tmp_path, "XYZ", hal=HAL + loops + extra)
-    merged = merge_config(
-        ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60.0, tmp_path
-    )
+    merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path)
     assert f"net x-commanded => {INSTANCE}.joint-pos-cmd-0" in merged.files[WIRING_FILE]
 
 
 def test_merge_leaves_pitch_tables_out_of_the_copy(tmp_path):
     ini = _config(tmp_path)
     ini.write_text(ini.read_text() + "COMP_FILE = joint0.comp\nCOMP_FILE_TYPE = 0\n")
-    merged = merge_config(
-        ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60.0, tmp_path
-    )
+    merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path)
     text = merged.files["machine_volcomp.ini"]
     assert "\nCOMP_FILE" not in text and "replaces: COMP_FILE = joint0.comp" in text
     assert any("[JOINT_0] COMP_FILE = joint0.comp left out" in w for w in merged.warnings)
@@ -190,9 +198,7 @@ def test_merge_leaves_pitch_tables_out_of_the_copy(tmp_path):
 
 def test_merge_warns_where_the_joint_limits_pass_the_tables(tmp_path):
     ini = _config(tmp_path, x_min=-10.0)
-    merged = merge_config(
-        ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60.0, tmp_path
-    )
+    merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path)
     assert len(merged.warnings) == 1 and "[JOINT_0] limits -10 .. 400 mm" in merged.warnings[0]
 
 
@@ -220,15 +226,21 @@ def test_merge_refuses_what_it_cannot_wire(tmp_path, edit, message):
     ini.write_text(ini_text)
     (tmp_path / "machine.hal").write_text(hal_text)
     with pytest.raises(InputError, match=message.replace("[", r"\[")):
-        merge_config(
-            ini, _tables(np.random.default_rng(3)), Chain.parse("FYXZ"), OFFSET, 60, tmp_path
-        )
+        merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path)
 
 
 def test_joint_coordinates_default_to_trivkins_identity(tmp_path):
     ini = _config(tmp_path, "XYZ")
     ini.write_text(ini.read_text().replace(" coordinates=XYZ kinstype=BOTH", ""))
-    assert joint_coordinates(read_ini(ini), ini) == "XYZ"
+    assert joint_coordinates(read_ini(ini), ini, _machine()) == "XYZ"
+
+
+def test_joints_from_the_machine_file_when_the_ini_has_none(tmp_path):
+    ini = _config(tmp_path, "XYYZ")
+    ini.write_text(ini.read_text().replace(" coordinates=XYYZ kinstype=BOTH", ""))
+    assert joint_coordinates(read_ini(ini), ini, _machine(joints=list("XYYZ"))) == "XYYZ"
+    with pytest.raises(InputError, match="JOINTS = 4 but 3 joints"):
+        joint_coordinates(read_ini(ini), ini, _machine())
 
 
 def test_cli_writes_the_merged_configuration(tmp_path):
@@ -256,9 +268,9 @@ def test_cli_without_ini_is_one_line_error(tmp_path):
     assert_one_line_error(result, "--ini")
 
 
-def test_machine_file_compensation_section(reference_machine):
+def test_machine_file_bound_of_the_correction(reference_machine):
     data = reference_machine.model_dump()
-    assert data["compensation"] == {"tool_offset_mm": [0.0, 0.0, 0.0], "max_correction_um": 100.0}
-    data["compensation"] = {"tool_offset_mm": [0, 0, -120], "max_correction_um": 0}
-    with pytest.raises(InputError, match="compensation.max_correction_um"):
+    assert data["cnc"]["max_correction_um"] == 100.0
+    data["cnc"]["max_correction_um"] = 0
+    with pytest.raises(InputError, match="cnc.max_correction_um"):
         parse_machine(data, "m.yaml")
