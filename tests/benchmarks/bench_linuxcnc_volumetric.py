@@ -10,8 +10,9 @@ travel, after removing a rigid motion (which no table can see), for:
 
 - no compensation;
 - pitch-only ``COMP_FILE`` (the files ``xmalign comp --controller linuxcnc``
-  writes, applied as LinuxCNC does: correction = nominal - actual at the
-  commanded position, mean of both directions);
+  writes, pitch tables fitted to the predicted field over the travel, applied
+  as LinuxCNC does: correction = nominal - actual at the commanded position,
+  mean of both directions);
 - the full fitted model, applied ideally (joints at ``k + c``, ``c = -dp(k + c)``);
 - the component: the same model read back from the table file it loads.
 
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.machine import VirtualMachine
-from xmalign.comp import linuxcnc
+from xmalign.comp import compensate, linuxcnc
 from xmalign.comp.linuxcnc_volumetric import (
     INSTANCE,
     correction_mm,
@@ -83,15 +84,15 @@ def residual_um(
     return float(np.sqrt(np.mean(lengths**2))), float(lengths.max())
 
 
-def pitch_correction(tables: ErrorTableSet, chain: Chain, points_mm: np.ndarray) -> np.ndarray:
+def pitch_correction(machine: Machine, tables: ErrorTableSet, points_mm: np.ndarray) -> np.ndarray:
     """What LinuxCNC's COMP_FILE type 0 applies: nominal - actual (mean of both columns)."""
-    files = linuxcnc.render(tables, chain)
+    files = compensate(machine, tables, linuxcnc.NAME).files
     correction = np.zeros_like(points_mm)
     for axis in AXES:
         i = AXIS_INDEX[axis]
-        rows = np.array([line.split() for line in files[f"joint{i}.comp"].splitlines()], float)
-        nominal, actual = rows[:, 0], 0.5 * (rows[:, 1] + rows[:, 2])
-        correction[:, i] = np.interp(points_mm[:, i], nominal, nominal - actual)
+        rows = np.array([line.split() for line in files[linuxcnc.comp_file(axis)].splitlines()])
+        nominal, forward, reverse = rows.astype(float).T
+        correction[:, i] = np.interp(points_mm[:, i], nominal, nominal - 0.5 * (forward + reverse))
     return correction
 
 
@@ -163,7 +164,7 @@ def run() -> float:
         figures = {
             "none": residual_um(chain, truth, points, np.zeros_like(points)),
             "pitch COMP_FILE": residual_um(
-                chain, truth, points, pitch_correction(tables, chain, points)
+                chain, truth, points, pitch_correction(machine, tables, points)
             ),
             "full model": residual_um(
                 chain, truth, points, correction_mm(chain, fitted, TOOL_OFFSET_MM, points)
