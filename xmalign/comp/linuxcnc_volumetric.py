@@ -430,6 +430,8 @@ def merge_config(
         machine.cnc.max_correction_um,
     )
     table_path = out_dir.resolve() / TABLE_FILE
+    if any(c.isspace() for c in str(table_path)):
+        raise InputError(f"{table_path}: HAL's loadrt cannot take a path with spaces; use --out")
     merged = merge_hal(sources, len(coordinates), table_path)
     signals = {pin: _signal_of(merged, pin) for pin in _sources(len(coordinates))}
     files = {_merged_name(name): text for name, text in merged.items()}
