@@ -9,12 +9,14 @@ component's pins.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+import harness
 import numpy as np
 import pytest
 import yaml
@@ -278,3 +280,62 @@ def test_a_damaged_table_file_stops_linuxcnc_with_the_file_and_the_reason(compon
     assert run.report is None, "the display ran: LinuxCNC started with a damaged table"
     assert f"xmalign_volcomp: {table.resolve()} line {len(lines)}: CRC-32 mismatch" in run.output
     assert run.returncode != 0
+
+
+UPSTREAM_GANTRY = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/gantry")
+
+
+@pytest.mark.skipif(
+    not (UPSTREAM_GANTRY / "gantry_mm.hal").exists(), reason="LinuxCNC's sample configs missing"
+)
+def test_merge_of_linuxcncs_own_gantry_sample_config(component, linuxcnc_dir):
+    """LinuxCNC's gantry_mm sample (HAL file as shipped; INI: our display, faster moves)."""
+    for name in ("gantry_mm.hal", "gantry_mm.tbl"):
+        shutil.copy(UPSTREAM_GANTRY / name, linuxcnc_dir)
+    ini_text = (UPSTREAM_GANTRY / "gantry_mm.ini").read_text()
+    ini_text = ini_text.replace("DISPLAY = axis", "DISPLAY = ./display.py")
+    ini_text = re.sub(r"(?m)^INTRO_GRAPHIC = .*$", "", ini_text)  # a Tk splash: no X here
+    for key in ("MAX_VELOCITY", "MAX_LINEAR_VELOCITY", "DEFAULT_LINEAR_VELOCITY"):
+        ini_text = re.sub(rf"(?m)^{key} = .*$", f"{key} = 1000", ini_text)
+    ini_text = re.sub(r"(?m)^(MAX|DEFAULT)(_LINEAR)?_ACCELERATION = .*$", r"\g<0>0", ini_text)
+    (linuxcnc_dir / "gantry_mm.ini").write_text(ini_text)
+    shutil.copy(harness.DISPLAY_SCRIPT, linuxcnc_dir / "display.py")
+    (linuxcnc_dir / "display.py").chmod(0o755)
+    machine = {
+        "name": "LinuxCNC gantry_mm sample",
+        "chain": "FYXZ",
+        "travel_mm": {"X": [0, 400], "Y": [0, 2000], "Z": [0, 100]},
+        "feed_mm_min": {"rapid": 8000, "measure": 2000},
+        "controller": "linuxcnc",
+        "receiver_offset_mm": [0, 0, -100],
+        "cnc": {"tool_offset_mm": TOOL_OFFSET_MM},
+    }
+    (linuxcnc_dir / "machine.yaml").write_text(yaml.safe_dump(machine))
+    truth = VirtualMachine(parse_machine(machine), seed=11)
+    write_error_tables(linuxcnc_dir / "errors.csv", truth.truth_tables(50.0))
+    out = linuxcnc_dir / "merged"
+    result = run_cli(
+        "comp",
+        *("--errors", str(linuxcnc_dir / "errors.csv"), "--out", str(out)),
+        *("--machine", str(linuxcnc_dir / "machine.yaml"), "--controller", "linuxcnc-volumetric"),
+        *("--ini", str(linuxcnc_dir / "gantry_mm.ini")),
+    )
+    assert result.returncode == 0, result.stderr
+    volumetric = parse_table((out / TABLE_FILE).read_text())
+    points = np.array([[350.0, 1800.0, 20.0], [50.0, 700.0, 90.0]])
+    actions = standard_start()
+    for i, point in enumerate(points):
+        actions += [
+            _goto(point, f"go{i}"),
+            {"op": "pins", "names": _pin_names(4), "label": f"at{i}"},
+        ]
+
+    run = run_linuxcnc(out / "gantry_mm_volcomp.ini", actions)
+
+    expected = correction_mm(volumetric.chain, volumetric.model, volumetric.tool_offset_mm, points)
+    assert np.abs(expected).max() > 0.010
+    for i in range(len(points)):
+        pins = run.value(f"at{i}")
+        for j, axis in enumerate("XYYZ"):
+            applied = pins[f"{INSTANCE}.motor-pos-out-{j}"] - pins[f"joint.{j}.motor-pos-cmd"]
+            assert applied == pytest.approx(expected[i, "XYZ".index(axis)], abs=TOLERANCE_MM)
