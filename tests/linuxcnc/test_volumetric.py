@@ -13,7 +13,7 @@ import re
 import shutil
 import subprocess
 import tempfile
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import harness
@@ -34,12 +34,17 @@ from sim.machine import VirtualMachine
 from xmalign.comp.linuxcnc_volumetric import (
     INSTANCE,
     TABLE_FILE,
-    VolumetricTable,
     correction_mm,
-    parse_table,
+    mean_model,
 )
-from xmalign.formats.error_tables import ErrorTableSet, Table, write_error_tables
+from xmalign.formats.error_tables import (
+    ErrorTableSet,
+    Table,
+    read_error_tables,
+    write_error_tables,
+)
 from xmalign.machine import parse_machine
+from xmalign.rigid_body import Chain
 
 pytestmark = pytest.mark.linuxcnc
 
@@ -50,6 +55,19 @@ SIM = SimMachine()
 TOOL_OFFSET_MM = [10.0, -5.0, -120.0]
 #: 0.1 um, the required agreement of the pins with the model
 TOLERANCE_MM = 1e-4
+
+
+@dataclass(frozen=True)
+class Model:
+    """The rigid-body model of an error file, as xmalign.rigid_body predicts it."""
+
+    chain: Chain
+    errors: Path
+
+    def correction(self, points_mm: np.ndarray | list[float]) -> np.ndarray:
+        """Corrections at commanded points (N, 3), mm."""
+        tables = mean_model(read_error_tables(self.errors))
+        return correction_mm(self.chain, tables, TOOL_OFFSET_MM, points_mm)
 
 
 @pytest.fixture(scope="module")
@@ -68,21 +86,16 @@ def component() -> None:
         pytest.skip("xmalign_volcomp is not installed and cannot be (not root or no halcompile)")
 
 
-def _merged(
+def _machine_and_errors(
     folder: Path,
-    coordinates: str,
     chain: str,
     *,
     seed: int = 7,
     max_correction_um: float = 100.0,
     x_tables_to_mm: float | None = None,
-) -> tuple[Path, VolumetricTable]:
-    """The merged INI of a sim config and the table file it loads.
-
-    LinuxCNC turns the machine off on a following error above 1 nm in any servo period.
-    """
-    sim = replace(SIM, coordinates=coordinates, ferror_mm=1e-6)
-    ini = write_sim_config(folder, sim)
+) -> Model:
+    """A machine file and a virtual machine's error tables (25 mm) in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
     machine = {
         "name": "LinuxCNC sim",
         "chain": chain,
@@ -90,16 +103,23 @@ def _merged(
         "feed_mm_min": {"rapid": 8000, "measure": 2000},
         "controller": "linuxcnc",
         "receiver_offset_mm": [0, 0, -100],
-        "cnc": {
-            "tool_offset_mm": TOOL_OFFSET_MM,
-            "max_correction_um": max_correction_um,
-        },
+        "cnc": {"tool_offset_mm": TOOL_OFFSET_MM, "max_correction_um": max_correction_um},
     }
     (folder / "machine.yaml").write_text(yaml.safe_dump(machine))
     tables = VirtualMachine(parse_machine(machine), seed=seed).truth_tables(25.0)
     if x_tables_to_mm is not None:
         tables = _cut_x_tables(tables, x_tables_to_mm)
     write_error_tables(folder / "errors.csv", tables)
+    return Model(Chain.parse(chain), folder / "errors.csv")
+
+
+def _merged(folder: Path, coordinates: str, chain: str, **machine: float) -> tuple[Path, Model]:
+    """The merged INI of a sim config, and the model of the error tables it loads.
+
+    LinuxCNC turns the machine off on a following error above 1 nm in any servo period.
+    """
+    ini = write_sim_config(folder, replace(SIM, coordinates=coordinates, ferror_mm=1e-6))
+    model = _machine_and_errors(folder, chain, **machine)
     out = folder / "merged"
     result = run_cli(
         "comp",
@@ -108,7 +128,7 @@ def _merged(
         *("--ini", str(ini)),
     )
     assert result.returncode == 0, result.stderr
-    return out / "sim_volcomp.ini", parse_table((out / TABLE_FILE).read_text())
+    return out / "sim_volcomp.ini", model
 
 
 def _cut_x_tables(tables: ErrorTableSet, high_mm: float) -> ErrorTableSet:
@@ -181,7 +201,7 @@ def test_corrections_at_the_pins_equal_the_model_and_add_no_following_error(
 
     run = run_linuxcnc(ini, actions)
 
-    expected = correction_mm(volumetric.chain, volumetric.model, volumetric.tool_offset_mm, points)
+    expected = volumetric.correction(points)
     assert np.max(np.abs(expected)) > 0.010  # the machine's errors are tens of um
     for i, point in enumerate(points):
         pins = run.value(f"at{i}")
@@ -223,8 +243,7 @@ def test_leaving_the_tables_trips_the_estop_and_holds_the_correction(component, 
     )
 
     def model(point: list[float] | np.ndarray) -> np.ndarray:
-        chain, tables, offset = volumetric.chain, volumetric.model, volumetric.tool_offset_mm
-        return correction_mm(chain, tables, offset, point)[0]
+        return volumetric.correction(point)[0]
 
     outside = run.value("outside")
     assert outside[f"{INSTANCE}.fault"] == 1 and outside[f"{INSTANCE}.tripped"]
@@ -246,9 +265,9 @@ def test_leaving_the_tables_trips_the_estop_and_holds_the_correction(component, 
 def test_a_correction_beyond_the_bound_trips_the_estop_before_it_is_applied(
     component, linuxcnc_dir
 ):
-    _, probe = _merged(linuxcnc_dir / "probe", "XYZ", "XFYZ")
+    probe = _machine_and_errors(linuxcnc_dir / "probe", "XFYZ")
     grid = _points(100, seed=5)
-    largest = np.abs(correction_mm(probe.chain, probe.model, probe.tool_offset_mm, grid)).max(1)
+    largest = np.abs(probe.correction(grid)).max(1)
     worst = grid[np.argmax(largest)]
     bound_um = float(0.8 * largest.max() * 1e3)
     ini, _ = _merged(linuxcnc_dir, "XYZ", "XFYZ", max_correction_um=bound_um)
@@ -321,7 +340,7 @@ def test_merge_of_linuxcncs_own_gantry_sample_config(component, linuxcnc_dir):
         *("--ini", str(linuxcnc_dir / "gantry_mm.ini")),
     )
     assert result.returncode == 0, result.stderr
-    volumetric = parse_table((out / TABLE_FILE).read_text())
+    volumetric = Model(Chain.parse("FYXZ"), linuxcnc_dir / "errors.csv")
     points = np.array([[350.0, 1800.0, 20.0], [50.0, 700.0, 90.0]])
     actions = standard_start()
     for i, point in enumerate(points):
@@ -332,7 +351,7 @@ def test_merge_of_linuxcncs_own_gantry_sample_config(component, linuxcnc_dir):
 
     run = run_linuxcnc(out / "gantry_mm_volcomp.ini", actions)
 
-    expected = correction_mm(volumetric.chain, volumetric.model, volumetric.tool_offset_mm, points)
+    expected = volumetric.correction(points)
     assert np.abs(expected).max() > 0.010
     for i in range(len(points)):
         pins = run.value(f"at{i}")
