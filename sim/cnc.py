@@ -14,8 +14,11 @@ line; only then does it execute, yielding a :class:`CncEvent` at every
 operator message, programmed stop and dwell (the dwell time runs after the
 consumer resumes the generator, counted from the dwell's start).
 
-Coordinates are CNC coordinates of the tool point (mm); the machine's
-geometric errors are not applied here.
+Coordinates are CNC (machine) coordinates of the tool point (mm); the
+machine's geometric errors are not applied here. Programs may move in machine
+coordinates (``G53``, ``SUPA``, ``M91``) or in a work offset they set
+themselves (``G10 L2``, ``$P_UIFR[n]=CTRANS(..)``, then ``G54`` .. ``G59``);
+all work offsets start at zero, as if the machine's were cleared.
 """
 
 from __future__ import annotations
@@ -158,6 +161,8 @@ class _Reader:
         self.comment = ""
         self.steps: list[_Step] = []
         self.ended = False
+        self.work_offsets = {n: np.zeros(3) for n in range(1, 7)}
+        self.active_offset = 1
 
     def fail(self, line_no: int, reason: str) -> InputError:
         return InputError(f"program line {line_no}: {reason}")
@@ -167,10 +172,14 @@ class _Reader:
             raise self.fail(line_no, f"feed F{value:g} must be greater than zero")
         self.feed = value
 
-    def move(self, line_no: int, axes: dict[str, float], rapid: bool) -> None:
+    def move(
+        self, line_no: int, axes: dict[str, float], rapid: bool, machine: bool = False
+    ) -> None:
+        """Move to ``axes`` (program coordinates, or machine coordinates with ``machine``)."""
         target = self.position.copy()
+        offset = np.zeros(3) if machine else self.work_offsets[self.active_offset]
         for axis, value in axes.items():
-            target[AXES.index(axis)] = value
+            target[AXES.index(axis)] = value + offset[AXES.index(axis)]
         if not self.machine.within_travel(target):
             raise self.fail(
                 line_no,
@@ -201,7 +210,11 @@ class _Reader:
 _WORD = re.compile(r"\s*([A-Z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 _METRIC = {"iso": {21}, "linuxcnc": {21}, "sinumerik": {71, 710}}
 _INCH = {"iso": {20}, "linuxcnc": {20}, "sinumerik": {70, 700}}
-_MODAL_NOOPS = {17, 90, 94}
+_MODAL_NOOPS = {17, 40, 49, 80, 90, 94}
+#: Work offset selection: G54 .. G59 -> 1 .. 6.
+_WORK_OFFSETS = {54: 1, 55: 2, 56: 3, 57: 4, 58: 5, 59: 6}
+#: G-codes with a decimal point that only suspend offsets the simulator has not got.
+_DECIMAL_NOOPS = {"linuxcnc": {"92.2"}}
 #: Words that give the dwell time: Fanuc P ms or X s, LinuxCNC P s, Sinumerik F s.
 _DWELL_WORDS = {"iso": ("P", "X"), "linuxcnc": ("P",), "sinumerik": ("F",)}
 
@@ -237,8 +250,24 @@ def _dwell_seconds(dialect: str, line_no: int, words: dict[str, str], reader: _R
     return float(value)
 
 
-def _word_block(dialect: str, line_no: int, code: str, reader: _Reader) -> None:
+def _set_work_offset(line_no: int, words: dict[str, str], reader: _Reader) -> None:
+    """``G10 L2 P<n> X.. Y.. Z.. [R0]``: the origin of work offset n in machine mm."""
+    if words.get("L") != "2" or "P" not in words or int(float(words["P"])) not in range(1, 7):
+        raise reader.fail(line_no, "G10 needs L2 and P1 .. P6 (work offset origin)")
+    if float(words.get("R", "0")) != 0.0 or set(words) - {"L", "P", "R", "X", "Y", "Z"}:
+        raise reader.fail(line_no, "G10 L2 takes X, Y, Z (and R0) only")
+    offset = reader.work_offsets[int(float(words["P"]))]
+    for axis in AXES:
+        if axis in words:
+            offset[AXES.index(axis)] = float(words[axis])
+
+
+def _word_block(
+    dialect: str, line_no: int, code: str, reader: _Reader, machine: bool = False
+) -> None:
     pairs = _split_words(line_no, code, reader)
+    noops = _DECIMAL_NOOPS.get(dialect, set())
+    pairs = [(letter, v) for letter, v in pairs if not (letter == "G" and v in noops)]
     if not pairs:
         return
     g_codes = [_g_number(line_no, v, reader) for letter, v in pairs if letter == "G"]
@@ -253,15 +282,28 @@ def _word_block(dialect: str, line_no: int, code: str, reader: _Reader) -> None:
     for g in g_codes:
         if g in _INCH[dialect]:
             raise reader.fail(line_no, f"G{g}: inch units are not supported, program in mm")
-        if g not in {0, 1, 4} | _METRIC[dialect] | _MODAL_NOOPS:
+        known = {0, 1, 4, 10, 52, 53} | _METRIC[dialect] | _MODAL_NOOPS | set(_WORK_OFFSETS)
+        if g not in known or (dialect == "sinumerik" and g in (10, 52, 53)):
             raise reader.fail(line_no, f"unsupported G{g}")
-    if 4 in g_codes:
+        if g in _WORK_OFFSETS:
+            reader.active_offset = _WORK_OFFSETS[g]
+    machine = machine or 53 in g_codes
+    if 10 in g_codes:
+        _set_work_offset(line_no, words, reader)
+    elif 52 in g_codes:
+        if any(float(words.get(axis, "0")) != 0.0 for axis in AXES) or set(words) - set(AXES):
+            raise reader.fail(
+                line_no, "G52 local coordinate systems are not supported (only X0 Y0 Z0)"
+            )
+    elif 4 in g_codes:
         seconds = _dwell_seconds(dialect, line_no, words, reader)
         extra = set(words) - set(_DWELL_WORDS[dialect])
         if extra or {0, 1} & set(g_codes):
             raise reader.fail(line_no, "a dwell must stand alone in its block")
         reader.dwell(line_no, seconds)
     else:
+        if dialect == "sinumerik" and words.get("D") == "0":
+            del words["D"]  # D0: tool offset off
         unknown = set(words) - {"X", "Y", "Z", "F"}
         if unknown:
             raise reader.fail(line_no, f"unknown word {sorted(unknown)[0]}")
@@ -274,7 +316,7 @@ def _word_block(dialect: str, line_no: int, code: str, reader: _Reader) -> None:
         if axes:
             if reader.motion is None:
                 raise reader.fail(line_no, "axis words without G0 or G1")
-            reader.move(line_no, axes, rapid=reader.motion == 0)
+            reader.move(line_no, axes, rapid=reader.motion == 0, machine=machine)
     for m in m_codes:
         if m in (2, 30):
             reader.end(line_no)
@@ -286,6 +328,12 @@ def _word_block(dialect: str, line_no: int, code: str, reader: _Reader) -> None:
 
 _PAREN = re.compile(r"\(([^()]*)\)")
 _SINUMERIK_MSG = re.compile(r'MSG\s*\(\s*(?:"([^"]*)")?\s*\)', re.IGNORECASE)
+_SINUMERIK_SUPA = re.compile(r"\bSUPA\b", re.IGNORECASE)
+_SINUMERIK_FRAME = re.compile(
+    r"\s*\$P_UIFR\[([1-6])\]\s*=\s*CTRANS\(\s*X\s*,\s*([-+.\d]+)\s*,\s*Y\s*,\s*([-+.\d]+)"
+    r"\s*,\s*Z\s*,\s*([-+.\d]+)\s*\)\s*",
+    re.IGNORECASE,
+)
 
 
 def _read_parenthesised(dialect: str, line_no: int, text: str, reader: _Reader) -> str:
@@ -316,7 +364,15 @@ def _read_word_program(dialect: str, lines: list[str], reader: _Reader) -> None:
                 if message.group(1):
                     reader.steps.append(_Message(line_no, message.group(1)))
                 code = _SINUMERIK_MSG.sub(" ", code)
+            frame = _SINUMERIK_FRAME.fullmatch(code)
+            if frame:
+                origin = [float(v) for v in frame.groups()[1:]]
+                reader.work_offsets[int(frame.group(1))] = np.array(origin)
+                continue
+            machine = bool(_SINUMERIK_SUPA.search(code))
+            code = _SINUMERIK_SUPA.sub(" ", code)
         else:
+            machine = False
             code = _read_parenthesised(dialect, line_no, text, reader)
             if dialect == "linuxcnc":
                 code, _, comment = code.partition(";")
@@ -324,7 +380,7 @@ def _read_word_program(dialect: str, lines: list[str], reader: _Reader) -> None:
                     reader.comment = comment.strip()
             if dialect == "iso" and re.fullmatch(r"\s*O\d+\s*", code) and not reader.steps:
                 continue
-        _word_block(dialect, line_no, code, reader)
+        _word_block(dialect, line_no, code, reader, machine)
 
 
 # ---------------------------------------------------------------- Heidenhain conversational
@@ -352,7 +408,7 @@ def _heidenhain_l_block(line_no: int, tokens: list[str], reader: _Reader) -> Non
         else:
             raise reader.fail(line_no, f"unknown word '{token}' in L block")
     if axes:
-        reader.move(line_no, axes, rapid=rapid)
+        reader.move(line_no, axes, rapid=rapid, machine="M91" in tokens)
     _heidenhain_m(line_no, [t for t in tokens if re.fullmatch(r"M\d+", t)], reader)
 
 
@@ -363,7 +419,7 @@ def _heidenhain_m(line_no: int, tokens: list[str], reader: _Reader) -> None:
             reader.steps.append(_End(line_no))
         elif m in (0, 1):
             reader.steps.append(_Stop(line_no))
-        else:
+        elif m != 91:  # M91: coordinates refer to the machine datum (those of the simulator)
             raise reader.fail(line_no, f"unsupported {token}")
 
 
@@ -399,6 +455,8 @@ def _read_heidenhain(lines: list[str], reader: _Reader) -> None:
                 raise reader.fail(line_no, "expected CYCL DEF 9.0 DWELL TIME, then 9.1 DWELL <s>")
             reader.dwell(line_no, float(dwell.group(1)))
             dwell_defined = False
+        elif content == "TOOL CALL 0 Z":
+            continue  # tool of length 0: no tool length compensation
         elif content == "STOP" or content.startswith("STOP "):
             reader.steps.append(_Stop(line_no))
             _heidenhain_m(line_no, content.split()[1:], reader)

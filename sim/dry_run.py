@@ -20,7 +20,7 @@ from sim.cnc import SimulatedCnc
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
-from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
@@ -31,8 +31,9 @@ from xmalign.calibration import (
     capture_program,
     open_run_output,
 )
-from xmalign.comp import writer as comp_writer
+from xmalign.comp import compensate
 from xmalign.errors import InputError
+from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
@@ -334,7 +335,7 @@ def simulate_calibration(
     # as `xmalign run --resume --plan plan.json` will read it (the same plan identity)
     plan = read_plan(workdir / "plan.json")
     dialect_name = resolve_dialect(machine, options.dialect)
-    program = write_program(plan, machine, DIALECTS[dialect_name]())
+    program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
     program_path = workdir / f"run{PROGRAM_SUFFIX[dialect_name]}"
     program_path.write_text(program)
 
@@ -354,11 +355,11 @@ def simulate_calibration(
     setup.world.machine.write_truth_tables(str(workdir / "truth.csv"), 50.0)
 
     stage("comp")
-    comp_dir = workdir / "comp"
-    comp_dir.mkdir(exist_ok=True)
     chain = Chain.parse(machine.chain)
-    for name, text in comp_writer(machine.controller).render(tables, chain).items():
-        (comp_dir / name).write_text(text)
+    compensation = compensate(machine, tables, machine.controller)
+    atomic_write_files(
+        {workdir / "comp" / name: text.encode() for name, text in compensation.files.items()}
+    )
 
     low, high = measured_strokes(measurement_plan)
     points = grid_points(low, high)
@@ -383,6 +384,6 @@ def simulate_calibration(
             "measurements": workdir / "measurements.csv",
             "errors": workdir / "errors.csv",
             "truth": workdir / "truth.csv",
-            "comp": comp_dir,
+            "comp": workdir / "comp",
         },
     )

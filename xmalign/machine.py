@@ -132,6 +132,58 @@ class Measurement(_Strict):
     angle_allowance_urad: Allowance_urad = 100.0
 
 
+AxisName = Literal["X", "Y", "Z"]
+
+
+class WorkOffset(_Strict):
+    """A work offset the programs run in: ``code`` (G54 .. G59) and its origin in machine mm."""
+
+    code: Literal["G54", "G55", "G56", "G57", "G58", "G59"]
+    origin_mm: Vector3
+
+    @property
+    def number(self) -> int:
+        """1 for G54 .. 6 for G59 (the ``P`` of ``G10 L2``)."""
+        return int(self.code[1:]) - 53
+
+
+class Cnc(_Strict):
+    """How programs and compensation tables meet the controller (xmalign's own, optional).
+
+    See docs/controllers.md. Lengths in mm, machine (joint) coordinates.
+    """
+
+    work_offset: WorkOffset | None = None
+    tool_offset_mm: Vector3 = [0.0, 0.0, 0.0]
+    reference_mm: Vector3 = [0.0, 0.0, 0.0]
+    joints: Annotated[list[AxisName], Field(min_length=3, max_length=9)] | None = None
+    axis_names: dict[AxisName, Annotated[str, Field(pattern=r"^[A-Z][A-Z0-9_]{0,15}$")]] = {}
+    detection_unit_um: Annotated[float, Field(gt=0, le=10)] = 1.0
+    #: largest correction the LinuxCNC volumetric component applies before it faults
+    max_correction_um: Micrometres = 100.0
+
+    @field_validator("joints")
+    @classmethod
+    def _joints_cover_xyz(cls, joints: list[str] | None) -> list[str] | None:
+        if joints is not None and set(joints) != set(AXES):
+            raise ValueError(f"{joints} must give X, Y and Z at least one joint each")
+        return joints
+
+    @property
+    def tool_offset(self) -> Vec:
+        """Tool point offset ``t`` for the compensation fit, mm, shape (3,)."""
+        return np.asarray(self.tool_offset_mm, dtype=float)
+
+    @property
+    def reference(self) -> Vec:
+        """Reference point of each axis (where tables are zero), mm, shape (3,)."""
+        return np.asarray(self.reference_mm, dtype=float)
+
+    def axis_name(self, axis: str, default: str) -> str:
+        """The controller's name of ``axis`` (``default`` when the file gives none)."""
+        return self.axis_names.get(axis, default)
+
+
 class Machine(_Strict):
     """A machine tool as xmalign sees it; lengths mm, angles as named."""
 
@@ -148,6 +200,7 @@ class Machine(_Strict):
     interferometer: InterferometerRanges = InterferometerRanges()
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
+    cnc: Cnc = Cnc()
 
     def geometry_sha256(self) -> str:
         """Identity of the machine a plan is made for: SHA-256 of its geometry.

@@ -33,7 +33,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 import xmalign
-from xmalign.comp import remaining_errors
+from xmalign.comp import fit_for, remaining_errors
 from xmalign.environment import (
     ENVIRONMENT_COLUMNS,
     DriftCheck,
@@ -359,8 +359,27 @@ def ranges_table(result: PostResult) -> Table:
     )
 
 
-def report_tables(machine: Machine, result: PostResult, info: RecordInfo) -> list[Table]:
-    """Every table of the record, in order."""
+def compensation_table(machine: Machine, result: PostResult, controller: str) -> Table:
+    """What the controller's own tables are predicted to leave over the whole travel."""
+    fit = fit_for(machine, result.fit.tables, controller)
+    rows = [
+        ["before compensation", _number(fit.before_um)],
+        [f"after the {controller} tables", _number(fit.after_um)],
+        ["share removed", f"{100 * fit.removed_share:.0f} %"],
+    ]
+    note = (
+        "Predicted over the whole travel at the tool point (RMS, um, mean offset removed), from"
+        f" the 21 errors and the {controller} compensation model fitted to them."
+    )
+    if not fit.removes_enough:
+        note += " Warning: these tables remove less than half of the error."
+    return Table("Compensation predicted", ["", "um"], rows, note)
+
+
+def report_tables(
+    machine: Machine, result: PostResult, info: RecordInfo, controller: str | None = None
+) -> list[Table]:
+    """Every table of the record, in order (with ``controller``, the predicted compensation)."""
     tables = [
         record_table(machine, info),
         environment_table(info),
@@ -374,6 +393,8 @@ def report_tables(machine: Machine, result: PostResult, info: RecordInfo) -> lis
         ranges_table(result),
         budget_table(machine, result, info),
     ]
+    if controller is not None:
+        tables.append(compensation_table(machine, result, controller))
     if result.warnings:
         tables.append(Table("Warnings", ["warning"], [[w] for w in result.warnings]))
     if info.verification is not None:
@@ -476,7 +497,7 @@ def _maps(machine: Machine, result: PostResult, info: RecordInfo, controller: st
         ]
     return [
         ("before", tables.model("")),
-        (f"after {controller} tables", remaining_errors(tables, controller)),
+        (f"after {controller} tables", remaining_errors(tables, controller, machine)),
     ]
 
 
@@ -527,7 +548,7 @@ def render_report(
         f"<style>{_STYLE}</style></head><body>",
         f"<h1>Calibration of {html.escape(machine.name)}</h1>",
     ]
-    parts.extend(_html_table(table) for table in report_tables(machine, result, info))
+    parts.extend(_html_table(table) for table in report_tables(machine, result, info, controller))
     for title, figure in report_figures(machine, result, info, controller):
         parts.append(f"<h2>{html.escape(title)}</h2>{_png(figure)}")
     parts.append(_html_table(setup_table(result)))
@@ -647,7 +668,7 @@ def write_pdf(
     with PdfPages(partial) as pdf:
         page = _Page(pdf)
         page.write(f"Calibration of {machine.name}", 14, "bold")
-        for table in report_tables(machine, result, info):
+        for table in report_tables(machine, result, info, controller):
             page.table(table)
         page.table(setup_table(result))
         page.finish()

@@ -28,6 +28,11 @@ CONTROLLER_DIALECTS = {
 }
 
 
+def make_dialect(name: str, machine: Machine, program_name: str = "XMALIGN") -> Dialect:
+    """The dialect ``name`` for ``machine`` (its ``cnc.work_offset``), naming the program."""
+    return DIALECTS[name](program_name, machine.cnc.work_offset)
+
+
 def resolve_dialect(machine: Machine, dialect: str | None) -> str:
     """The dialect asked for, or the machine controller's; InputError if there is none."""
     if dialect is not None:
@@ -42,4 +47,4 @@ def resolve_dialect(machine: Machine, dialect: str | None) -> str:
     return CONTROLLER_DIALECTS[machine.controller]
 
 
-__all__ = ["CONTROLLER_DIALECTS", "DIALECTS", "Dialect", "resolve_dialect"]
+__all__ = ["CONTROLLER_DIALECTS", "DIALECTS", "Dialect", "make_dialect", "resolve_dialect"]

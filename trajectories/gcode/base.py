@@ -1,8 +1,15 @@
 """The interface every G-code dialect implements.
 
 A dialect turns abstract steps (move, dwell, comment, message, stop) into the
-blocks of its controller. Coordinates are absolute metric CNC tool-point
-coordinates (mm), feeds mm/min, dwell times s.
+blocks of its controller. Coordinates given to it are absolute metric machine
+coordinates of the CNC tool point (mm), feeds mm/min, dwell times s.
+
+Every dialect cancels tool length and radius compensation at the start and
+moves in machine coordinates: with the controller's machine-coordinate word
+(G53, SUPA, M91) on every block, or, where that cannot feed (Fanuc's G53 is
+rapid only) or where the machine file asks for it (``cnc.work_offset``), in a
+work offset the program sets itself, converting machine to program
+coordinates. Retracts are always in machine coordinates (docs/controllers.md).
 """
 
 from __future__ import annotations
@@ -10,6 +17,8 @@ from __future__ import annotations
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
+
+from xmalign.machine import AXES, WorkOffset
 
 #: Characters a comment or message may keep; the rest (parentheses, quotes) end comments.
 _UNSAFE = re.compile(r"[^A-Za-z0-9 .,:;+\-=/_%#*]")
@@ -26,8 +35,23 @@ class Dialect(ABC):
     #: Dialect name as used by ``--dialect``.
     name: str = ""
 
-    def __init__(self, program_name: str = "XMALIGN") -> None:
+    def __init__(
+        self, program_name: str = "XMALIGN", work_offset: WorkOffset | None = None
+    ) -> None:
         self.program_name = program_name
+        self.work_offset = work_offset
+
+    def program_axes(self, axes_mm: Mapping[str, float]) -> dict[str, float]:
+        """Machine coordinates of the named axes in program coordinates (work offset removed)."""
+        if self.work_offset is None:
+            return dict(axes_mm)
+        origin = dict(zip(AXES, self.work_offset.origin_mm, strict=True))
+        return {axis: value - origin[axis] for axis, value in axes_mm.items()}
+
+    def offset_words(self) -> str:
+        """``X.. Y.. Z..`` of the work offset's origin (machine mm)."""
+        assert self.work_offset is not None
+        return words(dict(zip(AXES, self.work_offset.origin_mm, strict=True)))
 
     @abstractmethod
     def begin(self) -> list[str]:
@@ -35,7 +59,11 @@ class Dialect(ABC):
 
     @abstractmethod
     def end(self, retract_mm: Mapping[str, float]) -> list[str]:
-        """Rapid retract to ``retract_mm`` and program end."""
+        """Rapid retract to ``retract_mm`` (machine coordinates) and program end."""
+
+    @abstractmethod
+    def retract(self, axes_mm: Mapping[str, float]) -> str:
+        """Rapid move of the named axes in machine coordinates, whatever the work offset."""
 
     @abstractmethod
     def comment(self, text: str) -> str: ...
@@ -48,13 +76,13 @@ class Dialect(ABC):
         """Programmed stop; the operator continues with cycle start."""
         return "M0"
 
+    @abstractmethod
     def rapid(self, axes_mm: Mapping[str, float]) -> str:
-        """Rapid move of the named axes (``{"X": .., "Z": ..}``)."""
-        return f"G0 {words(axes_mm)}"
+        """Rapid move of the named axes (``{"X": .., "Z": ..}``, machine coordinates)."""
 
+    @abstractmethod
     def feed(self, axes_mm: Mapping[str, float], feed_mm_min: float) -> str:
-        """Linear move at a feed."""
-        return f"G1 {words(axes_mm)} F{feed_mm_min:.1f}"
+        """Linear move at a feed (machine coordinates)."""
 
     @abstractmethod
     def dwell(self, seconds: float) -> list[str]: ...

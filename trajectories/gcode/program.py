@@ -11,6 +11,10 @@ For each line of the plan:
    over the targets in reverse (approached in ``-u``), unidirectional runs feed
    back to the pre-position;
 5. a rapid retract to the top of the Z travel.
+
+Points are machine coordinates of the CNC tool point; the dialect states the
+coordinate system (machine coordinates, or a work offset it sets itself) and
+retracts in machine coordinates.
 """
 
 from __future__ import annotations
@@ -82,7 +86,7 @@ def _line_blocks(
         _check_travel(line, label, point, machine)
     yield dialect.message(angles_message(line))
     yield dialect.comment(f"line {line.id}: approach")
-    yield dialect.rapid({"Z": safe_z})
+    yield dialect.retract({"Z": safe_z})
     yield dialect.rapid({"X": float(before[0]), "Y": float(before[1])})
     yield dialect.feed(_axes(before), feed)
     yield dialect.comment(f"line {line.id}: set the units, then cycle start")
@@ -90,7 +94,7 @@ def _line_blocks(
     for run in range(1, line.runs + 1):
         yield from _run_blocks(dialect, line, run, feed, overrun_mm)
     yield dialect.comment(f"line {line.id}: retract")
-    yield dialect.rapid({"Z": safe_z})
+    yield dialect.retract({"Z": safe_z})
 
 
 def write_program(plan: Plan, machine: Machine, dialect: Dialect) -> str:
@@ -115,7 +119,7 @@ def write_program(plan: Plan, machine: Machine, dialect: Dialect) -> str:
         *dialect.begin(),
         dialect.comment(f"xmalign measurement program for {plan.machine}"),
         dialect.comment(f"{len(plan.lines)} lines: {' '.join(line.id for line in plan.lines)}"),
-        dialect.rapid({"Z": float(machine.travel_max_mm[2])}),
+        dialect.retract({"Z": float(machine.travel_max_mm[2])}),
     ]
     for line in plan.lines:
         blocks.extend(_line_blocks(dialect, line, machine, machine.measurement.overrun_mm))

@@ -12,20 +12,20 @@ from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
     console,
+    error_console,
     machine_for_plan,
     machine_or_default,
     output_folder,
     refuse_overwriting,
 )
-from xmalign.comp import WRITERS, writer
+from xmalign.comp import WRITERS, Compensation, compensate, linuxcnc
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_files
+from xmalign.formats.common import atomic_write_files, read_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
-from xmalign.rigid_body import Chain
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -130,19 +130,73 @@ def comp(
     machine: MachineOption = None,
     controller: Annotated[
         str | None,
-        typer.Option(help=f"One of {', '.join(WRITERS)} (default: the machine file's)."),
+        typer.Option(
+            help=f"One of {', '.join(WRITERS)}, linuxcnc-volumetric (default: the machine file's)."
+        ),
+    ] = None,
+    ini: Annotated[
+        Path | None,
+        typer.Option(
+            help="LinuxCNC: the machine's INI; writes a merged copy (linuxcnc-volumetric: needed)."
+        ),
     ] = None,
 ) -> None:
-    """Write compensation tables for a CNC controller from an error-table CSV."""
+    """Fit the controller's compensation model over the whole travel and write its tables."""
     machine_ = machine_or_default(machine)
-    module = writer(controller or machine_.controller)
-    files = module.render(read_error_tables(errors), Chain.parse(machine_.chain))
-    output_folder(out, "--out")
-    refuse_overwriting(
-        {"--errors": errors, "--machine": machine}, {"--out": [out / name for name in files]}
+    name = controller or machine_.controller
+    tables = read_error_tables(errors)
+    if name == "linuxcnc-volumetric":
+        from xmalign.cli.linuxcnc_volumetric import volumetric_files
+
+        files, done = volumetric_files(tables, machine_, ini, out)
+        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
+        console.print(done, highlight=False)
+        return
+    result = compensate(machine_, tables, name)
+    files = dict(result.files)
+    if ini is not None:
+        files.update(_linuxcnc_ini(name, machine_, result, ini, out))
+    _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
+    fit = result.fit
+    console.print(
+        f"{name}: wrote {', '.join(sorted(files))} in {out}\n"
+        f"predicted volumetric error over the travel (RMS, both directions): before"
+        f" {fit.before_um:.2f} um, after these tables {fit.after_um:.2f} um"
+        f" ({100 * fit.removed_share:.0f} % removed; {fit.grid_points} grid points)",
+        highlight=False,
     )
+    if not fit.removes_enough:
+        error_console.print(
+            f"[yellow]warning:[/] {name}\x27s tables remove less than half of the predicted error"
+            f" ({fit.after_um:.2f} of {fit.before_um:.2f} um left)",
+            highlight=False,
+        )
+
+
+def _write_outputs(out: Path, files: dict[str, str], inputs: dict[str, Path | None]) -> None:
+    """All of a controller\x27s files into ``out``, or none; never over one of the inputs."""
+    output_folder(out, "--out")
+    refuse_overwriting(inputs, {"--out": [out / name for name in files]})
     atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
-    console.print(f"{module.NAME}: wrote {', '.join(sorted(files))} in {out}")
+
+
+def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, out: Path) -> dict:
+    """The LinuxCNC comp files for the INI\x27s joints and the merged INI (file name -> text)."""
+    if name != linuxcnc.NAME:
+        raise InputError(f"--ini is for the linuxcnc controller, not \x27{name}\x27")
+    text = read_text(ini)
+    joints = linuxcnc.resolve_joints(machine, text.splitlines(), str(ini))
+    files = linuxcnc.render(result.fit, machine, joints)
+    merged = f"{ini.stem}-xmalign{ini.suffix}"
+    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini))
+    for joint in linuxcnc.backlash_joints(text, joints):
+        error_console.print(
+            f"[yellow]warning:[/] {ini}: [JOINT_{joint}] BACKLASH is set; the COMP_FILE\x27s"
+            " reverse column already carries the reversal",
+            highlight=False,
+        )
+    console.print(f"joints {' '.join(joints)}; start LinuxCNC with {out / merged}")
+    return files
 
 
 def register(app: typer.Typer) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode import DIALECTS, make_dialect, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.lines import LINE_IDS
@@ -110,7 +110,11 @@ def program(
         raise GeometryError(measurement.warnings[0])
     for warning in measurement.warnings:
         error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
-    text = write_program(measurement.plan, machine_model, DIALECTS[dialect_name]())
+    # Heidenhain requires the program name to be the file name
+    name = out.stem if out is not None else "XMALIGN"
+    text = write_program(
+        measurement.plan, machine_model, make_dialect(dialect_name, machine_model, name)
+    )
     if plan_out is not None:
         write_plan(plan_out, measurement.plan)
     if out is not None:

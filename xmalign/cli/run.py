@@ -88,14 +88,14 @@ def _sim_measurement(
 ) -> Callable[[RunOutput], None]:
     """Check the --sim options; the measurement on the virtual machine into an output."""
     from sim.dry_run import measure_virtually, virtual_setup
-    from trajectories.gcode import DIALECTS, resolve_dialect
+    from trajectories.gcode import make_dialect, resolve_dialect
     from trajectories.gcode.program import write_program
 
     dialect_name = resolve_dialect(machine, dialect)
     text = (
         read_text(program, "G-code program")
         if program is not None
-        else write_program(plan, machine, DIALECTS[dialect_name]())
+        else write_program(plan, machine, make_dialect(dialect_name, machine))
     )
 
     def measure(output: RunOutput) -> None:

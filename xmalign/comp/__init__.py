@@ -1,19 +1,23 @@
 """Compensation tables for CNC controllers, one module per controller.
 
-Each module has ``NAME``, ``COMPENSATES`` (the ISO 230-1 names its tables
-correct, ``"squareness"`` when they carry the squareness) and
-``render(tables, chain) -> {file name: text}``; the values come from an
-:class:`~xmalign.formats.error_tables.ErrorTableSet` (mm, rad).
+Each module has ``NAME``, ``MODEL`` (a :class:`~xmalign.comp.fit.CompModel`: what
+its tables can apply) and ``render(fit, machine) -> {file name: text}``. The
+tables are fitted once, here, by :func:`~xmalign.comp.fit.fit_compensation`
+over the machine's whole travel at its tool point; a writer only formats them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from types import ModuleType
 
 from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
+from xmalign.comp.fit import CompensationFit, fit_compensation
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.rigid_body import ErrorTables
+from xmalign.geometry import Vec
+from xmalign.machine import Machine
+from xmalign.rigid_body import Chain, ErrorModel, ErrorTables
 
 WRITERS: dict[str, ModuleType] = {
     module.NAME: module for module in (sinumerik, fanuc, heidenhain, linuxcnc, isg)
@@ -30,11 +34,60 @@ def writer(controller: str) -> ModuleType:
         ) from None
 
 
-def remaining_errors(tables: ErrorTableSet, controller: str) -> ErrorTables:
-    """The error model left after the controller's tables compensate what they can (mean)."""
-    compensated = writer(controller).COMPENSATES
-    model = tables.model("")
-    return ErrorTables(
-        tables={n: v for n, v in model.tables.items() if n not in compensated},
-        squareness={} if "squareness" in compensated else model.squareness,
+def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> CompensationFit:
+    """The controller's tables fitted over the machine's travel at its tool point."""
+    return fit_compensation(
+        writer(controller).MODEL,
+        tables,
+        Chain.parse(machine.chain),
+        (machine.travel_min_mm, machine.travel_max_mm),
+        machine.cnc.tool_offset,
+        machine.cnc.reference,
     )
+
+
+@dataclass(frozen=True)
+class Compensation:
+    """What ``xmalign comp`` produced: the fit (residuals) and the files."""
+
+    controller: str
+    fit: CompensationFit
+    files: dict[str, str]
+
+
+def compensate(machine: Machine, tables: ErrorTableSet, controller: str) -> Compensation:
+    """Fit the controller's model and format its files."""
+    fit = fit_for(machine, tables, controller)
+    return Compensation(controller, fit, writer(controller).render(fit, machine))
+
+
+@dataclass(frozen=True)
+class RemainingErrors:
+    """An error model minus the translation tables a controller applies (an ErrorModel)."""
+
+    model: ErrorModel
+    applied: ErrorTables
+
+    def motions(self, axis: str, position_mm: Vec) -> tuple[Vec, Vec]:
+        delta, eps = self.model.motions(axis, position_mm)
+        applied, applied_eps = self.applied.motions(axis, position_mm)
+        return delta - applied, eps - applied_eps
+
+    def squareness_rad(self) -> Vec:
+        return self.model.squareness_rad() - self.applied.squareness_rad()
+
+
+def remaining_errors(tables: ErrorTableSet, controller: str, machine: Machine) -> ErrorModel:
+    """The error model left after the controller's fitted tables (direction-free)."""
+    return RemainingErrors(tables.model(""), fit_for(machine, tables, controller).mean)
+
+
+__all__ = [
+    "WRITERS",
+    "Compensation",
+    "RemainingErrors",
+    "compensate",
+    "fit_for",
+    "remaining_errors",
+    "writer",
+]

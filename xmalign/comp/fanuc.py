@@ -1,24 +1,31 @@
-"""FANUC Series 0i / 16i / 30i: pitch error compensation parameters and values.
+"""FANUC Series 0i / 16i / 30i: (bidirectional) pitch error compensation parameters and data.
 
-From the parameter manuals (parameters 3620-3624) and the pitch error
-compensation descriptions:
+From the parameter manuals (parameters 3620-3627, 3605#0) and FANUC's technical
+report A-77810E "Bidirectional pitch error compensation":
 
-- 3620 number of the compensation point at the reference position,
-  3621 / 3622 the most negative / most positive point number,
-  3623 magnification, 3624 interval between points (detection units);
-- the machine coordinate origin is the reference position, compensation
-  points lie at multiples of the interval from it;
-- the value at point ``n`` is the *incremental* correction for the move from
-  point ``n - 1`` to point ``n`` (so the value at the most negative point is 0),
-  in detection units times the magnification, within -127 .. 127 per point;
-- the point numbers 0 .. 1023 are shared by all axes, at most 128 per axis;
+- 3620 number of the compensation point of the reference position,
+  3621 / 3622 the most distant point on the - / + side (travel in the
+  positive direction), 3623 magnification, 3624 interval (detection units);
+  with bidirectional compensation (3605#0 = 1) also 3626 the most distant
+  point on the - side for travel in the negative direction (that table has as
+  many points as the positive one) and 3627 the absolute compensation at the
+  reference position when it is approached from the negative side;
+- compensation points lie at multiples of the interval from the reference
+  position; the value at point ``R + i`` is the *incremental* correction for
+  the section from ``(i - 1)·interval`` to ``i·interval``, so the most distant
+  point on the - side is ``R - stroke/interval + 1`` (the manual's example);
+  values are detection units times the magnification, -127 .. 127 each;
+- the point numbers 0 .. 1023 are shared by all axes;
 - parameter tape format ``N<param>A<axis>P<value>...;`` and pitch data
   ``N1<point>P<value>;`` (``N10000`` is point 0), between ``%`` lines.
 
-The correction is minus the positioning error, referred to the reference
-position. The detection unit is taken as 1 um (IS-B). Only the positioning
-error is written (mean of both directions); straightness and squareness need
-Fanuc's separate straightness / inclination compensation options.
+The correction is minus the fitted positioning error, zero at the reference
+position (the machine file's ``cnc.reference_mm``, where the reference return
+is taken to be made in the positive direction). The detection unit is the
+machine file's ``cnc.detection_unit_um`` (1 um for IS-B, 0.1 um for IS-C).
+Bit parameter 3605#0 and the power cycle are left to the operator
+(``PITCH_README.TXT``): a tape would overwrite the other bits of 3605.
+Straightness compensation (an option with its own parameters) is not written.
 """
 
 from __future__ import annotations
@@ -27,18 +34,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from xmalign.comp.common import POSITIONING, axis_number, check_count, grid_of, table
+from xmalign.comp.common import axis_number, check_count, has_reversal
+from xmalign.comp.fit import PITCH, CompensationFit, CompModel
 from xmalign.errors import OutOfRangeError
-from xmalign.formats.error_tables import ErrorTableSet, Table
-from xmalign.rigid_body import AXES, Chain
+from xmalign.geometry import Vec
+from xmalign.machine import Machine
+from xmalign.rigid_body import AXES
 
 NAME = "fanuc"
-DETECTION_UNIT_UM = 1.0
+MODEL = CompModel(pairs=PITCH, directional=True)
 MAX_POINTS_PER_AXIS = 128
 MAX_POINTS_TOTAL = 1024
 MAX_VALUE = 127
 MAX_MAGNIFICATION = 100
-COMPENSATES = frozenset(POSITIONING.values())
 
 
 @dataclass(frozen=True)
@@ -52,34 +60,76 @@ class PitchTable:
     magnification: int
     interval_units: int
     values: np.ndarray
+    negative_first_number: int | None = None
+    negative_values: np.ndarray | None = None
+    reference_negative: int = 0
+
+    @property
+    def count(self) -> int:
+        return self.last_number - self.first_number + 1
 
 
-def pitch_table(axis: str, source: Table, first_number: int) -> PitchTable:
-    """Fanuc pitch data for one axis, its points numbered from ``first_number``."""
-    interval = max(int(round(grid_of(source.positions_mm).step_mm * 1e3 / DETECTION_UNIT_UM)), 1)
-    interval_mm = interval * DETECTION_UNIT_UM * 1e-3
-    low = min(np.floor(source.positions_mm[0] / interval_mm + 1e-9), 0)
-    high = max(np.ceil(source.positions_mm[-1] / interval_mm - 1e-9), 0)
-    steps = np.arange(int(low), int(high) + 1)
-    check_count(len(steps), MAX_POINTS_PER_AXIS, f"{POSITIONING[axis]} (per axis)", "Fanuc")
-    error_um = np.interp(steps * interval_mm, source.positions_mm, source.values) * 1e3
-    reference = int(np.flatnonzero(steps == 0)[0])
-    correction = -(error_um - error_um[reference]) / DETECTION_UNIT_UM
+def _sections(positions_mm: Vec, reference_mm: float, interval_mm: float) -> np.ndarray:
+    """Section indices ``i`` (point ``R + i`` ends at ``reference + i·interval``), from i_min."""
+    low = min(np.floor((positions_mm[0] - reference_mm) / interval_mm + 1e-9), 0)
+    high = max(np.ceil((positions_mm[-1] - reference_mm) / interval_mm - 1e-9), 0)
+    return np.arange(int(low), int(high) + 1)
+
+
+def _increments(correction: Vec, magnification: int) -> np.ndarray:
+    """Incremental values for each section end (the first entry is the section start)."""
+    return np.diff(np.round(correction / magnification)).astype(int)
+
+
+def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: int) -> PitchTable:
+    """Fanuc pitch data for one axis, numbered from the first free point ``next_free``.
+
+    The reference point number must not be negative, so an axis whose reference
+    lies at its negative end starts one number later.
+    """
+    unit_mm = machine.cnc.detection_unit_um * 1e-3
+    reference = float(machine.cnc.reference[AXES.index(axis)])
+    positions, forward = fit.table(axis, axis, "+")
+    _, reverse = fit.table(axis, axis, "-")
+    interval = max(int(round(np.mean(np.diff(positions)) / unit_mm)), 1)
+    interval_mm = interval * unit_mm
+    sections = _sections(positions, reference, interval_mm)
+    at = reference + sections * interval_mm
+    datum = np.interp(reference, positions, forward)
+    correction = -(np.interp(at, positions, forward) - datum) / unit_mm
+    correction_neg = -(np.interp(at, positions, reverse) - datum) / unit_mm
+    bidirectional = has_reversal(fit, axis)
+    count = len(sections) - 1
+    first_number = max(next_free, int(sections[0]) + 1)
+    check_count(count, MAX_POINTS_PER_AXIS, f"{axis} (per axis)", "Fanuc")
     for magnification in range(1, MAX_MAGNIFICATION + 1):
-        increments = np.diff(np.round(correction / magnification), prepend=np.nan)
-        increments[0] = 0
-        if np.max(np.abs(increments)) <= MAX_VALUE:
+        values = _increments(correction, magnification)
+        negative = _increments(correction_neg, magnification)
+        if (
+            max(np.max(np.abs(values)), np.max(np.abs(negative)) if bidirectional else 0)
+            <= MAX_VALUE
+        ):
+            reference_number = first_number - int(sections[0]) - 1
             return PitchTable(
                 axis=axis,
-                reference_number=first_number + reference,
+                reference_number=reference_number,
                 first_number=first_number,
-                last_number=first_number + len(steps) - 1,
+                last_number=first_number + count - 1,
                 magnification=magnification,
                 interval_units=interval,
-                values=increments.astype(int),
+                values=values,
+                negative_first_number=first_number + count if bidirectional else None,
+                negative_values=negative if bidirectional else None,
+                reference_negative=int(
+                    round(
+                        -(np.interp(reference, positions, reverse) - datum)
+                        / unit_mm
+                        / magnification
+                    )
+                ),
             )
     raise OutOfRangeError(
-        f"Fanuc: {POSITIONING[axis]} changes by more than {MAX_VALUE} x {MAX_MAGNIFICATION}"
+        f"Fanuc: the {axis} correction changes by more than {MAX_VALUE} x {MAX_MAGNIFICATION}"
         " detection units between two points"
     )
 
@@ -89,25 +139,75 @@ def _parameter(number: int, values: list[int]) -> str:
     return f"N{number:05d}{axes};"
 
 
-def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
-    """File name -> text of the parameter tape."""
-    pitch = []
+def pitch_tables(fit: CompensationFit, machine: Machine) -> list[PitchTable]:
+    """The three axes' tables, numbered one after the other from point 0."""
+    tables = []
     first = 0
     for axis in AXES:
-        pitch.append(pitch_table(axis, table(tables, POSITIONING[axis]), first))
-        first = pitch[-1].last_number + 1
+        table = pitch_table(axis, fit, machine, first)
+        tables.append(table)
+        first = table.last_number + 1 + (table.count if table.negative_values is not None else 0)
     check_count(first, MAX_POINTS_TOTAL, "X, Y and Z together", "Fanuc")
-    lines = ["%"]
-    for number, field in (
-        (3620, "reference_number"),
-        (3621, "first_number"),
-        (3622, "last_number"),
-        (3623, "magnification"),
-        (3624, "interval_units"),
-    ):
-        by_axis = {p.axis: getattr(p, field) for p in pitch}
-        lines.append(_parameter(number, [by_axis[a] for a in sorted(by_axis, key=axis_number)]))
-    for p in pitch:
-        lines.extend(f"N{10000 + p.first_number + i:05d}P{int(v)};" for i, v in enumerate(p.values))
+    return tables
+
+
+def render_tape(tables: list[PitchTable]) -> str:
+    """The parameter and pitch-data tape."""
+    bidirectional = any(t.negative_values is not None for t in tables)
+    fields = [
+        (3620, lambda t: t.reference_number),
+        (3621, lambda t: t.first_number),
+        (3622, lambda t: t.last_number),
+        (3623, lambda t: t.magnification),
+        (3624, lambda t: t.interval_units),
+    ]
+    if bidirectional:
+        fields += [
+            (3626, lambda t: t.negative_first_number or 0),
+            (3627, lambda t: t.reference_negative),
+        ]
+    ordered = sorted(tables, key=lambda t: axis_number(t.axis))
+    lines = ["%", *(_parameter(number, [get(t) for t in ordered]) for number, get in fields)]
+    for table in tables:
+        lines += [
+            f"N{10000 + table.first_number + i:05d}P{int(v)};" for i, v in enumerate(table.values)
+        ]
+        if table.negative_values is not None and table.negative_first_number is not None:
+            lines += [
+                f"N{10000 + table.negative_first_number + i:05d}P{int(v)};"
+                for i, v in enumerate(table.negative_values)
+            ]
     lines.append("%")
-    return {"PITCH.TXT": "\n".join(lines) + "\n"}
+    return "\n".join(lines) + "\n"
+
+
+def render_readme(tables: list[PitchTable], machine: Machine) -> str:
+    """What to set by hand before and after loading the tape."""
+    unit = machine.cnc.detection_unit_um
+    lines = [
+        "xmalign: FANUC pitch error compensation (PITCH.TXT)",
+        f"Detection unit assumed: {unit:g} um (machine file cnc.detection_unit_um);"
+        " parameter 3624 is in detection units.",
+        "Reference positions (machine coordinates, mm): "
+        + ", ".join(f"{t.axis} {machine.cnc.reference[AXES.index(t.axis)]:g}" for t in tables),
+    ]
+    bidirectional = [t.axis for t in tables if t.negative_values is not None]
+    if bidirectional:
+        lines.append(
+            f"Bidirectional pitch error compensation for {', '.join(bidirectional)}: set bit"
+            " parameter 3605#0 (BDPx) = 1 on those axes by hand (option required)."
+        )
+    else:
+        lines.append("Unidirectional (no direction data): keep 3605#0 = 0.")
+    lines += [
+        "Load PITCH.TXT (parameters and pitch data) with parameter write enabled,",
+        "switch the CNC off and on, then make a reference position return on every axis.",
+        "Straightness compensation (an option) is not written by xmalign.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
+    """File name -> text of the parameter tape and its instructions."""
+    tables = pitch_tables(fit, machine)
+    return {"PITCH.TXT": render_tape(tables), "PITCH_README.TXT": render_readme(tables, machine)}

@@ -20,19 +20,12 @@ axis assignment, ``Chain``, ``max_records``) is configured in the CNC.
 
 from __future__ import annotations
 
-from xmalign.comp.common import table
-from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.rigid_body import (
-    AXES,
-    MOTION_NAMES,
-    ROTATION_NAMES,
-    SQUARENESS_NAMES,
-    TRANSLATION_NAMES,
-    Chain,
-)
+from xmalign.comp.fit import CompensationFit, CompModel
+from xmalign.machine import Machine
+from xmalign.rigid_body import AXES, ROTATION_NAMES, SQUARENESS_NAMES, TRANSLATION_NAMES, Chain
 
 NAME = "isg"
-COMPENSATES = frozenset({*MOTION_NAMES, "squareness"})
+MODEL = CompModel(pairs=(), directional=False, volumetric=True)
 FILE_NAME = "vol_comp.csv"
 
 
@@ -40,12 +33,15 @@ def _number(value: float) -> str:
     return f"{value:.9g}"
 
 
-def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
-    """File name -> text of the volumetric parameter file."""
-    squareness = [tables.squareness.get(name, (0.0, 0.0))[0] for name in SQUARENESS_NAMES]
+def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
+    """File name -> text of the volumetric parameter file (``post``'s model, direction-free)."""
+    chain = Chain.parse(machine.chain)
+    model = fit.mean
+    squareness = [model.squareness.get(name, 0.0) for name in SQUARENESS_NAMES]
     lines = [
         f"// xmalign volumetric compensation, chain {chain}, workpiece axes:"
-        f" {len(chain.workpiece)}; mm and rad",
+        f" {len(chain.workpiece)}; mm and rad; tool offset for the CNC's tool data:"
+        f" {' '.join(f'{v:g}' for v in machine.cnc.tool_offset_mm)} mm",
         "// position errors",
         " ".join(name[1:] for name in SQUARENESS_NAMES),
         " ".join(_number(v) for v in squareness),
@@ -54,11 +50,12 @@ def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
     for axis in AXES:
         names = (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis])
         sign = -1.0 if axis in chain.workpiece else 1.0
-        columns = [table(tables, name) for name in names]
+        positions = model.tables[f"E{axis}{axis}"][0]
+        columns = [model.value(name, positions) for name in names]
         lines += ["#", f"// component errors of {axis}", " ".join([axis, *names])]
-        for n, position in enumerate(columns[0].positions_mm):
-            values = [sign * table_.values[n] for table_ in columns]
+        for n, position in enumerate(positions):
+            values = [sign * column[n] for column in columns]
             lines.append(" ".join([_number(position), *(_number(v) for v in values)]))
-        records += len(columns[0].positions_mm)
+        records += len(positions)
     lines.insert(1, f"// records: {records} (vol_comp[i].max_records must be at least this)")
     return {FILE_NAME: "\n".join(lines) + "\n"}

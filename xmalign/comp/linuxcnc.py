@@ -1,64 +1,192 @@
 """LinuxCNC: screw compensation files (``COMP_FILE``, ``COMP_FILE_TYPE = 0``) per joint.
 
-From the LinuxCNC INI configuration manual, section ``[JOINT_<num>]``:
+From the LinuxCNC INI configuration manual, section ``[JOINT_<num>]``, and the
+sample file ``screwcompX.dat`` LinuxCNC ships (kept in tests):
 
 - ``COMP_FILE`` is a text file of triplets, one per line, separated by
   spaces, in machine units, in ascending order of the first value: the nominal
-  (commanded) position, then two values that depend on ``COMP_FILE_TYPE``;
+  (commanded) joint position, then two values that depend on ``COMP_FILE_TYPE``;
 - type 0: the second value is the *actual* position when the joint moves in
   the positive direction, the third the actual position moving negative;
-- at most 256 triplets per joint (``EMCMOT_COMP_SIZE``); with a COMP_FILE,
-  BACKLASH is not used.
+- at most 256 triplets per joint; reading stops at the first line that is not
+  three numbers (so the file has no comment line).
 
-So LinuxCNC takes measured positions, not corrections: ``nominal + EXX+`` and
-``nominal + EXX-`` (the mean table in both columns without bidirectional
-data). Joints 0, 1, 2 are taken to be X, Y, Z (trivkins); the nominal
-positions are machine coordinates. Only positioning errors can be written.
+So LinuxCNC takes measured positions, not corrections: ``nominal + E+`` and
+``nominal + E-`` of the fitted per-axis pitch table (bidirectional where the
+error file is). Nominal positions are joint (machine) coordinates. Joints map
+to axes as the machine file's ``cnc.joints`` says, else as the INI's trivkins
+``coordinates=`` / ``[TRAJ] COORDINATES``, else X, Y, Z: every joint of an axis
+(both Y joints of a gantry) gets that axis's table.
+
+``xmalign comp --ini MACHINE.ini`` writes a merged copy of the INI with
+``COMP_FILE`` and ``COMP_FILE_TYPE`` inside the existing ``[JOINT_n]``
+sections (LinuxCNC reads only the first section of a name, so appended
+sections would be ignored silently).
 """
 
 from __future__ import annotations
 
-from xmalign.comp.common import POSITIONING, check_count, directional, table
-from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.rigid_body import AXES, AXIS_INDEX, Chain
+import re
+from pathlib import Path
+
+from xmalign.comp.common import check_count
+from xmalign.comp.fit import PITCH, CompensationFit, CompModel
+from xmalign.errors import InputError
+from xmalign.machine import AXES, Machine
 
 NAME = "linuxcnc"
+MODEL = CompModel(pairs=PITCH, directional=True)
 MAX_TRIPLETS = 256
-COMPENSATES = frozenset(POSITIONING.values())
+_SECTION = re.compile(r"^\s*\[([^\]]+)\]")
+_KEY = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(.*?)\s*$")
 
 
-def render_joint(tables: ErrorTableSet, axis: str) -> str:
-    """The comp file of one joint: ``nominal forward reverse`` per line, mm."""
-    name = POSITIONING[axis]
-    pair = directional(tables, name)
-    forward, reverse = pair if pair else (table(tables, name), table(tables, name))
-    check_count(len(forward.positions_mm), MAX_TRIPLETS, f"joint {AXIS_INDEX[axis]}", "LinuxCNC")
+def render_axis(fit: CompensationFit, axis: str) -> str:
+    """The comp file of the joints of ``axis``: ``nominal forward reverse`` per line, mm."""
+    positions, forward = fit.table(axis, axis, "+")
+    _, reverse = fit.table(axis, axis, "-")
+    check_count(len(positions), MAX_TRIPLETS, f"the {axis} joints", "LinuxCNC")
     lines = [
         f"{p:.6f} {p + f:.6f} {p + r:.6f}"
-        for p, f, r in zip(forward.positions_mm, forward.values, reverse.values, strict=True)
+        for p, f, r in zip(positions, forward, reverse, strict=True)
     ]
     return "\n".join(lines) + "\n"
 
 
-def render_ini() -> str:
-    """The lines to add to the INI file."""
-    out = ["# xmalign: add to the machine's INI file (COMP_FILE_TYPE 0: actual positions)"]
-    for axis in AXES:
-        out += [
-            "",
-            f"[JOINT_{AXIS_INDEX[axis]}]",
-            f"COMP_FILE = {_file(axis)}",
-            "COMP_FILE_TYPE = 0",
-        ]
+def comp_file(axis: str) -> str:
+    return f"{axis.lower()}.comp"
+
+
+def render(
+    fit: CompensationFit, machine: Machine, joints: list[str] | None = None
+) -> dict[str, str]:
+    """File name -> text of one comp file per axis and the keys for each joint."""
+    joints = joints or machine.cnc.joints or list(AXES)
+    files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
+    files["joints.ini"] = render_keys(joints)
+    return files
+
+
+def render_keys(joints: list[str]) -> str:
+    """The keys to put into each existing ``[JOINT_n]`` section (not to append)."""
+    out = [
+        "# xmalign: put these keys INTO the existing [JOINT_n] sections of the INI",
+        "# (LinuxCNC reads only the first section of a name: appended sections are ignored);",
+        "# or let `xmalign comp --ini MACHINE.ini` write a merged copy.",
+    ]
+    for number, axis in enumerate(joints):
+        out += ["", f"[JOINT_{number}]", f"COMP_FILE = {comp_file(axis)}", "COMP_FILE_TYPE = 0"]
     return "\n".join(out) + "\n"
 
 
-def _file(axis: str) -> str:
-    return f"joint{AXIS_INDEX[axis]}.comp"
+def _sections(lines: list[str]) -> dict[str, tuple[int, int]]:
+    """Section name (upper case) -> (header line, end line) of its first occurrence."""
+    found: dict[str, tuple[int, int]] = {}
+    headers = [
+        (i, m.group(1).strip().upper())
+        for i, line in enumerate(lines)
+        if (m := _SECTION.match(line))
+    ]
+    for index, (start, name) in enumerate(headers):
+        end = headers[index + 1][0] if index + 1 < len(headers) else len(lines)
+        found.setdefault(name, (start, end))
+    return found
 
 
-def render(tables: ErrorTableSet, chain: Chain) -> dict[str, str]:
-    """File name -> text of the three comp files and the INI snippet."""
-    files = {_file(axis): render_joint(tables, axis) for axis in AXES}
-    files["joints.ini"] = render_ini()
-    return files
+def ini_value(lines: list[str], section: str, key: str) -> str | None:
+    """The first value of ``key`` in the first ``[section]``, or None."""
+    span = _sections(lines).get(section.upper())
+    if span is None:
+        return None
+    for line in lines[span[0] + 1 : span[1]]:
+        match = _KEY.match(line)
+        if match and match.group(1).upper() == key.upper():
+            return match.group(2)
+    return None
+
+
+def joints_of_ini(lines: list[str], source: str) -> list[str] | None:
+    """Joint axes from trivkins ``coordinates=`` or ``[TRAJ] COORDINATES`` (None if neither)."""
+    kinematics = ini_value(lines, "KINS", "KINEMATICS") or ""
+    match = re.search(r"coordinates=([A-Za-z]+)", kinematics)
+    letters = (
+        match.group(1)
+        if match
+        else (ini_value(lines, "TRAJ", "COORDINATES") or "").replace(" ", "")
+    )
+    if not letters:
+        return None
+    joints = list(letters.upper())
+    if set(joints) != set(AXES):
+        raise InputError(
+            f"{source}: joints {''.join(joints)} must give X, Y and Z"
+            " (xmalign compensates linear XYZ machines)"
+        )
+    return joints
+
+
+def resolve_joints(machine: Machine, ini_lines: list[str] | None, source: str) -> list[str]:
+    """Joint axes: machine file, else INI, else X, Y, Z; the two must agree when both are given."""
+    from_ini = joints_of_ini(ini_lines, source) if ini_lines is not None else None
+    from_machine = machine.cnc.joints
+    if from_machine and from_ini and list(from_machine) != from_ini:
+        raise InputError(
+            f"{source}: the INI's joints {''.join(from_ini)} differ from the machine file's"
+            f" cnc.joints {''.join(from_machine)}"
+        )
+    return list(from_machine or from_ini or AXES)
+
+
+def merge_ini(text: str, joints: list[str], folder: Path, source: str) -> str:
+    """The INI with ``COMP_FILE`` (absolute paths in ``folder``) in each ``[JOINT_n]`` section.
+
+    Existing ``COMP_FILE`` / ``COMP_FILE_TYPE`` keys of those sections are replaced;
+    everything else is kept as it was. InputError naming the INI when a joint's
+    section is missing.
+    """
+    lines = text.splitlines()
+    sections = _sections(lines)
+    count = ini_value(lines, "KINS", "JOINTS")
+    if count is not None and count.strip().isdigit() and int(count) != len(joints):
+        raise InputError(
+            f"{source}: [KINS] JOINTS = {count} but {len(joints)} joints are mapped"
+            f" ({''.join(joints)})"
+        )
+    missing = [n for n in range(len(joints)) if f"JOINT_{n}" not in sections]
+    if missing:
+        raise InputError(f"{source}: no [JOINT_{missing[0]}] section to put COMP_FILE into")
+    inserts: dict[int, list[str]] = {}
+    dropped: set[int] = set()
+    for number, axis in enumerate(joints):
+        start, end = sections[f"JOINT_{number}"]
+        for index in range(start + 1, end):
+            match = _KEY.match(lines[index])
+            if match and match.group(1).upper() in ("COMP_FILE", "COMP_FILE_TYPE"):
+                dropped.add(index)
+        last = max(
+            (i for i in range(start, end) if lines[i].strip() and i not in dropped), default=start
+        )
+        inserts[last] = [
+            f"COMP_FILE = {(folder / comp_file(axis)).resolve()}",
+            "COMP_FILE_TYPE = 0",
+        ]
+    out = []
+    for index, line in enumerate(lines):
+        if index not in dropped:
+            out.append(line)
+        out.extend(inserts.get(index, []))
+    return "\n".join(out) + "\n"
+
+
+def backlash_joints(text: str, joints: list[str]) -> list[int]:
+    """Joints whose section sets a non-zero BACKLASH (a COMP_FILE replaces it)."""
+    lines = text.splitlines()
+    found = []
+    for number in range(len(joints)):
+        value = ini_value(lines, f"JOINT_{number}", "BACKLASH")
+        try:
+            if value is not None and float(value) != 0.0:
+                found.append(number)
+        except ValueError:
+            continue
+    return found

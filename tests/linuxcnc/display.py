@@ -1,0 +1,197 @@
+#!/usr/bin/python3
+"""A LinuxCNC "display" that runs a list of actions and writes what it saw (JSON).
+
+LinuxCNC starts it as ``display.py -ini INI``; it runs under the system Python
+(the ``linuxcnc`` and ``hal`` modules come with LinuxCNC, not with the venv).
+The actions and the result file come from the environment:
+``XMALIGN_HARNESS_ACTIONS`` (a JSON list) and ``XMALIGN_HARNESS_RESULT``.
+Each action is a mapping with ``op``; see ``tests/linuxcnc/harness.py``.
+When the display exits, LinuxCNC shuts down.
+"""
+
+import json
+import os
+import sys
+import time
+import traceback
+
+import hal
+
+import linuxcnc
+
+POLL_S = 0.005
+IDLE_S = 0.05
+
+
+class ActionFailedError(Exception):
+    pass
+
+
+class Display:
+    def __init__(self):
+        self.command = linuxcnc.command()
+        self.stat = linuxcnc.stat()
+        self.errors = linuxcnc.error_channel()
+        self.messages = []
+        # hal.get_value needs a component of this process
+        self.component = hal.component("xmalign-harness-display")
+        self.component.ready()
+
+    def poll(self):
+        self.stat.poll()
+        message = self.errors.poll()
+        while message:
+            self.messages.append(message[1])
+            message = self.errors.poll()
+        return self.stat
+
+    def wait_for(self, condition, timeout_s, what):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if condition(self.poll()):
+                return
+            time.sleep(POLL_S)
+        raise ActionFailedError(f"timed out after {timeout_s} s waiting for {what}")
+
+    def set_mode(self, mode):
+        if self.poll().task_mode != mode:
+            self.command.mode(mode)
+            self.command.wait_complete()
+            self.wait_for(lambda s: s.task_mode == mode, 5, f"task mode {mode}")
+
+    def wait_idle(self, timeout_s):
+        """Until task has taken the last command and stays idle and in position for 50 ms."""
+        serial = self.command.serial
+        self.wait_for(lambda s: s.echo_serial_number >= serial, 5, "task to take the command")
+        settled = []
+
+        def idle(s):
+            if s.interp_state == linuxcnc.INTERP_IDLE and s.inpos and not s.queue:
+                settled.append(time.monotonic())
+                return settled[-1] - settled[0] >= IDLE_S
+            settled.clear()
+            return False
+
+        self.wait_for(idle, timeout_s, "the interpreter to be idle and the joints in position")
+
+    # -- actions ---------------------------------------------------------------------
+    def op_estop_reset(self, action):
+        self.command.state(linuxcnc.STATE_ESTOP_RESET)
+        self.command.wait_complete()
+        self.wait_for(lambda s: s.task_state == linuxcnc.STATE_ESTOP_RESET, 5, "estop reset")
+
+    def op_machine_on(self, action):
+        self.command.state(linuxcnc.STATE_ON)
+        self.command.wait_complete()
+        self.wait_for(lambda s: s.task_state == linuxcnc.STATE_ON, 5, "machine on")
+
+    def op_home(self, action):
+        self.set_mode(linuxcnc.MODE_MANUAL)
+        self.command.teleop_enable(0)
+        self.command.wait_complete()
+        self.command.home(-1)
+        self.command.wait_complete()
+        joints = self.poll().joints
+        self.wait_for(
+            lambda s: all(s.homed[j] for j in range(joints)), action.get("timeout_s", 30), "homing"
+        )
+        self.command.teleop_enable(1)
+        self.command.wait_complete()
+
+    def op_mdi(self, action):
+        self.set_mode(linuxcnc.MODE_MDI)
+        self.command.mdi(action["gcode"])
+        self.command.wait_complete()
+        self.wait_idle(action.get("timeout_s", 60))
+
+    def op_pins(self, action):
+        return {name: hal.get_value(name) for name in action["names"]}
+
+    def op_setp(self, action):
+        hal.set_p(action["name"], str(action["value"]))
+
+    def op_sleep(self, action):
+        time.sleep(action["seconds"])
+
+    def op_run(self, action):
+        """Run a program to its end, resuming after every M0; track pins' extremes."""
+        watch = action.get("watch", [])
+        extremes = {name: 0.0 for name in watch}
+        self.set_mode(linuxcnc.MODE_AUTO)
+        self.command.program_open(action["program"])
+        self.command.wait_complete()
+        self.command.auto(linuxcnc.AUTO_RUN, 0)
+        self.command.wait_complete()
+        started = time.monotonic()
+        resumes = 0
+        self.wait_for(lambda s: s.interp_state != linuxcnc.INTERP_IDLE, 5, "the program start")
+        deadline = started + action.get("timeout_s", 120)
+        while True:
+            s = self.poll()
+            for name in watch:
+                value = abs(float(hal.get_value(name)))
+                extremes[name] = max(extremes[name], value)
+            if s.task_state != linuxcnc.STATE_ON:
+                raise ActionFailedError(f"the machine went off during the program: {self.messages}")
+            if s.interp_state == linuxcnc.INTERP_IDLE and not s.queue:
+                break
+            if s.paused and s.interp_state == linuxcnc.INTERP_PAUSED:
+                self.command.auto(linuxcnc.AUTO_RESUME)
+                self.command.wait_complete()
+                resumes += 1
+            if time.monotonic() > deadline:
+                raise ActionFailedError("the program did not end in time")
+            time.sleep(POLL_S)
+        return {
+            "resumes": resumes,
+            "seconds": time.monotonic() - started,
+            "max_abs": extremes,
+            "line": self.poll().current_line,
+        }
+
+    def state(self):
+        s = self.poll()
+        return {
+            "task_state": s.task_state,
+            "estop": bool(s.estop),
+            "enabled": bool(s.enabled),
+            "homed": [bool(h) for h in s.homed[: s.joints]],
+            "joints": s.joints,
+        }
+
+    def run(self, actions):
+        results = []
+        for action in actions:
+            op = action["op"]
+            record = {"op": op, "label": action.get("label", op), "ok": True}
+            try:
+                record["value"] = getattr(self, "op_" + op)(action)
+            except Exception as exc:  # noqa: BLE001 - reported to the harness
+                record.update(ok=False, error=f"{type(exc).__name__}: {exc}")
+                results.append(record)
+                break
+            results.append(record)
+        return results
+
+
+def main():
+    with open(os.environ["XMALIGN_HARNESS_ACTIONS"]) as stream:
+        actions = json.load(stream)
+    out = {"results": [], "messages": [], "state": None, "crash": None}
+    try:
+        display = Display()
+        display.wait_for(lambda s: s.task_state != 0, 20, "task to answer")
+        out["results"] = display.run(actions)
+        out["state"] = display.state()
+        out["messages"] = display.messages
+    except Exception:  # noqa: BLE001 - reported to the harness
+        out["crash"] = traceback.format_exc()
+    path = os.environ["XMALIGN_HARNESS_RESULT"]
+    with open(path + ".part", "w") as stream:
+        json.dump(out, stream)
+    os.replace(path + ".part", path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

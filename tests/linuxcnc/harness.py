@@ -1,0 +1,343 @@
+"""Headless LinuxCNC 2.9 (Debian ``linuxcnc-uspace``) as a test partner.
+
+Usage::
+
+    from harness import SimMachine, linuxcnc_available, run_linuxcnc, write_sim_config
+
+    ini = write_sim_config(tmp_dir, SimMachine(coordinates="XYYZ"))
+    run = run_linuxcnc(ini, [
+        {"op": "estop_reset"}, {"op": "machine_on"}, {"op": "home"},
+        {"op": "mdi", "gcode": "G53 G0 X10 Y20 Z-5"},
+        {"op": "pins", "names": ["joint.0.pos-cmd"], "label": "at"},
+        {"op": "run", "program": str(ngc), "watch": ["joint.0.f-error"]},
+    ])
+    run.value("at")["joint.0.pos-cmd"]
+
+Actions (run in order by ``display.py``; the first that fails ends the list):
+``estop_reset``, ``machine_on``, ``home``, ``mdi`` (``gcode``; waits until idle
+and in position), ``pins`` (``names``: ``hal.get_value`` of each),
+``setp`` (``name``, ``value``), ``sleep`` (``seconds``), ``run`` (``program``:
+runs it to the end, resuming after every M0; ``watch``: pins whose largest
+absolute value is returned). Every action may carry a ``label``.
+
+LinuxCNC refuses to run as root: as root the harness runs it as the user
+``XMALIGN_LINUXCNC_USER`` (default ``xmcnc``, created with ``useradd`` when
+missing); otherwise as the current user. Only one LinuxCNC runs per host: every
+start holds ``flock /tmp/xmalign-linuxcnc.lock`` until the previous instance's
+processes are gone.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+import subprocess
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+LOCK_PATH = Path("/tmp/xmalign-linuxcnc.lock")
+USER = os.environ.get("XMALIGN_LINUXCNC_USER", "xmcnc")
+SYSTEM_PYTHON = Path("/usr/bin/python3")
+DISPLAY_SCRIPT = Path(__file__).resolve().parent / "display.py"
+#: Processes of a LinuxCNC instance that outlive ``linuxcnc`` for a few seconds.
+LINGERING = ("linuxcncsvr", "milltask", "rtapi_app", "io", "iov2", "halui")
+AXES = ("X", "Y", "Z")
+
+
+def linuxcnc_available() -> bool:
+    """True when ``linuxcnc`` and its Python modules (system Python) are installed."""
+    if shutil.which("linuxcnc") is None or not SYSTEM_PYTHON.exists():
+        return False
+    probe = subprocess.run(
+        [str(SYSTEM_PYTHON), "-c", "import linuxcnc, hal"], capture_output=True, check=False
+    )
+    return probe.returncode == 0
+
+
+def halcompile_available() -> bool:
+    """True when ``halcompile`` (Debian ``linuxcnc-uspace-dev``) is installed."""
+    return shutil.which("halcompile") is not None
+
+
+def run_as_user() -> str | None:
+    """The user to run LinuxCNC as (created when missing), or None to run as ourselves."""
+    if os.geteuid() != 0:
+        return None
+    known = subprocess.run(["getent", "passwd", USER], capture_output=True, check=False)
+    if known.returncode != 0:
+        subprocess.run(["useradd", "--create-home", USER], check=True, capture_output=True)
+    return USER
+
+
+@dataclass(frozen=True)
+class SimMachine:
+    """A simulated trivkins machine: joints loop their command back as feedback.
+
+    ``coordinates`` names each joint's axis (``XYZ``; ``XYYZ`` is LinuxCNC's
+    gantry with two Y joints). Travel limits (mm) are the same for the axis and
+    its joints; every joint is homed where it stands (at 0, which must lie in
+    the travel). LinuxCNC checks the following error against ``ferror_mm`` in
+    every servo period.
+    """
+
+    coordinates: str = "XYZ"
+    travel_mm: dict[str, tuple[float, float]] = field(
+        default_factory=lambda: {"X": (0.0, 400.0), "Y": (0.0, 300.0), "Z": (-200.0, 0.0)}
+    )
+    max_velocity_mm_s: float = 1000.0
+    max_acceleration_mm_s2: float = 10000.0
+    #: following error limit (FERROR = MIN_FERROR); beyond it LinuxCNC turns the machine off
+    ferror_mm: float = 1.0
+
+    @property
+    def joints(self) -> int:
+        return len(self.coordinates)
+
+
+def _ini_text(machine: SimMachine, halfile: str) -> str:
+    v, a = machine.max_velocity_mm_s, machine.max_acceleration_mm_s2
+    gantry = len(set(machine.coordinates)) < machine.joints
+    sections = [
+        ("EMC", {"VERSION": "1.1", "MACHINE": "xmalign-harness", "DEBUG": "0"}),
+        ("DISPLAY", {"DISPLAY": "./display.py", "CYCLE_TIME": "0.100"}),
+        ("TASK", {"TASK": "milltask", "CYCLE_TIME": "0.001"}),
+        ("RS274NGC", {"PARAMETER_FILE": "sim.var"}),
+        ("EMCMOT", {"EMCMOT": "motmod", "COMM_TIMEOUT": "1.0", "SERVO_PERIOD": "1000000"}),
+        ("HAL", {"HALFILE": halfile}),
+        (
+            "KINS",
+            {
+                "KINEMATICS": f"trivkins coordinates={machine.coordinates.lower()}"
+                + (" kinstype=BOTH" if gantry else ""),
+                "JOINTS": str(machine.joints),
+            },
+        ),
+        (
+            "TRAJ",
+            {
+                "COORDINATES": " ".join(machine.coordinates),
+                "LINEAR_UNITS": "mm",
+                "ANGULAR_UNITS": "degree",
+                "DEFAULT_LINEAR_VELOCITY": f"{v}",
+                "MAX_LINEAR_VELOCITY": f"{v}",
+                "DEFAULT_LINEAR_ACCELERATION": f"{a}",
+                "MAX_LINEAR_ACCELERATION": f"{a}",
+            },
+        ),
+        ("EMCIO", {"EMCIO": "io", "CYCLE_TIME": "0.100", "TOOL_TABLE": "sim.tbl"}),
+    ]
+    for axis in AXES:
+        low, high = machine.travel_mm[axis]
+        sections.append(
+            (
+                f"AXIS_{axis}",
+                {
+                    "MAX_VELOCITY": f"{v}",
+                    "MAX_ACCELERATION": f"{a}",
+                    "MIN_LIMIT": f"{low}",
+                    "MAX_LIMIT": f"{high}",
+                },
+            )
+        )
+    for joint, axis in enumerate(machine.coordinates):
+        low, high = machine.travel_mm[axis]
+        sequence = -1 if gantry and machine.coordinates.count(axis) > 1 else 0
+        sections.append(
+            (
+                f"JOINT_{joint}",
+                {
+                    "TYPE": "LINEAR",
+                    "MAX_VELOCITY": f"{v}",
+                    "MAX_ACCELERATION": f"{a}",
+                    "MIN_LIMIT": f"{low}",
+                    "MAX_LIMIT": f"{high}",
+                    "FERROR": f"{machine.ferror_mm}",
+                    "MIN_FERROR": f"{machine.ferror_mm}",
+                    "HOME": "0.0",
+                    "HOME_OFFSET": "0.0",
+                    "HOME_SEARCH_VEL": "0",
+                    "HOME_LATCH_VEL": "0",
+                    "HOME_SEQUENCE": f"{sequence}",
+                },
+            )
+        )
+    lines = []
+    for name, keys in sections:
+        lines += [f"[{name}]", *(f"{key} = {value}" for key, value in keys.items()), ""]
+    return "\n".join(lines)
+
+
+def _hal_text(machine: SimMachine) -> str:
+    lines = [
+        "# xmalign test harness: trivkins sim, each joint's command looped back as feedback",
+        "loadrt [KINS]KINEMATICS",
+        "loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS",
+        "addf motion-command-handler servo-thread",
+        "addf motion-controller servo-thread",
+        "net estop-loop iocontrol.0.user-enable-out iocontrol.0.emc-enable-in",
+        "net tool-prep-loop iocontrol.0.tool-prepare iocontrol.0.tool-prepared",
+        "net tool-change-loop iocontrol.0.tool-change iocontrol.0.tool-changed",
+    ]
+    lines += [
+        f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
+        for joint in range(machine.joints)
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write_sim_config(folder: Path, machine: SimMachine | None = None) -> Path:
+    """Write an INI, its HAL file, a tool table and the display into ``folder``.
+
+    The folder is made writable for the LinuxCNC user (LinuxCNC writes its
+    parameter file there). Returns the INI's path (``folder/sim.ini``).
+    """
+    machine = machine or SimMachine()
+    folder.mkdir(parents=True, exist_ok=True)
+    folder.chmod(0o777)
+    (folder / "sim.hal").write_text(_hal_text(machine))
+    (folder / "sim.tbl").write_text("T1 P1 D0 Z0 ;\n")
+    (folder / "sim.ini").write_text(_ini_text(machine, "sim.hal"))
+    shutil.copy(DISPLAY_SCRIPT, folder / "display.py")
+    (folder / "display.py").chmod(0o755)
+    return folder / "sim.ini"
+
+
+def share_with_linuxcnc_user(folder: Path) -> None:
+    """Let the LinuxCNC user write ``folder`` and read every file in it.
+
+    (xmalign writes its files through a private temporary file, mode 0600.)
+    """
+    folder.chmod(0o777)
+    for path in folder.iterdir():
+        if path.is_file():
+            path.chmod(path.stat().st_mode | 0o444)
+
+
+@dataclass
+class LinuxCNCRun:
+    """What one LinuxCNC start produced.
+
+    ``report`` is what the display wrote (None when LinuxCNC never started it):
+    ``results`` (one record per action run: ``op``, ``label``, ``ok``,
+    ``value`` or ``error``), ``messages`` (LinuxCNC's error channel),
+    ``state`` (task state, estop, enabled, homed) and ``crash``.
+    """
+
+    returncode: int | None
+    output: str
+    report: dict[str, Any] | None
+
+    @property
+    def results(self) -> list[dict[str, Any]]:
+        return [] if self.report is None else self.report["results"]
+
+    def value(self, label: str) -> Any:
+        """The value of the action labelled ``label``; AssertionError if it failed."""
+        for record in self.results:
+            if record["label"] == label:
+                assert record["ok"], f"{label}: {record.get('error')}\n{self.output}"
+                return record.get("value")
+        raise AssertionError(f"no action labelled {label!r} ran:\n{self.describe()}")
+
+    def failed(self) -> dict[str, Any] | None:
+        """The record of the action that failed, if one did."""
+        return next((r for r in self.results if not r["ok"]), None)
+
+    def describe(self) -> str:
+        return f"returncode {self.returncode}\nreport {json.dumps(self.report)}\n{self.output}"
+
+
+@contextmanager
+def host_lock(timeout_s: float = 600.0) -> Iterator[None]:
+    """Hold the host-wide LinuxCNC lock (other helpers' runs wait on the same file)."""
+    with open(LOCK_PATH, "a") as stream:
+        with suppress(PermissionError):  # created by another user: already shared
+            os.chmod(LOCK_PATH, 0o666)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"{LOCK_PATH} held for more than {timeout_s} s") from None
+                time.sleep(0.2)
+        try:
+            yield
+        finally:
+            fcntl.flock(stream, fcntl.LOCK_UN)
+
+
+def _lingering(user: str | None) -> list[str]:
+    owner = ["-u", user] if user else ["-u", str(os.geteuid())]
+    found = []
+    for name in LINGERING:
+        probe = subprocess.run(["pgrep", *owner, "-x", name], capture_output=True, text=True)
+        found += probe.stdout.split()
+    return found
+
+
+def _wait_gone(user: str | None, timeout_s: float) -> list[str]:
+    deadline = time.monotonic() + timeout_s
+    while (left := _lingering(user)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return left
+
+
+def run_linuxcnc(
+    ini: Path, actions: Sequence[dict[str, Any]], *, timeout_s: float = 120.0
+) -> LinuxCNCRun:
+    """Start ``linuxcnc -r ini``, let the harness display run ``actions``, wait for the end.
+
+    The INI's ``[DISPLAY] DISPLAY`` must be the harness display (as
+    :func:`write_sim_config` writes it). Holds the host lock for the whole run
+    and returns once the instance's processes are gone.
+    """
+    folder = ini.resolve().parent
+    share_with_linuxcnc_user(folder)
+    actions_path, result_path = folder / "harness-actions.json", folder / "harness-result.json"
+    actions_path.write_text(json.dumps(list(actions)))
+    actions_path.chmod(0o644)
+    result_path.unlink(missing_ok=True)
+    user = run_as_user()
+    environment = [
+        f"XMALIGN_HARNESS_ACTIONS={actions_path}",
+        f"XMALIGN_HARNESS_RESULT={result_path}",
+        f"HOME={Path('~' + user).expanduser() if user else Path.home()}",
+    ]
+    command = ["env", *environment, "linuxcnc", "-r", str(ini.resolve())]
+    if user:
+        command = ["runuser", "-u", user, "--", *command]
+    with host_lock():
+        _wait_gone(user, 30.0)
+        process = subprocess.Popen(
+            command,
+            cwd=folder,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            start_new_session=True,
+        )
+        try:
+            output, _ = process.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, 15)
+            output, _ = process.communicate()
+            output += f"\n[harness] linuxcnc killed after {timeout_s} s"
+        left = _wait_gone(user, 20.0)
+        if left:
+            output += f"\n[harness] processes still running after the end: {left}"
+    report = json.loads(result_path.read_text()) if result_path.exists() else None
+    return LinuxCNCRun(process.returncode, output, report)
+
+
+def standard_start() -> list[dict[str, Any]]:
+    """Estop reset, machine on, home all joints."""
+    return [{"op": "estop_reset"}, {"op": "machine_on"}, {"op": "home"}]

@@ -1,0 +1,249 @@
+"""Fit a controller's own compensation model to the error field over the whole travel.
+
+``post`` gives a rigid-body error model (18 tables, 3 squareness). A controller
+applies something simpler: one table per axis of its own position (pitch), or
+one-variable cross tables (output axis corrected as a function of one input
+axis), or the full model (volumetric). :func:`fit_compensation` predicts the
+volumetric error of the tool point (``t``, the machine file's tool offset) on a
+grid over the whole travel with :func:`xmalign.rigid_body.deviation` and fits
+the controller's tables to it by least squares. Writers only format the result.
+
+Fitted tables are *errors* (what the controller takes out; a correction is
+minus them), named ISO 230-1 style ``E<output><input>`` (``EYX``: Y error as a
+function of X), on the measured positions of the input axis, shifted so they are
+zero at the reference point (no jump when the compensation is switched on). A
+constant offset of the whole volume is not an error a table must remove (the
+six lines do not see it and the work offset takes it up), so residuals are
+RMS lengths after the mean is removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from xmalign.errors import InputError
+from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.geometry import Vec
+from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, ErrorModel, ErrorTables, deviation
+
+#: Per-axis pitch: each axis corrected as a function of its own position.
+PITCH = tuple((axis, axis) for axis in AXES)
+#: One-variable cross tables: every axis corrected as a function of every axis.
+CROSS = tuple((output, axis) for axis in AXES for output in AXES)
+#: Evaluation points per axis at most (the grid has this many cubed).
+MAX_GRID_PER_AXIS = 31
+#: Fewer than this share of the error removed is worth a warning.
+WARN_REMOVED_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class CompModel:
+    """What a controller's tables can apply.
+
+    ``pairs`` lists ``(output axis, input axis)`` of the one-variable tables;
+    ``directional`` says whether an axis's own table can differ by direction
+    of travel; ``volumetric`` means the controller applies the full rigid-body
+    model itself (the fitted tables are then ``post``'s own).
+    """
+
+    pairs: tuple[tuple[str, str], ...]
+    directional: bool
+    volumetric: bool = False
+
+
+@dataclass(frozen=True)
+class CompensationFit:
+    """The tables a controller gets, and the error they leave over the whole travel.
+
+    ``forward`` / ``reverse`` hold the fitted tables for motion in the positive /
+    negative direction (equal when the model or the data has no direction);
+    ``mean`` is the direction-free fit. Residuals are RMS vector lengths over
+    the grid and both directions, um, after removing the mean offset.
+    """
+
+    model: CompModel
+    mean: ErrorTables
+    forward: ErrorTables
+    reverse: ErrorTables
+    before_um: float
+    after_um: float
+    grid_points: int
+    converged: bool
+
+    @property
+    def removed_share(self) -> float:
+        """Share of the RMS error the tables remove (1 = all, 0 = none)."""
+        return 1.0 - self.after_um / self.before_um if self.before_um > 0 else 1.0
+
+    @property
+    def removes_enough(self) -> bool:
+        """False when the tables remove less than half of the error."""
+        return self.removed_share >= WARN_REMOVED_SHARE
+
+    def table(self, output: str, axis: str, direction: str = "") -> tuple[Vec, Vec]:
+        """``(positions mm, error mm)`` of one fitted table (``direction`` ``""``, ``+``, ``-``)."""
+        source = {"": self.mean, "+": self.forward, "-": self.reverse}[direction]
+        return source.tables[f"E{output}{axis}"]
+
+
+def node_positions(tables: ErrorTableSet, axis: str) -> Vec:
+    """The measured positions of ``axis`` (its positioning table's), mm."""
+    name = f"E{axis}{axis}"
+    for candidate in (name, name + "+", name + "-"):
+        if candidate in tables.tables:
+            return tables.tables[candidate].positions_mm
+    raise InputError(f"{tables.source}: no table {name} (run xmalign post on all six lines)")
+
+
+def travel_grid(nodes_mm: dict[str, Vec], low_mm: Vec, high_mm: Vec) -> Vec:
+    """Points over the whole travel: per axis the nodes, midpoints and ends, shape (N, 3)."""
+    per_axis = []
+    for axis in AXES:
+        k = AXIS_INDEX[axis]
+        nodes = nodes_mm[axis]
+        count = min(max(2 * len(nodes) - 1, 3), MAX_GRID_PER_AXIS)
+        values = np.union1d(np.linspace(low_mm[k], high_mm[k], count), nodes)
+        values = values[(values >= low_mm[k]) & (values <= high_mm[k])]
+        if len(values) > MAX_GRID_PER_AXIS:
+            values = np.linspace(low_mm[k], high_mm[k], MAX_GRID_PER_AXIS)
+        per_axis.append(values)
+    return np.stack(np.meshgrid(*per_axis, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def hat_basis(nodes_mm: Vec, x_mm: Vec) -> Vec:
+    """Linear-interpolation weights of ``x`` on ``nodes`` (end values held), shape (N, M)."""
+    identity = np.eye(len(nodes_mm))
+    return np.stack([np.interp(x_mm, nodes_mm, row) for row in identity], axis=-1)
+
+
+def _rms_um(residual_mm: Vec) -> float:
+    centred = residual_mm - residual_mm.mean(axis=0)
+    return float(np.sqrt(np.mean(np.sum(centred**2, axis=1))) * 1e3)
+
+
+def _fit_field(
+    model: CompModel, nodes: dict[str, Vec], points_mm: Vec, field_mm: Vec
+) -> tuple[dict[str, tuple[Vec, Vec]], bool]:
+    """Least-squares one-variable tables for a field (N, 3); each output component apart."""
+    fitted: dict[str, tuple[Vec, Vec]] = {}
+    converged = True
+    for output in AXES:
+        inputs = [axis for out, axis in model.pairs if out == output]
+        if not inputs:
+            continue
+        blocks = [hat_basis(nodes[a], points_mm[:, AXIS_INDEX[a]]) for a in inputs]
+        design = np.concatenate([*blocks, np.ones((len(points_mm), 1))], axis=1)
+        target = field_mm[:, AXIS_INDEX[output]]
+        solution, _, rank, _ = np.linalg.lstsq(design, target, rcond=None)
+        converged &= bool(np.all(np.isfinite(solution)))
+        # rank deficiency is only the shared constants (one per extra input)
+        converged &= rank >= design.shape[1] - len(inputs)
+        start = 0
+        for axis, block in zip(inputs, blocks, strict=True):
+            values = solution[start : start + block.shape[1]]
+            fitted[f"E{output}{axis}"] = (nodes[axis], values)
+            start += block.shape[1]
+    return fitted, converged
+
+
+def _zero_at(tables: dict[str, tuple[Vec, Vec]], reference_mm: Vec) -> dict[str, tuple[Vec, Vec]]:
+    """Each table shifted by its value at the reference point of its input axis."""
+    shifted = {}
+    for name, (positions, values) in tables.items():
+        at_reference = np.interp(reference_mm[AXIS_INDEX[name[2]]], positions, values)
+        shifted[name] = (positions, values - at_reference)
+    return shifted
+
+
+def _reversal(tables: ErrorTableSet, axis: str, direction: str) -> tuple[Vec, Vec] | None:
+    """``E<axis><axis><direction>`` minus the direction-free table, on its positions."""
+    name = f"E{axis}{axis}"
+    if name + direction not in tables.tables or name not in tables.tables:
+        return None
+    own, mean = tables.tables[name + direction], tables.tables[name]
+    return own.positions_mm, own.values - np.interp(
+        own.positions_mm, mean.positions_mm, mean.values
+    )
+
+
+def _with_reversal(
+    model: CompModel, tables: ErrorTableSet, mean: dict[str, tuple[Vec, Vec]], direction: str
+) -> dict[str, tuple[Vec, Vec]]:
+    if not model.directional:
+        return dict(mean)
+    result = dict(mean)
+    for axis in AXES:
+        name = f"E{axis}{axis}"
+        reversal = _reversal(tables, axis, direction)
+        if name in mean and reversal is not None:
+            positions, values = mean[name]
+            result[name] = (positions, values + np.interp(positions, *reversal))
+    return result
+
+
+def _field(chain: Chain, points_mm: Vec, tool_offset_mm: Vec, model: ErrorModel) -> Vec:
+    return deviation(chain, points_mm, tool_offset_mm, model)[0]
+
+
+def fit_compensation(
+    model: CompModel,
+    tables: ErrorTableSet,
+    chain: Chain,
+    travel_mm: tuple[Vec, Vec],
+    tool_offset_mm: Vec,
+    reference_mm: Vec,
+) -> CompensationFit:
+    """Fit a controller's compensation model to the error ``post`` predicts.
+
+    Parameters
+    ----------
+    model : CompModel
+        The tables the controller has.
+    tables : ErrorTableSet
+        ``post``'s error tables (mm, rad), directional positioning tables optional.
+    chain : Chain
+        Kinematic chain (lever arms of the angular errors).
+    travel_mm : (ndarray (3,), ndarray (3,))
+        Lower and upper travel limits: the grid spans the whole travel.
+    tool_offset_mm : ndarray, shape (3,)
+        Tool point ``t`` whose error is compensated.
+    reference_mm : ndarray, shape (3,)
+        Reference point of each axis; one-variable tables are zero there.
+    """
+    low, high = (np.asarray(v, dtype=float) for v in travel_mm)
+    nodes = {axis: node_positions(tables, axis) for axis in AXES}
+    points = travel_grid(nodes, low, high)
+    t = np.asarray(tool_offset_mm, dtype=float)
+    directions = ("+", "-") if _has_directions(tables) else ("",)
+    fields = {d: _field(chain, points, t, tables.model(d)) for d in directions}
+    mean_field = _field(chain, points, t, tables.model(""))
+    if model.volumetric:
+        mean = forward = reverse = tables.model("")
+        if directions != ("",):
+            forward, reverse = tables.model("+"), tables.model("-")
+        converged = True
+    else:
+        fitted, converged = _fit_field(model, nodes, points, mean_field)
+        fitted = _zero_at(fitted, np.asarray(reference_mm, dtype=float))
+        mean = ErrorTables(tables=fitted)
+        forward = ErrorTables(tables=_with_reversal(model, tables, fitted, "+"))
+        reverse = ErrorTables(tables=_with_reversal(model, tables, fitted, "-"))
+    applied = {"": mean, "+": forward, "-": reverse}
+    before = [_rms_um(fields[d]) for d in directions]
+    after = [_rms_um(fields[d] - _field(chain, points, t, applied[d])) for d in directions]
+    return CompensationFit(
+        model=model,
+        mean=mean,
+        forward=forward,
+        reverse=reverse,
+        before_um=float(np.sqrt(np.mean(np.square(before)))),
+        after_um=float(np.sqrt(np.mean(np.square(after)))),
+        grid_points=len(points),
+        converged=converged,
+    )
+
+
+def _has_directions(tables: ErrorTableSet) -> bool:
+    return any(name.endswith(("+", "-")) for name in tables.tables)
