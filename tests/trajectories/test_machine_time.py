@@ -92,3 +92,20 @@ def test_faster_feeds_and_shorter_dwells_take_less_machine_time(machine, pose):
     assert estimate_machine_time(plan, slower).total_s > base
     shorter = plan_measurement(_with(machine, "measurement", dwell_s=0.1), pose).plan
     assert estimate_machine_time(shorter, machine).total_s < base
+
+
+def test_cli_program_prints_the_machine_time_of_what_it_writes(tmp_path, machine, pose):
+    from tests.cli_helpers import run_cli
+    from xmalign.formats.pose import write_pose
+
+    write_pose(tmp_path / "pose.json", pose)
+    result = run_cli(
+        "program", "--pose", str(tmp_path / "pose.json"), "--out", str(tmp_path / "p.mpf")
+    )
+    assert result.returncode == 0, result.stderr
+    text = " ".join(result.stderr.split())
+    found = re.search(r"machine time of the program: ([\d.]+) min", text)
+    assert found, text
+    expected = estimate_machine_time(plan_measurement(machine, pose).plan, machine)
+    assert float(found.group(1)) == pytest.approx(expected.total_s / 60, abs=0.051)
+    assert f"{expected.dwells} dwells" in text
