@@ -498,8 +498,9 @@ class SimulatedCnc:
         Time source; ``sleep`` is how the CNC lets time pass.
     position_mm : array_like, shape (3,), optional
         Start position; default the top of Z at the X and Y minimum.
-    acceleration_mm_s2 : float
-        Path acceleration and deceleration.
+    acceleration_mm_s2 : float, optional
+        Path acceleration and deceleration; default the machine file's
+        ``cnc.acceleration_mm_s2``, else ``DEFAULT_ACCELERATION_MM_S2``.
     """
 
     def __init__(
@@ -507,8 +508,10 @@ class SimulatedCnc:
         machine: Machine,
         clock: Clock,
         position_mm: ArrayLike | None = None,
-        acceleration_mm_s2: float = DEFAULT_ACCELERATION_MM_S2,
+        acceleration_mm_s2: float | None = None,
     ) -> None:
+        if acceleration_mm_s2 is None:
+            acceleration_mm_s2 = machine.cnc.acceleration_mm_s2 or DEFAULT_ACCELERATION_MM_S2
         if not acceleration_mm_s2 > 0:
             raise InputError(f"acceleration {acceleration_mm_s2} mm/s^2 must be > 0")
         self._machine = machine

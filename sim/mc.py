@@ -68,6 +68,7 @@ class Strategy:
     alignments: int = 6
     target_spacing_mm: float | None = None
     runs: int | None = None
+    diagonal_runs: int | None = None
 
     def machine(self, machine: Machine) -> Machine:
         """The machine file as this strategy uses it (launch position, measurement section)."""
@@ -78,7 +79,11 @@ class Strategy:
             )
         measurement = {
             key: value
-            for key, value in (("target_spacing_mm", self.target_spacing_mm), ("runs", self.runs))
+            for key, value in (
+                ("target_spacing_mm", self.target_spacing_mm),
+                ("runs", self.runs),
+                ("diagonal_runs", self.diagonal_runs),
+            )
             if value is not None
         }
         if measurement:
@@ -146,6 +151,9 @@ VARIATIONS: dict[str, Variation] = {
         lambda m: (m.measurement.target_spacing_mm, m.measurement.target_spacing_mm / 2),
     ),
     "runs": Variation("runs", _positive_int(1), lambda m: (1, max(2, m.measurement.runs))),
+    "diagonal-runs": Variation(
+        "diagonal_runs", _positive_int(1), lambda m: (1, max(2, m.measurement.diagonal_runs))
+    ),
 }
 
 

@@ -27,7 +27,7 @@ from sim.dry_run import (
     measured_strokes,
     virtual_setup,
 )
-from trajectories.gcode import DIALECTS, resolve_dialect
+from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import design_identification
 from trajectories.lines import LINE_IDS
@@ -87,7 +87,7 @@ def _measure_station(
     plan = plan_measurement(machine, result.to_pose(), line_ids or LINE_IDS)
     write_plan(workdir / f"{name}-plan.json", plan.plan)
     dialect = resolve_dialect(machine, options.dialect)
-    program = write_program(plan.plan, machine, DIALECTS[dialect]())
+    program = write_program(plan.plan, machine, make_dialect(dialect, machine, "run"))
     atomic_write_text(workdir / f"{name}-run{PROGRAM_SUFFIX[dialect]}", program)
     csv_path = workdir / f"{name}-measurements.csv"
     with open_run_output(csv_path, plan.plan, resume=False) as output:

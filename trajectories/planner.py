@@ -12,7 +12,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajectories.envelope import BeamEnvelope, predict_envelope
-from trajectories.lines import LINE_IDS, LineLayout, plan_line, receiver_offset_mcs, shift_reason
+from trajectories.lines import (
+    AXIS_LINES,
+    LINE_IDS,
+    LineLayout,
+    plan_line,
+    receiver_offset_mcs,
+    shift_reason,
+)
 from xmalign.errors import GeometryError
 from xmalign.formats.plan import Plan, PlanLine
 from xmalign.formats.pose import OFFSET_NAMES, LaunchPose
@@ -135,7 +142,7 @@ def plan_one_line(line_id: str, pose: LaunchPose, machine: Machine) -> PlannedLi
         launch_rad=angles.launch_rad,
         receiver_rad=angles.receiver_rad,
         targets_mm=layout.targets_mm,
-        runs=measurement.runs,
+        runs=measurement.runs if line_id in AXIS_LINES else measurement.diagonal_runs,
         bidirectional=measurement.bidirectional,
         dwell_s=measurement.dwell_s,
         extra=extra,
@@ -150,6 +157,8 @@ def _line_extra(layout: LineLayout, envelope: BeamEnvelope, machine: Machine) ->
         "beam_distance_mm": list(layout.beam_distance_mm),
         "shift_mm": [float(v) for v in layout.shift_mm],
         "feed_mm_min": machine.feed_mm_min.measure,
+        "transit_feed_mm_min": machine.transit_feed_mm_min,
+        "approach_mm": machine.measurement.approach_mm,
         "overrun_mm": machine.measurement.overrun_mm,
         "envelope": {
             "straightness_95_um": float(np.max(envelope.lateral_95_um)),

@@ -59,10 +59,14 @@ LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 DEFAULT_START_DISTANCE_MM = 500.0
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
-#: Part of each dwell left for the machine to settle before averaging starts.
-SETTLE_FRACTION = 0.2
-#: Part of each dwell that is averaged (the rest is margin for the controller's dwell timer).
-AVERAGE_FRACTION = 0.6
+#: Capture waits for settled readings for at most this part of each dwell.
+SETTLE_FRACTION = 0.5
+#: Averaging ends at this part of each dwell (the rest is margin for the dwell timer).
+AVERAGE_END_FRACTION = 0.8
+#: Length of each probe of the settling check, s.
+SETTLE_PROBE_S = 0.1
+#: Readings are settled when two probes' linear means differ less than this, um.
+SETTLED_UM = 0.2
 #: Encoder readings averaged to record or check where a locked unit stands.
 STANDING_READINGS = 10
 #: A resumed line keeps its setup when no unit axis is farther than this from where it
@@ -261,16 +265,48 @@ class CalibrationRun:
         self.statistics.alignment_s += self.clock.now() - started
         return result
 
+    def _settle(self, deadline_s: float) -> InterferometerReading | None:
+        """Probe until two probes' linear readings agree or ``deadline_s`` comes.
+
+        Returns the last probe when settled (it is already a settled reading), else None.
+        """
+        previous = None
+        while self.clock.now() + SETTLE_PROBE_S <= deadline_s:
+            probe = self.interferometer.average(SETTLE_PROBE_S)
+            if previous is not None and abs(probe.channels[0] - previous) < SETTLED_UM:
+                return probe
+            previous = probe.channels[0]
+        self.clock.sleep(max(deadline_s - self.clock.now(), 0.0))
+        return None
+
+    def _settled_average(self, started_s: float, dwell_s: float) -> InterferometerReading:
+        """The mean of the settled readings up to ``AVERAGE_END_FRACTION`` of the dwell."""
+        probe = self._settle(started_s + SETTLE_FRACTION * dwell_s)
+        left_s = max(started_s + AVERAGE_END_FRACTION * dwell_s - self.clock.now(), 1e-3)
+        reading = self.interferometer.average(left_s)
+        if probe is None:
+            return reading
+        weight = SETTLE_PROBE_S / (SETTLE_PROBE_S + left_s)
+        return InterferometerReading(
+            time_s=reading.time_s,
+            channels=weight * probe.channels + (1.0 - weight) * reading.channels,
+            beam_ok=probe.beam_ok and reading.beam_ok,
+        )
+
     def capture(self, point: CapturePoint, dwell_s: float) -> MeasurementRow | None:
-        """Datum at the run's first point, then average over the dwell and record the row."""
+        """Datum at the run's first point; once readings settle, average to 0.8 of the dwell.
+
+        Readings count as settled when two successive 0.1 s probes of the
+        linear channel agree within ``SETTLED_UM``; the wait ends at half the
+        dwell whatever the readings do, so the capture fits in the dwell.
+        """
         started = self.clock.now()
         if point.starts_run:
             self.interferometer.zero()
         if point.key in self.done:
             self.statistics.skipped += 1
             return None
-        self.clock.sleep(SETTLE_FRACTION * dwell_s)
-        reading = self.interferometer.average(max(AVERAGE_FRACTION * dwell_s, 1e-3))
+        reading = self._settled_average(started, dwell_s)
         if not reading.beam_ok:
             raise BeamLostError(_beam_message(point, reading))
         line = point.line

@@ -75,6 +75,15 @@ class InterferometerRanges(_Strict):
     max_range_mm: Distance_mm = 4000.0
     straightness_range_um: Micrometres = 250.0
     angle_range_urad: Microradians = 500.0
+    #: xmalign's own: the fastest the interferometer tracks the receiver, mm/min
+    #: (``program`` moves between targets no faster; None: the rapid feed).
+    max_speed_mm_min: Feed_mm_min | None = None
+
+    def ranges(self) -> dict[str, float]:
+        """The three ranges by name (the arguments of ``ChannelLimits.of_ranges``)."""
+        return self.model_dump(
+            include={"max_range_mm", "straightness_range_um", "angle_range_urad"}
+        )
 
     def channel_limits(self) -> Vec:
         """The largest credible reading of each channel (roles.CHANNELS order), shape (6,).
@@ -121,10 +130,15 @@ class Measurement(_Strict):
     """How ``xmalign program`` lays out the measuring lines."""
 
     target_spacing_mm: Spacing_mm = 100.0
+    #: runs of the axis lines X, Y, Z (repeatability, ISO 230-2 statistics)
     runs: Annotated[int, Field(ge=1, le=5)] = 2
+    #: runs of the face diagonals XY, YZ, XZ (docs/machine-time.md)
+    diagonal_runs: Annotated[int, Field(ge=1, le=5)] = 2
     bidirectional: bool = True
-    dwell_s: Seconds = 1.0
+    dwell_s: Seconds = 0.5
     overrun_mm: Overrun_mm = 5.0
+    #: each target is approached at the measuring feed over this last distance only
+    approach_mm: Overrun_mm = 2.0
     standoff_mm: NonNegativeLength_mm = 150.0
     irregular_spacing: bool = False
     min_line_mm: Distance_mm = 100.0
@@ -161,6 +175,8 @@ class Cnc(_Strict):
     detection_unit_um: Annotated[float, Field(gt=0, le=10)] = 1.0
     #: largest correction the LinuxCNC volumetric component applies before it faults
     max_correction_um: Micrometres = 100.0
+    #: path acceleration and deceleration, mm/s² (machine-time estimate and simulator)
+    acceleration_mm_s2: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] | None = None
 
     @field_validator("joints")
     @classmethod
@@ -201,6 +217,13 @@ class Machine(_Strict):
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
     cnc: Cnc = Cnc()
+
+    @property
+    def transit_feed_mm_min(self) -> float:
+        """Feed between targets: the rapid feed, or the interferometer's tracking limit if lower."""
+        limit = self.interferometer.max_speed_mm_min
+        rapid = self.feed_mm_min.rapid
+        return rapid if limit is None else min(rapid, limit)
 
     def geometry_sha256(self) -> str:
         """Identity of the machine a plan is made for: SHA-256 of its geometry.

@@ -1,6 +1,7 @@
 import contextlib
 import io
 import json
+import re
 import shutil
 import signal
 import subprocess
@@ -357,3 +358,22 @@ def test_bad_run_options_are_one_line_and_create_no_file(
     (tmp_path / "bad.nc").write_bytes(b"G1 X\xff\n")
     assert_one_line_error(_run_sim(dry, tmp_path / "m.csv", *options), message)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.nc"]
+
+
+def test_dry_run_with_two_stations_reports_both_stations_and_the_residuals(tmp_path):
+    out = tmp_path / "two"
+    result = run_cli("dry-run", "--stations", "2", "--out", str(out), "--seed", "2")
+    assert result.returncode == 0, result.stderr
+    text = " ".join(result.stdout.split())
+    assert "second station: launch cp at [" in text
+    assert re.search(r"station 1: on-machine time \d+\.\d min \(lines X Y Z XY YZ XZ\)", text)
+    assert re.search(r"station 2: on-machine time \d+\.\d min \(lines Z YZ XZ\)", text)
+    strokes, travel = (
+        float(v)
+        for v in re.search(r"([\d.]+) um over the measured strokes, ([\d.]+) um", text).groups()
+    )
+    assert 0 < strokes < 1.0 and 0 < travel < 1.5
+    for name in ("station1-plan.json", "station2-measurements.csv", "errors.csv"):
+        assert (out / name).exists()
+    again = run_cli("dry-run", "--stations", "2", "--out", str(out), "--seed", "2")
+    assert_one_line_error(again, str(out))

@@ -153,6 +153,7 @@ def _results_json(
                 "alignments": r.strategy.alignments,
                 "target_spacing_mm": r.strategy.target_spacing_mm,
                 "runs": r.strategy.runs,
+                "diagonal_runs": r.strategy.diagonal_runs,
                 "trials": r.trials,
                 "failed": len(r.failures),
                 "failures": sorted(set(r.failures)),
@@ -185,7 +186,8 @@ def mc(
         str,
         typer.Option(
             help="Decisions to compare, comma-separated: launch-position, identification, "
-            "alignments, targets, runs; NAME=V1:V2 lists the values (e.g. targets=100:50)."
+            "alignments, targets, runs, diagonal-runs; NAME=V1:V2 lists the values (e.g."
+            " targets=100:50)."
         ),
     ] = "",
     mode: Annotated[

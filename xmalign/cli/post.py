@@ -72,7 +72,7 @@ def _stations(
         )
     read = [(read_plan(plan_path), plan_path) for plan_path in plans]
     machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
-    limits = ChannelLimits.of_ranges(**machine_.interferometer.model_dump())
+    limits = ChannelLimits.of_ranges(**machine_.interferometer.ranges())
     stations = []
     for (plan_, _), path in zip(read, data, strict=True):
         recorded = load_measurements(path, limits)

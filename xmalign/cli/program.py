@@ -11,7 +11,8 @@ import typer
 from rich.table import Table
 
 from trajectories.gcode import DIALECTS, make_dialect, resolve_dialect
-from trajectories.gcode.program import write_program
+from trajectories.gcode.machine_time import MachineTime
+from trajectories.gcode.program import estimate_machine_time, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
@@ -115,12 +116,29 @@ def program(
     text = write_program(
         measurement.plan, machine_model, make_dialect(dialect_name, machine_model, name)
     )
+    error_console.print(
+        _machine_time_text(estimate_machine_time(measurement.plan, machine_model)),
+        highlight=False,
+    )
     if plan_out is not None:
         write_plan(plan_out, measurement.plan)
     if out is not None:
         atomic_write_text(out, text)
     else:
         sys.stdout.write(text)
+
+
+def _machine_time_text(time: MachineTime) -> str:
+    acceleration = (
+        "with the machine file's acceleration"
+        if time.with_acceleration
+        else "feeds reached at once (no cnc.acceleration_mm_s2 in the machine file)"
+    )
+    return (
+        f"machine time of the program: {time.total_s / 60:.1f} min (moving"
+        f" {time.moving_s / 60:.1f} min, {time.dwells} dwells {time.dwell_s / 60:.1f} min;"
+        f" {acceleration}; setting the units at each line's stop not counted)"
+    )
 
 
 def _line_ids(text: str | None) -> tuple[str, ...]:

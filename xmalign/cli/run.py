@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -24,6 +24,9 @@ from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
+
+if TYPE_CHECKING:
+    from sim.dry_run import DryRunOptions
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -195,7 +198,7 @@ def run_command(
     check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
-    limits = ChannelLimits.of_ranges(**machine_model.interferometer.model_dump())
+    limits = ChannelLimits.of_ranges(**machine_model.interferometer.ranges())
     if sim:
         measure = _sim_measurement(machine_model, plan_model, seed, program, dialect)
     else:
@@ -279,6 +282,12 @@ def dry_run_command(
         str | None, typer.Option(help="G-code dialect (default: controller's).")
     ] = None,
     identification_positions: Annotated[int, typer.Option(min=3, help="Alignments.")] = 6,
+    stations: Annotated[
+        int,
+        typer.Option(
+            min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
+        ),
+    ] = 1,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
@@ -289,6 +298,9 @@ def dry_run_command(
     options = DryRunOptions(
         seed=seed, identification_positions=identification_positions, dialect=dialect
     )
+    if stations == 2:
+        _two_station_dry_run(machine_model, out, options)
+        return
     started: list[str] = []
     with _progress() as progress:
         task = progress.add_task("dry run", total=len(STAGES))
@@ -314,6 +326,37 @@ def dry_run_command(
     console.print(
         f"files in {out}/: " + ", ".join(p.name for p in report.files.values()), markup=False
     )
+
+
+def _two_station_dry_run(machine: Machine, out: Path, options: DryRunOptions) -> None:
+    """``dry-run --stations 2``: both stations, one post, the residuals against the truth."""
+    from sim.two_stations import simulate_two_stations
+
+    if (out / "station1-plan.json").exists():
+        raise InputError(f"{out}/ already holds a two-station dry run; give another --out")
+    with console.status("dry run, two stations"):
+        report = simulate_two_stations(machine, out, options)
+    proposal = report.proposal
+    where = ", ".join(f"{v:.0f}" for v in proposal.position_mm)
+    covered = ", ".join(f"{axis} {100 * v:.0f} %" for axis, v in proposal.coverage.items())
+    console.print(
+        f"second station: launch cp at [{where}] mm, lines {','.join(proposal.line_ids)};"
+        f" both stations cover {covered} of the strokes",
+        markup=False,
+    )
+    for number, station in enumerate(report.stations, start=1):
+        console.print(
+            f"station {number}: on-machine time {station.on_machine_s / 60:.1f} min"
+            f" (lines {' '.join(line.line.id for line in station.plan.lines)})",
+            markup=False,
+        )
+    console.print(
+        f"volumetric error (RMS, rigid motion removed) against the truth:"
+        f" {report.strokes_um:.2f} um over the measured strokes,"
+        f" {report.travel_um:.2f} um over the whole travel",
+        markup=False,
+    )
+    console.print(f"files in {out}/: station1-*, station2-*, errors.csv", markup=False)
 
 
 def register(app: typer.Typer) -> None:
