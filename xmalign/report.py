@@ -163,11 +163,11 @@ def render_report(machine: Machine, result: PostResult, controller: str) -> str:
     parts.append("<h2>Error motions</h2>")
     parts.extend(_png(error_curves_figure(tables, axis)) for axis in AXES)
     parts.append("<h2>Volumetric error before and after compensation</h2>")
-    fit = fit_for(machine, tables, controller)
+    comp_fit = fit_for(machine, tables, controller)
     parts.append(
         f"<p>Predicted over the whole travel at the tool point (RMS, mean offset removed):"
-        f" {fit.before_um:.2f} um before, {fit.after_um:.2f} um after the {controller} tables"
-        f" ({100 * fit.removed_share:.0f} % removed).</p>"
+        f" {comp_fit.before_um:.2f} um before, {comp_fit.after_um:.2f} um after the"
+        f" {controller} tables ({100 * comp_fit.removed_share:.0f} % removed).</p>"
     )
     parts.append(
         _png(
