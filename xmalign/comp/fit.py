@@ -119,6 +119,7 @@ def hat_basis(nodes_mm: Vec, x_mm: Vec) -> Vec:
 
 
 def _rms_um(residual_mm: Vec) -> float:
+    """RMS length after removing one mean offset (shared by both directions), um."""
     centred = residual_mm - residual_mm.mean(axis=0)
     return float(np.sqrt(np.mean(np.sum(centred**2, axis=1))) * 1e3)
 
@@ -231,15 +232,15 @@ def fit_compensation(
         forward = ErrorTables(tables=_with_reversal(model, tables, fitted, "+"))
         reverse = ErrorTables(tables=_with_reversal(model, tables, fitted, "-"))
     applied = {"": mean, "+": forward, "-": reverse}
-    before = [_rms_um(fields[d]) for d in directions]
-    after = [_rms_um(fields[d] - _field(chain, points, t, applied[d])) for d in directions]
+    before = np.concatenate([fields[d] for d in directions])
+    after = np.concatenate([fields[d] - _field(chain, points, t, applied[d]) for d in directions])
     return CompensationFit(
         model=model,
         mean=mean,
         forward=forward,
         reverse=reverse,
-        before_um=float(np.sqrt(np.mean(np.square(before)))),
-        after_um=float(np.sqrt(np.mean(np.square(after)))),
+        before_um=_rms_um(before),
+        after_um=_rms_um(after),
         grid_points=len(points),
         converged=converged,
     )
