@@ -287,7 +287,8 @@ def _new_file_mode() -> int:
     return 0o666 & ~mask
 
 
-def _sync_folder(folder: Path) -> None:
+def sync_folder(folder: Path) -> None:
+    """Make a new file's name durable too (not every file system can sync a folder)."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError:
@@ -354,7 +355,7 @@ def atomic_write_files(files: Mapping[Path, bytes]) -> None:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
     for folder in {Path(path).parent for path in files}:
-        _sync_folder(folder)
+        sync_folder(folder)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

@@ -33,6 +33,7 @@ from typing import TextIO
 import numpy as np
 
 from xmalign.errors import FormatError, InputError
+from xmalign.formats.common import sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
@@ -442,7 +443,7 @@ class MeasurementWriter:
         writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), WRITTEN_COLUMNS, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
         writer._put(preamble + "\n" + ",".join(WRITTEN_COLUMNS) + "\n")
-        _sync_folder(path.parent)
+        sync_folder(path.parent)
         return writer
 
     @classmethod
@@ -494,20 +495,6 @@ def _csv_line(fields: list[str]) -> str:
     text = io.StringIO()
     csv.writer(text, lineterminator="\n").writerow(fields)
     return text.getvalue()
-
-
-def _sync_folder(folder: Path) -> None:
-    """Make a new file's name durable too (not every system can open a folder)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def write_measurements(
