@@ -5,6 +5,7 @@ out-of-range value, exception 6 for a write from a second connection while the
 first one controls the unit, and control passing on when it closes.
 """
 
+import shutil
 import subprocess
 import time
 
@@ -27,6 +28,11 @@ def server(free_port):
     server.stop()
 
 
+needs_mbpoll = pytest.mark.skipif(
+    shutil.which("mbpoll") is None, reason="mbpoll (Debian) is not installed; .ci/run installs it"
+)
+
+
 def mbpoll(port, *options, values=()):
     """One mbpoll request (0-based addresses, one poll); (exit code, output)."""
     command = ["mbpoll", "-m", "tcp", "-p", str(port), "-a", "1", "-0", "-1", *options]
@@ -45,6 +51,7 @@ def polled(output):
     }
 
 
+@needs_mbpoll
 def test_mbpoll_reads_identity_and_big_endian_32_bit(server):
     _, port = server
     code, output = mbpoll(port, "-r", "0", "-c", "3", "-t", "4")
@@ -53,6 +60,7 @@ def test_mbpoll_reads_identity_and_big_endian_32_bit(server):
     assert code == 0 and polled(output) == {4: COUNTS_PER_REV}
 
 
+@needs_mbpoll
 def test_mbpoll_out_of_range_is_exception_3_and_moves_nothing(server):
     unit, port = server
     code, output = mbpoll(
@@ -62,6 +70,7 @@ def test_mbpoll_out_of_range_is_exception_3_and_moves_nothing(server):
     assert unit.axes[1].target_rad == 0.0
 
 
+@needs_mbpoll
 def test_second_host_is_answered_exception_6_until_the_first_closes(server):
     unit, port = server
     first = ModbusClient(host="127.0.0.1", port=port, auto_open=True, auto_close=False)
