@@ -377,3 +377,12 @@ def test_dry_run_with_two_stations_reports_both_stations_and_the_residuals(tmp_p
         assert (out / name).exists()
     again = run_cli("dry-run", "--stations", "2", "--out", str(out), "--seed", "2")
     assert_one_line_error(again, str(out))
+
+
+def test_run_writes_a_timestamped_log_file(dry, tmp_path):
+    log = tmp_path / "wire.log"
+    result = _run_sim(dry, tmp_path / "m.csv", "--log-file", str(log))
+    assert result.returncode == 0, result.stderr
+    lines = log.read_text().splitlines()
+    assert lines, "the log file is empty"
+    assert all(re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z ", line) for line in lines)

@@ -14,11 +14,14 @@ from rich.table import Table
 
 from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
 from xmalign.cli.common import (
+    LogFileOption,
     check_seed,
     console,
     error_console,
     machine_for_plan,
     machine_or_default,
+    start_log_file,
+    stop_log_file,
 )
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
@@ -186,6 +189,7 @@ def run_command(
         Path | None, typer.Option(help="With --sim: execute this G-code (default: from the plan).")
     ] = None,
     dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
+    log_file: LogFileOption = None,
 ) -> None:
     """Drive the units, lock them, step the machine through the plan and capture every point.
 
@@ -205,11 +209,15 @@ def run_command(
         assert config is not None
         measure = _live_measurement(machine_model, plan_model, config)
     # the options are checked: only now is --out created or opened, before any device
-    with open_run_output(out, plan_model, resume, limits) as output:
-        try:
-            measure(output)
-        except KeyboardInterrupt:
-            raise _stopped(out) from None
+    log_handler = start_log_file(log_file)
+    try:
+        with open_run_output(out, plan_model, resume, limits) as output:
+            try:
+                measure(output)
+            except KeyboardInterrupt:
+                raise _stopped(out) from None
+    finally:
+        stop_log_file(log_handler)
 
 
 def _results_table(report: object) -> Table:

@@ -23,6 +23,7 @@ import csv
 import hashlib
 import io
 import json
+import logging
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -37,6 +38,8 @@ from xmalign.formats.common import sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
+
+logger = logging.getLogger(__name__)
 
 HEADER = (
     "line",
@@ -466,6 +469,8 @@ class MeasurementWriter:
             os.fsync(self._handle.fileno())
         except OSError as error:
             raise _write_error(self.path, error) from error
+        for line in text.splitlines():
+            logger.debug("%s < %s", self.path, line)
 
     def append(self, row: MeasurementRow) -> None:
         """Write one row and sync it to disk before returning."""
