@@ -214,7 +214,7 @@ class VirtualMachine:
     # truth tables ---------------------------------------------------------------
     def compensation_points(self, axis: str, spacing_mm: float) -> Vec:
         """Points from the first to the last travel limit at ``spacing_mm`` (last one added)."""
-        low, high = self.machine.travel_mm[axis]
+        low, high = self._travel_mm(axis)
         points = np.arange(low, high, spacing_mm)
         return np.append(points, high) if high - points[-1] > 1e-9 else points
 
@@ -260,8 +260,12 @@ class VirtualMachine:
         write_error_tables(path, self.truth_tables(spacing_mm))
 
     # helpers --------------------------------------------------------------------
+    def _travel_mm(self, axis: str) -> tuple[float, float]:
+        k = AXES.index(axis)
+        return float(self.machine.travel_min_mm[k]), float(self.machine.travel_max_mm[k])
+
     def _normalised(self, axis: str, position_mm: ArrayLike) -> Vec:
-        low, high = self.machine.travel_mm[axis]
+        low, high = self._travel_mm(axis)
         return (np.asarray(position_mm, dtype=float) - low) / (high - low)
 
     def _error(self, name: str, x: Vec) -> Vec:

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 import canopen
-from canopen.sdo import SdoAbortedError
+from canopen import SdoAbortedError
 
 from firmware_iface.register_map import REGISTER_MAP_PATH, Control, Status
 from sim.units import COUNTS_PER_REV, SimAxis, SimUnit, counts_to_rad, rad_to_counts

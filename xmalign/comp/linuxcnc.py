@@ -61,9 +61,8 @@ def render(
     fit: CompensationFit, machine: Machine, joints: list[str] | None = None
 ) -> dict[str, str]:
     """File name -> text of one comp file per axis and the keys for each joint."""
-    joints = joints or machine.cnc.joints or list(AXES)
     files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
-    files["joints.ini"] = render_keys(joints)
+    files["joints.ini"] = render_keys(list(joints or machine.cnc.joints or AXES))
     return files
 
 
