@@ -19,3 +19,10 @@ def reference_machine_path() -> Path:
 @pytest.fixture(scope="session")
 def reference_machine(reference_machine_path: Path) -> Machine:
     return load_machine(reference_machine_path)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """One pytest-xdist worker runs every LinuxCNC test: only one LinuxCNC runs per host."""
+    for item in items:
+        if "linuxcnc" in item.keywords:
+            item.add_marker(pytest.mark.xdist_group("linuxcnc"))
