@@ -39,7 +39,7 @@ from xmalign.formats.error_tables import write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import write_pose
-from xmalign.machine import Machine
+from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import Chain
@@ -126,9 +126,7 @@ def simulate_two_stations(
     proposal = propose_second_station(machine, np.asarray(launch, dtype=float))
     placed = machine.model_copy(
         update={
-            "launch_unit": machine.launch_unit.model_copy(
-                update={"position_mm": [float(v) for v in proposal.position_mm]}
-            )
+            "launch_unit": LaunchUnitGuess(position_mm=[float(v) for v in proposal.position_mm])
         }
     )
     setup = _move_launch_unit(setup, proposal.position_mm, options.seed)

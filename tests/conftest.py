@@ -22,7 +22,8 @@ def reference_machine(reference_machine_path: Path) -> Machine:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """One pytest-xdist worker runs every LinuxCNC test: only one LinuxCNC runs per host."""
+    """pytest-xdist groups: a module's tests share a worker (and its module fixtures); one
+    worker runs every LinuxCNC test, as only one LinuxCNC runs per host."""
     for item in items:
-        if "linuxcnc" in item.keywords:
-            item.add_marker(pytest.mark.xdist_group("linuxcnc"))
+        group = "linuxcnc" if "linuxcnc" in item.keywords else item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(group))

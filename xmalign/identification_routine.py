@@ -134,9 +134,7 @@ def _pointing_bias(
     biases = []
     for a in session.alignments:
         cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-        predicted = aligned_angles(
-            guess.launch2mcs_mm, gamma_rad, cp, session.spindle_angle_rad
-        )
+        predicted = aligned_angles(guess.launch2mcs_mm, gamma_rad, cp, session.spindle_angle_rad)
         biases.append(
             [
                 predicted.launch_rad[1] - a.launch_rad[1],

@@ -185,9 +185,9 @@ class Cnc(_Strict):
         """Reference point of each axis (where tables are zero), mm, shape (3,)."""
         return np.asarray(self.reference_mm, dtype=float)
 
-    def axis_name(self, axis: AxisName, default: str) -> str:
+    def axis_name(self, axis: str, default: str) -> str:
         """The controller's name of ``axis`` (``default`` when the file gives none)."""
-        return self.axis_names.get(axis, default)
+        return next((name for key, name in self.axis_names.items() if key == axis), default)
 
 
 class Machine(_Strict):

@@ -236,7 +236,11 @@ def read_ini(path: Path) -> list[IniLine]:
 
 def ini_values(lines: list[IniLine], section: str, key: str) -> list[str]:
     """Every value of ``[section] key`` (HALFILE may repeat)."""
-    return [line.value for line in lines if line.section == section and line.key == key]
+    return [
+        line.value
+        for line in lines
+        if line.section == section and line.key == key and line.value is not None
+    ]
 
 
 def ini_value(lines: list[IniLine], section: str, key: str, source: Path) -> str:
@@ -454,7 +458,7 @@ def _merged_ini(lines: list[IniLine], folder: Path) -> tuple[str, list[str]]:
         i for i, line in enumerate(lines) if line.section == "HAL" and line.key == "HALFILE"
     )
     for index, line in enumerate(lines):
-        if line.section == "HAL" and line.key == "HALFILE":
+        if line.section == "HAL" and line.key == "HALFILE" and line.value is not None:
             out.append(f"HALFILE = {_merged_name(line.value)}")
         elif line.section.startswith("JOINT_") and line.key in PITCH_KEYS:
             out.append(f"# xmalign: the volumetric compensation replaces: {line.text.strip()}")

@@ -132,10 +132,10 @@ def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
         parts.insert(0, np.linspace(low, knots_mm[0], int(np.ceil(below / spacing)) + 1)[:-1])
     if above > spacing / 2:
         parts.append(np.linspace(knots_mm[-1], high, int(np.ceil(above / spacing)) + 1)[1:])
-    return np.round(np.concatenate(parts), _KNOT_DECIMALS)
+    return np.concatenate(parts).round(_KNOT_DECIMALS)
 
 
-def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
+def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_array:
     """Triangular (degree-1 B-spline) basis at positions; the end segments extrapolate.
 
     A diagonal reaches parts of an axis's travel that its axis line does not
@@ -143,7 +143,7 @@ def hat_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
 
     Returns
     -------
-    scipy.sparse.coo_matrix, shape (N, M)
+    scipy.sparse.coo_array, shape (N, M)
         ``B[i, m]`` weight of the value at knot ``m`` for position ``i``.
     """
     t = np.concatenate([[knots_mm[0]], knots_mm, [knots_mm[-1]]])
@@ -251,7 +251,7 @@ def _add_squareness_columns(
     for s, column in enumerate(layout.squareness_columns):
         dp = squareness_deviation(data.machine_mm, np.eye(3)[s]) @ data.frame.T
         for channel in range(3):
-            out.add(rows + channel, column, dp[:, channel])
+            out.add(rows + channel, int(column), dp[:, channel])
 
 
 @dataclass
