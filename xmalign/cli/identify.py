@@ -246,6 +246,7 @@ def identify_command(
     )
     truth = None
     if sim:
+        assert machine_model is not None  # loaded above for --sim
         session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
         session_path.unlink(missing_ok=True)
         result, truth = _simulated_identification(
@@ -254,6 +255,7 @@ def identify_command(
         session = read_session(session_path)
     else:
         if live:
+            assert machine_model and config and session_file  # checked above for --live
             session = _live_identification(machine_model, config, alignments, session_file)
             source = str(session_file)
         else:
@@ -262,6 +264,7 @@ def identify_command(
                 if machine_model is not None
                 else NOMINAL_STRAIGHTNESS_RANGE_UM
             )
+            assert input is not None  # one of --input, --sim, --live (checked above)
             session, source = read_session(input, range_um), str(input)
         result = identify(session, method, uncertainty, source)
     print_result(result, session, truth)
