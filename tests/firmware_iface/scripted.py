@@ -78,3 +78,22 @@ class ExpectedSdo(_Script):
 
     def __getitem__(self, index: int) -> _Entry:
         return _Entry(self, index)
+
+
+class ExpectedLines(_Script):
+    """A serial ``LineConnection`` that plays ``(command, reply)`` steps (reply b"": silence)."""
+
+    def __init__(self, steps: Sequence[tuple[Any, ...]]) -> None:
+        super().__init__(steps)
+        self._reply = b""
+
+    def reset_input_buffer(self) -> None:
+        self._reply = b""
+
+    def write(self, data: bytes) -> int:
+        self._reply = self.next((data,))
+        return len(data)
+
+    def readline(self) -> bytes:
+        reply, self._reply = self._reply, b""
+        return reply
