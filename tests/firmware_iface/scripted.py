@@ -1,8 +1,9 @@
 """Scripted-protocol doubles in the style of PyMeasure's ``expected_protocol``.
 
 A script is the exact list of requests a driver must make, with the answers to
-give. Any other request fails at once; steps left over when the ``with`` block
-ends fail too, so a test pins the whole sequence of the REGISTERS contract.
+give (an exception as the answer is raised). Any other request fails at once;
+steps left over when the ``with`` block ends fail too, so a test pins the whole
+sequence of the REGISTERS contract.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ class _Script:
         expected, answer = step[:-1], step[-1]
         assert request == expected, f"step {self.done + 1}: expected {expected}, got {request}"
         self.done += 1
+        if isinstance(answer, BaseException):
+            raise answer  # the device or the bus fails this request
         return answer
 
     def __enter__(self) -> _Script:

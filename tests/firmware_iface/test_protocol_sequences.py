@@ -6,13 +6,21 @@ from __future__ import annotations
 
 import math
 
+import can
+import canopen
 import pytest
 
 from firmware_iface.canopen_axis import CanopenAxis
 from firmware_iface.modbus import ModbusUnit
 from sim.clock import SimClock
 from tests.firmware_iface.scripted import ExpectedRegisters, ExpectedSdo
-from xmalign.errors import DeviceError, DeviceTimeoutError, HeartbeatError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    HeartbeatError,
+    OutOfRangeError,
+    TransportError,
+)
 
 ENABLE, UNLOCK, START, STOP, FAULT_RESET = 1, 2, 4, 8, 16
 ENABLED, IN_POSITION, MOVING, FAULT, LOCKED, HOMED = 1, 2, 4, 8, 16, 32
@@ -186,3 +194,44 @@ def test_modbus_unknown_device_type_is_refused() -> None:
         pytest.raises(DeviceError, match="reports an unknown device type 7"),
     ):
         ModbusUnit(script, clock=SimClock())
+
+
+def test_cia402_home_on_the_current_position_and_stop() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("write", 0x6060, 0, 6, None),  # homing mode
+        ("read", 0x6041, 0, 0x0233),  # switched on already: no shutdown / switch on
+        ("write", 0x6040, 0, 0x0F, None),  # enable operation
+        ("write", 0x6040, 0, 0x1F, None),  # start homing
+        ("read", 0x6041, 0, OPERATION_ENABLED),
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x1000),  # homing attained
+        ("write", 0x6040, 0, 0x0F, None),
+        ("write", 0x6040, 0, 0x10F, None),  # halt: at rest, the brake still released
+    ]
+    with ExpectedSdo(2, steps) as node:
+        axis = CanopenAxis(node, "a2", "launch unit", SimClock(), poll_s=0.01)  # type: ignore[arg-type]
+        axis.home(timeout_s=1.0)
+        axis.stop()
+
+
+@pytest.mark.parametrize(
+    ("failure", "error", "fragment"),
+    [
+        (
+            canopen.SdoAbortedError(0x06010002),
+            DeviceError,
+            "refused the write of 0x6040: Code 0x06010002",
+        ),
+        (canopen.SdoAbortedError(0x06090030), OutOfRangeError, "refused the value: out of range"),
+        (canopen.SdoCommunicationError("No SDO response"), DeviceTimeoutError, "did not answer"),
+        (can.CanOperationError("bus off"), TransportError, "lost the CAN bus of axis a1"),
+    ],
+)
+def test_cia402_sdo_failures_name_the_axis(
+    failure: Exception, error: type[Exception], fragment: str
+) -> None:
+    steps = [("read", 0x608F, 1, 2**23), ("write", 0x6040, 0, 0x10F, failure)]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock())  # type: ignore[arg-type]
+        with pytest.raises(error, match=fragment):
+            axis.stop()
