@@ -220,7 +220,7 @@ def test_cia402_home_on_the_current_position_and_stop() -> None:
         (
             canopen.SdoAbortedError(0x06010002),
             DeviceError,
-            "refused the write of 0x6040: Code 0x06010002",
+            "write of 0x6040: Code 0x06010002",
         ),
         (canopen.SdoAbortedError(0x06090030), OutOfRangeError, "refused the value: out of range"),
         (canopen.SdoCommunicationError("No SDO response"), DeviceTimeoutError, "did not answer"),
