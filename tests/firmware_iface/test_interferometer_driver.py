@@ -193,12 +193,15 @@ HEADER = ",".join(STREAM_HEADER) + "\n"
     ("body", "fragment"),
     [
         ("", "no samples"),
+        (None, "line 1: expected the header time_s,linear_um"),
         ("\n0,1,2,3,4,5,6,1\n0.02,1,2,3\n", "line 4: expected 8 fields"),
         ("0,1,2,3,4,5,6,1\n0.02,1,2,nan,4,5,6,1\n", "line 3: a value is not a finite number"),
     ],
 )
-def test_stream_files_without_samples_or_with_bad_rows(tmp_path, body: str, fragment: str) -> None:  # noqa: ANN001
+def test_stream_files_without_samples_or_with_bad_rows(
+    tmp_path, body: str | None, fragment: str
+) -> None:  # noqa: ANN001
     path = tmp_path / "s.csv"
-    path.write_text(HEADER + body)
+    path.write_text(HEADER + body if body is not None else "t,x\n0,1\n")
     with pytest.raises(FormatError, match=f"s.csv: {fragment}"):
         ReplayInterferometer(path)

@@ -21,6 +21,7 @@ from firmware_iface.weather_station import (
     FileEnvironment,
     FileEnvironmentConfig,
     FixedEnvironment,
+    FixedEnvironmentConfig,
     ModbusRtuStationConfig,
     ModbusTcpStationConfig,
     ModbusWeatherStation,
@@ -277,6 +278,13 @@ def test_open_environment_of_each_source(tmp_path: Path) -> None:
         assert isinstance(source, ModbusWeatherStation)
         with pytest.raises(TransportError, match="weather station"):
             source.read()
-    assert len(closers) == 2
+    looped = open_environment(SerialStationConfig(source="serial", port="loop://"), 0.1, closers)
+    assert isinstance(looped, SerialWeatherStation)
+    assert looped.device_name == "weather station on loop://"
+    fixed = FixedEnvironmentConfig(
+        source="fixed", air_temp_c=20.5, air_pressure_hpa=1013.0, air_humidity_percent=45.0
+    )
+    assert open_environment(fixed, 0.1, closers).read().air_temp_c == 20.5
+    assert len(closers) == 3
     for close in closers:
         close()
