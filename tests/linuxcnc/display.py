@@ -30,35 +30,40 @@ class ActionFailedError(Exception):
 class Standstills:
     """Joint states at standstill during a program, each recorded once.
 
-    Every poll reads each joint's ``pos-cmd``, ``vel-cmd``, ``motor-pos-cmd`` and
-    ``motor-offset`` and remembers the sign of the last non-zero ``vel-cmd``
-    (LinuxCNC's COMP_FILE direction, held at standstill). When every ``vel-cmd``
-    is zero and two polls (milliseconds apart) read the same values, the joints
-    have settled: one sample ``[[pos_cmd, motor_pos_cmd, motor_offset,
-    direction], ...]`` per joint is kept, unless it repeats the last one.
+    Every poll reads each joint's ``pos-cmd``, ``vel-cmd``, ``motor-pos-cmd``,
+    ``motor-offset`` and ``comp.N.out``: a comparator in the servo thread that
+    latches the sign of the last non-zero ``vel-cmd`` (LinuxCNC's COMP_FILE
+    direction, held at standstill), exact even when a move is shorter than a
+    poll. When every ``vel-cmd`` is zero and two polls (milliseconds apart)
+    read the same values, the joints have settled: one sample ``[[pos_cmd,
+    motor_pos_cmd, motor_offset, direction], ...]`` per joint is kept (direction
+    +1, -1, or 0 before the joint was seen moving), unless it repeats the last.
     """
+
+    NAMES = ("pos-cmd", "vel-cmd", "motor-pos-cmd", "motor-offset")
 
     def __init__(self, joints):
         self.joints = joints
-        self.direction = [0] * joints
+        self.moved = [False] * joints
         self.previous = None
         self.samples = []
 
     def poll(self):
         if not self.joints:
             return
-        names = ("pos-cmd", "vel-cmd", "motor-pos-cmd", "motor-offset")
         read = [
-            [float(hal.get_value(f"joint.{j}.{name}")) for name in names]
+            [float(hal.get_value(f"joint.{j}.{name}")) for name in self.NAMES]
+            + [1 if hal.get_value(f"comp.{j}.out") else -1]
             for j in range(self.joints)
         ]
-        for j, (_, velocity, _, _) in enumerate(read):
-            if velocity:
-                self.direction[j] = 1 if velocity > 0 else -1
-        settled = read == self.previous and not any(v for _, v, _, _ in read)
+        for j, (_, velocity, _, _, _) in enumerate(read):
+            self.moved[j] = self.moved[j] or velocity != 0.0
+        settled = read == self.previous and not any(r[1] for r in read)
         self.previous = read
         if settled:
-            sample = [[p, m, o, self.direction[j]] for j, (p, _, m, o) in enumerate(read)]
+            sample = [
+                [p, m, o, d if self.moved[j] else 0] for j, (p, _, m, o, d) in enumerate(read)
+            ]
             if not self.samples or self.samples[-1] != sample:
                 self.samples.append(sample)
 

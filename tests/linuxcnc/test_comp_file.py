@@ -44,7 +44,7 @@ MACHINE = {
     "measurement": {"target_spacing_mm": 100, "runs": 1, "diagonal_runs": 1, "dwell_s": 0.1},
     "cnc": {"acceleration_mm_s2": 1000},
 }
-FEED_OVERRIDE = 10.0
+FEED_OVERRIDE = 20.0
 #: offsets left active on the controller before the run; the program must not be shifted by them
 OFFSETS_BEFORE_RUN = ["G10 L2 P1 X37 Y-21 Z15", "G10 L2 P2 X-11 Y13 Z-7", "G54", "G43.1 Z25"]
 #: required agreement of the applied correction with the table, mm
@@ -107,7 +107,14 @@ def live(request: pytest.FixtureRequest, calibration: Path) -> Iterator[Live]:
     coordinates = request.param
     machine, program, plan = _config(calibration, coordinates)
     folder = Path(tempfile.mkdtemp(prefix=f"xmalign-lcnc-{coordinates}-"))
-    sim = SimMachine(coordinates=coordinates, travel_mm=TRAVEL_MM, max_feed_override=FEED_OVERRIDE)
+    sim = SimMachine(
+        coordinates=coordinates,
+        travel_mm=TRAVEL_MM,
+        max_velocity_mm_s=2000.0,
+        max_acceleration_mm_s2=40000.0,
+        max_feed_override=FEED_OVERRIDE,
+        direction_latches=True,
+    )
     ini = write_sim_config(folder / "config", sim)
     out = folder / "comp"
     result = run_cli(
@@ -158,6 +165,7 @@ def _table_correction_mm(rows: np.ndarray, position_mm: np.ndarray, direction: n
 
 def test_the_program_runs_to_its_end_with_the_tables_in_the_merged_ini(live):
     program = live.run.value("run")
+    print(f"{live.coordinates}: program {program['seconds']:.1f} s")
     assert program["resumes"] == 6  # one M0 per line
     assert program["feed_override"] == pytest.approx(FEED_OVERRIDE)
     assert live.run.report["state"]["enabled"], live.run.describe()
