@@ -382,14 +382,6 @@ def merge_hal(hal_files: dict[str, str], joints: int, table_path: Path) -> dict[
     return merged
 
 
-def _absolute(value: str, folder: Path) -> str:
-    """A relative path that names an existing file in ``folder`` made absolute."""
-    if not value or " " in value or Path(value).is_absolute() or ":" in value:
-        return value
-    candidate = folder / value
-    return str(candidate.resolve()) if candidate.exists() else value
-
-
 @dataclass(frozen=True)
 class MergedConfig:
     """File name -> text of everything to write, and warnings for the user."""
@@ -468,7 +460,7 @@ def _merged_ini(lines: list[IniLine], folder: Path) -> tuple[str, list[str]]:
                     " volumetric component corrects the positioning error too"
                 )
         elif line.key is not None and line.value:
-            absolute = _absolute(line.value, folder)
+            absolute = linuxcnc.absolute_path(line.value, folder)
             out.append(line.text if absolute == line.value else f"{line.key} = {absolute}")
         else:
             out.append(line.text)
