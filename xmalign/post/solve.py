@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 import scipy.sparse
-from scipy.interpolate import BSpline, CubicSpline
+from scipy.interpolate import BSpline
 
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.error_tables import ErrorTableSet, Table
@@ -62,8 +62,10 @@ _KNOT_DECIMALS = 6
 _SIGMA_FLOOR = 1e-2
 #: Re-weightings with the channels' estimated variance components (they settle in two).
 _VARIANCE_ITERATIONS = 2
-#: Table points per knot interval: the linear interpolation of a controller between
-#: them follows the spline to about 0.03 um of volumetric error (docs/post.md).
+#: Knots whose polynomial gives the slope at a knot (fourth order).
+_SLOPE_POINTS = 5
+#: Table points per knot interval: a controller interpolates linearly between them,
+#: which follows the cubic to well below its own model error (docs/post.md).
 TABLE_SUBDIVISIONS = 4
 #: A travel end closer than this to the outermost knot adds no extrapolated point.
 _TRAVEL_TOLERANCE_MM = 1e-3
@@ -144,18 +146,19 @@ def _extended(knots_mm: Vec, reached_mm: Vec) -> Vec:
 
 
 def spline_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
-    """Cardinal cubic-spline basis at positions; beyond the end knots, linear continuation.
+    """Local cubic (Hermite) basis at positions; beyond the end knots, linear continuation.
 
-    The value at ``x`` is ``sum_m B[x, m] v_m`` for the cubic spline (not-a-knot ends)
-    that interpolates the knot values ``v``: the value at a knot is its table
-    value, a constant or a straight table is reproduced exactly (so the table
-    conventions still fix what the lines cannot see), and between knots the
-    curvature of the errors is followed. A linear interpolation at 100 mm knots
-    cost 0.3-0.5 um of volumetric residual on seed 003's error shapes even with
-    exact knot values (docs/post.md). Beyond the end knots the value continues
-    with the end slope: a diagonal reaches parts of an axis's travel that its
-    axis line does not measure, and holding the end value there would model a
-    sloped table as a step.
+    The value at ``x`` is ``sum_m B[x, m] v_m``: between two knots the cubic
+    that takes their values with the slopes of the polynomial through the
+    neighbouring knots (:func:`_slope_matrix`). It interpolates (the value at a
+    knot is its table value), reproduces polynomials up to the third degree
+    exactly (so the table conventions still fix what the lines cannot see: a
+    constant, a straight line), and each position depends on six knots only
+    (the system stays sparse). A linear interpolation at 100 mm knots cost
+    0.3-0.5 um of volumetric residual on seed 003's error shapes even with exact
+    knot values (docs/post.md). Beyond the end knots the value continues with the end slope:
+    a diagonal reaches parts of an axis's travel that its axis line does not
+    measure, and holding the end value there would model a sloped table as a step.
 
     Returns
     -------
@@ -167,13 +170,41 @@ def spline_basis(knots_mm: Vec, position_mm: Vec) -> scipy.sparse.coo_matrix:
     if len(knots) < 3:
         t = np.concatenate([[knots[0]], knots, [knots[-1]]])
         return BSpline.design_matrix(x, t, 1, extrapolate=True).tocoo()
-    spline = CubicSpline(knots, np.eye(len(knots)), bc_type="not-a-knot")
-    basis = spline(np.clip(x, knots[0], knots[-1]))
+    slopes = _slope_matrix(knots)
+    segment = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
+    h = knots[segment + 1] - knots[segment]
+    t = (np.clip(x, knots[0], knots[-1]) - knots[segment]) / h
+    basis = np.zeros((len(x), len(knots)))
+    rows = np.arange(len(x))
+    basis[rows, segment] += 2 * t**3 - 3 * t**2 + 1
+    basis[rows, segment + 1] += -2 * t**3 + 3 * t**2
+    basis += ((t**3 - 2 * t**2 + t) * h)[:, None] * slopes[segment]
+    basis += ((t**3 - t**2) * h)[:, None] * slopes[segment + 1]
     below, above = x < knots[0], x > knots[-1]
-    basis[below] += np.outer(x[below] - knots[0], spline(knots[0], 1))
-    basis[above] += np.outer(x[above] - knots[-1], spline(knots[-1], 1))
+    basis[below] += np.outer(x[below] - knots[0], slopes[0])
+    basis[above] += np.outer(x[above] - knots[-1], slopes[-1])
     basis[np.abs(basis) < 1e-12] = 0.0
     return scipy.sparse.coo_matrix(basis)
+
+
+def _slope_matrix(knots_mm: Vec) -> Vec:
+    """Slopes at the knots as a linear map of the knot values, shape (M, M), M >= 3.
+
+    At each knot the derivative of the polynomial through the nearest
+    :data:`_SLOPE_POINTS` knots (centred on it where the ends allow): fourth
+    order, so the cubic between two knots follows the errors' curvature almost
+    as well as a global spline while each position depends on six knots only.
+    """
+    m = len(knots_mm)
+    n = min(_SLOPE_POINTS, m)
+    slopes = np.zeros((m, m))
+    for i in range(m):
+        first = min(max(i - n // 2, 0), m - n)
+        window = knots_mm[first : first + n]
+        scale = float(window[-1] - window[0])
+        powers = ((window - knots_mm[i]) / scale)[:, None] ** np.arange(n)
+        slopes[i, first : first + n] = np.linalg.inv(powers)[1] / scale
+    return slopes
 
 
 def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
@@ -343,6 +374,14 @@ def _unique(names: Iterable[str | None]) -> list[str]:
     return list(dict.fromkeys(name for name in names if name is not None))
 
 
+def _inverse(factor: tuple[Vec, bool]) -> Vec:
+    """The inverse of a matrix from its upper Cholesky factor (``_factorise``)."""
+    inverse, info = scipy.linalg.lapack.dpotri(factor[0], lower=False)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dpotri failed ({info})")
+    return np.triu(inverse) + np.triu(inverse, 1).T
+
+
 def _factorise(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> tuple[Vec, bool]:
     """Cholesky factor of the (column-scaled) normal matrix; GeometryError when singular."""
     try:
@@ -379,7 +418,7 @@ class _WeightedSystem:
             )
         self.scaled = (weighted @ scipy.sparse.diags(1.0 / self.norms)).tocsr()
         factor = _factorise((self.scaled.T @ self.scaled).toarray(), layout, setup)
-        self.inverse = scipy.linalg.cho_solve(factor, np.eye(n_columns))
+        self.inverse = _inverse(factor)
         solution_scaled = self.inverse @ (self.scaled.T @ (observed * self.weights))
         self.residual = observed * self.weights - self.scaled @ solution_scaled
         self.solution = solution_scaled / self.norms
@@ -393,10 +432,26 @@ class _WeightedSystem:
         ``1 - h_ii`` of its rows, ``h`` the hat matrix): a type A evaluation of
         the channel's standard deviation.
         """
-        leverage = np.asarray(self.scaled.multiply(self.scaled @ self.inverse).sum(axis=1))
-        redundancy = (1.0 - leverage.ravel()).reshape(-1, N_CHANNELS).sum(axis=0)
+        redundancy = (1.0 - self._leverage()).reshape(-1, N_CHANNELS).sum(axis=0)
         squares = (self.residual**2).reshape(-1, N_CHANNELS).sum(axis=0)
         return np.sqrt(squares / np.maximum(redundancy, 1.0))
+
+    def _leverage(self) -> Vec:
+        """Diagonal of the hat matrix, ``a_i N^-1 a_i^T`` per row (rows are sparse), (N,)."""
+        coo = self.scaled.tocoo()
+        order = np.argsort(coo.row, kind="stable")
+        rows, cols, vals = coo.row[order], coo.col[order], coo.data[order]
+        counts = np.bincount(rows, minlength=self.scaled.shape[0])
+        starts = np.repeat(np.cumsum(counts) - counts, counts)
+        leverage = np.zeros(self.scaled.shape[0])
+        # every pair (j, k) of one row's entries: entry j with its row's entry at offset k
+        for offset in range(int(counts.max(initial=0))):
+            partner = starts + offset
+            valid = offset < counts[rows]
+            partner = np.where(valid, partner, 0)
+            terms = vals * vals[partner] * self.inverse[cols, cols[partner]]
+            leverage += np.bincount(rows, np.where(valid, terms, 0.0), len(leverage))
+        return leverage
 
     def covariance(self, sigma: Vec) -> Vec:
         """Covariance of the solution when the channels scatter with ``sigma`` (6,).

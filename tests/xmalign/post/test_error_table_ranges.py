@@ -19,12 +19,12 @@ def test_the_spline_follows_a_cubic_and_continues_linearly():
     cubic = np.polynomial.Polynomial([1.0, -2.0, 0.5, 0.25])
     slope = cubic.deriv()
     inside = np.array([0.5, 2.0, 3.0, 5.2])
-    beyond = np.array([-1.0, 8.0])
-    basis = spline_basis(knots, np.concatenate([inside, beyond])).toarray()
+    basis = spline_basis(knots, np.concatenate([inside, [-1.0, 8.0]])).toarray()
     expected = np.concatenate(
         [cubic(inside), [cubic(0.0) - slope(0.0), cubic(6.0) + 2.0 * slope(6.0)]]
     )
     assert np.allclose(basis @ cubic(knots), expected)
+    assert np.count_nonzero(basis[:4], axis=1).max() <= 5  # local
 
 
 def test_two_knots_give_a_straight_line():
