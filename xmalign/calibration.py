@@ -8,8 +8,8 @@ recorded. A device fault stops the line with the units locked.
 
 A beam lost while capturing is searched for like fine alignment does
 (:func:`xmalign.alignment.find_beam`: back to the line's locked angles, then
-spiral searches within the units' pointing uncertainty); found, the receiver
-faces the beam again, the units are locked, the alignment is recorded as a new
+spiral searches within the units' pointing uncertainty); found, both units
+align to it, they are locked, the alignment is recorded as a new
 setup segment (the interferometer lost its count, and the beam may point a
 little differently), the datum is set again and the point is captured again.
 Only when the search fails does the run stop and ask a person.
@@ -244,9 +244,14 @@ class CalibrationRun:
         if recorded is not None and self._stands_at(recorded):
             self.launch.lock()
             self.receiver.lock()
-            self.statistics.resumed.append(
-                f"line {line.id}: the units stand where they were locked; setup kept"
-            )
+            note = f"line {line.id}: the units stand where they were locked; setup kept"
+            if recorded.segment > 0:
+                # the segment may have begun with a datum set mid-run (a recovered beam),
+                # which the run's restart does not repeat: go on with its own constants
+                kept = LineSetup(line.id, recorded.segment + 1, *self._standing_rad())
+                self._note_setup(kept)
+                note += f"; its further rows are setup segment {kept.segment}"
+            self.statistics.resumed.append(note)
             return
         if line.id not in self.last_segment:
             self.set_line(line)
@@ -257,6 +262,12 @@ class CalibrationRun:
             f"line {line.id}: the units had moved and were aligned again; its further rows"
             f" are setup segment {segment}"
         )
+
+    def _note_setup(self, setup: LineSetup) -> None:
+        """Record a line's (new) setup segment before its rows."""
+        self.record_setup(setup)
+        self.setups[setup.line] = setup
+        self.last_segment[setup.line] = setup.segment
 
     def set_line(self, line: PlanLine, segment: int = 0) -> FineAlignmentResult:
         """Units to the plan's angles, fine alignment at the line start, lock, record."""
@@ -273,10 +284,7 @@ class CalibrationRun:
         )
         self.launch.lock()
         self.receiver.lock()
-        setup = LineSetup(line.id, segment, *self._standing_rad())
-        self.record_setup(setup)
-        self.setups[line.id] = setup
-        self.last_segment[line.id] = segment
+        self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
         self.statistics.alignments[line.id] = result
         self.statistics.alignment_s += self.clock.now() - started
         return result
@@ -391,10 +399,7 @@ class CalibrationRun:
             self.receiver.lock()
             self.statistics.alignment_s += self.clock.now() - started
         segment = self.last_segment.get(line.id, 0) + 1
-        new_setup = LineSetup(line.id, segment, *self._standing_rad())
-        self.record_setup(new_setup)
-        self.setups[line.id] = new_setup
-        self.last_segment[line.id] = segment
+        self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
         self.statistics.recovered.append(
             f"{_point_name(point)}: the beam was lost and found again after"
             f" {self.clock.now() - started:.1f} s; the line goes on in setup segment {segment}"

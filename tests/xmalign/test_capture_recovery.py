@@ -94,3 +94,27 @@ def test_a_beam_the_search_cannot_find_asks_for_a_person(dry_run, reference_mach
         _measure(reference_machine, dry_run, "blocked.csv", 1, lambda xm: xm.interrupt(1e6))
     rows = read_measurements(dry_run / "blocked.csv")
     assert len(rows) == AFTER  # nothing captured is lost, nothing is captured twice
+
+
+def test_a_resume_after_a_recovery_goes_on_in_a_segment_of_its_own(dry_run, reference_machine):
+    plan = read_plan(dry_run / "plan.json")
+    plan.lines = plan.lines[:1]
+    program = write_program(plan, reference_machine, DIALECTS["linuxcnc"]())
+    setup = virtual_setup(reference_machine, SEED)
+    path = dry_run / "recovered-then-stopped.csv"
+
+    def on_saved(saved):
+        if saved == AFTER:
+            setup.world.interferometer.interrupt(2.5)
+        if saved == AFTER + 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt), open_run_output(path, plan, False) as output:
+        output.on_saved = on_saved
+        measure_virtually(setup, plan, program, "linuxcnc", output)
+    with open_run_output(path, plan, True) as output:
+        run = measure_virtually(setup, plan, program, "linuxcnc", output)
+    assert run.statistics.resumed[0].endswith("setup kept; its further rows are setup segment 2")
+    rows = read_measurements(path)
+    assert _every_point_once(plan, rows)
+    assert [row.segment for row in rows] == [0] * AFTER + [1] * 5 + [2] * (len(rows) - AFTER - 5)
