@@ -13,8 +13,9 @@ receiver's rotation relative to the launch head (zero when the units face each
 other with roll 0).
 
 Like a real interferometer it loses its linear count when the beam is
-interrupted: every reading with the beam out of range moves the datum by an
-unknown amount (up to a millimetre), until :meth:`zero` sets it again.
+interrupted: when a reading finds the beam out of range after it was in
+range, the datum moves by an unknown amount (up to a millimetre), until
+:meth:`zero` sets it again.
 """
 
 from __future__ import annotations
@@ -127,6 +128,7 @@ class SimInterferometer:
         self._datum_mm = 0.0
         self.environment = environment
         self._blocked_until_s = -np.inf
+        self._counting = True
 
     def geometry(self) -> Geometry:
         """The noise-free reading now."""
@@ -167,11 +169,14 @@ class SimInterferometer:
 
     def zero(self) -> None:
         """Set the linear datum (its optical path) at the receiver's present position."""
-        self._datum_mm = self.geometry().optical_mm
+        geometry = self.geometry()
+        self._datum_mm = geometry.optical_mm
+        self._counting = geometry.beam_ok
 
     def _reading(self, geometry: Geometry, noise: Vec, time_s: float) -> InterferometerReading:
-        if not geometry.beam_ok:
+        if self._counting and not geometry.beam_ok:
             self._datum_mm += float(self._rng.uniform(-1.0, 1.0))
+        self._counting = geometry.beam_ok
         channels = geometry.channels + noise
         channels[0] -= self._datum_mm * UM_PER_MM
         return InterferometerReading(time_s=time_s, channels=channels, beam_ok=geometry.beam_ok)
