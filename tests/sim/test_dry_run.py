@@ -5,7 +5,7 @@ from sim.dry_run import DryRunOptions, measure_virtually, simulate_calibration, 
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence, open_run_output
-from xmalign.errors import BeamLostError, InputError
+from xmalign.errors import InputError
 from xmalign.formats.measurements import plan_sha256, read_measurements, write_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.post.evaluate import post_process
