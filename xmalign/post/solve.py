@@ -324,9 +324,12 @@ class TableFit:
     residual_rms : dict of str to ndarray, shape (6,)
         RMS residual of each channel per line, um / urad.
     sigma0 : float
-        Square root of the a-posteriori variance factor (1 when the channel
-        uncertainties describe the scatter).
+        Square root of the a-posteriori variance factor of the fit weighted with
+        the machine file's channel uncertainties (1 when they describe the scatter).
     n_observations, n_parameters : int
+    channel_scatter : ndarray, shape (6,)
+        The channels' standard deviations estimated from the residuals (type A),
+        with which the final fit is weighted, mm / rad.
     """
 
     tables: ErrorTableSet
@@ -335,6 +338,7 @@ class TableFit:
     sigma0: float
     n_observations: int
     n_parameters: int
+    channel_scatter: Vec
 
 
 def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> GeometryError:
@@ -523,6 +527,7 @@ def fit_error_tables(
         sigma0=sigma0,
         n_observations=n_rows,
         n_parameters=n_columns,
+        channel_scatter=sigma,
     )
 
 
