@@ -79,8 +79,15 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
             run = measure()
         except XmalignError as error:
             raise _kept(error, output) from error
-    for note in run.statistics.resumed:
+    for note in run.statistics.resumed + run.statistics.recovered:
         console.print(note, markup=False, soft_wrap=True)
+    if run.statistics.missed:
+        error_console.print(
+            f"warning: {len(run.statistics.missed)} points were not captured (the machine"
+            " went on while the beam was searched); run again with --resume to capture them",
+            style="yellow",
+            markup=False,
+        )
     console.print(
         f"{run.statistics.points} points captured; {output.writer.saved} points in"
         f" {output.writer.path}",
