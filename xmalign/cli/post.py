@@ -138,6 +138,14 @@ def post(
     console.print(_summary(result))
     for note in dict.fromkeys(result.notes):
         console.print(note, markup=False, soft_wrap=True)
+    drift = [check for c in result.compensation for check in c.drift]
+    if drift:
+        console.print(
+            "drift at the first target: "
+            + ", ".join(f"{check.line_id} {check.drift_um:+.2f} um" for check in drift),
+            markup=False,
+            soft_wrap=True,
+        )
     for warning in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(
@@ -158,7 +166,7 @@ def _record_info(result: PostResult, **keys: object) -> RecordInfo:
     """The record's environment, compensation and drift, over every station."""
     from xmalign.report import RecordInfo
 
-    stations = [c for c in result.compensation if c is not None and c.lines]
+    stations = [c for c in result.compensation if c.lines]
     if not stations:
         return RecordInfo(**keys)  # type: ignore[arg-type]
     return RecordInfo(

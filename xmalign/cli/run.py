@@ -14,7 +14,13 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
+from xmalign.calibration import (
+    CalibrationRun,
+    RunOutput,
+    capture_sequence,
+    check_run_output,
+    open_run_output,
+)
 from xmalign.cli.common import (
     LogFileOption,
     check_seed,
@@ -57,9 +63,7 @@ def _progress() -> Progress:
 
 
 def _point_count(plan: Plan) -> int:
-    return sum(
-        line.runs * len(line.targets_mm) * (2 if line.bidirectional else 1) for line in plan.lines
-    )
+    return sum(len(list(capture_sequence(line))) for line in plan.lines)
 
 
 def _stopped(out: Path, also: str = "") -> KeyboardInterrupt:

@@ -32,27 +32,21 @@ class PostResult:
         The measurement, grouped by line (mm / rad).
     warnings : list of str
         What the user should know about the data (e.g. a re-zeroed linear datum).
-    compensation : list of StationCompensation or None
+    compensation : list of StationCompensation
         Per station, how its readings were compensated for the air, the dead
-        path and the material; None where the file has no environment columns.
+        path and the material, and the drift of each line.
     """
 
     fit: TableFit
     positioning: list[PositioningFigures]
     lines: list[LineData]
     warnings: list[str] = field(default_factory=list)
-    compensation: list[StationCompensation | None] = field(default_factory=list)
+    compensation: list[StationCompensation] = field(default_factory=list)
 
     @property
     def notes(self) -> list[str]:
         """One line per station on how its linear readings were treated."""
-        return [
-            c.note
-            if c is not None
-            else "no environment columns: readings taken as already compensated for the"
-            " air and at 20 °C"
-            for c in self.compensation
-        ]
+        return [c.note for c in self.compensation]
 
 
 def channel_sigma(machine: Machine) -> Vec:
@@ -92,7 +86,7 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
         for index, (station, compensated) in enumerate(zip(stations, compensation, strict=True))
         for data in group_by_line(
             station.plan,
-            compensated.rows if compensated else station.rows,
+            compensated.rows,
             station.source,
             index,
         )
@@ -110,7 +104,7 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
         for data in lines
         if data.axis() is not None
     ]
-    drift = [check.message() for c in compensation if c for check in c.drift if check.exceeded]
+    drift = [check.message() for c in compensation for check in c.drift if check.exceeded]
     return PostResult(
         fit=fit,
         positioning=positioning,
@@ -120,14 +114,12 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
     )
 
 
-def compensate(machine: Machine, station: Station) -> StationCompensation | None:
+def compensate(machine: Machine, station: Station) -> StationCompensation:
     """The station's readings compensated for air, dead path and material (FORMATS.md).
 
-    None when its file has no environment columns (they are then taken as
-    already compensated, at 20 °C).
+    A file without environment columns is taken as already compensated, at
+    20 °C. Drift-check rows are taken out of the rows and checked.
     """
-    if not any(row.environment for row in station.rows):
-        return None
     return compensate_station(
         station.plan,
         station.rows,
