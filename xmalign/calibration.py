@@ -37,8 +37,10 @@ from typing import Protocol
 import numpy as np
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_beam, fine_align
+from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import (
+    ENVIRONMENT_LIMITS,
     NOMINAL_LIMITS,
     ChannelLimits,
     LineSetup,
@@ -106,16 +108,21 @@ class CapturePoint:
     @property
     def starts_run(self) -> bool:
         """The run's first point: the interferometer datum is set here."""
-        return self.direction == "+" and self.index == 0
+        return self.run != DRIFT_RUN and self.direction == "+" and self.index == 0
 
 
 def capture_sequence(line: PlanLine) -> Iterator[CapturePoint]:
-    """The line's points in program order: per run, up the targets, then back if bidirectional."""
+    """The line's points in program order: per run, up the targets, then back if bidirectional.
+
+    Last, the drift check: the first target once more, approached in ``+``, as
+    run :data:`~xmalign.environment.DRIFT_RUN` (read against the last run's datum).
+    """
     count = len(line.targets_mm)
     for run in range(1, line.runs + 1):
         yield from (CapturePoint(line, run, "+", i) for i in range(count))
         if line.bidirectional:
             yield from (CapturePoint(line, run, "-", i) for i in range(count - 1, -1, -1))
+    yield CapturePoint(line, DRIFT_RUN, "+", 0)
 
 
 def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
@@ -199,6 +206,8 @@ class CalibrationRun:
         The highest setup segment recorded for each line (resume).
     record_setup : callable
         Called with each new alignment of a line before its rows.
+    environment : EnvironmentMonitor, optional
+        Sampled at every captured point; its values and flags go into the row.
     """
 
     plan: Plan
@@ -213,6 +222,7 @@ class CalibrationRun:
     record_setup: Callable[[LineSetup], None] = lambda setup: None
     alignment_settings: FineAlignmentSettings | None = None
     statistics: RunStatistics = field(default_factory=RunStatistics)
+    environment: EnvironmentMonitor | None = None
     #: Target (mm along the line) where the interferometer's datum counts from.
     _datum_mm: float = field(default=0.0, init=False, repr=False)
 
@@ -349,6 +359,7 @@ class CalibrationRun:
                 self.statistics.missed.append(point.key)
                 return None
             reading = recaptured
+        sample = self.environment.sample() if self.environment else None
         line = point.line
         displacement = float(line.targets_mm[point.index]) - self._datum_mm
         head2line = line.frame @ head_frame(line, self.plan.spindle_angle_rad).T
@@ -361,6 +372,8 @@ class CalibrationRun:
             machine_mm=point.point_mm,
             channels=line_channels(reading, head2line, displacement),
             segment=self.setups[line.id].segment if line.id in self.setups else 0,
+            environment=sample.values if sample else {},
+            environment_flags=sample.flag_text if sample else "",
         )
         self.record(row)
         self.done.add(point.key)
@@ -581,6 +594,8 @@ class RunOutput:
     warnings: list[str] = field(default_factory=list)
     #: Called with the number of rows in the file after each one is saved (progress).
     on_saved: Callable[[int], None] = lambda saved: None
+    #: Sampled at every point when the run records the environment.
+    environment: EnvironmentMonitor | None = None
 
     def append(self, row: MeasurementRow) -> None:
         self.writer.append(row)
@@ -607,6 +622,7 @@ class RunOutput:
             done={row.key() for row in recorded.rows} if recorded else set(),
             setups=recorded.last_setups() if recorded else {},
             last_segment=recorded.last_segments() if recorded else {},
+            environment=self.environment,
         )
 
     def close(self) -> None:
@@ -643,27 +659,60 @@ def check_run_output(path: Path, resume: bool) -> None:
         )
 
 
+def _check_environment_columns(
+    path: Path, recorded: tuple[str, ...], environment: EnvironmentMonitor | None
+) -> None:
+    """A resumed file keeps the environment columns it was started with."""
+    sampled = environment.columns if environment else ()
+    if set(recorded) == set(sampled):
+        return
+    if not sampled:
+        raise InputError(
+            f"{path}: was recorded with the environment ({', '.join(recorded)}); resume it"
+            " with the same environment source"
+        )
+    raise InputError(
+        f"{path}: was recorded with environment columns ({', '.join(recorded) or 'none'}),"
+        f" the environment source now gives {', '.join(sampled)}; go on with another --out"
+    )
+
+
 def open_run_output(
-    path: Path, plan: Plan, resume: bool, limits: ChannelLimits = NOMINAL_LIMITS
+    path: Path,
+    plan: Plan,
+    resume: bool,
+    limits: ChannelLimits = NOMINAL_LIMITS,
+    environment: EnvironmentMonitor | None = None,
 ) -> RunOutput:
     """Open the measurement CSV of a run: a new file, or (``resume``) the one to go on with.
 
     Raw measurements are never replaced: without ``resume`` an existing file is
     refused unless it holds not one point. With ``resume`` the file must have
     been recorded for ``plan``; a torn last row is cut off with a warning and
-    its point is measured again.
+    its point is measured again. With ``environment`` its first reading is taken
+    (complete and in range, or a one-line error) before the file is touched,
+    and every row records it.
     """
     path = Path(path)
     check_run_output(path, resume)
+    if environment is not None:
+        environment.prime()
+    columns = environment.columns if environment else ()
     if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
+        writer = MeasurementWriter.create(path, plan_sha256(plan), columns)
+        return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
+    _check_environment_columns(
+        path, tuple(c for c in recorded.columns if c in ENVIRONMENT_LIMITS), environment
+    )
     warnings = check_recorded_plan(recorded, plan)
     if recorded.torn is not None:
         warnings.append(
             f"{path}: line {recorded.torn.line_number} was cut short when the run stopped"
             f" ({recorded.torn.text[:40]!r}); it is dropped and its point measured again"
         )
-    return RunOutput(MeasurementWriter.resume(recorded), recorded, warnings)
+    return RunOutput(
+        MeasurementWriter.resume(recorded), recorded, warnings, environment=environment
+    )

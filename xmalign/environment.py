@@ -623,6 +623,9 @@ def compensate_station(
                 out.append(replace(row, channels=channels))
         lines[line.id] = result
         summaries[line.id] = summarise(environment.take(~check))
+    # rows of lines the plan does not have are left for the caller to refuse
+    planned = {line.id for line in plan.lines}
+    out.extend(row for row in rows if row.line not in planned)
     return StationCompensation(out, lines, summaries, drift)
 
 
