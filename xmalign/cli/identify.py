@@ -14,7 +14,15 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from xmalign.cli.common import check_seed, console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    LogFileOption,
+    check_seed,
+    console,
+    machine_or_default,
+    refuse_overwriting,
+    start_log_file,
+    stop_log_file,
+)
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
@@ -37,6 +45,10 @@ def _uncertainty(
         "unit_kinematics_mm": 1e-3,
         "zero_offset_rad": 1e-6,
         "distance_mm": 1e-3,
+        "tool_rotation_rad": 1e-6,
+        "tool_rotation_common_rad": 1e-6,
+        "machine_common_mm": 1e-3,
+        "collimation_rad": 1e-6,
     }
     changes = {k: v * scale[k] for k, v in overrides.items() if v is not None}
     for key, value in changes.items():
@@ -104,7 +116,12 @@ def print_result(result: IdentificationResult, session: Session, truth: dict | N
 
 
 def _simulated_identification(
-    machine: Machine, alignments: int, seed: int, method: str, session_path: Path
+    machine: Machine,
+    alignments: int,
+    seed: int,
+    method: str,
+    session_path: Path,
+    uncertainty: IdentificationUncertainty,
 ) -> tuple[IdentificationResult, dict]:
     """The identification routine on the virtual machine with simulated units."""
     from sim.dry_run import identify_virtually, virtual_setup
@@ -114,7 +131,14 @@ def _simulated_identification(
     positions = design_identification(machine, alignments).machine_mm
     with _progress_of_routine(alignments) as on_event:
         result = identify_virtually(
-            setup, machine, positions, session_path, method, seed, on_event=on_event
+            setup,
+            machine,
+            positions,
+            session_path,
+            method,
+            seed,
+            on_event=on_event,
+            uncertainty=uncertainty,
         )
     world = setup.world
     offsets = world.offsets
@@ -220,6 +244,22 @@ def identify_command(
     distance_um: Annotated[
         float | None, typer.Option(help="Distance uncertainty, µm (k=1).")
     ] = None,
+    tool_rotation_urad: Annotated[
+        float | None,
+        typer.Option(help="Tool rotation varying between alignments, µrad (k=1)."),
+    ] = None,
+    tool_rotation_common_urad: Annotated[
+        float | None,
+        typer.Option(help="Tool rotation common to all alignments, µrad (k=1)."),
+    ] = None,
+    machine_common_um: Annotated[
+        float | None,
+        typer.Option(help="Machine position error common to all alignments, µm (k=1)."),
+    ] = None,
+    beam_collimation_urad: Annotated[
+        float | None, typer.Option(help="Beam collimation (direction) uncertainty, µrad (k=1).")
+    ] = None,
+    log_file: LogFileOption = None,
 ) -> None:
     """Identify the launch unit's pose (position and azimuth) from aligned units."""
     if method not in METHODS:
@@ -231,7 +271,7 @@ def identify_command(
     check_seed(seed)
     refuse_overwriting(
         {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
-        {"--out": out, "--session-out": session_out},
+        {"--out": out, "--session-out": session_out, "--log-file": log_file},
     )
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
@@ -242,6 +282,10 @@ def identify_command(
             "unit_kinematics_mm": unit_kinematics_um,
             "zero_offset_rad": zero_offset_urad,
             "distance_mm": distance_um,
+            "tool_rotation_rad": tool_rotation_urad,
+            "tool_rotation_common_rad": tool_rotation_common_urad,
+            "machine_common_mm": machine_common_um,
+            "collimation_rad": beam_collimation_urad,
         },
     )
     truth = None
@@ -249,12 +293,16 @@ def identify_command(
         session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
         session_path.unlink(missing_ok=True)
         result, truth = _simulated_identification(
-            machine_model, alignments, seed, method, session_path
+            machine_model, alignments, seed, method, session_path, uncertainty
         )
         session = read_session(session_path)
     else:
         if live:
-            session = _live_identification(machine_model, config, alignments, session_file)
+            log_handler = start_log_file(log_file)
+            try:
+                session = _live_identification(machine_model, config, alignments, session_file)
+            finally:
+                stop_log_file(log_handler)
             source = str(session_file)
         else:
             range_um = (

@@ -258,7 +258,7 @@ def _results_table(report: object) -> Table:
     table.add_row(
         "on-machine time",
         f"{report.on_machine_s / 60:.1f} min",
-        "≤ 30 min",
+        "≤ 12 min",
         f"identify {report.identification_s / 60:.1f}, align {report.alignment_s / 60:.1f}, "
         f"measure {report.measuring_s / 60:.1f} min",
     )
@@ -329,7 +329,8 @@ def dry_run_command(
             raise _dry_run_stopped(out, stage, seed, machine, dialect) from None
         progress.update(task, completed=len(STAGES), description="dry run: done")
     console.print(_results_table(report))
-    for warning in report.identification.warnings + report.plan.warnings:
+    design = [f"identification design: {warning}" for warning in report.design_warnings]
+    for warning in design + report.identification.warnings + report.plan.warnings:
         console.print(f"warning: {warning}", style="yellow", markup=False)
     console.print(
         f"files in {out}/: " + ", ".join(p.name for p in report.files.values()), markup=False
@@ -353,6 +354,12 @@ def _two_station_dry_run(machine: Machine, out: Path, options: DryRunOptions) ->
         markup=False,
     )
     for number, station in enumerate(report.stations, start=1):
+        for warning in station.design_warnings:
+            console.print(
+                f"warning: station {number}: identification design: {warning}",
+                style="yellow",
+                markup=False,
+            )
         console.print(
             f"station {number}: on-machine time {station.on_machine_s / 60:.1f} min"
             f" (lines {' '.join(line.line.id for line in station.plan.lines)})",
