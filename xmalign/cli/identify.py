@@ -29,6 +29,7 @@ from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
+from xmalign.steps import IdentifyStepResult, design_step, identify_step
 
 
 def _uncertainty(
@@ -125,10 +126,11 @@ def _simulated_identification(
 ) -> tuple[IdentificationResult, dict]:
     """The identification routine on the virtual machine with simulated units."""
     from sim.dry_run import identify_virtually, virtual_setup
-    from trajectories.identification_design import design_identification
 
     setup = virtual_setup(machine, seed)
-    positions = design_identification(machine, alignments).machine_mm
+    design = design_step(machine, alignments)
+    _print_design_warnings(design.warnings)
+    positions = design.machine_mm
     with _progress_of_routine(alignments) as on_event:
         result = identify_virtually(
             setup,
@@ -166,42 +168,48 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
 
 
 def _live_identification(
-    machine: Machine, config_path: Path, alignments: int, session_path: Path
-) -> Session:
+    machine: Machine,
+    config_path: Path,
+    alignments: int,
+    session_path: Path,
+    method: str,
+    uncertainty: IdentificationUncertainty,
+) -> IdentifyStepResult:
     """The identification routine on real units: the operator moves the machine (or a CNC
     position file tells where it is), the units point and fine-align, and every alignment
     is written to ``session_path`` at once, so an interrupted routine resumes."""
     from firmware_iface.config import load_units_config, open_devices
-    from trajectories.identification_design import design_identification
     from xmalign.cli.align import AlignmentDevices, manual_alignment
-    from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
+    from xmalign.identification_routine import RoutineDevices
     from xmalign.roles import WallClock
 
     config = load_units_config(config_path)
-    positions = design_identification(machine, alignments).machine_mm
-    guess = (
-        PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
-        if machine.launch_unit
-        else None
-    )
+    design = design_step(machine, alignments)
+    _print_design_warnings(design.warnings)
     live = open_devices(config, machine)
     try:
         clock = WallClock()
         devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
         jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
         with _progress_of_routine(alignments) as on_event:
-            return run_identification(
-                positions,
+            return identify_step(
+                design.machine_mm,
                 machine,
                 devices,
                 session_path,
-                guess=guess,
+                method,
+                uncertainty,
                 manual_align=lambda: manual_alignment(jog, machine, config.timeouts.move_s),
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
             )
     finally:
         live.close()
+
+
+def _print_design_warnings(warnings: list[str]) -> None:
+    for warning in warnings:
+        console.print(f"warning: identification design: {warning}", style="yellow", markup=False)
 
 
 def identify_command(
@@ -296,22 +304,23 @@ def identify_command(
             machine_model, alignments, seed, method, session_path, uncertainty
         )
         session = read_session(session_path)
-    else:
-        if live:
-            log_handler = start_log_file(log_file)
-            try:
-                session = _live_identification(machine_model, config, alignments, session_file)
-            finally:
-                stop_log_file(log_handler)
-            source = str(session_file)
-        else:
-            range_um = (
-                machine_model.interferometer.straightness_range_um
-                if machine_model is not None
-                else NOMINAL_STRAIGHTNESS_RANGE_UM
+    elif live:
+        log_handler = start_log_file(log_file)
+        try:
+            identified = _live_identification(
+                machine_model, config, alignments, session_file, method, uncertainty
             )
-            session, source = read_session(input, range_um), str(input)
-        result = identify(session, method, uncertainty, source)
+        finally:
+            stop_log_file(log_handler)
+        result, session = identified.result, identified.session
+    else:
+        range_um = (
+            machine_model.interferometer.straightness_range_um
+            if machine_model is not None
+            else NOMINAL_STRAIGHTNESS_RANGE_UM
+        )
+        session = read_session(input, range_um)
+        result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
         write_pose(out, result.to_pose())

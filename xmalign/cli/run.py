@@ -116,9 +116,8 @@ def _live_measurement(
 ) -> Callable[[RunOutput], None]:
     """Check the hardware configuration; the live measurement into an output."""
     from firmware_iface.config import load_units_config, open_devices
-    from xmalign.calibration import follow_machine, step_through
     from xmalign.roles import WallClock
-    from xmalign.safety import units_locked_on_exit
+    from xmalign.steps import RunStepDevices, following_drive, run_step, stepping_drive
 
     config = load_units_config(config_path)
 
@@ -126,21 +125,15 @@ def _live_measurement(
         devices = open_devices(config, machine)
 
         def capture() -> CalibrationRun:
-            with units_locked_on_exit(devices.launch, devices.receiver):
-                run = output.calibration_run(
-                    plan, devices.launch, devices.receiver, devices.interferometer, WallClock()
-                )
-                if config.machine_position.source == "file":
-                    follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
-                else:
-                    step_through(
-                        run,
-                        devices.mover,
-                        plan.lines,
-                        machine.feed_mm_min.measure,
-                        machine.measurement.overrun_mm,
-                    )
-            return run
+            drive = (
+                following_drive(devices.mover, _tell_cycle_start)
+                if config.machine_position.source == "file"
+                else stepping_drive(devices.mover, machine)
+            )
+            roles = RunStepDevices(
+                devices.launch, devices.receiver, devices.interferometer, WallClock()
+            )
+            return run_step(plan, roles, output, drive)
 
         try:
             _measure(output, plan, capture)
