@@ -179,7 +179,8 @@ def _live_identification(
     position file tells where it is), the units point and fine-align, and every alignment
     is written to ``session_path`` at once, so an interrupted routine resumes."""
     from firmware_iface.config import load_units_config, open_devices
-    from xmalign.cli.align import AlignmentDevices, manual_alignment
+    from xmalign.alignment import AlignmentDevices
+    from xmalign.cli.align import manual_alignment
     from xmalign.identification_routine import RoutineDevices
     from xmalign.roles import WallClock
 
