@@ -35,7 +35,7 @@ def point_by_truth(
     )
     roll = -world.receiver.axes[2].zero_offset_rad
     launch.move_to(nominal.launch_rad, timeout_s=60.0)
-    receiver.move_to([*nominal.receiver_rad[:2], roll], timeout_s=60.0)
+    receiver.move_to(np.array([*nominal.receiver_rad[:2], roll]), timeout_s=60.0)
     return nominal.distance_mm
 
 
