@@ -312,7 +312,7 @@ def _word_block(
                 reader.motion = g
         if "F" in words:
             reader.set_feed(line_no, float(words["F"]))
-        axes = {a: float(words[a]) for a in AXES if a in words}
+        axes: dict[str, float] = {a: float(words[a]) for a in AXES if a in words}
         if axes:
             if reader.motion is None:
                 raise reader.fail(line_no, "axis words without G0 or G1")

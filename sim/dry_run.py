@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from sim.cnc import SimulatedCnc
+from sim.environment import SHOPS, attach_shop
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
@@ -27,6 +28,7 @@ from xmalign.calibration import (
     RunOutput,
     open_run_output,
 )
+from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.formats.measurements import read_measurements
@@ -40,6 +42,7 @@ from xmalign.identify import IdentificationResult, IdentificationUncertainty
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
+from xmalign.post.evaluate import post_process
 from xmalign.rigid_body import Chain, ErrorTables
 from xmalign.steps import (
     PROGRAM_SUFFIX,
@@ -97,6 +100,8 @@ class DryRunOptions:
     identification_mm: Vec | None = None
     #: How large the virtual machine's errors are drawn; default seed 003 Table 1.
     amplitudes: ErrorAmplitudes | None = None
+    #: The shop's air and machine temperature (a name of ``sim.environment.SHOPS``).
+    shop: str = "drifting"
 
 
 @dataclass
@@ -121,6 +126,8 @@ class DryRunReport:
     margins: list[LineMargin]
     volumetric_before_um: float
     volumetric_after_um: float
+    #: The same after tables fitted to the readings without the environment compensation.
+    volumetric_uncompensated_um: float
     identification_s: float
     alignment_s: float
     measuring_s: float
@@ -311,6 +318,7 @@ def simulate_calibration(
     check_dry_run_folder(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes)
+    station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
     clock = setup.world.clock
 
     stage("identify")
@@ -337,7 +345,8 @@ def simulate_calibration(
     stage("run")
     started = clock.now()
     csv_path = workdir / "measurements.csv"
-    with open_run_output(csv_path, plan, resume=False) as output:
+    monitor = EnvironmentMonitor(station, "simulated weather station")
+    with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
         output.on_saved = on_point or (lambda saved: None)
         run = measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
     run_s = clock.now() - started
@@ -355,6 +364,8 @@ def simulate_calibration(
     low, high = measured_strokes(measurement_plan)
     points = grid_points(low, high)
     truth = setup.world.machine
+    raw = [replace(row, environment={}) for row in rows]
+    uncompensated = post_process(machine, plan, raw, "measurements.csv").fit.tables
     return DryRunReport(
         identification=result,
         truth_launch2mcs_mm=setup.world.launch2mcs_mm,
@@ -363,6 +374,7 @@ def simulate_calibration(
         margins=_margins(measurement_plan, rows, machine),
         volumetric_before_um=volumetric_rms_um(chain, points, truth, ErrorTables()),
         volumetric_after_um=volumetric_rms_um(chain, points, truth, tables.model()),
+        volumetric_uncompensated_um=volumetric_rms_um(chain, points, truth, uncompensated.model()),
         identification_s=identification_s,
         alignment_s=run.statistics.alignment_s,
         measuring_s=run_s - run.statistics.alignment_s,

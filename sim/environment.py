@@ -73,6 +73,10 @@ class ShopClimate:
         )
 
 
+#: The virtual shops a simulated run can have, by name (``--shop``).
+SHOPS = {"drifting": ShopClimate.drifting, "reference": ShopClimate.reference}
+
+
 def _ramp(start: float, end: float, fraction: float) -> float:
     return start + (end - start) * fraction
 

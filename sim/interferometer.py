@@ -11,6 +11,11 @@ growth also moves the receiver),
 straightness the receiver's optical centre relative to the beam, angles the
 receiver's rotation relative to the launch head (zero when the units face each
 other with roll 0).
+
+Like a real interferometer it loses its linear count when the beam is
+interrupted: when a reading finds the beam out of range after it was in
+range, the datum moves by an unknown amount (up to a millimetre), until
+:meth:`zero` sets it again.
 """
 
 from __future__ import annotations
@@ -122,6 +127,8 @@ class SimInterferometer:
         self._rng = np.random.default_rng(seed)
         self._datum_mm = 0.0
         self.environment = environment
+        self._blocked_until_s = -np.inf
+        self._counting = True
 
     def geometry(self) -> Geometry:
         """The noise-free reading now."""
@@ -147,19 +154,29 @@ class SimInterferometer:
         channels[0] *= index
         return Geometry(float(along), channels, self._in_range(float(along), channels))
 
+    def interrupt(self, duration_s: float) -> None:
+        """Block the beam from now for ``duration_s`` (someone or something crosses it)."""
+        self._blocked_until_s = self.clock.now() + duration_s
+
     def _in_range(self, along_mm: float, channels: Vec) -> bool:
         r = self.ranges
         return bool(
-            0.0 < along_mm <= r.max_range_mm
+            self.clock.now() >= self._blocked_until_s
+            and 0.0 < along_mm <= r.max_range_mm
             and np.hypot(channels[1], channels[2]) <= r.straightness_range_um
             and np.all(np.abs(channels[3:]) <= r.angle_range_urad)
         )
 
     def zero(self) -> None:
         """Set the linear datum (its optical path) at the receiver's present position."""
-        self._datum_mm = self.geometry().optical_mm
+        geometry = self.geometry()
+        self._datum_mm = geometry.optical_mm
+        self._counting = geometry.beam_ok
 
     def _reading(self, geometry: Geometry, noise: Vec, time_s: float) -> InterferometerReading:
+        if self._counting and not geometry.beam_ok:
+            self._datum_mm += float(self._rng.uniform(-1.0, 1.0))
+        self._counting = geometry.beam_ok
         channels = geometry.channels + noise
         channels[0] -= self._datum_mm * UM_PER_MM
         return InterferometerReading(time_s=time_s, channels=channels, beam_ok=geometry.beam_ok)

@@ -186,15 +186,21 @@ class VirtualMachine:
         """Actual functional point and rotation of the physical tool standing at ``cnc_mm``.
 
         Stateful: the approach direction of each axis follows the sequence of
-        positions asked for, and the repeatability noise is drawn once per new
-        position, so repeated readings at a standstill see the same tool pose.
+        positions asked for, and each axis draws its repeatability noise anew
+        when it moves to a new coordinate, so repeated readings at a standstill
+        see the same tool pose. An axis that does not move keeps its draw: its
+        servo holds the position it reached (ISO 230-2's repeatability is that
+        of an axis positioning, not of one standing still).
         """
         cnc = self.check_travel(np.asarray(cnc_mm, dtype=float).reshape(3))
         if self._last_cnc_mm is None or not np.array_equal(cnc, self._last_cnc_mm):
+            moved = np.ones(3, dtype=bool)
             if self._last_cnc_mm is not None:
                 step = np.sign(cnc - self._last_cnc_mm)
                 self._approach = np.where(step != 0.0, step, self._approach)
-            self._noise_mm = self._noise_rng.normal(0.0, self.amplitudes.repeatability_um * UM, 3)
+                moved = step != 0.0
+            fresh = self._noise_rng.normal(0.0, self.amplitudes.repeatability_um * UM, 3)
+            self._noise_mm = np.where(moved, fresh, self._noise_mm)
             self._last_cnc_mm = cnc.copy()
         return self._pose(cnc, self._approach, t_mm, self._noise_mm)
 
@@ -214,7 +220,7 @@ class VirtualMachine:
     # truth tables ---------------------------------------------------------------
     def compensation_points(self, axis: str, spacing_mm: float) -> Vec:
         """Points from the first to the last travel limit at ``spacing_mm`` (last one added)."""
-        low, high = self.machine.travel_mm[axis]
+        low, high = self._travel_mm(axis)
         points = np.arange(low, high, spacing_mm)
         return np.append(points, high) if high - points[-1] > 1e-9 else points
 
@@ -260,8 +266,12 @@ class VirtualMachine:
         write_error_tables(path, self.truth_tables(spacing_mm))
 
     # helpers --------------------------------------------------------------------
+    def _travel_mm(self, axis: str) -> tuple[float, float]:
+        k = AXES.index(axis)
+        return float(self.machine.travel_min_mm[k]), float(self.machine.travel_max_mm[k])
+
     def _normalised(self, axis: str, position_mm: ArrayLike) -> Vec:
-        low, high = self.machine.travel_mm[axis]
+        low, high = self._travel_mm(axis)
         return (np.asarray(position_mm, dtype=float) - low) / (high - low)
 
     def _error(self, name: str, x: Vec) -> Vec:

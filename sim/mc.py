@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,10 +45,10 @@ from xmalign.errors import InputError, XmalignError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.geometry import Vec, wrap_angle
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
-from xmalign.machine import Machine
+from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.montecarlo import AdaptiveStudy
 from xmalign.post.compare import grid_points, remove_rigid_motion
-from xmalign.rigid_body import Chain, deviation
+from xmalign.rigid_body import Chain, ErrorModel, deviation
 from xmalign.steps import design_step
 
 MODES = ("identification", "calibration")
@@ -75,8 +76,8 @@ class Strategy:
         """The machine file as this strategy uses it (launch position, measurement section)."""
         updates: dict[str, object] = {}
         if self.placement != "guess":
-            updates["launch_unit"] = machine.launch_unit.model_copy(
-                update={"position_mm": list(_placed(machine, self.placement))}
+            updates["launch_unit"] = LaunchUnitGuess(
+                position_mm=list(_placed(machine, self.placement))
             )
         measurement = {
             key: value
@@ -103,8 +104,14 @@ class Strategy:
         return design.machine_mm, list(design.warnings)
 
 
+def _launch_guess_mm(machine: Machine) -> Vec:
+    if machine.launch_unit is None:
+        raise InputError(f"{machine.name}: the machine file has no launch_unit.position_mm")
+    return np.asarray(machine.launch_unit.position_mm, dtype=float)
+
+
 def _placed(machine: Machine, placement: str) -> Vec:
-    guess = np.asarray(machine.launch_unit.position_mm, dtype=float)
+    guess = _launch_guess_mm(machine)
     centre = 0.5 * (machine.travel_min_mm + machine.travel_max_mm)
     if placement == "centre":
         return np.array([centre[0], centre[1], guess[2]])
@@ -204,7 +211,9 @@ def strategies(machine: Machine, vary: Sequence[str]) -> list[Strategy]:
         return [Strategy()]
     result = []
     for combination in itertools.product(*(values for _, _, values in chosen)):
-        updates = {v.field: value for (_, v, _), value in zip(chosen, combination, strict=True)}
+        updates: dict[str, Any] = {
+            v.field: value for (_, v, _), value in zip(chosen, combination, strict=True)
+        }
         name = ", ".join(
             _label(n, value) for (n, _, _), value in zip(chosen, combination, strict=True)
         )
@@ -282,7 +291,7 @@ def _launch_truth(machine: Machine, rng: np.random.Generator) -> tuple[Vec, floa
     """Where the unit really stands: as :func:`sim.dry_run.virtual_setup` scatters it."""
     scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
     scatter[2] = abs(scatter[2])
-    guess = np.asarray(machine.launch_unit.position_mm, dtype=float)
+    guess = _launch_guess_mm(machine)
     return guess + scatter, float(rng.uniform(-math.pi, math.pi))
 
 
@@ -307,11 +316,13 @@ def identification_trial(spec: TrialSpec) -> TrialOutcome:
     return outcome
 
 
-def residual_map_um(chain: Chain, points_mm: Vec, truth, compensated) -> Vec:
+def residual_map_um(
+    chain: Chain, points_mm: Vec, truth: ErrorModel, compensated: ErrorModel
+) -> Vec:
     """Length of the volumetric error left after compensation at each point, um, shape (N,).
 
-    ``truth`` and ``compensated`` are ``ErrorModel``s; the rigid motion the six
-    lines cannot see is removed as in :func:`xmalign.post.compare.volumetric_rms_um`.
+    The rigid motion the six lines cannot see is removed as in
+    :func:`xmalign.post.compare.volumetric_rms_um`.
     """
     dp_truth, _ = deviation(chain, points_mm, np.zeros(3), truth)
     dp_tables, _ = deviation(chain, points_mm, np.zeros(3), compensated)

@@ -12,6 +12,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from sim.mc import StrategyResult, quantity_label  # noqa: E402
 from xmalign.formats.common import atomic_write_bytes  # noqa: E402
@@ -20,7 +21,7 @@ from xmalign.formats.common import atomic_write_bytes  # noqa: E402
 MAP_PERCENTILE = 95.0
 
 
-def _grid(count: int, columns: int) -> tuple[plt.Figure, np.ndarray]:
+def _grid(count: int, columns: int) -> tuple[Figure, np.ndarray]:
     rows = max(1, math.ceil(count / columns))
     figure, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.2 * rows), squeeze=False)
     for extra in axes.ravel()[count:]:
@@ -28,7 +29,7 @@ def _grid(count: int, columns: int) -> tuple[plt.Figure, np.ndarray]:
     return figure, axes.ravel()
 
 
-def _save(figure: plt.Figure, path: Path) -> Path:
+def _save(figure: Figure, path: Path) -> Path:
     figure.tight_layout()
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=90)

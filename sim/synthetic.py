@@ -73,7 +73,7 @@ class SetupDisturbance:
     #: Zero the linear channel again at the start of every pass (a mistake: the
     #: interferometer should count on through the run).
     rezero_each_pass: bool = False
-    #: The machine's positioning repeatability (standard deviation per axis and point),
+    #: The machine's positioning repeatability (standard deviation per moving axis and point),
     #: as :class:`sim.machine.ErrorAmplitudes` ``repeatability_um`` (0: a perfectly
     #: repeatable machine).
     repeatability_um: float = 0.0
@@ -132,7 +132,9 @@ def measure(
                 dp, rotation = deviation(
                     chain, points[order], t, _Approached(model, backlash_mm, signs)
                 )
-                dp = dp + rng.normal(0.0, setup.repeatability_um * 1e-3, dp.shape)
+                # only the axes the line moves position anew (sim.machine.tool_pose)
+                moving = np.abs(line.frame[0]) > 1e-9
+                dp = dp + rng.normal(0.0, setup.repeatability_um * 1e-3, dp.shape) * moving
                 local = dp @ line.frame.T
                 if reference is None or setup.rezero_each_pass:
                     reference = local[0, 0]

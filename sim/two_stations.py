@@ -19,7 +19,6 @@ import numpy as np
 
 from sim.dry_run import (
     PLACEMENT_SCATTER_MM,
-    PROGRAM_SUFFIX,
     DryRunOptions,
     VirtualSetup,
     identify_virtually,
@@ -34,11 +33,11 @@ from trajectories.stations import StationProposal, propose_second_station
 from xmalign.calibration import open_run_output
 from xmalign.formats.error_tables import write_error_tables
 from xmalign.formats.measurements import read_measurements
-from xmalign.machine import Machine
+from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import Chain
-from xmalign.steps import design_step, program_step
+from xmalign.steps import PROGRAM_SUFFIX, design_step, program_step
 
 
 @dataclass
@@ -130,9 +129,7 @@ def simulate_two_stations(
     proposal = propose_second_station(machine, np.asarray(launch, dtype=float))
     placed = machine.model_copy(
         update={
-            "launch_unit": machine.launch_unit.model_copy(
-                update={"position_mm": [float(v) for v in proposal.position_mm]}
-            )
+            "launch_unit": LaunchUnitGuess(position_mm=[float(v) for v in proposal.position_mm])
         }
     )
     setup = _move_launch_unit(setup, proposal.position_mm, options.seed)

@@ -53,8 +53,10 @@ MAX_ELEVATION_DEG = 60.0
 #: Smallest distance between two positions, as a fraction of the travel's diagonal.
 MIN_SEPARATION_FRACTION = 0.1
 _HALTON_BASES = (2, 3, 5)
+#: casadi expressions: symbolic (MX) while designing, numeric (DM) when evaluating.
+Symbolic = ca.MX | ca.DM
 # Exact Hessians of the log-determinant through atan2 are ill-conditioned; L-BFGS is robust.
-_IPOPT_OPTIONS = {
+_IPOPT_OPTIONS: dict[str, str | int | float] = {
     "print_level": 0,
     "sb": "yes",
     "hessian_approximation": "limited-memory",
@@ -137,7 +139,7 @@ class _Setting:
         )
 
 
-def _nominal_inputs(cp_mm, setting: _Setting):  # noqa: ANN001, ANN202 (MX or DM)
+def _nominal_inputs(cp_mm: Symbolic, setting: _Setting) -> Symbolic:
     """The joint model's inputs (11,) of an exact alignment at receiver cp (3,), gamma 0."""
     b = cp_mm - setting.launch_cp_mm
     azimuth = ca.atan2(b[1], b[0])
@@ -146,7 +148,7 @@ def _nominal_inputs(cp_mm, setting: _Setting):  # noqa: ANN001, ANN202 (MX or DM
     return ca.vertcat(azimuth, elevation, phi3, -elevation, cp_mm, 0, 0, 0, 0)
 
 
-def _alignment_terms(tool_mm, setting: _Setting):  # noqa: ANN001, ANN202 (MX or DM)
+def _alignment_terms(tool_mm: Symbolic, setting: _Setting) -> tuple[Symbolic, Symbolic]:
     """Information (7, 7) and systematic cross term (7, 19) of one alignment at a tool point."""
     theta = np.concatenate([setting.launch_cp_mm, np.zeros(4)])
     z = _nominal_inputs(tool_mm + setting.offset_mm, setting)
@@ -168,7 +170,7 @@ def _offset_prior(setting: _Setting) -> Vec:
     return np.diag([0.0] * 4 + [prior] * len(OFFSET_NAMES))
 
 
-def _information(tool_mm, setting: _Setting):  # noqa: ANN001, ANN202 (MX or DM)
+def _information(tool_mm: Symbolic, setting: _Setting) -> Symbolic:
     """Fisher information (7x7) of ``(x, y, z, gamma, c2, c3, c4)`` for tool points (N, 3)."""
     information = (
         ca.DM(_offset_prior(setting))
@@ -180,7 +182,7 @@ def _information(tool_mm, setting: _Setting):  # noqa: ANN001, ANN202 (MX or DM)
     return information
 
 
-def _pose_information(information):  # noqa: ANN001, ANN202 (MX or DM)
+def _pose_information(information: Symbolic) -> Symbolic:
     """Information about the pose with the offsets marginalised (Schur complement), 4x4."""
     f_pp, f_pc, f_cc = information[:4, :4], information[:4, 4:], information[4:, 4:]
     return f_pp - f_pc @ ca.solve(f_cc, f_pc.T)

@@ -154,7 +154,7 @@ def _stretches(launch_cp_mm: Vec, e: Vec, machine: Machine, overrun_mm: float) -
     shift = np.where(fixed, clamped - tool_on_beam, 0.0)
     low, high = _travel_interval(tool_on_beam + shift, e, machine)
     measurement = machine.measurement
-    reach = math.sqrt(max(machine.interferometer.max_range_mm**2 - shift @ shift, 0.0))
+    reach = math.sqrt(max(machine.interferometer.max_range_mm**2 - float(shift @ shift), 0.0))
     stretches = []
     for sense in (1.0, -1.0):
         lo_s, hi_s = (low, high) if sense > 0 else (-high, -low)

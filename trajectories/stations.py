@@ -72,7 +72,7 @@ def station_lines(machine: Machine, position_mm: Vec) -> dict[str, LineLayout]:
 def coverage(machine: Machine, layouts: list[LineLayout]) -> dict[str, float]:
     """Per axis, the fraction of its stroke that the lines together sweep."""
     stroke = machine.travel_max_mm - machine.travel_min_mm
-    result = {}
+    result: dict[str, float] = {}
     for k, axis in enumerate(AXES):
         intervals = sorted(
             (

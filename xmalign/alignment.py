@@ -361,6 +361,29 @@ def _recover(
     )
 
 
+def find_beam(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    last_in_range_rad: Vec,
+    distance_mm: float,
+    settings: FineAlignmentSettings,
+) -> tuple[Vec, InterferometerReading]:
+    """Find a lost beam: back to ``last_in_range_rad``, then the spiral searches.
+
+    The recovery of fine alignment (module docstring, "Beam recovery") for a
+    beam lost elsewhere, e.g. while capturing a line's points. Returns the unit
+    setpoint (launch then receiver angles, rad) where the beam is in range and
+    the reading there; raises BeamLostError when the search does not find it.
+    """
+    centre = np.asarray(last_in_range_rad, dtype=float)
+    recovery = _Recovery(last_in_range_rad=centre.copy())
+    return _recover(
+        launch, receiver, interferometer, clock, centre, distance_mm, recovery, settings
+    )
+
+
 def _updated_distance(
     distance_mm: float, elevation_rad: float, step_urad: Vec, straightness_change_um: Vec
 ) -> float:

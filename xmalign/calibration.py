@@ -4,7 +4,15 @@ Per line: drive the units to the plan's angles, fine-align at the line start,
 lock, then follow the machine through the targets and capture the six
 channels averaged over each dwell. Every captured point is appended to the
 measurement CSV and flushed at once; a resumed run skips the points already
-recorded. A beam loss or a device fault stops the line with the units locked.
+recorded. A device fault stops the line with the units locked.
+
+A beam lost while capturing is searched for like fine alignment does
+(:func:`xmalign.alignment.find_beam`: back to the line's locked angles, then
+spiral searches within the units' pointing uncertainty); found, both units
+align to it, they are locked, the alignment is recorded as a new
+setup segment (the interferometer lost its count, and the beam may point a
+little differently), the datum is set again and the point is captured again.
+Only when the search fails does the run stop and ask a person.
 
 Each alignment of a line is recorded with the locked unit angles. A resumed
 line keeps its setup when the units still stand where they were locked;
@@ -22,15 +30,17 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
+from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_beam, fine_align
+from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import (
+    ENVIRONMENT_LIMITS,
     NOMINAL_LIMITS,
     ChannelLimits,
     LineSetup,
@@ -67,6 +77,10 @@ AVERAGE_END_FRACTION = 0.8
 SETTLE_PROBE_S = 0.1
 #: Readings are settled when two probes' linear means differ less than this, um.
 SETTLED_UM = 0.2
+#: A beam lost while capturing: wait this long for it to come back (something crossed
+#: it) before searching, s; and read this long each time.
+BEAM_WAIT_S = 2.0
+BEAM_PROBE_S = 0.1
 #: Encoder readings averaged to record or check where a locked unit stands.
 STANDING_READINGS = 10
 #: A resumed line keeps its setup when no unit axis is farther than this from where it
@@ -134,15 +148,18 @@ def line_channels(reading: InterferometerReading, head2line: Vec, commanded_mm: 
     return np.concatenate([[linear], straightness[1:], angles])
 
 
+def _point_name(point: CapturePoint) -> str:
+    return f"line {point.line.id} run {point.run} ({point.direction}) target {point.index + 1}"
+
+
 def _beam_message(point: CapturePoint, reading: InterferometerReading) -> str:
     values = ", ".join(
         f"{name} {value:.1f}"
         for name, value in zip(CHANNELS[1:], reading.channels[1:], strict=True)
     )
     return (
-        f"beam lost on line {point.line.id} run {point.run} ({point.direction}) target "
-        f"{point.index + 1} ({values}): the units are locked; check the beam path, re-align "
-        "and continue with --resume"
+        f"beam lost on {_point_name(point)} ({values}): the units are locked; check the beam"
+        " path, re-align and continue with --resume"
     )
 
 
@@ -157,6 +174,11 @@ class RunStatistics:
     alignments: dict[str, FineAlignmentResult] = field(default_factory=dict)
     #: What a resume did with each line it found started (setup kept or a new segment).
     resumed: list[str] = field(default_factory=list)
+    #: Each beam lost while capturing and found again by the search.
+    recovered: list[str] = field(default_factory=list)
+    #: Points not captured because the machine had gone on while the beam was searched
+    #: (``--resume`` captures them).
+    missed: list[tuple[str, int, str, int]] = field(default_factory=list)
 
 
 @dataclass
@@ -179,6 +201,8 @@ class CalibrationRun:
         The highest setup segment recorded for each line (resume).
     record_setup : callable
         Called with each new alignment of a line before its rows.
+    environment : EnvironmentMonitor, optional
+        Sampled at every captured point; its values and flags go into the row.
     """
 
     plan: Plan
@@ -193,15 +217,12 @@ class CalibrationRun:
     record_setup: Callable[[LineSetup], None] = lambda setup: None
     alignment_settings: FineAlignmentSettings | None = None
     statistics: RunStatistics = field(default_factory=RunStatistics)
+    environment: EnvironmentMonitor | None = None
+    #: Target (mm along the line) where the interferometer's datum counts from.
+    _datum_mm: float = field(default=0.0, init=False, repr=False)
 
     def line_is_done(self, line: PlanLine) -> bool:
         return all(point.key in self.done for point in capture_sequence(line))
-
-    @staticmethod
-    def _distance_mm(line: PlanLine) -> float:
-        """cp-to-cp distance at the line start (the plan's ``beam_distance_mm``), first guess."""
-        distances = line.extra.get("beam_distance_mm") or [DEFAULT_START_DISTANCE_MM]
-        return float(distances[0])
 
     def _standing_rad(self) -> tuple[Vec, Vec]:
         """Mean encoder angles of the launch and the receiver unit, rad."""
@@ -228,9 +249,14 @@ class CalibrationRun:
         if recorded is not None and self._stands_at(recorded):
             self.launch.lock()
             self.receiver.lock()
-            self.statistics.resumed.append(
-                f"line {line.id}: the units stand where they were locked; setup kept"
-            )
+            note = f"line {line.id}: the units stand where they were locked; setup kept"
+            if recorded.segment > 0:
+                # the segment may have begun with a datum set mid-run (a recovered beam),
+                # which the run's restart does not repeat: go on with its own constants
+                kept = LineSetup(line.id, recorded.segment + 1, *self._standing_rad())
+                self._note_setup(kept)
+                note += f"; its further rows are setup segment {kept.segment}"
+            self.statistics.resumed.append(note)
             return
         if line.id not in self.last_segment:
             self.set_line(line)
@@ -242,6 +268,12 @@ class CalibrationRun:
             f" are setup segment {segment}"
         )
 
+    def _note_setup(self, setup: LineSetup) -> None:
+        """Record a line's (new) setup segment before its rows."""
+        self.record_setup(setup)
+        self.setups[setup.line] = setup
+        self.last_segment[setup.line] = setup.segment
+
     def set_line(self, line: PlanLine, segment: int = 0) -> FineAlignmentResult:
         """Units to the plan's angles, fine alignment at the line start, lock, record."""
         started = self.clock.now()
@@ -252,15 +284,12 @@ class CalibrationRun:
             self.receiver,
             self.interferometer,
             self.clock,
-            self._distance_mm(line),
+            _beam_distance_mm(line, 0),
             self.alignment_settings or LINE_START_ALIGNMENT,
         )
         self.launch.lock()
         self.receiver.lock()
-        setup = LineSetup(line.id, segment, *self._standing_rad())
-        self.record_setup(setup)
-        self.setups[line.id] = setup
-        self.last_segment[line.id] = segment
+        self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
         self.statistics.alignments[line.id] = result
         self.statistics.alignment_s += self.clock.now() - started
         return result
@@ -293,24 +322,41 @@ class CalibrationRun:
             beam_ok=probe.beam_ok and reading.beam_ok,
         )
 
-    def capture(self, point: CapturePoint, dwell_s: float) -> MeasurementRow | None:
+    def capture(
+        self,
+        point: CapturePoint,
+        dwell_s: float,
+        still_there: Callable[[CapturePoint], bool] | None = None,
+    ) -> MeasurementRow | None:
         """Datum at the run's first point; once readings settle, average to 0.8 of the dwell.
 
         Readings count as settled when two successive 0.1 s probes of the
         linear channel agree within ``SETTLED_UM``; the wait ends at half the
         dwell whatever the readings do, so the capture fits in the dwell.
+
+        A lost beam is searched for and the point captured again
+        (:meth:`_recapture`); ``still_there`` says whether the machine still
+        stands at the point after the search (default: it waits for the
+        capture). Returns None for a point already recorded or one the machine
+        left before the beam was found (``statistics.missed``).
         """
         started = self.clock.now()
         if point.starts_run:
             self.interferometer.zero()
+            self._datum_mm = float(point.line.targets_mm[0])
         if point.key in self.done:
             self.statistics.skipped += 1
             return None
         reading = self._settled_average(started, dwell_s)
         if not reading.beam_ok:
-            raise BeamLostError(_beam_message(point, reading))
+            recaptured = self._recapture(point, dwell_s, still_there)
+            if recaptured is None:
+                self.statistics.missed.append(point.key)
+                return None
+            reading = recaptured
+        sample = self.environment.sample() if self.environment else None
         line = point.line
-        displacement = float(line.targets_mm[point.index] - line.targets_mm[0])
+        displacement = float(line.targets_mm[point.index]) - self._datum_mm
         head2line = line.frame @ head_frame(line, self.plan.spindle_angle_rad).T
         row = MeasurementRow(
             line=line.id,
@@ -321,12 +367,90 @@ class CalibrationRun:
             machine_mm=point.point_mm,
             channels=line_channels(reading, head2line, displacement),
             segment=self.setups[line.id].segment if line.id in self.setups else 0,
+            environment=sample.values if sample else {},
+            environment_flags=sample.flag_text if sample else "",
         )
         self.record(row)
         self.done.add(point.key)
         self.statistics.points += 1
         self.statistics.measuring_s += self.clock.now() - started
         return row
+
+    def _recapture(
+        self,
+        point: CapturePoint,
+        dwell_s: float,
+        still_there: Callable[[CapturePoint], bool] | None,
+    ) -> InterferometerReading | None:
+        """Find the lost beam, align and lock in a new segment, set the datum, capture again.
+
+        Raises BeamLostError (asking a person) when the search does not find the beam.
+        """
+        started = self.clock.now()
+        line = point.line
+        settings = self.alignment_settings or LINE_START_ALIGNMENT
+        setup = self.setups.get(line.id)
+        last_in_range = np.concatenate(
+            [setup.launch_rad, setup.receiver_rad] if setup else self._standing_rad()
+        )
+        try:
+            if not self._beam_returns(started + BEAM_WAIT_S):
+                self._search(point, last_in_range, settings)
+        except BeamLostError as error:
+            raise BeamLostError(
+                f"beam lost on {_point_name(point)} and not found again by the search"
+                f" ({error}); the units are locked: jog them until the beam is in range"
+                " (xmalign align --manual) and continue with --resume"
+            ) from error
+        finally:
+            self.launch.lock()
+            self.receiver.lock()
+            self.statistics.alignment_s += self.clock.now() - started
+        segment = self.last_segment.get(line.id, 0) + 1
+        self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
+        self.statistics.recovered.append(
+            f"{_point_name(point)}: the beam was lost and found again after"
+            f" {self.clock.now() - started:.1f} s; the line goes on in setup segment {segment}"
+        )
+        if still_there is not None and not still_there(point):
+            return None
+        # the count was lost: the datum is set again here; the rows stay the error of
+        # the displacement, up to a constant of the new segment (post fits one per run)
+        self.interferometer.zero()
+        self._datum_mm = float(point.line.targets_mm[point.index])
+        reading = self._settled_average(self.clock.now(), dwell_s)
+        if not reading.beam_ok:
+            raise BeamLostError(_beam_message(point, reading))
+        return reading
+
+    def _beam_returns(self, until_s: float) -> bool:
+        """Read at the locked angles until ``until_s``: True when the beam is back by itself."""
+        while self.clock.now() + BEAM_PROBE_S <= until_s:
+            if self.interferometer.average(BEAM_PROBE_S).beam_ok:
+                return True
+        return False
+
+    def _search(
+        self, point: CapturePoint, last_in_range_rad: Vec, settings: FineAlignmentSettings
+    ) -> None:
+        """The search of fine alignment around the locked angles, then fine alignment with
+        both units (BeamLostError if the search does not find the beam).
+
+        Unlike at the line start, the launch unit steers too: the search finds the
+        beam anywhere in the receiver's capture region, and only a beam through
+        the receiver at this target (on the line, which passes through the launch
+        cp) keeps it in range over the rest of the line.
+        """
+        distance_mm = _beam_distance_mm(point.line, point.index)
+        devices = (self.launch, self.receiver, self.interferometer, self.clock)
+        find_beam(*devices, last_in_range_rad, distance_mm, settings)
+        fine_align(*devices, distance_mm, replace(settings, steer_launch=True))
+
+
+def _beam_distance_mm(line: PlanLine, index: int) -> float:
+    """The plan's cp-to-cp distance at a target (the line start's guess if it has none)."""
+    distances = line.extra.get("beam_distance_mm") or [DEFAULT_START_DISTANCE_MM]
+    return float(distances[min(index, len(distances) - 1)])
 
 
 def step_through(
@@ -377,7 +501,13 @@ def follow_machine(
         on_line_start(line)
         for point in capture_sequence(line):
             _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
-            run.capture(point, line.dwell_s)
+            run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
+
+
+def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
+    """The machine stands still at the point (it has not gone on with the program)."""
+    miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
+    return position.is_standstill() and miss <= tolerance_mm
 
 
 def _wait_at(
@@ -390,10 +520,8 @@ def _wait_at(
 ) -> None:
     deadline = clock.now() + timeout_s
     while clock.now() < deadline:
-        if position.is_standstill():
-            miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
-            if miss <= tolerance_mm:
-                return
+        if _stands_at(position, point, tolerance_mm):
+            return
         clock.sleep(poll_s)
     raise DeviceTimeoutError(
         f"the machine did not stop at line {point.line.id} run {point.run} target "
@@ -461,6 +589,8 @@ class RunOutput:
     warnings: list[str] = field(default_factory=list)
     #: Called with the number of rows in the file after each one is saved (progress).
     on_saved: Callable[[int], None] = lambda saved: None
+    #: Sampled at every point when the run records the environment.
+    environment: EnvironmentMonitor | None = None
 
     def append(self, row: MeasurementRow) -> None:
         self.writer.append(row)
@@ -487,6 +617,7 @@ class RunOutput:
             done={row.key() for row in recorded.rows} if recorded else set(),
             setups=recorded.last_setups() if recorded else {},
             last_segment=recorded.last_segments() if recorded else {},
+            environment=self.environment,
         )
 
     def close(self) -> None:
@@ -523,27 +654,60 @@ def check_run_output(path: Path, resume: bool) -> None:
         )
 
 
+def _check_environment_columns(
+    path: Path, recorded: tuple[str, ...], environment: EnvironmentMonitor | None
+) -> None:
+    """A resumed file keeps the environment columns it was started with."""
+    sampled = environment.columns if environment else ()
+    if set(recorded) == set(sampled):
+        return
+    if not sampled:
+        raise InputError(
+            f"{path}: was recorded with the environment ({', '.join(recorded)}); resume it"
+            " with the same environment source"
+        )
+    raise InputError(
+        f"{path}: was recorded with environment columns ({', '.join(recorded) or 'none'}),"
+        f" the environment source now gives {', '.join(sampled)}; go on with another --out"
+    )
+
+
 def open_run_output(
-    path: Path, plan: Plan, resume: bool, limits: ChannelLimits = NOMINAL_LIMITS
+    path: Path,
+    plan: Plan,
+    resume: bool,
+    limits: ChannelLimits = NOMINAL_LIMITS,
+    environment: EnvironmentMonitor | None = None,
 ) -> RunOutput:
     """Open the measurement CSV of a run: a new file, or (``resume``) the one to go on with.
 
     Raw measurements are never replaced: without ``resume`` an existing file is
     refused unless it holds not one point. With ``resume`` the file must have
     been recorded for ``plan``; a torn last row is cut off with a warning and
-    its point is measured again.
+    its point is measured again. With ``environment`` its first reading is taken
+    (complete and in range, or a one-line error) before the file is touched,
+    and every row records it.
     """
     path = Path(path)
     check_run_output(path, resume)
+    if environment is not None:
+        environment.prime()
+    columns = environment.columns if environment else ()
     if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        return RunOutput(MeasurementWriter.create(path, plan_sha256(plan)))
+        writer = MeasurementWriter.create(path, plan_sha256(plan), columns)
+        return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
+    _check_environment_columns(
+        path, tuple(c for c in recorded.columns if c in ENVIRONMENT_LIMITS), environment
+    )
     warnings = check_recorded_plan(recorded, plan)
     if recorded.torn is not None:
         warnings.append(
             f"{path}: line {recorded.torn.line_number} was cut short when the run stopped"
             f" ({recorded.torn.text[:40]!r}); it is dropped and its point measured again"
         )
-    return RunOutput(MeasurementWriter.resume(recorded), recorded, warnings)
+    return RunOutput(
+        MeasurementWriter.resume(recorded), recorded, warnings, environment=environment
+    )

@@ -219,19 +219,19 @@ class EnvironmentColumns:
 
     def index(self, method: IndexMethod = "edlen") -> Vec:
         """Refractive index at every point, (N,); raises InputError without the air columns."""
-        if not self.has_air:
-            raise InputError("no air temperature, pressure and humidity to compute the index from")
-        return air_index(
-            self.air_temp_c,  # type: ignore[arg-type]
-            self.air_pressure_hpa,  # type: ignore[arg-type]
-            self.air_humidity_percent,  # type: ignore[arg-type]
-            method,
+        temp_c, pressure_hpa, humidity = (
+            self.air_temp_c,
+            self.air_pressure_hpa,
+            self.air_humidity_percent,
         )
+        if temp_c is None or pressure_hpa is None or humidity is None:
+            raise InputError("no air temperature, pressure and humidity to compute the index from")
+        return air_index(temp_c, pressure_hpa, humidity, method)
 
     def take(self, rows: np.ndarray) -> EnvironmentColumns:
         """The columns of some rows (boolean mask or indices)."""
         return EnvironmentColumns(
-            *(None if self.column(n) is None else self.column(n)[rows] for n in ENVIRONMENT_COLUMNS)
+            *(None if (c := self.column(n)) is None else c[rows] for n in ENVIRONMENT_COLUMNS)
         )
 
 
@@ -339,10 +339,9 @@ def compensate_linear(
         index = environment.index(method)
         dead = beam_sign * dead_path_um(dead_path_mm, index, index[datum])
         linear = (linear + length_um) / index - length_um + dead
-    if environment.has_material and expansion_ppm_per_k != 0.0:
-        linear = linear - material_um(
-            length_um * 1e-3, environment.material_temp_c, expansion_ppm_per_k
-        )
+    material_temp_c = environment.material_temp_c
+    if material_temp_c is not None and expansion_ppm_per_k != 0.0:
+        linear = linear - material_um(length_um * 1e-3, material_temp_c, expansion_ppm_per_k)
     return Compensation(linear, index, environment.has_air, environment.has_material, dead)
 
 
@@ -376,14 +375,14 @@ def compensate_line(
     )
 
 
-def beam_geometry(beam_distance_mm: ArrayLike | None) -> tuple[float, float]:
+def beam_geometry(beam_distance_mm: Sequence[float] | None) -> tuple[float, float]:
     """Dead path (mm) and beam sign from a plan line's ``beam_distance_mm`` [first, last].
 
     Without it (an older plan) the dead path is 0 and the receiver taken to move away.
     """
-    if beam_distance_mm is None or len(beam_distance_mm) < 2:  # type: ignore[arg-type]
+    if beam_distance_mm is None or len(beam_distance_mm) < 2:
         return 0.0, 1.0
-    first, last = (float(v) for v in beam_distance_mm)  # type: ignore[union-attr]
+    first, last = (float(v) for v in beam_distance_mm)
     return first, 1.0 if last >= first else -1.0
 
 
@@ -624,6 +623,9 @@ def compensate_station(
                 out.append(replace(row, channels=channels))
         lines[line.id] = result
         summaries[line.id] = summarise(environment.take(~check))
+    # rows of lines the plan does not have are left for the caller to refuse
+    planned = {line.id for line in plan.lines}
+    out.extend(row for row in rows if row.line not in planned)
     return StationCompensation(out, lines, summaries, drift)
 
 
@@ -675,9 +677,9 @@ def linear_budget_um(
     """
     u = sensors or SensorUncertainty()
     out: dict[str, float] = {}
-    air = [environment.get(n) for n in ENVIRONMENT_COLUMNS[:3]]
-    if all(r is not None and math.isfinite(r.mean) for r in air):
-        n_u = index_uncertainty(*(r.mean for r in air), u)  # type: ignore[union-attr]
+    air = [r.mean for n in ENVIRONMENT_COLUMNS[:3] if (r := environment.get(n)) is not None]
+    if len(air) == 3 and all(math.isfinite(mean) for mean in air):
+        n_u = index_uncertainty(air[0], air[1], air[2], u)
         out["air refractive index"] = n_u * length_mm * 1e3
     material = environment.get("material_temp_c")
     if material is not None and math.isfinite(material.mean) and expansion_ppm_per_k:

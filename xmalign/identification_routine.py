@@ -122,7 +122,9 @@ def gamma_from_alignments(launch2mcs_mm: Vec, session: Session) -> float:
     return circular_mean(gammas)
 
 
-def _pointing_bias(guess: PoseGuess, session: Session) -> tuple[EncoderOffsets, float]:
+def _pointing_bias(
+    guess: PoseGuess, gamma_rad: float, session: Session
+) -> tuple[EncoderOffsets, float]:
     """Encoder offsets and receiver roll that the recorded alignments show for this guess.
 
     The angles the guess predicts at each recorded position minus the angles
@@ -132,9 +134,7 @@ def _pointing_bias(guess: PoseGuess, session: Session) -> tuple[EncoderOffsets, 
     biases = []
     for a in session.alignments:
         cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-        predicted = aligned_angles(
-            guess.launch2mcs_mm, float(guess.gamma_rad), cp, session.spindle_angle_rad
-        )
+        predicted = aligned_angles(guess.launch2mcs_mm, gamma_rad, cp, session.spindle_angle_rad)
         biases.append(
             [
                 predicted.launch_rad[1] - a.launch_rad[1],
@@ -151,11 +151,13 @@ def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None
     """The guess completed from the recorded alignments (gamma, offsets, roll), if usable."""
     if guess is None or (guess.gamma_rad is None and not session.alignments):
         return guess if guess is None or guess.gamma_rad is not None else None
-    if guess.gamma_rad is None:
-        guess = replace(guess, gamma_rad=gamma_from_alignments(guess.launch2mcs_mm, session))
+    gamma_rad = guess.gamma_rad
+    if gamma_rad is None:
+        gamma_rad = gamma_from_alignments(guess.launch2mcs_mm, session)
+        guess = replace(guess, gamma_rad=gamma_rad)
     if not session.alignments:
         return guess
-    offsets, roll = _pointing_bias(guess, session)
+    offsets, roll = _pointing_bias(guess, gamma_rad, session)
     return replace(guess, offsets=offsets, receiver_roll_rad=roll)
 
 
@@ -163,8 +165,9 @@ def _point_units(
     guess: PoseGuess, cp_mm: Vec, session: Session, devices: RoutineDevices, timeout_s: float
 ) -> float:
     """Move both units to the angles predicted by the guess; returns the predicted distance."""
+    assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
     predicted = aligned_angles(
-        guess.launch2mcs_mm, float(guess.gamma_rad), cp_mm, session.spindle_angle_rad, guess.offsets
+        guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
     )
     receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
     devices.launch.move_to(predicted.launch_rad, timeout_s)

@@ -28,6 +28,7 @@ from functools import lru_cache
 
 import casadi as ca
 import numpy as np
+from numpy.typing import NDArray
 from scipy.special import chdtrc
 
 from xmalign.errors import GeometryError, InputError
@@ -862,7 +863,7 @@ def _assemble(
     method: str,
     all_obs: Observations,
     obs: Observations,
-    used: Vec,
+    used: NDArray[np.intp],
     solution: _Solution,
     estimated: tuple[str, ...],
     reasons: dict[str, str],

@@ -14,7 +14,7 @@ import hashlib
 import json
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -32,16 +32,9 @@ from xmalign.formats.common import (
 )
 from xmalign.geometry import Vec
 
-AXES = ("X", "Y", "Z")
+AxisName = Literal["X", "Y", "Z"]
+AXES: tuple[AxisName, AxisName, AxisName] = ("X", "Y", "Z")
 CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
-
-
-def _bounded(low: float, high: float, *, open_low: bool = False) -> Any:
-    """A finite float in [low, high] (``(low, high]`` with ``open_low``)."""
-    if open_low:
-        return Annotated[float, Field(gt=low, le=high, allow_inf_nan=False)]
-    return Annotated[float, Field(ge=low, le=high, allow_inf_nan=False)]
-
 
 Vector3 = Vector3_mm
 TravelRange = Annotated[
@@ -49,16 +42,16 @@ TravelRange = Annotated[
     Field(min_length=2, max_length=2),
 ]
 #: Feeds up to 500 m/min; micrometres up to 10 mm; microradians up to 0.1 rad.
-Feed_mm_min = _bounded(0, 500_000, open_low=True)
-Micrometres = _bounded(0, 10_000, open_low=True)
-Microradians = _bounded(0, 100_000, open_low=True)
-Allowance_um = _bounded(0, 10_000)
-Allowance_urad = _bounded(0, 100_000)
-Expansion_ppm_per_k = _bounded(-5.0, 50.0)
-Spacing_mm = _bounded(0, 200, open_low=True)
-Seconds = _bounded(0, 3600)
-Overrun_mm = _bounded(0, 1000)
-NonNegativeLength_mm = _bounded(0, MAX_LENGTH_MM)
+Feed_mm_min = Annotated[float, Field(gt=0, le=500_000, allow_inf_nan=False)]
+Micrometres = Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)]
+Microradians = Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)]
+Allowance_um = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
+Allowance_urad = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
+Expansion_ppm_per_k = Annotated[float, Field(ge=-5.0, le=50.0, allow_inf_nan=False)]
+Spacing_mm = Annotated[float, Field(gt=0, le=200, allow_inf_nan=False)]
+Seconds = Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)]
+Overrun_mm = Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)]
+NonNegativeLength_mm = Annotated[float, Field(ge=0, le=MAX_LENGTH_MM, allow_inf_nan=False)]
 _Strict = StrictFileModel
 
 
@@ -146,9 +139,6 @@ class Measurement(_Strict):
     angle_allowance_urad: Allowance_urad = 100.0
 
 
-AxisName = Literal["X", "Y", "Z"]
-
-
 class WorkOffset(_Strict):
     """A work offset the programs run in: ``code`` (G54 .. G59) and its origin in machine mm."""
 
@@ -197,7 +187,7 @@ class Cnc(_Strict):
 
     def axis_name(self, axis: str, default: str) -> str:
         """The controller's name of ``axis`` (``default`` when the file gives none)."""
-        return self.axis_names.get(axis, default)
+        return next((name for key, name in self.axis_names.items() if key == axis), default)
 
 
 class Machine(_Strict):
@@ -263,12 +253,12 @@ class Machine(_Strict):
     @property
     def travel_min_mm(self) -> Vec:
         """Lower travel limits ``[X, Y, Z]``, shape (3,)."""
-        return np.array([self.travel_mm[a][0] for a in AXES], dtype=float)
+        return np.array([self.travel_mm[a][0] for a in AXES], dtype=np.float64)
 
     @property
     def travel_max_mm(self) -> Vec:
         """Upper travel limits ``[X, Y, Z]``, shape (3,)."""
-        return np.array([self.travel_mm[a][1] for a in AXES], dtype=float)
+        return np.array([self.travel_mm[a][1] for a in AXES], dtype=np.float64)
 
     @property
     def spindle_angle_rad(self) -> float:

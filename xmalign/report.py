@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 import xmalign
@@ -474,16 +476,16 @@ def volumetric_map_figure(machine: Machine, maps: list[tuple[str, ErrorModel]]) 
     levels = np.linspace(0.0, top, 21)
     figure = Figure(figsize=(7.0, 9.0), layout="constrained")
     panels = figure.subplots(3, len(maps), squeeze=False)
-    image = None
     for k, (plane, third, at, ga, gb, length) in enumerate(lengths):
         row, column = divmod(k, len(maps))
         panel = panels[row, column]
-        image = panel.contourf(ga, gb, length.reshape(ga.shape), levels=levels, cmap="viridis")
+        panel.contourf(ga, gb, length.reshape(ga.shape), levels=levels, cmap="viridis")
         panel.set_title(f"{maps[column][0]}: {''.join(plane)} at {third} = {at:g} mm", fontsize=8)
         panel.set_xlabel(f"{plane[0]} / mm", fontsize=7)
         panel.set_ylabel(f"{plane[1]} / mm", fontsize=7)
         panel.tick_params(labelsize=6)
-    figure.colorbar(image, ax=panels, label="|error| / um", shrink=0.6)
+    scale = ScalarMappable(Normalize(0.0, top), cmap="viridis")
+    figure.colorbar(scale, ax=panels, label="|error| / um", shrink=0.6, boundaries=levels)
     figure.suptitle("Volumetric error of the tool point (one colour scale)", fontsize=10)
     return figure
 
@@ -649,8 +651,8 @@ def _pages(items: list[tuple[str, Figure]]) -> Iterator[Figure]:
     for _, figure in items:
         figure.set_size_inches(*A4_IN)
         margin_x, margin_y = _MARGIN_IN / A4_IN[0], _MARGIN_IN / A4_IN[1]
-        engine = figure.get_layout_engine()
-        engine.set(rect=(margin_x, margin_y, 1 - 2 * margin_x, 1 - 2 * margin_y))  # type: ignore[union-attr]
+        rect = (margin_x, margin_y, 1 - 2 * margin_x, 1 - 2 * margin_y)
+        figure.set_layout_engine("constrained", rect=rect)
         yield figure
 
 

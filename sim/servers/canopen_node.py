@@ -21,7 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 import canopen
-from canopen.sdo import SdoAbortedError
+from canopen import SdoAbortedError
 
 from firmware_iface.register_map import REGISTER_MAP_PATH, Control, Status
 from sim.units import COUNTS_PER_REV, SimAxis, SimUnit, counts_to_rad, rad_to_counts
@@ -38,6 +38,8 @@ FAULT_CODE_BASE = 0xFF00
 #: TPDO 1 is sent at least this often (0x1800 sub5), and on every statusword change.
 TPDO_EVENT_TIMER_S = 0.05
 _TPDO_POLL_S = 0.01
+#: How long the bus reader waits for a frame before it looks whether to stop (canopen: 1 s).
+_NOTIFIER_CYCLE_S = 0.1
 _RPDO1 = struct.Struct("<Hi")  # controlword, target position
 _TPDO1 = struct.Struct("<Hi")  # statusword, position actual value
 
@@ -291,6 +293,7 @@ class CanopenUnitServer:
         self.interface = interface
         self.hop_limit = hop_limit
         self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = _NOTIFIER_CYCLE_S
         self.axes: dict[int, Cia402Axis] = {}
         self.nodes: dict[int, canopen.LocalNode] = {}
         for unit in units:

@@ -1,8 +1,9 @@
 """Scripted-protocol doubles in the style of PyMeasure's ``expected_protocol``.
 
 A script is the exact list of requests a driver must make, with the answers to
-give. Any other request fails at once; steps left over when the ``with`` block
-ends fail too, so a test pins the whole sequence of the REGISTERS contract.
+give (an exception as the answer is raised). Any other request fails at once;
+steps left over when the ``with`` block ends fail too, so a test pins the whole
+sequence of the REGISTERS contract.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ class _Script:
         expected, answer = step[:-1], step[-1]
         assert request == expected, f"step {self.done + 1}: expected {expected}, got {request}"
         self.done += 1
+        if isinstance(answer, BaseException):
+            raise answer  # the device or the bus fails this request
         return answer
 
     def __enter__(self) -> _Script:
@@ -78,3 +81,22 @@ class ExpectedSdo(_Script):
 
     def __getitem__(self, index: int) -> _Entry:
         return _Entry(self, index)
+
+
+class ExpectedLines(_Script):
+    """A serial ``LineConnection`` that plays ``(command, reply)`` steps (reply b"": silence)."""
+
+    def __init__(self, steps: Sequence[tuple[Any, ...]]) -> None:
+        super().__init__(steps)
+        self._reply = b""
+
+    def reset_input_buffer(self) -> None:
+        self._reply = b""
+
+    def write(self, data: bytes) -> int:
+        self._reply = self.next((data,))
+        return len(data)
+
+    def readline(self) -> bytes:
+        reply, self._reply = self._reply, b""
+        return reply

@@ -6,8 +6,10 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import serial
 
 from firmware_iface.interferometer import (
+    STREAM_HEADER,
     RecordingInterferometer,
     ReplayInterferometer,
     SerialInterferometer,
@@ -137,4 +139,69 @@ def test_bad_stream_file_names_the_line(tmp_path) -> None:  # noqa: ANN001
         "angle_v_urad,angle_w_urad,beam_ok\n0,1,2,3,4,5,6,1\n0.02,1,2,x,4,5,6,1\n"
     )
     with pytest.raises(FormatError, match="bad.csv: line 3"):
+        ReplayInterferometer(path)
+
+
+class UnpluggedLine(ScriptedLine):
+    """A serial connection whose cable was pulled: writes or reads fail as pyserial's do."""
+
+    def __init__(self, *, fails_on: str) -> None:
+        super().__init__([])
+        self.fails_on = fails_on
+
+    def write(self, data: bytes) -> int:
+        if self.fails_on == "write":
+            raise serial.SerialException("write failed: [Errno 5] Input/output error")
+        return super().write(data)
+
+    def readline(self) -> bytes:
+        if self.fails_on == "read":
+            raise OSError(5, "Input/output error")
+        return super().readline()
+
+
+@pytest.mark.parametrize("fails_on", ["write", "read"])
+def test_a_pulled_cable_is_a_transport_error(fails_on: str) -> None:
+    line = UnpluggedLine(fails_on=fails_on)
+    with pytest.raises(TransportError, match="lost the connection to the interferometer on /dev/"):
+        SerialInterferometer(line, "interferometer on /dev/ttyUSB0").zero()
+
+
+def test_samples_before_the_reply_are_skipped() -> None:
+    line = ScriptedLine([encode_sample(SAMPLE), encode_reply(Reply(True, "ZERO"))])
+    SerialInterferometer(line).zero()
+    assert line.written == [b"ZERO\n"] and not line.lines
+
+
+def test_a_missing_port_is_named(tmp_path) -> None:  # noqa: ANN001
+    with pytest.raises(TransportError, match="cannot open the interferometer port .*ttyNONE"):
+        open_serial(str(tmp_path / "ttyNONE"))
+
+
+def test_the_recorder_zeroes_the_instrument_it_reads(reference_machine, tmp_path) -> None:  # noqa: ANN001
+    world = build_world(reference_machine, seed=5)
+    recorder = RecordingInterferometer(world.interferometer, tmp_path / "stream.csv")
+    recorder.zero()
+    assert np.allclose(recorder.read().channels[0], 0.0, atol=1.0)  # linear um from the zero
+    recorder.close()
+
+
+HEADER = ",".join(STREAM_HEADER) + "\n"
+
+
+@pytest.mark.parametrize(
+    ("body", "fragment"),
+    [
+        ("", "no samples"),
+        (None, "line 1: expected the header time_s,linear_um"),
+        ("\n0,1,2,3,4,5,6,1\n0.02,1,2,3\n", "line 4: expected 8 fields"),
+        ("0,1,2,3,4,5,6,1\n0.02,1,2,nan,4,5,6,1\n", "line 3: a value is not a finite number"),
+    ],
+)
+def test_stream_files_without_samples_or_with_bad_rows(
+    tmp_path, body: str | None, fragment: str
+) -> None:  # noqa: ANN001
+    path = tmp_path / "s.csv"
+    path.write_text(HEADER + body if body is not None else "t,x\n0,1\n")
+    with pytest.raises(FormatError, match=f"s.csv: {fragment}"):
         ReplayInterferometer(path)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import textwrap
 from pathlib import Path
 
@@ -20,7 +21,14 @@ from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
-from xmalign.errors import FormatError, InputError, OutOfRangeError, XmalignError
+from xmalign.errors import (
+    DeviceTimeoutError,
+    FormatError,
+    InputError,
+    OutOfRangeError,
+    TransportError,
+    XmalignError,
+)
 from xmalign.safety import units_locked_on_exit
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -181,3 +189,60 @@ def test_open_devices_on_simulated_servers(
             devices.close()
     finally:
         receiver_server.stop()
+
+
+@pytest.mark.parametrize(
+    ("content", "error", "fragment"),
+    [
+        (None, TransportError, "cannot read the machine position file"),
+        (b"\xff\xfe 1 2 3\n", FormatError, "not UTF-8 text (byte 0)"),
+        (b"# only a comment\n\n", FormatError, "no position in the file"),
+    ],
+)
+def test_file_positions_refuse_a_missing_binary_or_empty_file(
+    tmp_path: Path, content: bytes | None, error: type[Exception], fragment: str
+) -> None:
+    path = tmp_path / "pos.txt"
+    if content is not None:
+        path.write_bytes(content)
+    source = FilePositions(path)
+    assert source.is_standstill()
+    with pytest.raises(error, match=re.escape(fragment)):
+        source.position_mm()
+
+
+class StuckCnc:
+    """A mover that never stops, or stops ``miss_mm`` beside the target in X."""
+
+    def __init__(self, *, stops: bool, miss_mm: float = 0.0) -> None:
+        self.stops, self.miss_mm = stops, miss_mm
+        self.at_mm = np.zeros(3)
+
+    def position_mm(self) -> np.ndarray:
+        return self.at_mm
+
+    def is_standstill(self) -> bool:
+        return self.stops
+
+    def move_to(self, position_mm: np.ndarray, feed_mm_min: float) -> None:
+        self.at_mm = np.asarray(position_mm, dtype=float) + [self.miss_mm, 0.0, 0.0]
+
+
+def test_checked_mover_times_out_and_notices_a_missed_target(reference_machine) -> None:  # noqa: ANN001
+    clock = SimClock()
+    never = CheckedMover(StuckCnc(stops=False), reference_machine, clock=clock)
+    assert not never.is_standstill()
+    with pytest.raises(DeviceTimeoutError, match="the CNC did not come to a standstill"):
+        never.move_to([100.0, 200.0, -50.0], 1000.0)
+    assert clock.now() == pytest.approx(10.0, abs=0.1)
+    beside = CheckedMover(StuckCnc(stops=True, miss_mm=0.2), reference_machine, clock=clock)
+    with pytest.raises(OutOfRangeError, match="stopped 0.200 mm from"):
+        beside.move_to([100.0, 200.0, -50.0], 1000.0)
+
+
+def test_operator_prompt_stands_still_and_reports_the_confirmed_position(reference_machine) -> None:  # noqa: ANN001
+    operator = Operator([""])
+    mover = OperatorPrompt(reference_machine, operator.ask, operator.tell)
+    assert mover.is_standstill()
+    with pytest.raises(XmalignError, match="no answer from the operator"):
+        mover.position_mm()  # asked where the machine stands before any move

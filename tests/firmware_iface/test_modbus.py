@@ -10,7 +10,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from firmware_iface.modbus import ModbusUnit, decode, encode, rtu_transport, tcp_transport
+from firmware_iface.modbus import (
+    ModbusTransport,
+    ModbusUnit,
+    decode,
+    encode,
+    rtu_transport,
+    tcp_transport,
+)
 from firmware_iface.register_map import load_register_map
 from sim.clock import SimClock
 from sim.units import SimUnit
@@ -153,3 +160,55 @@ def test_rtu_transport_on_a_missing_port_names_the_device(tmp_path) -> None:  # 
     transport = rtu_transport(str(tmp_path / "ttyUSB9"), "receiver unit", timeout_s=0.1, retries=0)
     with pytest.raises(TransportError, match=r"receiver unit on .*ttyUSB9"):
         ModbusUnit(transport)
+
+
+def test_an_unexpected_exception_code_is_named() -> None:
+    class IllegalAddress:
+        exception_code = 2
+
+        def isError(self) -> bool:  # noqa: N802 (pymodbus's name)
+            return True
+
+    class Client:
+        connected = True
+
+        def read_holding_registers(self, *args: object, **kwargs: object) -> IllegalAddress:
+            return IllegalAddress()
+
+    transport = ModbusTransport(Client(), "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
+    with pytest.raises(
+        DeviceError, match="answered the read at register 99 with Modbus exception 2"
+    ):
+        transport.read_registers(99, 1)
+
+
+class Unplugged:
+    """The simulated unit's registers until ``unplugged`` is set; then every write fails."""
+
+    def __init__(self, sim: SimUnit) -> None:
+        self.sim, self.unplugged = sim, False
+        self.device_name = "launch unit"
+
+    def read_registers(self, address: int, count: int) -> list[int]:
+        return self.sim.read_registers(address, count)
+
+    def write_registers(self, address: int, values: list[int]) -> None:
+        if self.unplugged:
+            raise TransportError("lost the connection to the launch unit")
+        self.sim.write_registers(address, values)
+
+
+def test_a_failed_background_heartbeat_is_reported_on_the_next_beat() -> None:
+    sim = SimUnit("launch", SimClock(real_time=True), seed=3)
+    wire = Unplugged(sim)
+    unit = ModbusUnit(wire, "launch unit", clock=sim.clock)
+    unit.start_heartbeat()
+    unit.start_heartbeat()  # already beating: no second thread
+    wire.unplugged = True
+    deadline = time.monotonic() + 2.0
+    while unit._heartbeat_thread.is_alive() and time.monotonic() < deadline:  # it gives up
+        time.sleep(0.02)
+    with pytest.raises(HeartbeatError, match="heartbeat to the launch unit stalled: lost the"):
+        unit.beat()
+    unit.stop_heartbeat()
+    unit.stop_heartbeat()  # stopped already: nothing to do

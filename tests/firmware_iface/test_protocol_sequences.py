@@ -4,13 +4,23 @@ and on leftover steps."""
 
 from __future__ import annotations
 
+import math
+
+import can
+import canopen
 import pytest
 
 from firmware_iface.canopen_axis import CanopenAxis
 from firmware_iface.modbus import ModbusUnit
 from sim.clock import SimClock
 from tests.firmware_iface.scripted import ExpectedRegisters, ExpectedSdo
-from xmalign.errors import DeviceError, HeartbeatError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    HeartbeatError,
+    OutOfRangeError,
+    TransportError,
+)
 
 ENABLE, UNLOCK, START, STOP, FAULT_RESET = 1, 2, 4, 8, 16
 ENABLED, IN_POSITION, MOVING, FAULT, LOCKED, HOMED = 1, 2, 4, 8, 16, 32
@@ -131,3 +141,97 @@ def test_cia402_heartbeat_fault_reads_the_error_code() -> None:
         axis = CanopenAxis(node, "a3", "receiver unit", SimClock())  # type: ignore[arg-type]
         with pytest.raises(HeartbeatError, match=r"a3 \(CANopen node 3\) .* stopped"):
             axis.wait_in_position(1.0)
+
+
+HOME = 32
+
+
+def test_modbus_home_stop_enable_and_velocity_limit() -> None:
+    clock = SimClock()
+    home = [
+        ("write", 16, [ENABLE | UNLOCK], None),  # axis 1: unlock, then home on the rising edge
+        ("write", 16, [ENABLE | UNLOCK | HOME], None),
+        ("write", 32, [ENABLE | UNLOCK], None),
+        ("write", 32, [ENABLE | UNLOCK | HOME], None),
+        ("read", 17, 1, [ENABLED | MOVING]),
+        ("read", 17, 1, [ENABLED | IN_POSITION | HOMED]),
+        ("read", 33, 1, [ENABLED | IN_POSITION | HOMED]),
+    ]
+    others = [
+        ("write", 16, [ENABLE | UNLOCK | STOP], None),  # stop: at rest, still unlocked
+        ("write", 32, [ENABLE], None),  # enable: powered and locked
+        ("write", 22, [0x0001, 0x0000], None),  # 65536 counts/s, high word first
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *home, *others]) as script:
+        unit = opened(script, clock)
+        unit.home(timeout_s=1.0)
+        unit.axes[0].stop()
+        unit.axes[1].enable()
+        unit.axes[0].set_velocity_limit(65536 * 2 * math.pi / 2**23)
+
+
+def test_modbus_homing_that_never_ends_times_out() -> None:
+    clock = SimClock()
+    home = [
+        ("write", 16, [ENABLE | UNLOCK], None),
+        ("write", 16, [ENABLE | UNLOCK | HOME], None),
+        ("write", 32, [ENABLE | UNLOCK], None),
+        ("write", 32, [ENABLE | UNLOCK | HOME], None),
+        ("read", 17, 1, [ENABLED | MOVING]),  # t = 0
+        ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.05
+        ("write", 3, [2], None),  # the heartbeat goes on while waiting
+        ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.1: past the deadline
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *home]) as script:
+        unit = opened(script, clock)
+        with pytest.raises(DeviceTimeoutError, match="axis a1 .* did not finish homing in 0.1 s"):
+            unit.home(timeout_s=0.1)
+
+
+def test_modbus_unknown_device_type_is_refused() -> None:
+    with (
+        ExpectedRegisters([("read", 0, 1, [7])]) as script,
+        pytest.raises(DeviceError, match="reports an unknown device type 7"),
+    ):
+        ModbusUnit(script, clock=SimClock())
+
+
+def test_cia402_home_on_the_current_position_and_stop() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("write", 0x6060, 0, 6, None),  # homing mode
+        ("read", 0x6041, 0, 0x0233),  # switched on already: no shutdown / switch on
+        ("write", 0x6040, 0, 0x0F, None),  # enable operation
+        ("write", 0x6040, 0, 0x1F, None),  # start homing
+        ("read", 0x6041, 0, OPERATION_ENABLED),
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x1000),  # homing attained
+        ("write", 0x6040, 0, 0x0F, None),
+        ("write", 0x6040, 0, 0x10F, None),  # halt: at rest, the brake still released
+    ]
+    with ExpectedSdo(2, steps) as node:
+        axis = CanopenAxis(node, "a2", "launch unit", SimClock(), poll_s=0.01)  # type: ignore[arg-type]
+        axis.home(timeout_s=1.0)
+        axis.stop()
+
+
+@pytest.mark.parametrize(
+    ("failure", "error", "fragment"),
+    [
+        (
+            canopen.SdoAbortedError(0x06010002),
+            DeviceError,
+            "write of 0x6040: Code 0x06010002",
+        ),
+        (canopen.SdoAbortedError(0x06090030), OutOfRangeError, "refused the value: out of range"),
+        (canopen.SdoCommunicationError("No SDO response"), DeviceTimeoutError, "did not answer"),
+        (can.CanOperationError("bus off"), TransportError, "lost the CAN bus of axis a1"),
+    ],
+)
+def test_cia402_sdo_failures_name_the_axis(
+    failure: Exception, error: type[Exception], fragment: str
+) -> None:
+    steps = [("read", 0x608F, 1, 2**23), ("write", 0x6040, 0, 0x10F, failure)]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock())  # type: ignore[arg-type]
+        with pytest.raises(error, match=fragment):
+            axis.stop()

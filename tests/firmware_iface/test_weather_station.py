@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 import serial
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
+from scripted import ExpectedLines
 
 from firmware_iface.config import load_units_config, parse_units_config
 from firmware_iface.weather_station import (
@@ -20,7 +21,11 @@ from firmware_iface.weather_station import (
     FileEnvironment,
     FileEnvironmentConfig,
     FixedEnvironment,
+    FixedEnvironmentConfig,
+    ModbusRtuStationConfig,
+    ModbusTcpStationConfig,
     ModbusWeatherStation,
+    SerialStationConfig,
     SerialWeatherStation,
     decode_registers,
     decode_station_line,
@@ -28,7 +33,9 @@ from firmware_iface.weather_station import (
     encode_registers,
     open_environment,
     record_serials,
+    resolve_environment,
 )
+from firmware_iface.xm_line_protocol import checksum
 from sim.clock import SimClock
 from sim.environment import ShopClimate, SimEnvironment, SimWeatherStation
 from sim.servers.weather_station import PtyStationServer
@@ -81,13 +88,16 @@ def test_file_source_faults(tmp_path: Path) -> None:
     st.floats(0, 100),
     st.lists(st.floats(-20, 60), max_size=3),
 )
+@example(0.125, 1000.0, 0.125, [0.125])  # exactly half a step: rounded to even
 def test_registers_round_trip(air: float, hpa: float, rh: float, material: list[float]) -> None:
     reading = EnvironmentReading(0.0, air, hpa, rh, tuple(material))
     back = decode_registers(encode_registers(reading), 0.0)
-    assert back.air_temp_c == pytest.approx(air, abs=0.005)
-    assert back.air_pressure_hpa == pytest.approx(hpa, abs=0.05)
-    assert back.air_humidity_percent == pytest.approx(rh, abs=0.005)
-    assert back.material_temp_c == pytest.approx(tuple(material), abs=0.005)
+    # within half a register step (0.01, 0.1 hPa); 0.125 -> 0.12 misses by 0.005 + 4e-18
+    half_step, float_slack = 0.005, 1e-12
+    assert back.air_temp_c == pytest.approx(air, abs=half_step + float_slack)
+    assert back.air_pressure_hpa == pytest.approx(hpa, abs=10 * half_step + float_slack)
+    assert back.air_humidity_percent == pytest.approx(rh, abs=half_step + float_slack)
+    assert back.material_temp_c == pytest.approx(tuple(material), abs=half_step + float_slack)
 
 
 def test_register_without_reading_is_nan() -> None:
@@ -216,3 +226,68 @@ def test_sim_serve_station_pty() -> None:
     finally:
         process.terminate()
         process.wait(timeout=10)
+
+
+def _line(payload: str) -> bytes:
+    return f"{payload}*{checksum(payload.encode())}\n".encode()
+
+
+def test_file_source_without_a_reading(tmp_path: Path) -> None:
+    path = tmp_path / "env.txt"
+    path.write_text("# logger started\n\n")
+    with pytest.raises(FormatError, match="env.txt: no reading in the file"):
+        FileEnvironment(path).read()
+
+
+@pytest.mark.parametrize(
+    ("payload", "fragment"),
+    [("E,21.0,1000.0,40.0", "bad fields"), ("ERR unknown command", "answered: 'ERR unknown")],
+)
+def test_station_lines_with_bad_fields_or_an_error_are_refused(payload: str, fragment: str) -> None:
+    with pytest.raises(FormatError, match=fragment):
+        decode_station_line(_line(payload), 0.0)
+
+
+def test_serial_station_faults_are_transport_errors() -> None:
+    reading = encode_environment(EnvironmentReading(0.0, 21.0, 1000.0, 40.0, ()))
+    steps = [
+        (b"ENV?\n", b""),  # silence: the read timed out
+        (b"ENV?\n", b"E,21.0*00\n"),  # damaged
+        (b"ENV?\n", _line("OK busy")),
+        (b"ID?\n", reading),
+    ]
+    with ExpectedLines(steps) as line:
+        station = SerialWeatherStation(line, "weather station on /dev/ttyS9", SimClock())
+        with pytest.raises(DeviceTimeoutError, match="the weather station on /dev/ttyS9 did not"):
+            station.read()
+        with pytest.raises(TransportError, match="bad or missing checksum"):
+            station.read()
+        with pytest.raises(TransportError, match="answered ENV\\? with 'busy'"):
+            station.read()
+        with pytest.raises(TransportError, match="answered ID\\? with a reading"):
+            station.identify()
+
+
+def test_open_environment_of_each_source(tmp_path: Path) -> None:
+    relative = FileEnvironmentConfig(source="file", file=Path("env.txt"))
+    assert resolve_environment(relative, tmp_path).file == tmp_path / "env.txt"
+    closers: list = []
+    station = {"source": "serial", "port": str(tmp_path / "no-such-port")}
+    with pytest.raises(TransportError, match="weather station on .*no-such-port"):
+        open_environment(SerialStationConfig(**station), 0.1, closers)
+    tcp = ModbusTcpStationConfig(source="modbus-tcp", host="127.0.0.1", port=1)
+    rtu = ModbusRtuStationConfig(source="modbus-rtu", serial_port=str(tmp_path / "rtu"))
+    for source in (open_environment(tcp, 0.1, closers), open_environment(rtu, 0.1, closers)):
+        assert isinstance(source, ModbusWeatherStation)
+        with pytest.raises(TransportError, match="weather station"):
+            source.read()
+    looped = open_environment(SerialStationConfig(source="serial", port="loop://"), 0.1, closers)
+    assert isinstance(looped, SerialWeatherStation)
+    assert looped.device_name == "weather station on loop://"
+    fixed = FixedEnvironmentConfig(
+        source="fixed", air_temp_c=20.5, air_pressure_hpa=1013.0, air_humidity_percent=45.0
+    )
+    assert open_environment(fixed, 0.1, closers).read().air_temp_c == 20.5
+    assert len(closers) == 3
+    for close in closers:
+        close()

@@ -27,6 +27,47 @@ class ActionFailedError(Exception):
     pass
 
 
+class Standstills:
+    """Joint states at standstill during a program, each recorded once.
+
+    Every poll reads each joint's ``pos-cmd``, ``vel-cmd``, ``motor-pos-cmd``,
+    ``motor-offset`` and ``comp.N.out``: a comparator in the servo thread that
+    latches the sign of the last non-zero ``vel-cmd`` (LinuxCNC's COMP_FILE
+    direction, held at standstill), exact even when a move is shorter than a
+    poll. When every ``vel-cmd`` is zero and two polls (milliseconds apart)
+    read the same values, the joints have settled: one sample ``[[pos_cmd,
+    motor_pos_cmd, motor_offset, direction], ...]`` per joint is kept (direction
+    +1, -1, or 0 before the joint was seen moving), unless it repeats the last.
+    """
+
+    NAMES = ("pos-cmd", "vel-cmd", "motor-pos-cmd", "motor-offset")
+
+    def __init__(self, joints):
+        self.joints = joints
+        self.moved = [False] * joints
+        self.previous = None
+        self.samples = []
+
+    def poll(self):
+        if not self.joints:
+            return
+        read = [
+            [float(hal.get_value(f"joint.{j}.{name}")) for name in self.NAMES]
+            + [1 if hal.get_value(f"comp.{j}.out") else -1]
+            for j in range(self.joints)
+        ]
+        for j, (_, velocity, _, _, _) in enumerate(read):
+            self.moved[j] = self.moved[j] or velocity != 0.0
+        settled = read == self.previous and not any(r[1] for r in read)
+        self.previous = read
+        if settled:
+            sample = [
+                [p, m, o, d if self.moved[j] else 0] for j, (p, _, m, o, d) in enumerate(read)
+            ]
+            if not self.samples or self.samples[-1] != sample:
+                self.samples.append(sample)
+
+
 class Display:
     def __init__(self):
         self.command = linuxcnc.command()
@@ -58,6 +99,11 @@ class Display:
             self.command.mode(mode)
             self.command.wait_complete()
             self.wait_for(lambda s: s.task_mode == mode, 5, f"task mode {mode}")
+
+    def wait_received(self):
+        """Until task has taken the last command."""
+        serial = self.command.serial
+        self.wait_for(lambda s: s.echo_serial_number >= serial, 5, "task to take the command")
 
     def wait_idle(self, timeout_s):
         """Until task has taken the last command and stays idle and in position for 50 ms."""
@@ -114,30 +160,45 @@ class Display:
         time.sleep(action["seconds"])
 
     def op_run(self, action):
-        """Run a program to its end, resuming after every M0; track pins' extremes."""
+        """Run a program to its end, resuming after every M0; track pins' extremes.
+
+        With ``standstill_joints``, also record the joints at every standstill
+        (see ``Standstills``).
+        """
         watch = action.get("watch", [])
         extremes = {name: 0.0 for name in watch}
+        standstills = Standstills(action.get("standstill_joints", 0))
+        if "feed_override" in action:
+            self.command.feedrate(float(action["feed_override"]))
+            self.command.wait_complete()
         self.set_mode(linuxcnc.MODE_AUTO)
         self.command.program_open(action["program"])
         self.command.wait_complete()
+        # not wait_complete(): task completes AUTO_RUN/AUTO_RESUME only when the
+        # interpreter stops again (next M0), so the polls below would miss the motion
         self.command.auto(linuxcnc.AUTO_RUN, 0)
-        self.command.wait_complete()
+        self.wait_received()
         started = time.monotonic()
         resumes = 0
-        self.wait_for(lambda s: s.interp_state != linuxcnc.INTERP_IDLE, 5, "the program start")
+        # a short program may be read to its end (interpreter idle) while motion still runs
+        self.wait_for(
+            lambda s: s.interp_state != linuxcnc.INTERP_IDLE or s.queue, 5, "the program start"
+        )
         deadline = started + action.get("timeout_s", 120)
         while True:
             s = self.poll()
             for name in watch:
                 value = abs(float(hal.get_value(name)))
                 extremes[name] = max(extremes[name], value)
+            standstills.poll()
             if s.task_state != linuxcnc.STATE_ON:
                 raise ActionFailedError(f"the machine went off during the program: {self.messages}")
             if s.interp_state == linuxcnc.INTERP_IDLE and not s.queue:
                 break
             if s.paused and s.interp_state == linuxcnc.INTERP_PAUSED:
                 self.command.auto(linuxcnc.AUTO_RESUME)
-                self.command.wait_complete()
+                self.wait_received()
+                self.wait_for(lambda s: not s.paused, 5, "the program to resume")
                 resumes += 1
             if time.monotonic() > deadline:
                 raise ActionFailedError("the program did not end in time")
@@ -147,6 +208,8 @@ class Display:
             "seconds": time.monotonic() - started,
             "max_abs": extremes,
             "line": self.poll().current_line,
+            "standstills": standstills.samples,
+            "feed_override": self.poll().feedrate,
         }
 
     def state(self):

@@ -18,7 +18,11 @@ Actions (run in order by ``display.py``; the first that fails ends the list):
 and in position), ``pins`` (``names``: ``hal.get_value`` of each),
 ``setp`` (``name``, ``value``), ``sleep`` (``seconds``), ``run`` (``program``:
 runs it to the end, resuming after every M0; ``watch``: pins whose largest
-absolute value is returned). Every action may carry a ``label``.
+absolute value is returned; ``feed_override``: set before the start;
+``standstill_joints``: N records, whenever joints 0..N-1 all stand still, each
+joint's ``pos-cmd``, ``motor-pos-cmd``, ``motor-offset`` and the direction of
+its last move, from the ``direction_latches`` of :class:`SimMachine`). Every
+action may carry a ``label``.
 
 LinuxCNC refuses to run as root: as root the harness runs it as the user
 ``XMALIGN_LINUXCNC_USER`` (default ``xmcnc``, created with ``useradd`` when
@@ -94,6 +98,11 @@ class SimMachine:
     max_acceleration_mm_s2: float = 10000.0
     #: following error limit (FERROR = MIN_FERROR); beyond it LinuxCNC turns the machine off
     ferror_mm: float = 1.0
+    #: [DISPLAY] MAX_FEED_OVERRIDE: the largest feed override a ``run`` action may set
+    max_feed_override: float = 1.0
+    #: a ``comp`` comparator per joint latching the sign of ``joint.N.vel-cmd`` every servo
+    #: period (``comp.N.out``: TRUE after a positive move, held at standstill)
+    direction_latches: bool = False
 
     @property
     def joints(self) -> int:
@@ -105,7 +114,14 @@ def _ini_text(machine: SimMachine, halfile: str) -> str:
     gantry = len(set(machine.coordinates)) < machine.joints
     sections = [
         ("EMC", {"VERSION": "1.1", "MACHINE": "xmalign-harness", "DEBUG": "0"}),
-        ("DISPLAY", {"DISPLAY": "./display.py", "CYCLE_TIME": "0.100"}),
+        (
+            "DISPLAY",
+            {
+                "DISPLAY": "./display.py",
+                "CYCLE_TIME": "0.100",
+                "MAX_FEED_OVERRIDE": f"{machine.max_feed_override}",
+            },
+        ),
         ("TASK", {"TASK": "milltask", "CYCLE_TIME": "0.001"}),
         ("RS274NGC", {"PARAMETER_FILE": "sim.var"}),
         ("EMCMOT", {"EMCMOT": "motmod", "COMM_TIMEOUT": "1.0", "SERVO_PERIOD": "1000000"}),
@@ -188,6 +204,13 @@ def _hal_text(machine: SimMachine) -> str:
         f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
         for joint in range(machine.joints)
     ]
+    if machine.direction_latches:
+        lines.append(f"loadrt comp count={machine.joints}")
+        for joint in range(machine.joints):
+            lines += [
+                f"addf comp.{joint} servo-thread",
+                f"net j{joint}vel joint.{joint}.vel-cmd => comp.{joint}.in1",
+            ]
     return "\n".join(lines) + "\n"
 
 

@@ -6,6 +6,7 @@ from hypothesis import strategies as st
 from firmware_iface.xm_line_protocol import (
     Command,
     Reply,
+    checksum,
     decode_line,
     encode_command,
     encode_reply,
@@ -65,3 +66,26 @@ def test_bad_commands(line):
 
 def test_lower_case_commands_are_accepted():
     assert parse_command(b"stream on\r\n") == Command("STREAM", "ON")
+
+
+def _framed(payload: bytes) -> bytes:
+    return payload + b"*" + checksum(payload).encode() + b"\n"
+
+
+@pytest.mark.parametrize(
+    ("payload", "fragment"),
+    [
+        (b"OK \xb5m", "not ASCII"),
+        (b"S,1,2,3,1", "sample line with bad fields"),
+        (b"S,0.1,1,2,x,4,5,6,1", "sample line: could not convert"),
+        (b"HELLO there", "unknown interferometer line"),
+    ],
+)
+def test_lines_with_a_good_checksum_but_bad_content_are_refused(payload, fragment):
+    with pytest.raises(FormatError, match=fragment):
+        decode_line(_framed(payload))
+
+
+def test_rate_needs_exactly_one_number():
+    with pytest.raises(FormatError, match="RATE takes one number"):
+        parse_command(b"RATE 10 20\n")

@@ -92,3 +92,11 @@ def test_tool_pose_keeps_noise_at_standstill(machine):
     again = vm.tool_pose([100, 100, -100], [0, 0, -180])[0]
     assert not np.array_equal(first, again)
     assert np.abs(first - again).max() < 10e-3
+
+
+def test_only_the_axes_that_move_draw_new_repeatability_noise(machine):
+    vm = VirtualMachine(machine, ErrorAmplitudes(scale=0.0, repeatability_um=1.0), seed=2)
+    first = vm.tool_pose([100, 100, -100], [0, 0, 0])[0] - [100, 100, -100]
+    second = vm.tool_pose([300, 100, -100], [0, 0, 0])[0] - [300, 100, -100]
+    assert second[0] != first[0]
+    np.testing.assert_array_equal(second[1:], first[1:])

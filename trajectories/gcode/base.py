@@ -45,7 +45,7 @@ class Dialect(ABC):
         """Machine coordinates of the named axes in program coordinates (work offset removed)."""
         if self.work_offset is None:
             return dict(axes_mm)
-        origin = dict(zip(AXES, self.work_offset.origin_mm, strict=True))
+        origin: dict[str, float] = dict(zip(AXES, self.work_offset.origin_mm, strict=True))
         return {axis: value - origin[axis] for axis, value in axes_mm.items()}
 
     def offset_words(self) -> str:

@@ -299,6 +299,7 @@ def identify_command(
     )
     truth = None
     if sim:
+        assert machine_model is not None  # loaded above for --sim
         session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
         session_path.unlink(missing_ok=True)
         result, truth = _simulated_identification(
@@ -306,6 +307,7 @@ def identify_command(
         )
         session = read_session(session_path)
     elif live:
+        assert machine_model and config and session_file  # checked above for --live
         log_handler = start_log_file(log_file)
         try:
             identified = _live_identification(
@@ -320,6 +322,7 @@ def identify_command(
             if machine_model is not None
             else NOMINAL_STRAIGHTNESS_RANGE_UM
         )
+        assert input is not None  # one of --input, --sim, --live (checked above)
         session = read_session(input, range_um)
         result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -26,6 +26,9 @@ from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, loa
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
+
+if TYPE_CHECKING:
+    from xmalign.report import RecordInfo
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -92,17 +95,32 @@ def post(
     ],
     out: Annotated[Path, typer.Option(help="Error-table CSV to write.")],
     machine: MachineOption = None,
-    report: Annotated[Path | None, typer.Option(help="Also write an HTML report here.")] = None,
+    report: Annotated[
+        Path | None, typer.Option(help="Also write the calibration record here (.html or .pdf).")
+    ] = None,
+    operator: Annotated[str, typer.Option(help="Who calibrated, for the record.")] = "",
+    units: Annotated[
+        Path | None,
+        typer.Option(help="units.yaml of the run: instrument and sensor serials for the record."),
+    ] = None,
+    vdi3441: Annotated[
+        bool, typer.Option("--vdi3441", help="Also give the VDI/DGQ 3441 figures in the record.")
+    ] = False,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
+
+    Where the measurement has environment columns, the linear readings are first
+    compensated for the air's refractive index, the dead path and the material
+    temperature (normalised to 20 °C).
 
     Repeat --plan and --data for a second launch-unit station: one set of error
     tables is fitted to all lines, each line with its own setup terms.
     """
     refuse_overwriting(
-        {"--plan": plan, "--data": data, "--machine": machine},
+        {"--plan": plan, "--data": data, "--machine": machine, "--units": units},
         {"--out": out, "--report": report},
     )
+    instruments = _instrument_serials(units) if units is not None else {}
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = _stations(plan, data, machine)
@@ -115,12 +133,47 @@ def post(
             # imported here: matplotlib is only loaded when a report is asked for
             from xmalign.report import write_report
 
-            write_report(report, machine_, result, machine_.controller)
+            info = _record_info(result, operator=operator, instruments=instruments, vdi3441=vdi3441)
+            write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
+    for note in dict.fromkeys(result.notes):
+        console.print(note, markup=False, soft_wrap=True)
+    drift = [check for c in result.compensation for check in c.drift]
+    if drift:
+        console.print(
+            "drift at the first target: "
+            + ", ".join(f"{check.line_id} {check.drift_um:+.2f} um" for check in drift),
+            markup=False,
+            soft_wrap=True,
+        )
     for warning in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
+    )
+
+
+def _instrument_serials(units: Path) -> dict[str, str]:
+    """Instrument and sensor serial numbers of a units.yaml."""
+    from firmware_iface.config import load_units_config
+    from firmware_iface.weather_station import record_serials
+
+    config = load_units_config(units)
+    return record_serials(config.instruments, config.environment)
+
+
+def _record_info(result: PostResult, **keys: object) -> RecordInfo:
+    """The record's environment, compensation and drift, over every station."""
+    from xmalign.report import RecordInfo
+
+    stations = [c for c in result.compensation if c.lines]
+    if not stations:
+        return RecordInfo(**keys)  # type: ignore[arg-type]
+    return RecordInfo(
+        environment={k: v for c in stations for k, v in c.environment.items()},
+        compensation=stations[0].note,
+        drift=[check for c in stations for check in c.drift],
+        **keys,  # type: ignore[arg-type]
     )
 
 
@@ -188,7 +241,7 @@ def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, 
     joints = linuxcnc.resolve_joints(machine, text.splitlines(), str(ini))
     files = linuxcnc.render(result.fit, machine, joints)
     merged = f"{ini.stem}-xmalign{ini.suffix}"
-    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini))
+    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini), ini.resolve().parent)
     for joint in linuxcnc.backlash_joints(text, joints):
         error_console.print(
             f"[yellow]warning:[/] {ini}: [JOINT_{joint}] BACKLASH is set; the COMP_FILE\x27s"

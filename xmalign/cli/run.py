@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -12,7 +14,13 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from xmalign.calibration import CalibrationRun, RunOutput, check_run_output, open_run_output
+from xmalign.calibration import (
+    CalibrationRun,
+    RunOutput,
+    capture_sequence,
+    check_run_output,
+    open_run_output,
+)
 from xmalign.cli.common import (
     LogFileOption,
     check_seed,
@@ -23,6 +31,7 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
+from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
@@ -31,6 +40,13 @@ from xmalign.machine import Machine
 if TYPE_CHECKING:
     from sim.dry_run import DryRunOptions
 
+ShopOption = Annotated[
+    str,
+    typer.Option(
+        help="With --sim: the virtual shop's air and machine temperature: 'drifting'"
+        " (air 22 -> 25 °C, machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
+    ),
+]
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
 ]
@@ -47,9 +63,7 @@ def _progress() -> Progress:
 
 
 def _point_count(plan: Plan) -> int:
-    return sum(
-        line.runs * len(line.targets_mm) * (2 if line.bidirectional else 1) for line in plan.lines
-    )
+    return sum(len(list(capture_sequence(line))) for line in plan.lines)
 
 
 def _stopped(out: Path, also: str = "") -> KeyboardInterrupt:
@@ -79,8 +93,15 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
             run = measure()
         except XmalignError as error:
             raise _kept(error, output) from error
-    for note in run.statistics.resumed:
+    for note in run.statistics.resumed + run.statistics.recovered:
         console.print(note, markup=False, soft_wrap=True)
+    if run.statistics.missed:
+        error_console.print(
+            f"warning: {len(run.statistics.missed)} points were not captured (the machine"
+            " went on while the beam was searched); run again with --resume to capture them",
+            style="yellow",
+            markup=False,
+        )
     console.print(
         f"{run.statistics.points} points captured; {output.writer.saved} points in"
         f" {output.writer.path}",
@@ -89,58 +110,82 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
     )
 
 
+@dataclass
+class Measurement:
+    """What a run measures with: ``measure`` fills an output; ``environment`` its rows' air."""
+
+    measure: Callable[[RunOutput], None]
+    environment: EnvironmentMonitor | None = None
+
+
+@contextmanager
 def _sim_measurement(
-    machine: Machine, plan: Plan, seed: int, program: Path | None, dialect: str | None
-) -> Callable[[RunOutput], None]:
-    """Check the --sim options; the measurement on the virtual machine into an output."""
+    machine: Machine,
+    plan: Plan,
+    seed: int,
+    program: Path | None,
+    dialect: str | None,
+    shop: str,
+) -> Iterator[Measurement]:
+    """Check the --sim options; the measurement on the virtual machine in a simulated shop."""
     from sim.dry_run import measure_virtually, virtual_setup
+    from sim.environment import SHOPS, attach_shop
     from trajectories.gcode import make_dialect, resolve_dialect
     from trajectories.gcode.program import write_program
 
+    _check_shop(shop)
     dialect_name = resolve_dialect(machine, dialect)
     text = (
         read_text(program, "G-code program")
         if program is not None
         else write_program(plan, machine, make_dialect(dialect_name, machine))
     )
+    setup = virtual_setup(machine, seed)
+    station = attach_shop(setup.world, SHOPS[shop](), seed)
 
     def measure(output: RunOutput) -> None:
-        setup = virtual_setup(machine, seed)
         _measure(output, plan, lambda: measure_virtually(setup, plan, text, dialect_name, output))
 
-    return measure
+    yield Measurement(measure, EnvironmentMonitor(station, "simulated weather station"))
 
 
-def _live_measurement(
-    machine: Machine, plan: Plan, config_path: Path
-) -> Callable[[RunOutput], None]:
-    """Check the hardware configuration; the live measurement into an output."""
+def _check_shop(shop: str) -> None:
+    from sim.environment import SHOPS
+
+    if shop not in SHOPS:
+        raise InputError(f"--shop: '{shop}' is not one of {', '.join(SHOPS)}")
+
+
+@contextmanager
+def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterator[Measurement]:
+    """Check the hardware configuration, open the devices; the live measurement."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.roles import WallClock
     from xmalign.steps import RunStepDevices, following_drive, run_step, stepping_drive
 
     config = load_units_config(config_path)
+    devices = open_devices(config, machine)
 
-    def measure(output: RunOutput) -> None:
-        devices = open_devices(config, machine)
+    def capture(output: RunOutput) -> CalibrationRun:
+        drive = (
+            following_drive(devices.mover, _tell_cycle_start)
+            if config.machine_position.source == "file"
+            else stepping_drive(devices.mover, machine)
+        )
+        roles = RunStepDevices(
+            devices.launch, devices.receiver, devices.interferometer, WallClock()
+        )
+        return run_step(plan, roles, output, drive)
 
-        def capture() -> CalibrationRun:
-            drive = (
-                following_drive(devices.mover, _tell_cycle_start)
-                if config.machine_position.source == "file"
-                else stepping_drive(devices.mover, machine)
-            )
-            roles = RunStepDevices(
-                devices.launch, devices.receiver, devices.interferometer, WallClock()
-            )
-            return run_step(plan, roles, output, drive)
-
-        try:
-            _measure(output, plan, capture)
-        finally:
-            devices.close()
-
-    return measure
+    environment = (
+        EnvironmentMonitor(devices.environment) if devices.environment is not None else None
+    )
+    try:
+        yield Measurement(
+            lambda output: _measure(output, plan, lambda: capture(output)), environment
+        )
+    finally:
+        devices.close()
 
 
 def _tell_cycle_start(line: object) -> None:
@@ -182,6 +227,7 @@ def run_command(
         Path | None, typer.Option(help="With --sim: execute this G-code (default: from the plan).")
     ] = None,
     dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
+    shop: ShopOption = "drifting",
     log_file: LogFileOption = None,
 ) -> None:
     """Drive the units, lock them, step the machine through the plan and capture every point.
@@ -196,21 +242,37 @@ def run_command(
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
     limits = ChannelLimits.of_ranges(**machine_model.interferometer.ranges())
-    if sim:
-        measure = _sim_measurement(machine_model, plan_model, seed, program, dialect)
-    else:
-        assert config is not None
-        measure = _live_measurement(machine_model, plan_model, config)
-    # the options are checked: only now is --out created or opened, before any device
+    # the options are checked: only now are devices opened and --out created or opened
     log_handler = start_log_file(log_file)
     try:
-        with open_run_output(out, plan_model, resume, limits) as output:
+        with (
+            _measurement(
+                machine_model, plan_model, sim, config, seed, program, dialect, shop
+            ) as measurement,
+            open_run_output(out, plan_model, resume, limits, measurement.environment) as output,
+        ):
             try:
-                measure(output)
+                measurement.measure(output)
             except KeyboardInterrupt:
                 raise _stopped(out) from None
     finally:
         stop_log_file(log_handler)
+
+
+def _measurement(
+    machine: Machine,
+    plan: Plan,
+    sim: bool,
+    config: Path | None,
+    seed: int,
+    program: Path | None,
+    dialect: str | None,
+    shop: str,
+) -> AbstractContextManager[Measurement]:
+    if sim:
+        return _sim_measurement(machine, plan, seed, program, dialect, shop)
+    assert config is not None
+    return _live_measurement(machine, plan, config)
 
 
 def _results_table(report: object) -> Table:
@@ -249,9 +311,15 @@ def _results_table(report: object) -> Table:
         "over the measured strokes, rigid motion removed",
     )
     table.add_row(
+        "  without air/material comp.",
+        f"{report.volumetric_uncompensated_um:.2f} µm after",
+        "the same readings",
+        "tables fitted to the uncompensated readings",
+    )
+    table.add_row(
         "on-machine time",
         f"{report.on_machine_s / 60:.1f} min",
-        "≤ 12 min",
+        "≤ 12 min (one station)",
         f"identify {report.identification_s / 60:.1f}, align {report.alignment_s / 60:.1f}, "
         f"measure {report.measuring_s / 60:.1f} min",
     )
@@ -259,13 +327,14 @@ def _results_table(report: object) -> Table:
 
 
 def _dry_run_stopped(
-    out: Path, stage: str, seed: int, machine: Path | None, dialect: str | None
+    out: Path, stage: str, seed: int, machine: Path | None, dialect: str | None, shop: str
 ) -> KeyboardInterrupt:
     """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
     if stage != "run":
         return KeyboardInterrupt(f"stopped during {stage}: the files so far are in {out}/")
     options = f" --machine {machine}" if machine else ""
     options += f" --dialect {dialect}" if dialect else ""
+    options += f" --shop {shop}"
     return _stopped(
         out / "measurements.csv",
         f" (xmalign run --sim --seed {seed}{options} --plan {out / 'plan.json'}"
@@ -289,15 +358,20 @@ def dry_run_command(
             min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
         ),
     ] = 1,
+    shop: ShopOption = "drifting",
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
     check_seed(seed)
+    _check_shop(shop)
     machine_model = machine_or_default(machine)
     check_dry_run_folder(out)
     options = DryRunOptions(
-        seed=seed, identification_positions=identification_positions, dialect=dialect
+        seed=seed,
+        identification_positions=identification_positions,
+        dialect=dialect,
+        shop=shop,
     )
     if stations == 2:
         _two_station_dry_run(machine_model, out, options)
@@ -319,7 +393,7 @@ def dry_run_command(
             report = simulate_calibration(machine_model, out, options, on_stage, on_point)
         except KeyboardInterrupt:
             stage = started[-1] if started else "start"
-            raise _dry_run_stopped(out, stage, seed, machine, dialect) from None
+            raise _dry_run_stopped(out, stage, seed, machine, dialect, shop) from None
         progress.update(task, completed=len(STAGES), description="dry run: done")
     console.print(_results_table(report))
     design = [f"identification design: {warning}" for warning in report.design_warnings]

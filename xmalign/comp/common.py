@@ -27,7 +27,7 @@ class Grid:
 
     @property
     def positions_mm(self) -> Vec:
-        return self.start_mm + self.step_mm * np.arange(self.count)
+        return self.start_mm + self.step_mm * np.arange(self.count, dtype=np.float64)
 
     @property
     def end_mm(self) -> float:

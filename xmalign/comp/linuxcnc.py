@@ -61,9 +61,8 @@ def render(
     fit: CompensationFit, machine: Machine, joints: list[str] | None = None
 ) -> dict[str, str]:
     """File name -> text of one comp file per axis and the keys for each joint."""
-    joints = joints or machine.cnc.joints or list(AXES)
     files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
-    files["joints.ini"] = render_keys(joints)
+    files["joints.ini"] = render_keys(list(joints or machine.cnc.joints or AXES))
     return files
 
 
@@ -137,11 +136,24 @@ def resolve_joints(machine: Machine, ini_lines: list[str] | None, source: str) -
     return list(from_machine or from_ini or AXES)
 
 
-def merge_ini(text: str, joints: list[str], folder: Path, source: str) -> str:
+def absolute_path(value: str, folder: Path) -> str:
+    """A relative path that names an existing file or folder in ``folder`` made absolute."""
+    if not value or " " in value or Path(value).is_absolute() or ":" in value:
+        return value
+    candidate = folder / value
+    return str(candidate.resolve()) if candidate.exists() else value
+
+
+def merge_ini(
+    text: str, joints: list[str], folder: Path, source: str, ini_folder: Path | None = None
+) -> str:
     """The INI with ``COMP_FILE`` (absolute paths in ``folder``) in each ``[JOINT_n]`` section.
 
     Existing ``COMP_FILE`` / ``COMP_FILE_TYPE`` keys of those sections are replaced;
-    everything else is kept as it was. InputError naming the INI when a joint's
+    everything else is kept as it was, except that with ``ini_folder`` (the
+    original INI's folder) every relative path naming an existing file there
+    (HAL files, the display, the tool table) is made absolute, so the copy
+    can live in another folder. InputError naming the INI when a joint's
     section is missing.
     """
     lines = text.splitlines()
@@ -173,9 +185,17 @@ def merge_ini(text: str, joints: list[str], folder: Path, source: str) -> str:
     out = []
     for index, line in enumerate(lines):
         if index not in dropped:
-            out.append(line)
+            out.append(_absolute_line(line, ini_folder) if ini_folder is not None else line)
         out.extend(inserts.get(index, []))
     return "\n".join(out) + "\n"
+
+
+def _absolute_line(line: str, folder: Path) -> str:
+    match = _KEY.match(line)
+    if match is None or line.lstrip().startswith(("#", ";")):
+        return line
+    absolute = absolute_path(match.group(2), folder)
+    return line if absolute == match.group(2) else f"{match.group(1)} = {absolute}"
 
 
 def backlash_joints(text: str, joints: list[str]) -> list[int]:

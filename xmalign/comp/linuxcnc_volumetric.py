@@ -236,7 +236,11 @@ def read_ini(path: Path) -> list[IniLine]:
 
 def ini_values(lines: list[IniLine], section: str, key: str) -> list[str]:
     """Every value of ``[section] key`` (HALFILE may repeat)."""
-    return [line.value for line in lines if line.section == section and line.key == key]
+    return [
+        line.value
+        for line in lines
+        if line.section == section and line.key == key and line.value is not None
+    ]
 
 
 def ini_value(lines: list[IniLine], section: str, key: str, source: Path) -> str:
@@ -378,14 +382,6 @@ def merge_hal(hal_files: dict[str, str], joints: int, table_path: Path) -> dict[
     return merged
 
 
-def _absolute(value: str, folder: Path) -> str:
-    """A relative path that names an existing file in ``folder`` made absolute."""
-    if not value or " " in value or Path(value).is_absolute() or ":" in value:
-        return value
-    candidate = folder / value
-    return str(candidate.resolve()) if candidate.exists() else value
-
-
 @dataclass(frozen=True)
 class MergedConfig:
     """File name -> text of everything to write, and warnings for the user."""
@@ -454,7 +450,7 @@ def _merged_ini(lines: list[IniLine], folder: Path) -> tuple[str, list[str]]:
         i for i, line in enumerate(lines) if line.section == "HAL" and line.key == "HALFILE"
     )
     for index, line in enumerate(lines):
-        if line.section == "HAL" and line.key == "HALFILE":
+        if line.section == "HAL" and line.key == "HALFILE" and line.value is not None:
             out.append(f"HALFILE = {_merged_name(line.value)}")
         elif line.section.startswith("JOINT_") and line.key in PITCH_KEYS:
             out.append(f"# xmalign: the volumetric compensation replaces: {line.text.strip()}")
@@ -464,7 +460,7 @@ def _merged_ini(lines: list[IniLine], folder: Path) -> tuple[str, list[str]]:
                     " volumetric component corrects the positioning error too"
                 )
         elif line.key is not None and line.value:
-            absolute = _absolute(line.value, folder)
+            absolute = linuxcnc.absolute_path(line.value, folder)
             out.append(line.text if absolute == line.value else f"{line.key} = {absolute}")
         else:
             out.append(line.text)

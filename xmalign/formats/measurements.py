@@ -60,7 +60,10 @@ ENVIRONMENT_LIMITS = {
     "air_humidity_percent": (0.0, 100.0),
     "material_temp_c": (-20.0, 80.0),
 }
-OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS)
+#: xmalign's own: which environment values of the row were held at their last good
+#: reading, and why (empty when all were fresh); written with the environment columns.
+FLAGS_COLUMN = "environment_flags"
+OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
 #: What ``xmalign run`` writes.
 WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN)
 #: The largest travel a machine can have, mm (commanded points and targets).
@@ -96,7 +99,8 @@ class MeasurementRow:
     """One captured point: ``machine_mm`` (3,) commanded, ``channels`` (6,) um / urad.
 
     ``segment`` numbers the line's setup (0 unless the units were re-aligned on
-    a resume); ``environment`` holds the optional environment columns present.
+    a resume); ``environment`` holds the optional environment columns present and
+    ``environment_flags`` says which of them were held at their last good value.
     """
 
     line: str
@@ -108,6 +112,7 @@ class MeasurementRow:
     channels: Vec
     segment: int = 0
     environment: Mapping[str, float] = field(default_factory=dict)
+    environment_flags: str = ""
 
     def key(self) -> tuple[str, int, str, int]:
         """What identifies a point of a plan (for resuming)."""
@@ -132,6 +137,7 @@ class MeasurementRow:
         )
         values[SEGMENT_COLUMN] = str(self.segment)
         values.update({name: repr(float(v)) for name, v in self.environment.items()})
+        values[FLAGS_COLUMN] = self.environment_flags
         missing = [name for name in columns if name not in values]
         if missing:
             raise InputError(f"row {self.key()} has no value for column {missing[0]}")
@@ -345,6 +351,7 @@ def _parse_row(values: Mapping[str, str], where: str) -> MeasurementRow:
         environment={
             name: _number(values, name, where) for name in ENVIRONMENT_LIMITS if name in values
         },
+        environment_flags=values.get(FLAGS_COLUMN, ""),
     )
 
 
@@ -429,9 +436,24 @@ class MeasurementWriter:
         self._handle = handle
 
     @classmethod
-    def create(cls, path: str | Path, plan_sha256: str | None = None) -> MeasurementWriter:
-        """Start a new file (an existing empty file counts as new, nothing else does)."""
+    def create(
+        cls,
+        path: str | Path,
+        plan_sha256: str | None = None,
+        environment_columns: tuple[str, ...] = (),
+    ) -> MeasurementWriter:
+        """Start a new file (an existing empty file counts as new, nothing else does).
+
+        ``environment_columns`` (names of :data:`ENVIRONMENT_LIMITS`) are written
+        after the channels, with the flags column, when the run samples the environment.
+        """
         path = Path(path)
+        unknown = [name for name in environment_columns if name not in ENVIRONMENT_LIMITS]
+        if unknown:
+            raise InputError(f"{path}: no environment column '{unknown[0]}'")
+        columns = WRITTEN_COLUMNS + (
+            (*environment_columns, FLAGS_COLUMN) if environment_columns else ()
+        )
         if path.is_dir():
             raise InputError(f"{path}: is a folder; give a file name for the measurements")
         try:
@@ -443,9 +465,9 @@ class MeasurementWriter:
             raise InputError(f"{path}: already exists; measurements are never replaced") from error
         except OSError as error:
             raise _write_error(path, error) from error
-        writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), WRITTEN_COLUMNS, 0)
+        writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), columns, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
-        writer._put(preamble + "\n" + ",".join(WRITTEN_COLUMNS) + "\n")
+        writer._put(preamble + "\n" + ",".join(columns) + "\n")
         sync_folder(path.parent)
         return writer
 
@@ -482,6 +504,11 @@ class MeasurementWriter:
         self._put(_csv_line(row.fields(self.columns)))
         self.saved += 1
 
+    @property
+    def environment_columns(self) -> tuple[str, ...]:
+        """The environment columns of the file, in its order."""
+        return tuple(name for name in self.columns if name in ENVIRONMENT_LIMITS)
+
     def note_setup(self, setup: LineSetup) -> None:
         """Record a line's alignment (the locked unit angles) before its rows."""
         self._put(setup.comment() + "\n")
@@ -505,8 +532,14 @@ def _csv_line(fields: list[str]) -> str:
 def write_measurements(
     path: str | Path, rows: Iterable[MeasurementRow], plan_sha256: str | None = None
 ) -> None:
-    """Write a new measurement CSV (refused where a non-empty file exists)."""
-    with MeasurementWriter.create(path, plan_sha256) as writer:
+    """Write a new measurement CSV (refused where a non-empty file exists).
+
+    The environment columns are those of the first row.
+    """
+    rows = list(rows)
+    present = rows[0].environment if rows else {}
+    columns = tuple(name for name in ENVIRONMENT_LIMITS if name in present)
+    with MeasurementWriter.create(path, plan_sha256, columns) as writer:
         for row in rows:
             writer.append(row)
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from xmalign.environment import StationCompensation, compensate_station
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec
@@ -31,12 +32,21 @@ class PostResult:
         The measurement, grouped by line (mm / rad).
     warnings : list of str
         What the user should know about the data (e.g. a re-zeroed linear datum).
+    compensation : list of StationCompensation
+        Per station, how its readings were compensated for the air, the dead
+        path and the material, and the drift of each line.
     """
 
     fit: TableFit
     positioning: list[PositioningFigures]
     lines: list[LineData]
     warnings: list[str] = field(default_factory=list)
+    compensation: list[StationCompensation] = field(default_factory=list)
+
+    @property
+    def notes(self) -> list[str]:
+        """One line per station on how its linear readings were treated."""
+        return [c.note for c in self.compensation]
 
 
 def channel_sigma(machine: Machine) -> Vec:
@@ -70,10 +80,16 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
     interferometer's datum change with the station); the error tables and the
     squareness are shared. ``Station.source`` names the file in error messages.
     """
+    compensation = [compensate(machine, station) for station in stations]
     lines = [
         data
-        for index, station in enumerate(stations)
-        for data in group_by_line(station.plan, station.rows, station.source, index)
+        for index, (station, compensated) in enumerate(zip(stations, compensation, strict=True))
+        for data in group_by_line(
+            station.plan,
+            compensated.rows,
+            station.source,
+            index,
+        )
     ]
     fit = fit_error_tables(
         lines,
@@ -88,7 +104,29 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
         for data in lines
         if data.axis() is not None
     ]
-    return PostResult(fit=fit, positioning=positioning, lines=lines, warnings=datum_warnings(lines))
+    drift = [check.message() for c in compensation for check in c.drift if check.exceeded]
+    return PostResult(
+        fit=fit,
+        positioning=positioning,
+        lines=lines,
+        warnings=datum_warnings(lines) + drift,
+        compensation=compensation,
+    )
+
+
+def compensate(machine: Machine, station: Station) -> StationCompensation:
+    """The station's readings compensated for air, dead path and material (FORMATS.md).
+
+    A file without environment columns is taken as already compensated, at
+    20 °C. Drift-check rows are taken out of the rows and checked.
+    """
+    return compensate_station(
+        station.plan,
+        station.rows,
+        [row.environment for row in station.rows],
+        machine.thermal.expansion_ppm_per_k,
+        machine.thermal.drift_limit_um,
+    )
 
 
 def post_process(

@@ -10,15 +10,26 @@ from sim.synthetic import measure, six_line_plan
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.post.evaluate import post_process
-from xmalign.post.solve import hat_basis
+from xmalign.post.solve import spline_basis
 from xmalign.rigid_body import Chain
 
 
-def test_the_end_segments_extrapolate():
-    knots = np.array([0.0, 1.0, 3.0])
-    basis = hat_basis(knots, np.array([-1.0, 0.5, 4.0])).toarray()
-    values = np.array([1.0, 2.0, 6.0])  # slopes 1 and 2
-    assert np.allclose(basis @ values, [0.0, 1.5, 8.0])
+def test_the_spline_follows_a_cubic_and_continues_linearly():
+    knots = np.array([0.0, 1.0, 3.0, 4.0, 6.0])
+    cubic = np.polynomial.Polynomial([1.0, -2.0, 0.5, 0.25])
+    slope = cubic.deriv()
+    inside = np.array([0.5, 2.0, 3.0, 5.2])
+    basis = spline_basis(knots, np.concatenate([inside, [-1.0, 8.0]])).toarray()
+    expected = np.concatenate(
+        [cubic(inside), [cubic(0.0) - slope(0.0), cubic(6.0) + 2.0 * slope(6.0)]]
+    )
+    assert np.allclose(basis @ cubic(knots), expected)
+    assert np.count_nonzero(basis[:4], axis=1).max() <= 5  # local
+
+
+def test_two_knots_give_a_straight_line():
+    basis = spline_basis(np.array([0.0, 2.0]), np.array([-1.0, 1.0, 3.0])).toarray()
+    assert np.allclose(basis @ np.array([1.0, 3.0]), [0.0, 2.0, 4.0])
 
 
 @pytest.fixture(scope="module")

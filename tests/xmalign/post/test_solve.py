@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sim.machine import ErrorAmplitudes, VirtualMachine
-from sim.synthetic import measure, six_line_plan
+from sim.synthetic import SetupDisturbance, measure, six_line_plan
 from xmalign.errors import GeometryError, InputError
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
@@ -192,3 +192,18 @@ def test_the_undetermined_message_does_not_depend_on_the_null_space_basis(
             post_process(reference_machine, layout, rows, "m.csv")
         messages.append(str(caught.value))
     assert messages[0] == messages[1] == messages[2]
+
+
+def test_the_weights_follow_the_scatter_of_each_channel(reference_machine, truth):
+    layout = six_line_plan(reference_machine, 30)
+    noise = (0.5, 0.5, 0.5, 0.05, 0.05, 0.05)  # um, urad: positions scatter, angles hardly
+    rows = measure(
+        layout,
+        Chain.parse(reference_machine.chain),
+        truth,
+        np.random.default_rng(5),
+        setup=SetupDisturbance(noise=noise),
+    )
+    fit = post_process(reference_machine, layout, rows, "synthetic.csv").fit
+    scatter = fit.channel_scatter * np.array([1e3, 1e3, 1e3, 1e6, 1e6, 1e6])
+    np.testing.assert_allclose(scatter, noise, rtol=0.15)

@@ -1,0 +1,142 @@
+"""The environment recorded on every row by a run, and compensated by post."""
+
+import numpy as np
+import pytest
+
+from sim.dry_run import DryRunOptions, measure_virtually, simulate_calibration, virtual_setup
+from sim.environment import ShopClimate, attach_shop
+from trajectories.gcode import DIALECTS
+from trajectories.gcode.program import write_program
+from xmalign.calibration import open_run_output
+from xmalign.environment import EnvironmentMonitor
+from xmalign.errors import InputError
+from xmalign.formats.measurements import (
+    FLAGS_COLUMN,
+    load_measurements,
+    read_measurements,
+    write_measurements,
+)
+from xmalign.formats.plan import read_plan
+from xmalign.post.evaluate import post_process
+
+AIR = ("air_temp_c", "air_pressure_hpa", "air_humidity_percent", "material_temp_c")
+
+
+@pytest.fixture(scope="module")
+def drifting(tmp_path_factory, reference_machine):
+    workdir = tmp_path_factory.mktemp("drifting")
+    return simulate_calibration(reference_machine, workdir, DryRunOptions(seed=3)), workdir
+
+
+def test_every_row_records_the_drifting_shop(drifting):
+    _, workdir = drifting
+    recorded = load_measurements(workdir / "measurements.csv")
+    assert set(AIR) | {FLAGS_COLUMN} <= set(recorded.columns)
+    air = np.array([row.environment["air_temp_c"] for row in recorded.rows])
+    assert air[0] < 23.0 and air[-1] > air[0] + 0.5  # the shop warms during the run
+    assert all(row.environment_flags == "" for row in recorded.rows)
+
+
+def test_post_compensates_the_air_and_the_material(drifting, reference_machine):
+    report, workdir = drifting
+    # fails when post ignores the environment columns: the uncompensated fit is far off
+    assert report.volumetric_after_um < 1.0
+    assert report.volumetric_uncompensated_um > 10 * report.volumetric_after_um
+    plan = read_plan(workdir / "plan.json")
+    rows = read_measurements(workdir / "measurements.csv")
+    result = post_process(reference_machine, plan, rows, "measurements.csv")
+    assert result.compensation[0] is not None
+    assert "air compensated" in result.notes[0]
+    assert set(result.compensation[0].environment) == {line.id for line in plan.lines}
+
+
+def _short_plan(workdir, machine):
+    plan = read_plan(workdir / "plan.json")
+    plan.lines = plan.lines[:1]
+    return plan, write_program(plan, machine, DIALECTS["linuxcnc"]())
+
+
+class _FailingAfter:
+    """A station that stops answering after ``reads`` readings."""
+
+    def __init__(self, station, reads):
+        self.station = station
+        self.reads = reads
+
+    def read(self):
+        self.reads -= 1
+        if self.reads < 0:
+            self.station.answering = False
+        return self.station.read()
+
+
+def test_a_station_that_stops_answering_never_loses_a_point(drifting, reference_machine, tmp_path):
+    _, workdir = drifting
+    plan, program = _short_plan(workdir, reference_machine)
+    setup = virtual_setup(reference_machine, 3)
+    station = _FailingAfter(attach_shop(setup.world, ShopClimate.drifting(), 3), reads=5)
+    path = tmp_path / "m.csv"
+    with open_run_output(path, plan, False, environment=EnvironmentMonitor(station)) as output:
+        run = measure_virtually(setup, plan, program, "linuxcnc", output)
+    rows = read_measurements(path)
+    assert len(rows) == run.statistics.points > 5
+    held = [row for row in rows if row.environment_flags]
+    assert len(held) == len(rows) - 4  # prime + 4 fresh samples, then held
+    assert "not answering" in held[0].environment_flags
+    assert all(row.environment == held[0].environment for row in held)
+
+
+def test_a_sensor_out_of_range_keeps_the_last_good_value(drifting, reference_machine, tmp_path):
+    _, workdir = drifting
+    plan, program = _short_plan(workdir, reference_machine)
+    setup = virtual_setup(reference_machine, 3)
+    station = attach_shop(setup.world, ShopClimate.drifting(), 3)
+    monitor = EnvironmentMonitor(station)
+    path = tmp_path / "m.csv"
+    with open_run_output(path, plan, False, environment=monitor) as output:
+        station.failed.add("air_humidity_percent")
+        measure_virtually(setup, plan, program, "linuxcnc", output)
+    rows = read_measurements(path)
+    assert all("air_humidity_percent held" in row.environment_flags for row in rows)
+    assert len({row.environment["air_humidity_percent"] for row in rows}) == 1
+    assert len({row.environment["air_temp_c"] for row in rows}) > 1
+
+
+def test_a_resume_keeps_the_environment_columns(drifting, reference_machine, tmp_path):
+    _, workdir = drifting
+    plan, program = _short_plan(workdir, reference_machine)
+    rows = read_measurements(workdir / "measurements.csv")
+    partial = tmp_path / "partial.csv"
+    write_measurements(partial, [row for row in rows if row.line == plan.lines[0].id][:7])
+    with pytest.raises(InputError, match="recorded with the environment"):
+        open_run_output(partial, plan, True)
+    setup = virtual_setup(reference_machine, 3)
+    monitor = EnvironmentMonitor(attach_shop(setup.world, ShopClimate.drifting(), 3))
+    with open_run_output(partial, plan, True, environment=monitor) as output:
+        measure_virtually(setup, plan, program, "linuxcnc", output)
+    resumed = read_measurements(partial)
+    assert len(resumed) == len([row for row in rows if row.line == plan.lines[0].id])
+    assert all(set(AIR) <= set(row.environment) for row in resumed)
+
+
+def test_a_first_reading_that_is_incomplete_creates_no_file(reference_machine, tmp_path, drifting):
+    _, workdir = drifting
+    plan, _ = _short_plan(workdir, reference_machine)
+    setup = virtual_setup(reference_machine, 3)
+    station = attach_shop(setup.world, ShopClimate.drifting(), 3)
+    station.failed.add("air_temp_c")
+    with pytest.raises(InputError, match="air_temp_c"):
+        open_run_output(tmp_path / "m.csv", plan, False, environment=EnvironmentMonitor(station))
+    assert not (tmp_path / "m.csv").exists()
+
+
+def test_flags_with_commas_round_trip(tmp_path, drifting):
+    _, workdir = drifting
+    rows = read_measurements(workdir / "measurements.csv")[:3]
+    from dataclasses import replace
+
+    flagged = [replace(rows[0], environment_flags='air_temp_c held: station "A", no answer')]
+    write_measurements(tmp_path / "m.csv", flagged + rows[1:])
+    again = read_measurements(tmp_path / "m.csv")
+    assert again[0].environment_flags == flagged[0].environment_flags
+    assert again[1].environment == rows[1].environment

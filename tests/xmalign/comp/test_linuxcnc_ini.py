@@ -1,0 +1,120 @@
+"""LinuxCNC pitch tables: joints from the machine file or the INI, and the merged INI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from cli_helpers import assert_one_line_error, run_cli
+
+from tests.xmalign.comp.conftest import make_machine, make_tables
+from xmalign.comp.linuxcnc import ini_value, merge_ini, resolve_joints
+from xmalign.errors import InputError
+from xmalign.formats.error_tables import write_error_tables
+
+OUT = Path("/cfg/out")
+
+
+def _ini(coordinates: str = "XYZ", joint_keys: dict[int, list[str]] | None = None) -> str:
+    """A LinuxCNC INI with one [JOINT_n] section per letter (extra lines per joint)."""
+    lines = [
+        "[KINS]",
+        f"KINEMATICS = trivkins coordinates={coordinates}",
+        f"JOINTS = {len(coordinates)}",
+        "",
+        "[TRAJ]",
+        f"COORDINATES = {' '.join(coordinates)}",
+        "",
+    ]
+    for number in range(len(coordinates)):
+        extra = (joint_keys or {}).get(number, [])
+        lines += [f"[JOINT_{number}]", "TYPE = LINEAR", "MAX_VELOCITY = 50", *extra, ""]
+    return "\n".join(lines) + "\n"
+
+
+def _section(text: str, name: str) -> list[str]:
+    lines = text.splitlines()
+    start = lines.index(f"[{name}]")
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("[")), len(lines))
+    return [line for line in lines[start + 1 : end] if line.strip()]
+
+
+def test_keys_go_inside_the_existing_sections_and_the_other_keys_stay():
+    text = _ini(joint_keys={1: ["BACKLASH = 0.01", "# a comment", "HOME = 0"]})
+    merged = merge_ini(text, ["X", "Y", "Z"], OUT, "mill.ini")
+    assert _section(merged, "JOINT_1") == [
+        "TYPE = LINEAR",
+        "MAX_VELOCITY = 50",
+        "BACKLASH = 0.01",
+        "# a comment",
+        "HOME = 0",
+        "COMP_FILE = /cfg/out/y.comp",
+        "COMP_FILE_TYPE = 0",
+    ]
+    assert merged.count("[JOINT_1]") == 1  # never a second section LinuxCNC would ignore
+    assert _section(merged, "KINS") == _section(text, "KINS")
+
+
+def test_existing_comp_keys_are_replaced_in_place_not_duplicated():
+    old = ["COMP_FILE = old.comp", "COMP_FILE_TYPE = 1", "FERROR = 1"]
+    merged = merge_ini(_ini(joint_keys={0: old}), ["X", "Y", "Z"], OUT, "mill.ini")
+    section = _section(merged, "JOINT_0")
+    assert "old.comp" not in merged and "COMP_FILE_TYPE = 1" not in section
+    assert section[-3:] == ["FERROR = 1", "COMP_FILE = /cfg/out/x.comp", "COMP_FILE_TYPE = 0"]
+    assert ini_value(merged.splitlines(), "JOINT_0", "COMP_FILE_TYPE") == "0"
+
+
+def test_gantry_gives_both_y_joints_the_y_table_and_z_the_z_table():
+    merged = merge_ini(_ini("XYYZ"), ["X", "Y", "Y", "Z"], OUT, "gantry.ini")
+    lines = merged.splitlines()
+    files = [Path(ini_value(lines, f"JOINT_{n}", "COMP_FILE")).name for n in range(4)]
+    assert files == ["x.comp", "y.comp", "y.comp", "z.comp"]
+
+
+def test_a_missing_joint_section_is_one_clear_error():
+    text = _ini("XYZ").replace("[JOINT_2]", "[JOINT_7]")
+    with pytest.raises(InputError, match=r"mill.ini: no \[JOINT_2\] section"):
+        merge_ini(text, ["X", "Y", "Z"], OUT, "mill.ini")
+    with pytest.raises(InputError, match=r"mill.ini: \[KINS\] JOINTS = 3 but 4 joints"):
+        merge_ini(_ini("XYZ"), ["X", "Y", "Y", "Z"], OUT, "mill.ini")
+
+
+def test_relative_paths_of_the_ini_folder_become_absolute(tmp_path):
+    (tmp_path / "mill.hal").write_text("")
+    text = "[HAL]\nHALFILE = mill.hal\nHALFILE = LIB:basic_sim.tcl\nPOSTGUI = missing.hal\n"
+    merged = merge_ini(text + _ini(), ["X", "Y", "Z"], OUT, "mill.ini", tmp_path)
+    assert f"HALFILE = {tmp_path.resolve() / 'mill.hal'}" in merged
+    assert "HALFILE = LIB:basic_sim.tcl" in merged and "POSTGUI = missing.hal" in merged
+
+
+def test_joints_from_the_machine_file_else_the_ini_else_xyz():
+    gantry = make_machine(joints=["X", "Y", "Y", "Z"])
+    assert resolve_joints(gantry, None, "m.ini") == ["X", "Y", "Y", "Z"]
+    assert resolve_joints(make_machine(), _ini("XYYZ").splitlines(), "m.ini") == list("XYYZ")
+    traj_only = _ini("YXZ").replace("KINEMATICS = trivkins coordinates=YXZ", "KINEMATICS = x")
+    assert resolve_joints(make_machine(), traj_only.splitlines(), "m.ini") == list("YXZ")
+    assert resolve_joints(make_machine(), ["[EMC]"], "m.ini") == ["X", "Y", "Z"]
+    assert resolve_joints(gantry, _ini("XYYZ").splitlines(), "m.ini") == list("XYYZ")
+
+
+def test_machine_file_and_ini_that_disagree_or_name_other_axes_are_refused():
+    gantry = make_machine(joints=["X", "Y", "Y", "Z"])
+    with pytest.raises(InputError, match="m.ini: the INI's joints XYZ differ .* XYYZ"):
+        resolve_joints(gantry, _ini("XYZ").splitlines(), "m.ini")
+    with pytest.raises(InputError, match="m.ini: joints XYZA must give X, Y and Z"):
+        resolve_joints(make_machine(), _ini("XYZA").splitlines(), "m.ini")
+    with pytest.raises(InputError, match="joints"):
+        make_machine(joints=["X", "Y", "A"])  # the machine file knows X, Y and Z only
+
+
+def test_comp_with_an_ini_that_lacks_a_joint_section_exits_with_one_line(tmp_path):
+    write_error_tables(tmp_path / "errors.csv", make_tables())
+    ini = tmp_path / "mill.ini"
+    ini.write_text(_ini("XYYZ").replace("[JOINT_3]", "[JOINT_9]"))
+    result = run_cli(
+        "comp",
+        *("--errors", str(tmp_path / "errors.csv"), "--controller", "linuxcnc"),
+        *("--ini", str(ini), "--out", str(tmp_path / "out")),
+    )
+    assert_one_line_error(result, str(ini), "[JOINT_3]")
+    assert not (tmp_path / "out" / "x.comp").exists()  # nothing half written
