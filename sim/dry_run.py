@@ -21,40 +21,40 @@ from sim.environment import SHOPS, attach_shop
 from sim.machine import ErrorAmplitudes
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
-from trajectories.gcode import make_dialect, resolve_dialect
-from trajectories.gcode.program import write_program
-from trajectories.identification_design import design_identification
-from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.planner import MeasurementPlan
 from xmalign.calibration import (
     UNIT_MOVE_TIMEOUT_S,
     CalibrationRun,
     RunOutput,
-    capture_program,
     open_run_output,
 )
-from xmalign.comp import compensate
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_files
-from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
+from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.formats.measurements import read_measurements
-from xmalign.formats.plan import Plan, read_plan, write_plan
-from xmalign.formats.pose import write_pose
-from xmalign.formats.session import Session
+from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec, wrap_angle
 from xmalign.identification_routine import (
-    PoseGuess,
     RoutineDevices,
     RoutineEvent,
-    run_identification,
 )
-from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
+from xmalign.identify import IdentificationResult, IdentificationUncertainty
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import post_process
 from xmalign.rigid_body import Chain, ErrorTables
-from xmalign.safety import units_locked_on_exit
+from xmalign.steps import (
+    PROGRAM_SUFFIX,
+    RunStepDevices,
+    comp_step,
+    design_step,
+    identify_step,
+    post_step,
+    program_drive,
+    program_step,
+    run_step,
+)
 
 #: How far the simulated launch unit stands from the machine file's coarse guess, mm:
 #: anywhere within this horizontally, and up to this much higher (the reference
@@ -63,8 +63,6 @@ PLACEMENT_SCATTER_MM = 25.0
 #: How well a technician aligns the units by hand (standard deviation per axis), rad.
 HAND_RAD = 20e-6
 STAGES = ("identify", "program", "run", "post", "comp")
-#: File name ending of a program in each dialect, as the controllers expect.
-PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
 #: What a dry run writes into its folder (the program as run.<suffix>).
 DRY_RUN_FILES = (
     "session.json",
@@ -134,6 +132,8 @@ class DryRunReport:
     alignment_s: float
     measuring_s: float
     points: int
+    #: Why the identification design is not as good as planned (shown, never dropped).
+    design_warnings: list[str] = field(default_factory=list)
     files: dict[str, Path] = field(default_factory=dict)
 
     @property
@@ -211,12 +211,18 @@ def _operator(
     return align_by_hand
 
 
-def _refined_guess(session: Session) -> PoseGuess | None:
-    """After three alignments, point the units with a quick identification."""
-    if len(session.alignments) < 3:
-        return None
-    result = identify(session, "intersection")
-    return PoseGuess(result.position_mm, result.gamma_rad)
+def virtual_devices(setup: VirtualSetup) -> RoutineDevices:
+    """The virtual setup behind the roles the identification routine uses."""
+    world = setup.world
+    return RoutineDevices(
+        setup.cnc, setup.launch, setup.receiver, world.interferometer, world.clock
+    )
+
+
+def virtual_run_devices(setup: VirtualSetup) -> RunStepDevices:
+    """The virtual setup behind the roles a run uses."""
+    world = setup.world
+    return RunStepDevices(setup.launch, setup.receiver, world.interferometer, world.clock)
 
 
 def identify_virtually(
@@ -227,44 +233,34 @@ def identify_virtually(
     method: str = "joint",
     seed: int = 0,
     on_event: Callable[[RoutineEvent], None] | None = None,
+    uncertainty: IdentificationUncertainty | None = None,
 ) -> IdentificationResult:
-    """The identification routine on the virtual setup (session written as it goes), solved."""
-    guess = (
-        PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
-        if machine.launch_unit
-        else None
-    )
-    devices = RoutineDevices(
-        setup.cnc, setup.launch, setup.receiver, setup.world.interferometer, setup.world.clock
-    )
-    with units_locked_on_exit(setup.launch, setup.receiver):
-        session = run_identification(
-            positions_mm,
-            machine,
-            devices,
-            session_path,
-            guess=guess,
-            manual_align=_operator(setup, machine, np.random.default_rng(seed)),
-            refine_guess=_refined_guess,
-            on_event=on_event,
-        )
-    uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
-    return identify(session, method, uncertainty, str(session_path))
+    """:func:`~xmalign.steps.identify_step` on the virtual setup, a simulated technician
+    aligning by hand where needed (seeded by ``seed``).
+
+    ``uncertainty`` defaults to the machine file's ``uncertainty`` section.
+    """
+    return identify_step(
+        positions_mm,
+        machine,
+        virtual_devices(setup),
+        session_path,
+        method,
+        uncertainty,
+        manual_align=_operator(setup, machine, np.random.default_rng(seed)),
+        on_event=on_event,
+    ).result
 
 
 def measure_virtually(
     setup: VirtualSetup, plan: Plan, program: str, dialect: str, output: RunOutput
 ) -> CalibrationRun:
-    """Run the G-code program on the virtual CNC and capture every point into ``output``.
+    """:func:`~xmalign.steps.run_step` with the G-code program running on the virtual CNC.
 
     The points ``output`` already holds (a resumed file) are not captured again.
     """
-    with units_locked_on_exit(setup.launch, setup.receiver):
-        run = output.calibration_run(
-            plan, setup.launch, setup.receiver, setup.world.interferometer, setup.world.clock
-        )
-        capture_program(run, setup.cnc.run_program(program, dialect))
-    return run
+    drive = program_drive(setup.cnc.run_program(program, dialect))
+    return run_step(plan, virtual_run_devices(setup), output, drive)
 
 
 def _margins(plan: MeasurementPlan, rows: list, machine: Machine) -> list[LineMargin]:
@@ -326,25 +322,25 @@ def simulate_calibration(
     clock = setup.world.clock
 
     stage("identify")
-    session_path = workdir / "session.json"
     positions = options.identification_mm
+    design_warnings: list[str] = []
     if positions is None:
-        positions = design_identification(machine, options.identification_positions).machine_mm
+        design = design_step(machine, options.identification_positions)
+        positions, design_warnings = design.machine_mm, list(design.warnings)
     result = identify_virtually(
-        setup, machine, positions, session_path, options.method, options.seed
+        setup, machine, positions, workdir / "session.json", options.method, options.seed
     )
-    write_pose(workdir / "pose.json", result.to_pose())
     identification_s = clock.now()
 
     stage("program")
-    measurement_plan = plan_measurement(machine, result.to_pose())
-    write_plan(workdir / "plan.json", measurement_plan.plan)
-    # as `xmalign run --resume --plan plan.json` will read it (the same plan identity)
-    plan = read_plan(workdir / "plan.json")
-    dialect_name = resolve_dialect(machine, options.dialect)
-    program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
-    program_path = workdir / f"run{PROGRAM_SUFFIX[dialect_name]}"
-    program_path.write_text(program)
+    programmed = program_step(
+        machine,
+        result,
+        workdir / "plan.json",
+        dialect=options.dialect,
+        pose_path=workdir / "pose.json",
+    )
+    measurement_plan, plan = programmed.measurement, programmed.plan
 
     stage("run")
     started = clock.now()
@@ -352,22 +348,18 @@ def simulate_calibration(
     monitor = EnvironmentMonitor(station, "simulated weather station")
     with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
         output.on_saved = on_point or (lambda saved: None)
-        run = measure_virtually(setup, plan, program, dialect_name, output)
+        run = measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
     run_s = clock.now() - started
-    rows = read_measurements(csv_path)
 
     stage("post")
-    post = post_process(machine, plan, rows, "measurements.csv")
-    tables: ErrorTableSet = post.fit.tables
-    write_error_tables(workdir / "errors.csv", tables)
+    posted = post_step(machine, plan, csv_path, workdir / "errors.csv")
+    tables: ErrorTableSet = posted.tables
+    rows = read_measurements(csv_path)
     setup.world.machine.write_truth_tables(str(workdir / "truth.csv"), 50.0)
 
     stage("comp")
     chain = Chain.parse(machine.chain)
-    compensation = compensate(machine, tables, machine.controller)
-    atomic_write_files(
-        {workdir / "comp" / name: text.encode() for name, text in compensation.files.items()}
-    )
+    comp_step(machine, tables, workdir / "comp")
 
     low, high = measured_strokes(measurement_plan)
     points = grid_points(low, high)
@@ -387,11 +379,12 @@ def simulate_calibration(
         alignment_s=run.statistics.alignment_s,
         measuring_s=run_s - run.statistics.alignment_s,
         points=run.statistics.points,
+        design_warnings=design_warnings,
         files={
             "session": workdir / "session.json",
             "pose": workdir / "pose.json",
             "plan": workdir / "plan.json",
-            "program": program_path,
+            "program": programmed.files["program"],
             "measurements": workdir / "measurements.csv",
             "errors": workdir / "errors.csv",
             "truth": workdir / "truth.csv",

@@ -39,7 +39,7 @@ from sim.dry_run import (
 )
 from sim.identification import SessionImperfections, simulate_session, spread_positions
 from sim.machine import ErrorAmplitudes
-from trajectories.identification_design import MIN_POSITIONS, design_identification
+from trajectories.identification_design import MIN_POSITIONS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.error_tables import read_error_tables
@@ -49,6 +49,7 @@ from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.montecarlo import AdaptiveStudy
 from xmalign.post.compare import grid_points, remove_rigid_motion
 from xmalign.rigid_body import Chain, ErrorModel, deviation
+from xmalign.steps import design_step
 
 MODES = ("identification", "calibration")
 #: Points along a line at which the predicted beam envelope is kept (fractions 0..1).
@@ -93,9 +94,14 @@ class Strategy:
 
     def identification_mm(self, machine: Machine) -> Vec:
         """CNC points (N, 3) mm at which this strategy aligns the units."""
+        return self.identification_points(machine)[0]
+
+    def identification_points(self, machine: Machine) -> tuple[Vec, list[str]]:
+        """CNC points (N, 3) mm to align at and the design's warnings (none for spread)."""
         if self.identification == "spread":
-            return spread_positions(machine, self.alignments)
-        return design_identification(machine, self.alignments).machine_mm
+            return spread_positions(machine, self.alignments), []
+        design = design_step(machine, self.alignments)
+        return design.machine_mm, list(design.warnings)
 
 
 def _launch_guess_mm(machine: Machine) -> Vec:
@@ -394,6 +400,8 @@ class StrategyResult:
     volumetric_um: list[Vec] = field(default_factory=list)
     grid_mm: Vec | None = None
     envelope_limit_um: float = math.nan
+    #: Why this strategy's identification design is not as good as planned.
+    design_warnings: list[str] = field(default_factory=list)
 
     @property
     def stable(self) -> bool:
@@ -451,8 +459,12 @@ def run_study(
     if settings.mode == "identification" and machine.launch_unit is None:
         raise InputError("identification trials need launch_unit.position_mm in the machine file")
     machines = [strategy.machine(machine) for strategy in chosen]
-    points = [s.identification_mm(m) for s, m in zip(chosen, machines, strict=True)]
-    results = [StrategyResult(s, AdaptiveStudy(settings.digits)) for s in chosen]
+    designs = [s.identification_points(m) for s, m in zip(chosen, machines, strict=True)]
+    points = [design[0] for design in designs]
+    results = [
+        StrategyResult(s, AdaptiveStudy(settings.digits), design_warnings=design[1])
+        for s, design in zip(chosen, designs, strict=True)
+    ]
     while active := [
         k for k, r in enumerate(results) if r.trials < settings.max_trials and not r.stable
     ]:

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sim.dry_run import (
     PLACEMENT_SCATTER_MM,
-    PROGRAM_SUFFIX,
     DryRunOptions,
     VirtualSetup,
     identify_virtually,
@@ -27,22 +26,18 @@ from sim.dry_run import (
     measured_strokes,
     virtual_setup,
 )
-from trajectories.gcode import make_dialect, resolve_dialect
-from trajectories.gcode.program import write_program
-from trajectories.identification_design import design_identification
+from trajectories.gcode import resolve_dialect
 from trajectories.lines import LINE_IDS
-from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.planner import MeasurementPlan
 from trajectories.stations import StationProposal, propose_second_station
 from xmalign.calibration import open_run_output
-from xmalign.formats.common import atomic_write_text
 from xmalign.formats.error_tables import write_error_tables
 from xmalign.formats.measurements import read_measurements
-from xmalign.formats.plan import write_plan
-from xmalign.formats.pose import write_pose
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import Chain
+from xmalign.steps import PROGRAM_SUFFIX, design_step, program_step
 
 
 @dataclass
@@ -52,6 +47,8 @@ class StationRun:
     plan: MeasurementPlan
     measurements: Path
     on_machine_s: float
+    #: Why the identification design is not as good as planned (shown, never dropped).
+    design_warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -79,20 +76,26 @@ def _measure_station(
 ) -> StationRun:
     clock = setup.world.clock
     started = clock.now()
-    positions = design_identification(machine, options.identification_positions).machine_mm
+    design = design_step(machine, options.identification_positions)
     session = workdir / f"{name}-session.json"
     session.unlink(missing_ok=True)
-    result = identify_virtually(setup, machine, positions, session, options.method, options.seed)
-    write_pose(workdir / f"{name}-pose.json", result.to_pose())
-    plan = plan_measurement(machine, result.to_pose(), line_ids or LINE_IDS)
-    write_plan(workdir / f"{name}-plan.json", plan.plan)
-    dialect = resolve_dialect(machine, options.dialect)
-    program = write_program(plan.plan, machine, make_dialect(dialect, machine, "run"))
-    atomic_write_text(workdir / f"{name}-run{PROGRAM_SUFFIX[dialect]}", program)
+    result = identify_virtually(
+        setup, machine, design.machine_mm, session, options.method, options.seed
+    )
+    programmed = program_step(
+        machine,
+        result,
+        workdir / f"{name}-plan.json",
+        workdir / f"{name}-run{PROGRAM_SUFFIX[resolve_dialect(machine, options.dialect)]}",
+        options.dialect,
+        workdir / f"{name}-pose.json",
+        line_ids or LINE_IDS,
+    )
+    plan = programmed.measurement
     csv_path = workdir / f"{name}-measurements.csv"
-    with open_run_output(csv_path, plan.plan, resume=False) as output:
-        measure_virtually(setup, plan.plan, program, dialect, output)
-    return StationRun(plan, csv_path, clock.now() - started)
+    with open_run_output(csv_path, programmed.plan, resume=False) as output:
+        measure_virtually(setup, programmed.plan, programmed.program, programmed.dialect, output)
+    return StationRun(plan, csv_path, clock.now() - started, list(design.warnings))
 
 
 def _move_launch_unit(setup: VirtualSetup, position_mm: np.ndarray, seed: int) -> VirtualSetup:

@@ -567,3 +567,14 @@ def range_used(
     """Fraction of its range each aligned channel uses (1 = at the edge), shape (5,)."""
     ranges = np.array([straightness_range_um] * 2 + [angle_range_urad] * 3)
     return np.abs(aligned_error(reading)) / ranges
+
+
+@dataclass
+class AlignmentDevices:
+    """The units, the interferometer and the clock one alignment runs on."""
+
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+    distance_mm: float

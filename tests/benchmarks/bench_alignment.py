@@ -24,11 +24,11 @@ import time
 import numpy as np
 
 from firmware_iface.modbus import tcp_transport
+from sim.alignment_setup import simulated_setup
 from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
 from xmalign.alignment import AlignmentStep, fine_align
-from xmalign.cli.align import simulated_setup
 from xmalign.errors import BeamLostError
 from xmalign.machine import default_machine_path, load_machine
 

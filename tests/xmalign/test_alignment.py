@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from sim.alignment_setup import simulated_setup
 from xmalign.alignment import (
     AlignmentStep,
     FineAlignmentSettings,
@@ -19,7 +20,6 @@ from xmalign.alignment import (
     search_offsets_urad,
     sensitivity,
 )
-from xmalign.cli.align import simulated_setup
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError, OutOfRangeError
 from xmalign.roles import InterferometerReading
 

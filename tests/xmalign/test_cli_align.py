@@ -11,11 +11,11 @@ import numpy as np
 import yaml
 from cli_helpers import assert_one_line_error, run_cli
 
+from sim.alignment_setup import point_by_truth
 from sim.servers.modbus import ModbusUnitServer
 from sim.servers.serial_pty import PtyInterferometerServer
 from sim.units import SimPositioningUnit
 from sim.world import FixedPosition, build_world
-from xmalign.cli.align import point_by_truth
 from xmalign.kinematics import receiver_cp
 from xmalign.machine import load_machine
 

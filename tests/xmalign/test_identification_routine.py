@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from sim.alignment_setup import point_by_truth
 from sim.cnc import SimulatedCnc
 from sim.dry_run import identify_virtually, virtual_setup
 from sim.identification import spread_positions
@@ -16,7 +17,6 @@ from sim.units import SimPositioningUnit
 from sim.world import World, build_world
 from trajectories.identification_design import design_identification
 from xmalign.alignment import FineAlignmentSettings
-from xmalign.cli.align import point_by_truth
 from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Session, read_session, write_session
 from xmalign.geometry import wrap_angle

@@ -14,13 +14,22 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
-from xmalign.cli.common import check_seed, console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    LogFileOption,
+    check_seed,
+    console,
+    machine_or_default,
+    refuse_overwriting,
+    start_log_file,
+    stop_log_file,
+)
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
+from xmalign.steps import IdentifyStepResult, design_step, identify_step
 
 
 def _uncertainty(
@@ -37,6 +46,10 @@ def _uncertainty(
         "unit_kinematics_mm": 1e-3,
         "zero_offset_rad": 1e-6,
         "distance_mm": 1e-3,
+        "tool_rotation_rad": 1e-6,
+        "tool_rotation_common_rad": 1e-6,
+        "machine_common_mm": 1e-3,
+        "collimation_rad": 1e-6,
     }
     changes = {k: v * scale[k] for k, v in overrides.items() if v is not None}
     for key, value in changes.items():
@@ -104,17 +117,30 @@ def print_result(result: IdentificationResult, session: Session, truth: dict | N
 
 
 def _simulated_identification(
-    machine: Machine, alignments: int, seed: int, method: str, session_path: Path
+    machine: Machine,
+    alignments: int,
+    seed: int,
+    method: str,
+    session_path: Path,
+    uncertainty: IdentificationUncertainty,
 ) -> tuple[IdentificationResult, dict]:
     """The identification routine on the virtual machine with simulated units."""
     from sim.dry_run import identify_virtually, virtual_setup
-    from trajectories.identification_design import design_identification
 
     setup = virtual_setup(machine, seed)
-    positions = design_identification(machine, alignments).machine_mm
+    design = design_step(machine, alignments)
+    _print_design_warnings(design.warnings)
+    positions = design.machine_mm
     with _progress_of_routine(alignments) as on_event:
         result = identify_virtually(
-            setup, machine, positions, session_path, method, seed, on_event=on_event
+            setup,
+            machine,
+            positions,
+            session_path,
+            method,
+            seed,
+            on_event=on_event,
+            uncertainty=uncertainty,
         )
     world = setup.world
     offsets = world.offsets
@@ -142,42 +168,49 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
 
 
 def _live_identification(
-    machine: Machine, config_path: Path, alignments: int, session_path: Path
-) -> Session:
+    machine: Machine,
+    config_path: Path,
+    alignments: int,
+    session_path: Path,
+    method: str,
+    uncertainty: IdentificationUncertainty,
+) -> IdentifyStepResult:
     """The identification routine on real units: the operator moves the machine (or a CNC
     position file tells where it is), the units point and fine-align, and every alignment
     is written to ``session_path`` at once, so an interrupted routine resumes."""
     from firmware_iface.config import load_units_config, open_devices
-    from trajectories.identification_design import design_identification
-    from xmalign.cli.align import AlignmentDevices, manual_alignment
-    from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
+    from xmalign.alignment import AlignmentDevices
+    from xmalign.cli.align import manual_alignment
+    from xmalign.identification_routine import RoutineDevices
     from xmalign.roles import WallClock
 
     config = load_units_config(config_path)
-    positions = design_identification(machine, alignments).machine_mm
-    guess = (
-        PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
-        if machine.launch_unit
-        else None
-    )
+    design = design_step(machine, alignments)
+    _print_design_warnings(design.warnings)
     live = open_devices(config, machine)
     try:
         clock = WallClock()
         devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
         jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
         with _progress_of_routine(alignments) as on_event:
-            return run_identification(
-                positions,
+            return identify_step(
+                design.machine_mm,
                 machine,
                 devices,
                 session_path,
-                guess=guess,
+                method,
+                uncertainty,
                 manual_align=lambda: manual_alignment(jog, machine, config.timeouts.move_s),
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
             )
     finally:
         live.close()
+
+
+def _print_design_warnings(warnings: list[str]) -> None:
+    for warning in warnings:
+        console.print(f"warning: identification design: {warning}", style="yellow", markup=False)
 
 
 def identify_command(
@@ -220,6 +253,22 @@ def identify_command(
     distance_um: Annotated[
         float | None, typer.Option(help="Distance uncertainty, µm (k=1).")
     ] = None,
+    tool_rotation_urad: Annotated[
+        float | None,
+        typer.Option(help="Tool rotation varying between alignments, µrad (k=1)."),
+    ] = None,
+    tool_rotation_common_urad: Annotated[
+        float | None,
+        typer.Option(help="Tool rotation common to all alignments, µrad (k=1)."),
+    ] = None,
+    machine_common_um: Annotated[
+        float | None,
+        typer.Option(help="Machine position error common to all alignments, µm (k=1)."),
+    ] = None,
+    beam_collimation_urad: Annotated[
+        float | None, typer.Option(help="Beam collimation (direction) uncertainty, µrad (k=1).")
+    ] = None,
+    log_file: LogFileOption = None,
 ) -> None:
     """Identify the launch unit's pose (position and azimuth) from aligned units."""
     if method not in METHODS:
@@ -231,7 +280,7 @@ def identify_command(
     check_seed(seed)
     refuse_overwriting(
         {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
-        {"--out": out, "--session-out": session_out},
+        {"--out": out, "--session-out": session_out, "--log-file": log_file},
     )
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
@@ -242,6 +291,10 @@ def identify_command(
             "unit_kinematics_mm": unit_kinematics_um,
             "zero_offset_rad": zero_offset_urad,
             "distance_mm": distance_um,
+            "tool_rotation_rad": tool_rotation_urad,
+            "tool_rotation_common_rad": tool_rotation_common_urad,
+            "machine_common_mm": machine_common_um,
+            "collimation_rad": beam_collimation_urad,
         },
     )
     truth = None
@@ -250,23 +303,28 @@ def identify_command(
         session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
         session_path.unlink(missing_ok=True)
         result, truth = _simulated_identification(
-            machine_model, alignments, seed, method, session_path
+            machine_model, alignments, seed, method, session_path, uncertainty
         )
         session = read_session(session_path)
-    else:
-        if live:
-            assert machine_model and config and session_file  # checked above for --live
-            session = _live_identification(machine_model, config, alignments, session_file)
-            source = str(session_file)
-        else:
-            range_um = (
-                machine_model.interferometer.straightness_range_um
-                if machine_model is not None
-                else NOMINAL_STRAIGHTNESS_RANGE_UM
+    elif live:
+        assert machine_model and config and session_file  # checked above for --live
+        log_handler = start_log_file(log_file)
+        try:
+            identified = _live_identification(
+                machine_model, config, alignments, session_file, method, uncertainty
             )
-            assert input is not None  # one of --input, --sim, --live (checked above)
-            session, source = read_session(input, range_um), str(input)
-        result = identify(session, method, uncertainty, source)
+        finally:
+            stop_log_file(log_handler)
+        result, session = identified.result, identified.session
+    else:
+        range_um = (
+            machine_model.interferometer.straightness_range_um
+            if machine_model is not None
+            else NOMINAL_STRAIGHTNESS_RANGE_UM
+        )
+        assert input is not None  # one of --input, --sim, --live (checked above)
+        session = read_session(input, range_um)
+        result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
         write_pose(out, result.to_pose())

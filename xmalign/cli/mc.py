@@ -271,6 +271,12 @@ def mc(
         _plot(lambda: plot_volumetric_map(results, out / "volumetric.png"), "volumetric.png"),
     ]
     for result in results:
+        for warning in result.design_warnings:
+            console.print(
+                f"warning: {result.strategy.name}: identification design: {warning}",
+                style="yellow",
+                markup=False,
+            )
         if result.failures:
             console.print(
                 f"{result.strategy.name}: {len(result.failures)} failed trial(s), e.g. "

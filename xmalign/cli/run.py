@@ -160,29 +160,22 @@ def _check_shop(shop: str) -> None:
 def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterator[Measurement]:
     """Check the hardware configuration, open the devices; the live measurement."""
     from firmware_iface.config import load_units_config, open_devices
-    from xmalign.calibration import follow_machine, step_through
     from xmalign.roles import WallClock
-    from xmalign.safety import units_locked_on_exit
+    from xmalign.steps import RunStepDevices, following_drive, run_step, stepping_drive
 
     config = load_units_config(config_path)
     devices = open_devices(config, machine)
 
     def capture(output: RunOutput) -> CalibrationRun:
-        with units_locked_on_exit(devices.launch, devices.receiver):
-            run = output.calibration_run(
-                plan, devices.launch, devices.receiver, devices.interferometer, WallClock()
-            )
-            if config.machine_position.source == "file":
-                follow_machine(run, devices.mover, plan.lines, _tell_cycle_start)
-            else:
-                step_through(
-                    run,
-                    devices.mover,
-                    plan.lines,
-                    machine.feed_mm_min.measure,
-                    machine.measurement.overrun_mm,
-                )
-        return run
+        drive = (
+            following_drive(devices.mover, _tell_cycle_start)
+            if config.machine_position.source == "file"
+            else stepping_drive(devices.mover, machine)
+        )
+        roles = RunStepDevices(
+            devices.launch, devices.receiver, devices.interferometer, WallClock()
+        )
+        return run_step(plan, roles, output, drive)
 
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
@@ -403,7 +396,8 @@ def dry_run_command(
             raise _dry_run_stopped(out, stage, seed, machine, dialect, shop) from None
         progress.update(task, completed=len(STAGES), description="dry run: done")
     console.print(_results_table(report))
-    for warning in report.identification.warnings + report.plan.warnings:
+    design = [f"identification design: {warning}" for warning in report.design_warnings]
+    for warning in design + report.identification.warnings + report.plan.warnings:
         console.print(f"warning: {warning}", style="yellow", markup=False)
     console.print(
         f"files in {out}/: " + ", ".join(p.name for p in report.files.values()), markup=False
@@ -427,6 +421,12 @@ def _two_station_dry_run(machine: Machine, out: Path, options: DryRunOptions) ->
         markup=False,
     )
     for number, station in enumerate(report.stations, start=1):
+        for warning in station.design_warnings:
+            console.print(
+                f"warning: station {number}: identification design: {warning}",
+                style="yellow",
+                markup=False,
+            )
         console.print(
             f"station {number}: on-machine time {station.on_machine_s / 60:.1f} min"
             f" (lines {' '.join(line.line.id for line in station.plan.lines)})",

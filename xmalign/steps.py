@@ -1,0 +1,263 @@
+"""The five calibration steps as functions on role objects and files.
+
+identify, program, run, post and comp are wired here once; the CLI commands,
+the dry run (``sim/dry_run.py``, ``sim/two_stations.py``) and the Monte Carlo
+study call these functions with real devices or the simulator's behind the
+same roles (:mod:`xmalign.roles`). Only what differs between a controller
+running the program and an operator stepping the machine is given by the
+caller: the *drive* of :func:`run_step` (:func:`program_drive`,
+:func:`stepping_drive`, :func:`following_drive`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.gcode.program import write_program
+from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.planner import MeasurementPlan, plan_measurement
+from xmalign.calibration import (
+    CalibrationRun,
+    ProgramEvent,
+    RunOutput,
+    capture_program,
+    follow_machine,
+    step_through,
+)
+from xmalign.comp import Compensation, compensate
+from xmalign.formats.common import atomic_write_files
+from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
+from xmalign.formats.measurements import read_measurements
+from xmalign.formats.plan import Plan, PlanLine, read_plan, write_plan
+from xmalign.formats.pose import write_pose
+from xmalign.formats.session import Session
+from xmalign.identification_routine import (
+    PoseGuess,
+    RoutineDevices,
+    RoutineEvent,
+    run_identification,
+)
+from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
+from xmalign.machine import Machine
+from xmalign.post.evaluate import PostResult, post_process
+from xmalign.roles import (
+    Clock,
+    Interferometer,
+    MachineMover,
+    MachinePositionSource,
+    PositioningUnit,
+)
+from xmalign.safety import units_locked_on_exit
+
+#: File name ending of a program in each dialect, as the controllers expect.
+PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
+#: Alignments after which a quick identification points the units better than the guess.
+REFINE_AFTER = 3
+
+
+def refine_guess(session: Session) -> PoseGuess | None:
+    """After :data:`REFINE_AFTER` alignments, point the units with a quick identification."""
+    if len(session.alignments) < REFINE_AFTER:
+        return None
+    result = identify(session, "intersection")
+    return PoseGuess(result.position_mm, result.gamma_rad)
+
+
+def machine_guess(machine: Machine) -> PoseGuess | None:
+    """The machine file's coarse launch-unit position as the first pointing guess."""
+    if machine.launch_unit is None:
+        return None
+    return PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
+
+
+def design_step(machine: Machine, count: int) -> IdentificationDesign:
+    """The identification positions for ``count`` alignments (``warnings`` to be shown)."""
+    return design_identification(machine, count)
+
+
+@dataclass
+class IdentifyStepResult:
+    """The solved identification and the session it came from."""
+
+    result: IdentificationResult
+    session: Session
+    session_path: Path
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.result.converged)
+
+
+def identify_step(
+    positions_mm: np.ndarray,
+    machine: Machine,
+    devices: RoutineDevices,
+    session_path: Path,
+    method: str = "joint",
+    uncertainty: IdentificationUncertainty | None = None,
+    manual_align: Callable[[], None] | None = None,
+    on_event: Callable[[RoutineEvent], None] | None = None,
+    unit_timeout_s: float = 30.0,
+) -> IdentifyStepResult:
+    """Align at each position (session written as it goes, resumed), then solve the pose.
+
+    The units are locked on every exit. ``uncertainty`` defaults to the
+    machine file's ``uncertainty`` section.
+    """
+    with units_locked_on_exit(devices.launch, devices.receiver):
+        session = run_identification(
+            positions_mm,
+            machine,
+            devices,
+            session_path,
+            guess=machine_guess(machine),
+            manual_align=manual_align,
+            refine_guess=refine_guess,
+            on_event=on_event,
+            unit_timeout_s=unit_timeout_s,
+        )
+    if uncertainty is None:
+        uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
+    result = identify(session, method, uncertainty, str(session_path))
+    return IdentifyStepResult(result, session, Path(session_path))
+
+
+@dataclass
+class ProgramStepResult:
+    """The measurement plan (as read back from its file) and the G-code program."""
+
+    measurement: MeasurementPlan
+    plan: Plan
+    dialect: str
+    program: str
+    files: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def warnings(self) -> list[str]:
+        return list(self.measurement.warnings)
+
+
+def program_step(
+    machine: Machine,
+    result: IdentificationResult,
+    plan_path: Path,
+    program_path: Path | None = None,
+    dialect: str | None = None,
+    pose_path: Path | None = None,
+    line_ids: tuple[str, ...] | None = None,
+) -> ProgramStepResult:
+    """Plan the lines for the identified pose, write the plan and the G-code.
+
+    The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
+    (the same plan identity). ``program_path`` None: the suffix of the dialect
+    next to the plan as ``run<suffix>``.
+    """
+    pose = result.to_pose()
+    files: dict[str, Path] = {}
+    if pose_path is not None:
+        write_pose(pose_path, pose)
+        files["pose"] = pose_path
+    measurement = (
+        plan_measurement(machine, pose)
+        if line_ids is None
+        else plan_measurement(machine, pose, line_ids)
+    )
+    write_plan(plan_path, measurement.plan)
+    plan = read_plan(plan_path)
+    dialect_name = resolve_dialect(machine, dialect)
+    program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
+    if program_path is None:
+        program_path = plan_path.with_name(f"run{PROGRAM_SUFFIX[dialect_name]}")
+    atomic_write_files({program_path: program.encode("utf-8")})
+    files |= {"plan": plan_path, "program": program_path}
+    return ProgramStepResult(measurement, plan, dialect_name, program, files)
+
+
+#: How a run captures: given the CalibrationRun, capture every point of its plan.
+Drive = Callable[[CalibrationRun], None]
+
+
+def program_drive(events: Iterable[ProgramEvent]) -> Drive:
+    """Capture at the stops and dwells a controller running the program reports."""
+    return lambda run: capture_program(run, events)
+
+
+def stepping_drive(mover: MachineMover, machine: Machine) -> Drive:
+    """Capture by moving the machine to each target in turn (measuring feed, overrun)."""
+
+    def drive(run: CalibrationRun) -> None:
+        step_through(
+            run, mover, run.plan.lines, machine.feed_mm_min.measure, machine.measurement.overrun_mm
+        )
+
+    return drive
+
+
+def following_drive(
+    position: MachinePositionSource, on_line_start: Callable[[PlanLine], None]
+) -> Drive:
+    """Capture while the controller runs the program, at each standstill on a target."""
+    return lambda run: follow_machine(run, position, run.plan.lines, on_line_start)
+
+
+@dataclass
+class RunStepDevices:
+    """What a run uses: both units, the interferometer and the clock."""
+
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+
+
+def run_step(
+    plan: Plan, devices: RunStepDevices, output: RunOutput, drive: Drive
+) -> CalibrationRun:
+    """Capture every point of ``plan`` into ``output`` (points it holds are skipped).
+
+    The units are locked on every exit; each point is in the file once captured.
+    """
+    with units_locked_on_exit(devices.launch, devices.receiver):
+        run = output.calibration_run(
+            plan, devices.launch, devices.receiver, devices.interferometer, devices.clock
+        )
+        drive(run)
+    return run
+
+
+@dataclass
+class PostStepResult:
+    """The fitted error tables and where they were written."""
+
+    post: PostResult
+    errors_path: Path
+
+    @property
+    def tables(self) -> ErrorTableSet:
+        return self.post.fit.tables
+
+
+def post_step(
+    machine: Machine, plan: Plan, measurements_path: Path, errors_path: Path
+) -> PostStepResult:
+    """Fit the 21 errors to one station's measurement file and write the error tables."""
+    rows = read_measurements(measurements_path)
+    post = post_process(machine, plan, rows, measurements_path.name)
+    write_error_tables(errors_path, post.fit.tables)
+    return PostStepResult(post, errors_path)
+
+
+def comp_step(
+    machine: Machine, tables: ErrorTableSet, out_dir: Path, controller: str | None = None
+) -> Compensation:
+    """Fit the controller's model and write all of its files into ``out_dir`` (or none)."""
+    compensation = compensate(machine, tables, controller or machine.controller)
+    atomic_write_files(
+        {out_dir / name: text.encode("utf-8") for name, text in compensation.files.items()}
+    )
+    return compensation
