@@ -319,7 +319,7 @@ def _results_table(report: object) -> Table:
     table.add_row(
         "on-machine time",
         f"{report.on_machine_s / 60:.1f} min",
-        "≤ 12 min (one station)",
+        "measuring ≤ 12 min",
         f"identify {report.identification_s / 60:.1f}, align {report.alignment_s / 60:.1f}, "
         f"measure {report.measuring_s / 60:.1f} min",
     )
