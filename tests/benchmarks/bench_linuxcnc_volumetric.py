@@ -32,9 +32,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from xmalign.post.synthetic import measure, six_line_plan
 
 from sim.machine import VirtualMachine
+from sim.synthetic import measure, six_line_plan
 from xmalign.comp import compensate, linuxcnc
 from xmalign.comp.linuxcnc_volumetric import (
     INSTANCE,
