@@ -22,7 +22,7 @@ import base64
 import html
 import io
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -123,15 +123,20 @@ class RecordInfo:
 
     @classmethod
     def of_compensation(
-        cls, compensation: StationCompensation | None, **keys: object
+        cls,
+        compensation: StationCompensation | Sequence[StationCompensation] | None,
+        **keys: object,
     ) -> RecordInfo:
-        """The record of a compensated measurement (``keys``: the other attributes)."""
-        if compensation is None or not compensation.lines:
+        """The record of compensated measurements, one per station (``keys``: the rest)."""
+        if isinstance(compensation, StationCompensation):
+            compensation = [compensation]
+        stations = [c for c in compensation or () if c.lines]
+        if not stations:
             return cls(**keys)  # type: ignore[arg-type]
         return cls(
-            environment=compensation.environment,
-            compensation=compensation.note,
-            drift=compensation.drift,
+            environment={k: v for c in stations for k, v in c.environment.items()},
+            compensation=stations[0].note,
+            drift=[check for c in stations for check in c.drift],
             **keys,  # type: ignore[arg-type]
         )
 

@@ -1,5 +1,8 @@
 """The environment recorded on every row by a run, and compensated by post."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -140,3 +143,26 @@ def test_flags_with_commas_round_trip(tmp_path, drifting):
     again = read_measurements(tmp_path / "m.csv")
     assert again[0].environment_flags == flagged[0].environment_flags
     assert again[1].environment == rows[1].environment
+
+
+def test_post_prints_the_compensation_and_writes_the_record(drifting, tmp_path):
+    _, workdir = drifting
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "xmalign",
+            "post",
+            *("--plan", str(workdir / "plan.json"), "--data", str(workdir / "measurements.csv")),
+            *("--out", str(tmp_path / "errors.csv"), "--report", str(tmp_path / "record.html")),
+            *("--operator", "A. Tester", "--vdi3441"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "air compensated (modified Edlén), dead path included" in done.stdout
+    record = (tmp_path / "record.html").read_text()
+    assert "A. Tester" in record and "VDI/DGQ 3441" in record
+    assert "No environment was recorded" not in record

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -26,9 +26,6 @@ from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, loa
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
-
-if TYPE_CHECKING:
-    from xmalign.report import RecordInfo
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -131,9 +128,11 @@ def post(
         if report is not None:
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
-            from xmalign.report import write_report
+            from xmalign.report import RecordInfo, write_report
 
-            info = _record_info(result, operator=operator, instruments=instruments, vdi3441=vdi3441)
+            info = RecordInfo.of_compensation(
+                result.compensation, operator=operator, instruments=instruments, vdi3441=vdi3441
+            )
             write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
     for note in dict.fromkeys(result.notes):
@@ -160,21 +159,6 @@ def _instrument_serials(units: Path) -> dict[str, str]:
 
     config = load_units_config(units)
     return record_serials(config.instruments, config.environment)
-
-
-def _record_info(result: PostResult, **keys: object) -> RecordInfo:
-    """The record's environment, compensation and drift, over every station."""
-    from xmalign.report import RecordInfo
-
-    stations = [c for c in result.compensation if c.lines]
-    if not stations:
-        return RecordInfo(**keys)  # type: ignore[arg-type]
-    return RecordInfo(
-        environment={k: v for c in stations for k, v in c.environment.items()},
-        compensation=stations[0].note,
-        drift=[check for c in stations for check in c.drift],
-        **keys,  # type: ignore[arg-type]
-    )
 
 
 def comp(
