@@ -40,7 +40,6 @@ from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_b
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import (
-    ENVIRONMENT_LIMITS,
     NOMINAL_LIMITS,
     ChannelLimits,
     LineSetup,
@@ -699,9 +698,7 @@ def open_run_output(
         writer = MeasurementWriter.create(path, plan_sha256(plan), columns)
         return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
-    _check_environment_columns(
-        path, tuple(c for c in recorded.columns if c in ENVIRONMENT_LIMITS), environment
-    )
+    _check_environment_columns(path, recorded.environment_columns, environment)
     warnings = check_recorded_plan(recorded, plan)
     if recorded.torn is not None:
         warnings.append(

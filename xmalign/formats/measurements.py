@@ -183,6 +183,11 @@ class MeasurementFile:
     setups: list[LineSetup] = field(default_factory=list)
     torn: TornRow | None = None
 
+    @property
+    def environment_columns(self) -> tuple[str, ...]:
+        """The environment columns of the file, in its order."""
+        return tuple(name for name in self.columns if name in ENVIRONMENT_LIMITS)
+
     def last_setups(self) -> dict[str, LineSetup]:
         """The latest setup of every line."""
         return {setup.line: setup for setup in self.setups}
@@ -503,11 +508,6 @@ class MeasurementWriter:
             )
         self._put(_csv_line(row.fields(self.columns)))
         self.saved += 1
-
-    @property
-    def environment_columns(self) -> tuple[str, ...]:
-        """The environment columns of the file, in its order."""
-        return tuple(name for name in self.columns if name in ENVIRONMENT_LIMITS)
 
     def note_setup(self, setup: LineSetup) -> None:
         """Record a line's alignment (the locked unit angles) before its rows."""
