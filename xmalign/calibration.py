@@ -37,7 +37,7 @@ from typing import Protocol
 import numpy as np
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_beam, fine_align
-from xmalign.environment import EnvironmentMonitor
+from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
 from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
 from xmalign.formats.measurements import (
     NOMINAL_LIMITS,
@@ -107,16 +107,21 @@ class CapturePoint:
     @property
     def starts_run(self) -> bool:
         """The run's first point: the interferometer datum is set here."""
-        return self.direction == "+" and self.index == 0
+        return self.run != DRIFT_RUN and self.direction == "+" and self.index == 0
 
 
 def capture_sequence(line: PlanLine) -> Iterator[CapturePoint]:
-    """The line's points in program order: per run, up the targets, then back if bidirectional."""
+    """The line's points in program order: per run, up the targets, then back if bidirectional.
+
+    Last, the drift check: the first target once more, approached in ``+``, as
+    run :data:`~xmalign.environment.DRIFT_RUN` (read against the last run's datum).
+    """
     count = len(line.targets_mm)
     for run in range(1, line.runs + 1):
         yield from (CapturePoint(line, run, "+", i) for i in range(count))
         if line.bidirectional:
             yield from (CapturePoint(line, run, "-", i) for i in range(count - 1, -1, -1))
+    yield CapturePoint(line, DRIFT_RUN, "+", 0)
 
 
 def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:

@@ -101,7 +101,11 @@ class SimMachine:
     #: [DISPLAY] MAX_FEED_OVERRIDE: the largest feed override a ``run`` action may set
     max_feed_override: float = 1.0
     #: a ``comp`` comparator per joint latching the sign of ``joint.N.vel-cmd`` every servo
-    #: period (``comp.N.out``: TRUE after a positive move, held at standstill)
+    #: period (``comp.N.out``: TRUE after a positive move, held at standstill). Velocities
+    #: below 1e-6 mm/s are not moves: with offsets active, a joint that the program does
+    #: not move sees rounding velocities of that size while other joints move (seen on
+    #: Y, < 5e-7 mm/s, during a Z move); they flip LinuxCNC's ``backlash-corr`` too, but
+    #: its ``backlash-filt`` (what reaches the motor) stayed at the physical direction's value.
     direction_latches: bool = False
 
     @property
@@ -189,6 +193,10 @@ def _ini_text(machine: SimMachine, halfile: str) -> str:
     return "\n".join(lines)
 
 
+#: |vel-cmd| above which a direction latch takes a joint to be moving, mm/s
+MOVE_THRESHOLD_MM_S = 1e-6
+
+
 def _hal_text(machine: SimMachine) -> str:
     lines = [
         "# xmalign test harness: trivkins sim, each joint's command looped back as feedback",
@@ -210,6 +218,7 @@ def _hal_text(machine: SimMachine) -> str:
             lines += [
                 f"addf comp.{joint} servo-thread",
                 f"net j{joint}vel joint.{joint}.vel-cmd => comp.{joint}.in1",
+                f"setp comp.{joint}.hyst {2 * MOVE_THRESHOLD_MM_S}",
             ]
     return "\n".join(lines) + "\n"
 

@@ -11,7 +11,7 @@ from sim.environment import ShopClimate, attach_shop
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import open_run_output
-from xmalign.environment import EnvironmentMonitor
+from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.measurements import (
     FLAGS_COLUMN,
@@ -166,3 +166,24 @@ def test_post_prints_the_compensation_and_writes_the_record(drifting, tmp_path):
     record = (tmp_path / "record.html").read_text()
     assert "A. Tester" in record and "VDI/DGQ 3441" in record
     assert "No environment was recorded" not in record
+
+
+def test_each_line_ends_with_its_drift_check_and_post_reports_it(drifting, reference_machine):
+    _, workdir = drifting
+    plan = read_plan(workdir / "plan.json")
+    rows = read_measurements(workdir / "measurements.csv")
+    for line in plan.lines:
+        own = [row for row in rows if row.line == line.id]
+        checks = [row for row in own if row.run == DRIFT_RUN]
+        assert len(checks) == 1 and own[-1] is checks[0]  # once, after the last run
+        assert (checks[0].direction, checks[0].index) == ("+", 0)
+    result = post_process(reference_machine, plan, rows, "measurements.csv")
+    drift = {check.line_id: check.drift_um for check in result.compensation[0].drift}
+    assert set(drift) == {line.id for line in plan.lines}
+    # compensated, the shop's 1.5 K warming leaves about a micrometre at the first target
+    assert max(abs(value) for value in drift.values()) < 3.0
+    assert not result.warnings or all("drift" not in w for w in result.warnings)
+    thermal = reference_machine.thermal.model_copy(update={"drift_limit_um": 0.01})
+    strict = reference_machine.model_copy(update={"thermal": thermal})
+    warned = post_process(strict, plan, rows, "measurements.csv")
+    assert sum("drift" in w for w in warned.warnings) == len(plan.lines)

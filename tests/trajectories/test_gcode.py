@@ -34,6 +34,7 @@ def expected_dwell_points(plan) -> np.ndarray:
             points.extend(targets)
             if line.bidirectional:
                 points.extend(targets[::-1])
+        points.append(targets[0])  # the drift check
     return np.array(points)
 
 

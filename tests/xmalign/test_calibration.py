@@ -39,9 +39,10 @@ def test_capture_sequence_is_the_program_order():
         (1, "-", 1),
         (1, "-", 0),
     ]
-    assert len(keys) == 12 and keys[6] == (2, "+", 0)
+    assert len(keys) == 13 and keys[6] == (2, "+", 0)
+    assert keys[-1] == (0, "+", 0)  # the drift check: target 1 again, after the last run
     one_way = [p.direction for p in capture_sequence(_line([1.0, 0, 0], 1, False))]
-    assert one_way == ["+", "+", "+"]
+    assert one_way == ["+", "+", "+", "+"]  # with the drift check
 
 
 @given(az=st.floats(-math.pi, math.pi), el=st.floats(-1.3, 1.3), spindle=st.floats(-3.0, 3.0))

@@ -123,7 +123,7 @@ BAD_RESUMES = [
     (
         "duplicate",
         lambda text: text + text.splitlines()[-1] + "\n",
-        "line 393: line XZ run 2 direction - index 0 is recorded twice (first at line 392)",
+        "line 399: line XZ run 0 direction + index 0 is recorded twice (first at line 398)",
     ),
     ("nan", _first_row(lambda f: [*f[:8], "nan", *f[9:]]), "line 4: linear_um is nan"),
     ("1e12 um", _first_row(lambda f: [*f[:9], "1e12", *f[10:]]), "line 4: straightness 1e+12"),

@@ -13,7 +13,8 @@ For each line of the plan:
    feed (the rapid feed, or the interferometer's ``max_speed_mm_min`` if
    lower) as a straight G1 move, and only the last ``measurement.approach_mm``
    before each target at the measuring feed (docs/machine-time.md);
-5. a rapid retract to the top of the Z travel.
+5. the drift check: the first target once more, approached in ``+u``, with a dwell;
+6. a rapid retract to the top of the Z travel.
 
 Points are machine coordinates of the CNC tool point; the dialect states the
 coordinate system (machine coordinates, or a work offset it sets itself) and
@@ -162,6 +163,12 @@ def _line_blocks(
     yield dialect.stop()
     for run in range(1, line.runs + 1):
         yield from _run_blocks(dialect, line, run, feeds, machine, timer)
+    yield dialect.comment(f"line {line.id}: drift check, target 1 again")
+    yield from _approach_blocks(
+        dialect, timer.position_mm, points[0], feeds, machine.measurement.approach_mm, timer
+    )
+    yield from dialect.dwell(line.dwell_s)
+    timer.dwell(line.dwell_s)
     yield dialect.comment(f"line {line.id}: retract")
     yield dialect.retract({"Z": safe_z})
     timer.move(_with(timer.position_mm, Z=safe_z), rapid)
