@@ -28,6 +28,7 @@ from xmalign.calibration import (
     RunOutput,
     open_run_output,
 )
+from xmalign.comp import RemainingErrors
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
@@ -42,7 +43,7 @@ from xmalign.identify import IdentificationResult, IdentificationUncertainty
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import post_process
+from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
 from xmalign.rigid_body import Chain, ErrorTables
 from xmalign.steps import (
     PROGRAM_SUFFIX,
@@ -72,6 +73,7 @@ DRY_RUN_FILES = (
     "errors.csv",
     "truth.csv",
     "comp",
+    "verification.csv",
     *(f"run{suffix}" for suffix in PROGRAM_SUFFIX.values()),
 )
 
@@ -102,6 +104,22 @@ class DryRunOptions:
     amplitudes: ErrorAmplitudes | None = None
     #: The shop's air and machine temperature (a name of ``sim.environment.SHOPS``).
     shop: str = "drifting"
+    #: Measure again with the controller's tables loaded (as left).
+    verify: bool = False
+
+
+@dataclass(frozen=True)
+class AsLeft:
+    """The verification run: the machine measured again with the controller's tables loaded."""
+
+    post: PostResult
+    controller: str
+    #: Volumetric error left on the virtual machine (truth minus the tables), RMS um.
+    volumetric_true_um: float
+    #: The same as the verification run measured it, RMS um.
+    volumetric_measured_um: float
+    #: RMS of the measured minus the true remaining error, um.
+    measurement_error_um: float
 
 
 @dataclass
@@ -135,6 +153,7 @@ class DryRunReport:
     #: Why the identification design is not as good as planned (shown, never dropped).
     design_warnings: list[str] = field(default_factory=list)
     files: dict[str, Path] = field(default_factory=dict)
+    as_left: AsLeft | None = None
 
     @property
     def position_error_um(self) -> Vec:
@@ -359,11 +378,32 @@ def simulate_calibration(
 
     stage("comp")
     chain = Chain.parse(machine.chain)
-    comp_step(machine, tables, workdir / "comp")
+    compensation = comp_step(machine, tables, workdir / "comp")
 
     low, high = measured_strokes(measurement_plan)
     points = grid_points(low, high)
     truth = setup.world.machine
+    as_left = None
+    if options.verify:
+        stage("verify")
+        setup.world.machine.load_compensation(compensation.fit.mean)
+        verification = workdir / "verification.csv"
+        with open_run_output(verification, plan, resume=False, environment=monitor) as output:
+            measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
+        applied = compensation.fit.mean
+        left = post_stations(
+            machine,
+            [Station(plan, read_measurements(verification), verification.name)],
+            applied,
+        )
+        remaining = RemainingErrors(truth, applied)
+        as_left = AsLeft(
+            left,
+            compensation.controller,
+            volumetric_rms_um(chain, points, remaining, ErrorTables()),
+            volumetric_rms_um(chain, points, left.tool_point_errors(), ErrorTables()),
+            volumetric_rms_um(chain, points, left.tool_point_errors(), remaining),
+        )
     raw = [replace(row, environment={}) for row in rows]
     uncompensated = post_process(machine, plan, raw, "measurements.csv").fit.tables
     return DryRunReport(
@@ -389,5 +429,7 @@ def simulate_calibration(
             "errors": workdir / "errors.csv",
             "truth": workdir / "truth.csv",
             "comp": workdir / "comp",
-        },
+        }
+        | ({"verification": workdir / "verification.csv"} if as_left else {}),
+        as_left=as_left,
     )

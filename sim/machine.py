@@ -28,6 +28,7 @@ from xmalign.rigid_body import (
     SQUARENESS_NAMES,
     TRANSLATION_NAMES,
     Chain,
+    ErrorModel,
     deviation,
 )
 
@@ -131,6 +132,17 @@ class VirtualMachine:
         self._last_cnc_mm: Vec | None = None
         self._approach = np.ones(3)
         self._noise_mm = np.zeros(3)
+        self._applied: ErrorModel | None = None
+
+    def load_compensation(self, applied: ErrorModel | None) -> None:
+        """Let the CNC apply compensation tables (None: none).
+
+        The controller shifts every commanded position by the error ``applied``
+        predicts at its tool point (``cnc.tool_offset``); the tool's rotation
+        stays what the machine's geometry makes it. First order in the error
+        gradient, i.e. exact to nanometres for micrometre errors.
+        """
+        self._applied = applied
 
     # ErrorModel -------------------------------------------------------------
     def motions(self, axis: str, position_mm: Vec) -> tuple[Vec, Vec]:
@@ -208,8 +220,12 @@ class VirtualMachine:
         self, cnc: Vec, approach_sign: ArrayLike, t_mm: ArrayLike, noise_mm: Vec
     ) -> tuple[Vec, Vec]:
         dp, rotation = deviation(self.chain, cnc, t_mm, self)
+        dp = dp.reshape(cnc.shape)
+        if self._applied is not None:
+            applied_mm, _ = deviation(self.chain, cnc, self.machine.cnc.tool_offset, self._applied)
+            dp = dp - applied_mm.reshape(cnc.shape)
         lost = -0.5 * np.asarray(approach_sign, dtype=float) * self.backlash_mm
-        point = cnc + np.asarray(t_mm, dtype=float) + dp.reshape(cnc.shape) + lost + noise_mm
+        point = cnc + np.asarray(t_mm, dtype=float) + dp + lost + noise_mm
         return point, rotation.reshape(cnc.shape)
 
     @property

@@ -57,6 +57,7 @@ from xmalign.rigid_body import (
     AXES,
     AXIS_INDEX,
     ROTATION_NAMES,
+    SQUARENESS_NAMES,
     TRANSLATION_NAMES,
     Chain,
     ErrorModel,
@@ -315,9 +316,10 @@ def as_left_table(result: PostResult, verification: PostResult) -> Table:
         for figure in ("A", "E", "R", "B"):
             old = getattr(found, figure) if found else math.nan
             rows.append([after.line_id, figure, _number(old), _number(getattr(after, figure))])
-    squareness = verification.fit.tables.squareness
+    squareness = verification.tool_point_errors().squareness_rad()
+    left_rad = dict(zip(SQUARENESS_NAMES, squareness, strict=True))
     for name, (value, _) in result.fit.tables.squareness.items():
-        left = squareness.get(name, (math.nan, math.nan))[0]
+        left = left_rad.get(name, math.nan)
         rows.append([name, "urad", _number(value * 1e6), _number(left * 1e6)])
     return Table(
         "As found / as left (ISO 230-2 figures in um, squareness in urad)",
@@ -500,7 +502,7 @@ def _maps(machine: Machine, result: PostResult, info: RecordInfo, controller: st
     if info.verification is not None:
         return [
             ("as found", tables.model("")),
-            ("as left", info.verification.fit.tables.model("")),
+            ("as left", info.verification.tool_point_errors()),
         ]
     return [
         ("before", tables.model("")),

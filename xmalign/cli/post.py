@@ -18,7 +18,7 @@ from xmalign.cli.common import (
     output_folder,
     refuse_overwriting,
 )
-from xmalign.comp import WRITERS, Compensation, compensate, linuxcnc
+from xmalign.comp import WRITERS, Compensation, compensate, fit_for, linuxcnc
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files, read_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
@@ -26,6 +26,7 @@ from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, loa
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.rigid_body import ErrorTables
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -103,6 +104,24 @@ def post(
     vdi3441: Annotated[
         bool, typer.Option("--vdi3441", help="Also give the VDI/DGQ 3441 figures in the record.")
     ] = False,
+    verify_data: Annotated[
+        Path | None,
+        typer.Option(
+            help="Measurement CSV of a verification run after compensation (as left), "
+            "compared with the calibration (as found)."
+        ),
+    ] = None,
+    verify_plan: Annotated[
+        Path | None,
+        typer.Option(help="Plan of the verification run (default: the first --plan)."),
+    ] = None,
+    verify_controller: Annotated[
+        str | None,
+        typer.Option(
+            help="Whose tables were loaded for the verification run, fitted by xmalign comp"
+            " to these errors (default: the machine file's controller)."
+        ),
+    ] = None,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
 
@@ -112,9 +131,22 @@ def post(
 
     Repeat --plan and --data for a second launch-unit station: one set of error
     tables is fitted to all lines, each line with its own setup terms.
+
+    With --verify-data, the measurement made after loading the compensation is
+    posted on its own and compared with the calibration (as found / as left).
     """
+    if verify_data is None and (verify_plan or verify_controller):
+        option = "--verify-plan" if verify_plan else "--verify-controller"
+        raise InputError(f"{option} needs --verify-data (the verification measurement)")
     refuse_overwriting(
-        {"--plan": plan, "--data": data, "--machine": machine, "--units": units},
+        {
+            "--plan": plan,
+            "--data": data,
+            "--machine": machine,
+            "--units": units,
+            "--verify-plan": verify_plan,
+            "--verify-data": verify_data,
+        },
         {"--out": out, "--report": report},
     )
     instruments = _instrument_serials(units) if units is not None else {}
@@ -124,6 +156,13 @@ def post(
         points = sum(len(station.rows) for station in stations)
         progress.update(task, description=f"fitting {points} points")
         result = post_stations(machine_, stations)
+        verification = None
+        if verify_data is not None:
+            progress.update(task, description="fitting the verification run")
+            applied = fit_for(machine_, result.fit.tables, verify_controller or machine_.controller)
+            verification = _post_verification(
+                verify_plan or plan[0], verify_data, machine, applied.mean
+            )
         write_error_tables(out, result.fit.tables)
         if report is not None:
             progress.update(task, description="drawing the report")
@@ -131,10 +170,16 @@ def post(
             from xmalign.report import RecordInfo, write_report
 
             info = RecordInfo.of_compensation(
-                result.compensation, operator=operator, instruments=instruments, vdi3441=vdi3441
+                result.compensation,
+                operator=operator,
+                instruments=instruments,
+                vdi3441=vdi3441,
+                verification=verification,
             )
             write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
+    if verification is not None:
+        console.print(_as_left(result, verification))
     for note in dict.fromkeys(result.notes):
         console.print(note, markup=False, soft_wrap=True)
     drift = [check for c in result.compensation for check in c.drift]
@@ -150,6 +195,26 @@ def post(
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )
+
+
+def _post_verification(
+    plan: Path, data: Path, machine: Path | None, applied: ErrorTables
+) -> PostResult:
+    """The verification run posted on its own, with the tables ``applied`` during it."""
+    machine_, stations = _stations([plan], [data], machine)
+    return post_stations(machine_, stations, applied)
+
+
+def _as_left(result: PostResult, verification: PostResult) -> RichTable:
+    from xmalign.report import as_left_table
+
+    table = as_left_table(result, verification)
+    shown = RichTable(title=table.title)
+    for number, name in enumerate(table.header):
+        shown.add_column(name, justify="right" if number > 1 else "left")
+    for row in table.rows:
+        shown.add_row(*row)
+    return shown
 
 
 def _instrument_serials(units: Path) -> dict[str, str]:

@@ -316,6 +316,14 @@ def _results_table(report: object) -> Table:
         "the same readings",
         "tables fitted to the uncompensated readings",
     )
+    if report.as_left is not None:
+        table.add_row(
+            "  as left (verification)",
+            f"{report.as_left.volumetric_measured_um:.2f} µm measured",
+            f"{report.as_left.volumetric_true_um:.2f} µm true",
+            f"{report.as_left.measurement_error_um:.2f} µm off; {report.as_left.controller}"
+            f" tables loaded, as found {report.volumetric_before_um:.1f} µm",
+        )
     table.add_row(
         "on-machine time",
         f"{report.on_machine_s / 60:.1f} min",
@@ -359,6 +367,14 @@ def dry_run_command(
         ),
     ] = 1,
     shop: ShopOption = "drifting",
+    verify: Annotated[
+        bool,
+        typer.Option(
+            "--verify",
+            help="Then load the controller's tables into the virtual CNC and measure again"
+            " (verification.csv: as left).",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
@@ -372,13 +388,17 @@ def dry_run_command(
         identification_positions=identification_positions,
         dialect=dialect,
         shop=shop,
+        verify=verify,
     )
     if stations == 2:
+        if verify:
+            raise InputError("--verify is for one station (give --stations 1)")
         _two_station_dry_run(machine_model, out, options)
         return
     started: list[str] = []
     with _progress() as progress:
-        task = progress.add_task("dry run", total=len(STAGES))
+        stages = len(STAGES) + verify
+        task = progress.add_task("dry run", total=stages)
 
         def on_stage(name: str) -> None:
             if started:
@@ -394,7 +414,7 @@ def dry_run_command(
         except KeyboardInterrupt:
             stage = started[-1] if started else "start"
             raise _dry_run_stopped(out, stage, seed, machine, dialect, shop) from None
-        progress.update(task, completed=len(STAGES), description="dry run: done")
+        progress.update(task, completed=stages, description="dry run: done")
     console.print(_results_table(report))
     design = [f"identification design: {warning}" for warning in report.design_warnings]
     for warning in design + report.identification.warnings + report.plan.warnings:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -15,7 +15,7 @@ from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
-from xmalign.rigid_body import Chain
+from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, deviation
 
 
 @dataclass
@@ -35,6 +35,10 @@ class PostResult:
     compensation : list of StationCompensation
         Per station, how its readings were compensated for the air, the dead
         path and the material, and the drift of each line.
+    applied : ErrorTables, optional
+        The compensation the controller applied during the measurement (a
+        verification run): ``fit`` is then the machine's own geometry and
+        :meth:`tool_point_errors` what remains with the compensation.
     """
 
     fit: TableFit
@@ -42,6 +46,15 @@ class PostResult:
     lines: list[LineData]
     warnings: list[str] = field(default_factory=list)
     compensation: list[StationCompensation] = field(default_factory=list)
+    applied: ErrorTables | None = None
+
+    def tool_point_errors(self, direction: str = "") -> ErrorModel:
+        """The errors the machine shows with its controller's compensation (if any) in."""
+        # imported here: the controllers' package builds on post's results
+        from xmalign.comp import RemainingErrors
+
+        model = self.fit.tables.model(direction)
+        return model if self.applied is None else RemainingErrors(model, self.applied)
 
     @property
     def notes(self) -> list[str]:
@@ -73,12 +86,20 @@ class Station:
     source: str
 
 
-def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
+def post_stations(
+    machine: Machine, stations: list[Station], applied: ErrorTables | None = None
+) -> PostResult:
     """Fit one set of error tables to the measurements of one or more stations.
 
     Every line keeps its own setup terms (the beam, the mountings and the
     interferometer's datum change with the station); the error tables and the
     squareness are shared. ``Station.source`` names the file in error messages.
+
+    ``applied``: the compensation the controller applied while measuring (a
+    verification run). Its shift of the tool point is added back to the
+    readings before the fit, because a compensated machine is no rigid-body
+    chain (its axes still tilt, its tool point does not move with them); the
+    ISO 230-2 figures stay those of the readings (as left).
     """
     compensation = [compensate(machine, station) for station in stations]
     lines = [
@@ -91,9 +112,14 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
             index,
         )
     ]
+    chain = Chain.parse(machine.chain)
+    tool_offset_mm = machine.cnc.tool_offset
+    fitted = (
+        [_without(data, chain, applied, tool_offset_mm) for data in lines] if applied else lines
+    )
     fit = fit_error_tables(
-        lines,
-        Chain.parse(machine.chain),
+        fitted,
+        chain,
         channel_sigma(machine),
         (machine.travel_min_mm, machine.travel_max_mm),
     )
@@ -111,7 +137,22 @@ def post_stations(machine: Machine, stations: list[Station]) -> PostResult:
         lines=lines,
         warnings=datum_warnings(lines) + drift,
         compensation=compensation,
+        applied=applied,
     )
+
+
+def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: Vec) -> LineData:
+    """A line's readings as the machine would give them without the applied compensation.
+
+    The controller moved the tool by minus the deviation ``applied`` predicts
+    at its tool point (``tool_offset_mm`` from the CNC point); seen from the
+    line frame, that adds to the three translation channels and leaves the
+    angles alone.
+    """
+    shift_mm, _ = deviation(chain, data.machine_mm, tool_offset_mm, applied)
+    channels = data.channels.copy()
+    channels[:, :3] += shift_mm @ data.frame.T
+    return replace(data, channels=channels)
 
 
 def compensate(machine: Machine, station: Station) -> StationCompensation:
