@@ -25,6 +25,7 @@ from xmalign.rigid_body import (
     AXIS_INDEX,
     MOTION_NAMES,
     ROTATION_NAMES,
+    SLOPE_TO_SQUARENESS,
     SQUARENESS_NAMES,
     TRANSLATION_NAMES,
     Chain,
@@ -57,16 +58,6 @@ SEED_003_TABLE_1: dict[str, tuple[float, ...]] = {
     "ECZ": (10, 30, 0.5, 10, 10, 1, 3, 3),
 }
 
-# Straightness errors whose end-point slope the table convention moves into squareness,
-# with the squareness it goes to and the sign (see docs/conventions-notes.md, Simulator).
-_SLOPE_TO_SQUARENESS = {
-    "EYX": ("EC0Y", -1.0),
-    "EXY": ("EC0Y", -1.0),
-    "EZY": ("EA0Z", -1.0),
-    "EYZ": ("EA0Z", -1.0),
-    "EZX": ("EB0Z", +1.0),
-    "EXZ": ("EB0Z", +1.0),
-}
 _POSITIONING = ("EXX", "EYY", "EZZ")
 
 
@@ -258,9 +249,9 @@ class VirtualMachine:
             values = dict(zip(TRANSLATION_NAMES[axis], delta.T, strict=True))
             values.update(zip(ROTATION_NAMES[axis], eps.T, strict=True))
             for name, value in values.items():
-                if name in _SLOPE_TO_SQUARENESS:
+                if name in SLOPE_TO_SQUARENESS:
                     slope = (value[-1] - value[0]) / (points[-1] - points[0])
-                    target, sign = _SLOPE_TO_SQUARENESS[name]
+                    target, sign = SLOPE_TO_SQUARENESS[name]
                     squareness[SQUARENESS_NAMES.index(target)] += sign * slope
                     value = value - value[0] - slope * (points - points[0])
                 else:

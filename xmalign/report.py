@@ -316,7 +316,7 @@ def as_left_table(result: PostResult, verification: PostResult) -> Table:
         for figure in ("A", "E", "R", "B"):
             old = getattr(found, figure) if found else math.nan
             rows.append([after.line_id, figure, _number(old), _number(getattr(after, figure))])
-    squareness = verification.tool_point_errors().squareness_rad()
+    squareness = verification.tool_point_squareness_rad()
     left_rad = dict(zip(SQUARENESS_NAMES, squareness, strict=True))
     for name, (value, _) in result.fit.tables.squareness.items():
         left = left_rad.get(name, math.nan)

@@ -27,6 +27,16 @@ AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2}
 TRANSLATION_NAMES = {axis: (f"EX{axis}", f"EY{axis}", f"EZ{axis}") for axis in AXES}
 ROTATION_NAMES = {axis: (f"EA{axis}", f"EB{axis}", f"EC{axis}") for axis in AXES}
 SQUARENESS_NAMES = ("EC0Y", "EA0Z", "EB0Z")
+#: Straightness errors whose end-point slope the table convention moves into squareness,
+#: with the squareness it goes to and the sign (docs/conventions-notes.md).
+SLOPE_TO_SQUARENESS = {
+    "EYX": ("EC0Y", -1.0),
+    "EXY": ("EC0Y", -1.0),
+    "EZY": ("EA0Z", -1.0),
+    "EYZ": ("EA0Z", -1.0),
+    "EZX": ("EB0Z", +1.0),
+    "EXZ": ("EB0Z", +1.0),
+}
 #: The 18 position-dependent error names, axis by axis.
 MOTION_NAMES = tuple(
     name for axis in AXES for name in (*TRANSLATION_NAMES[axis], *ROTATION_NAMES[axis])
@@ -99,6 +109,18 @@ class ErrorModel(Protocol):
     def squareness_rad(self) -> Vec:
         """``[EC0Y, EA0Z, EB0Z]`` in rad, shape (3,)."""
         ...
+
+
+def slopes_as_squareness_rad(tables: dict[str, tuple[Vec, Vec]]) -> Vec:
+    """The squareness ``[EC0Y, EA0Z, EB0Z]`` (rad) that the straightness tables' end-point
+    slopes amount to, shape (3,) (tables: name -> (positions mm, values mm))."""
+    squareness = np.zeros(3)
+    for name, (positions, values) in tables.items():
+        if name in SLOPE_TO_SQUARENESS and len(positions) > 1:
+            target, sign = SLOPE_TO_SQUARENESS[name]
+            slope = (values[-1] - values[0]) / (positions[-1] - positions[0])
+            squareness[SQUARENESS_NAMES.index(target)] += sign * slope
+    return squareness
 
 
 def squareness_deviation(machine_mm: ArrayLike, squareness_rad: ArrayLike) -> Vec:

@@ -1,14 +1,17 @@
 """A verification run after compensation (as left), simulated and posted."""
 
+import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error, run_cli
 
 from sim.dry_run import DryRunOptions, measured_strokes, simulate_calibration
+from xmalign.comp import fit_for
+from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import Station, post_stations
-from xmalign.rigid_body import Chain
+from xmalign.rigid_body import Chain, slopes_as_squareness_rad
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +65,21 @@ def test_verify_options_need_the_verification_data(verified, tmp_path):
         )
         assert_one_line_error(result, option, "--verify-data")
         assert not (tmp_path / "errors.csv").exists()
+
+
+def test_the_verification_confirms_the_squareness_the_tables_were_fitted_to_leave(
+    verified, reference_machine
+):
+    report, workdir = verified
+    found_tables = read_error_tables(workdir / "errors.csv")
+    found = found_tables.model("").squareness_rad()
+    applied = fit_for(reference_machine, found_tables, reference_machine.controller).mean
+    predicted = found - slopes_as_squareness_rad(applied.tables)
+    left = report.as_left.post.tool_point_squareness_rad()
+    largest = int(np.argmax(np.abs(found)))
+    assert abs(found[largest]) > 10e-6, found  # a squareness worth taking out
+    assert abs(left[largest]) < abs(found[largest])  # the cross tables take out some
+    assert np.abs(left - predicted).max() < 3e-6  # what the as-found errors predicted
+    # the machine's own squareness, compensation added back, is unchanged
+    own = report.as_left.post.fit.tables.model("").squareness_rad()
+    assert np.abs(own - found).max() < 3e-6

@@ -15,7 +15,13 @@ from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
-from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, deviation
+from xmalign.rigid_body import (
+    Chain,
+    ErrorModel,
+    ErrorTables,
+    deviation,
+    slopes_as_squareness_rad,
+)
 
 
 @dataclass
@@ -55,6 +61,18 @@ class PostResult:
 
         model = self.fit.tables.model(direction)
         return model if self.applied is None else RemainingErrors(model, self.applied)
+
+    def tool_point_squareness_rad(self) -> Vec:
+        """``[EC0Y, EA0Z, EB0Z]`` (rad) as the tool point sees them, compensation in.
+
+        A cross table that corrects one axis linearly with another takes out
+        squareness; in the table convention that slope belongs to the squareness.
+        """
+        squareness = self.fit.tables.model("").squareness_rad()
+        if self.applied is None:
+            return squareness
+        applied = self.applied.squareness_rad() + slopes_as_squareness_rad(self.applied.tables)
+        return squareness - applied
 
     @property
     def notes(self) -> list[str]:
