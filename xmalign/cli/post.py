@@ -267,6 +267,12 @@ def comp(
         f" ({100 * fit.removed_share:.0f} % removed; {fit.grid_points} grid points)",
         highlight=False,
     )
+    if not fit.converged:
+        error_console.print(
+            f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
+            " grid; check the tables before loading them",
+            highlight=False,
+        )
     if not fit.removes_enough:
         error_console.print(
             f"[yellow]warning:[/] {name}\x27s tables remove less than half of the predicted error"

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
@@ -32,8 +33,8 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, ErrorModel, ErrorTables,
 PITCH = tuple((axis, axis) for axis in AXES)
 #: One-variable cross tables: every axis corrected as a function of every axis.
 CROSS = tuple((output, axis) for axis in AXES for output in AXES)
-#: Evaluation points per axis at most (the grid has this many cubed).
-MAX_GRID_PER_AXIS = 31
+#: Above this many grid points the midpoints between table nodes are left out.
+MAX_GRID_POINTS = 400_000
 #: Fewer than this share of the error removed is worth a warning.
 WARN_REMOVED_SHARE = 0.5
 
@@ -98,24 +99,38 @@ def node_positions(tables: ErrorTableSet, axis: str) -> Vec:
 
 
 def travel_grid(nodes_mm: dict[str, Vec], low_mm: Vec, high_mm: Vec) -> Vec:
-    """Points over the whole travel: per axis the nodes, midpoints and ends, shape (N, 3)."""
+    """Points over the whole travel, shape (N, 3): the grid of every axis's table nodes,
+    travel ends and (while the grid stays under :data:`MAX_GRID_POINTS`) the midpoints.
+
+    Every node is a grid coordinate, so every table value is pinned by the fit.
+    """
     per_axis = []
     for axis in AXES:
         k = AXIS_INDEX[axis]
-        nodes = nodes_mm[axis]
-        count = min(max(2 * len(nodes) - 1, 3), MAX_GRID_PER_AXIS)
-        values = np.union1d(np.linspace(low_mm[k], high_mm[k], count), nodes)
-        values = values[(values >= low_mm[k]) & (values <= high_mm[k])]
-        if len(values) > MAX_GRID_PER_AXIS:
-            values = np.linspace(low_mm[k], high_mm[k], MAX_GRID_PER_AXIS)
-        per_axis.append(values)
+        values = np.union1d(nodes_mm[axis], [low_mm[k], high_mm[k]])
+        per_axis.append(values[(values >= low_mm[k]) & (values <= high_mm[k])])
+    with_midpoints = [np.union1d(v, 0.5 * (v[1:] + v[:-1])) for v in per_axis]
+    if np.prod([len(v) for v in with_midpoints]) <= MAX_GRID_POINTS:
+        per_axis = with_midpoints
     return np.stack(np.meshgrid(*per_axis, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def hat_basis(nodes_mm: Vec, x_mm: Vec) -> Vec:
-    """Linear-interpolation weights of ``x`` on ``nodes`` (end values held), shape (N, M)."""
-    identity = np.eye(len(nodes_mm))
-    return np.stack([np.interp(x_mm, nodes_mm, row) for row in identity], axis=-1)
+def hat_basis(nodes_mm: Vec, x_mm: Vec) -> scipy.sparse.csr_array:
+    """Linear-interpolation weights of ``x`` on ``nodes`` (end values held), sparse (N, M)."""
+    count = len(nodes_mm)
+    x = np.clip(x_mm, nodes_mm[0], nodes_mm[-1])
+    right = np.clip(np.searchsorted(nodes_mm, x, side="right"), 1, max(count - 1, 1))
+    left = right - 1
+    span = nodes_mm[np.minimum(right, count - 1)] - nodes_mm[left]
+    weight = np.divide(x - nodes_mm[left], span, out=np.zeros_like(x), where=span > 0)
+    rows = np.arange(len(x))
+    return scipy.sparse.csr_array(
+        (
+            np.concatenate([1.0 - weight, weight]),
+            (np.concatenate([rows, rows]), np.concatenate([left, np.minimum(right, count - 1)])),
+        ),
+        shape=(len(x), count),
+    )
 
 
 def _rms_um(residual_mm: Vec) -> float:
@@ -135,9 +150,12 @@ def _fit_field(
         if not inputs:
             continue
         blocks = [hat_basis(nodes[a], points_mm[:, AXIS_INDEX[a]]) for a in inputs]
-        design = np.concatenate([*blocks, np.ones((len(points_mm), 1))], axis=1)
+        constant = scipy.sparse.csr_array(np.ones((len(points_mm), 1)))
+        design = scipy.sparse.hstack([*blocks, constant], format="csr")
         target = field_mm[:, AXIS_INDEX[output]]
-        solution, _, rank, _ = np.linalg.lstsq(design, target, rcond=None)
+        # the normal equations are small (one unknown per table node) and well conditioned
+        normal = (design.T @ design).toarray()
+        solution, _, rank, _ = np.linalg.lstsq(normal, design.T @ target, rcond=1e-12)
         converged &= bool(np.all(np.isfinite(solution)))
         # rank deficiency is only the shared constants (one per extra input)
         converged &= rank >= design.shape[1] - len(inputs)
@@ -219,18 +237,15 @@ def fit_compensation(
     t = np.asarray(tool_offset_mm, dtype=float)
     directions = ("+", "-") if _has_directions(tables) else ("",)
     fields = {d: _field(chain, points, t, tables.model(d)) for d in directions}
-    mean_field = _field(chain, points, t, tables.model(""))
     if model.volumetric:
         mean = forward = reverse = tables.model("")
         if directions != ("",):
             forward, reverse = tables.model("+"), tables.model("-")
         converged = True
     else:
-        fitted, converged = _fit_field(model, nodes, points, mean_field)
-        fitted = _zero_at(fitted, np.asarray(reference_mm, dtype=float))
-        mean = ErrorTables(tables=fitted)
-        forward = ErrorTables(tables=_with_reversal(model, tables, fitted, "+"))
-        reverse = ErrorTables(tables=_with_reversal(model, tables, fitted, "-"))
+        mean, converged = fit_tables(model, nodes, chain, points, t, reference_mm, tables.model(""))
+        forward = ErrorTables(tables=_with_reversal(model, tables, mean.tables, "+"))
+        reverse = ErrorTables(tables=_with_reversal(model, tables, mean.tables, "-"))
     applied = {"": mean, "+": forward, "-": reverse}
     before = np.concatenate([fields[d] for d in directions])
     after = np.concatenate([fields[d] - _field(chain, points, t, applied[d]) for d in directions])
@@ -244,6 +259,41 @@ def fit_compensation(
         grid_points=len(points),
         converged=converged,
     )
+
+
+def fit_tables(
+    model: CompModel,
+    nodes_mm: dict[str, Vec],
+    chain: Chain,
+    points_mm: Vec,
+    tool_offset_mm: Vec,
+    reference_mm: Vec,
+    errors: ErrorModel,
+) -> tuple[ErrorTables, bool]:
+    """A controller's one-variable tables fitted to the field of ``errors`` (direction-free).
+
+    Parameters
+    ----------
+    nodes_mm : dict of str to ndarray
+        Table positions per input axis, mm.
+    points_mm : ndarray, shape (N, 3)
+        Where the field is fitted (:func:`travel_grid`).
+    tool_offset_mm : ndarray, shape (3,)
+    reference_mm : ndarray, shape (3,)
+        The tables are zero there.
+    errors : ErrorModel
+        The errors to compensate: ``post``'s tables, or a simulator's truth.
+
+    Returns
+    -------
+    tables : ErrorTables
+    converged : bool
+        False when the grid left a table value undetermined.
+    """
+    field_mm = _field(chain, points_mm, tool_offset_mm, errors)
+    fitted, converged = _fit_field(model, nodes_mm, points_mm, field_mm)
+    fitted = _zero_at(fitted, np.asarray(reference_mm, dtype=float))
+    return ErrorTables(tables=fitted), converged
 
 
 def _has_directions(tables: ErrorTableSet) -> bool:

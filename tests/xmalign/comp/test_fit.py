@@ -123,3 +123,18 @@ def test_remaining_errors_are_the_model_minus_the_tables(machine):
 def test_every_controller_formats_the_shared_fit(controller, machine):
     result = compensate(machine, make_tables({"EXX": [0, 5, 3, 1, 0]}), controller)
     assert result.fit.converged and result.files
+
+
+def test_every_node_of_a_long_table_is_pinned(machine):
+    """81 nodes per axis (post writes tables at a quarter of the target spacing): the fit
+    must still give every node its value (it once evaluated 31 points per axis at most,
+    leaving the nodes between them to a minimum-norm guess)."""
+    n = 81
+    wave = 5.0 * np.sin(np.linspace(0.0, 9.0 * np.pi, n))
+    tables = make_tables({"EXX": wave, "EYY": -wave, "EZZ": 0.5 * wave}, n=n)
+    for model in (CompModel(PITCH, False), CompModel(CROSS, False)):
+        fit = _fit(model, tables, machine)
+        assert fit.converged
+        assert fit.after_um == pytest.approx(0.0, abs=1e-9) and fit.before_um > 3.0
+        positions, values = fit.table("X", "X")
+        np.testing.assert_allclose(values * 1e3, wave - wave[0], atol=1e-9)
