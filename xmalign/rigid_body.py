@@ -111,18 +111,6 @@ class ErrorModel(Protocol):
         ...
 
 
-def slopes_as_squareness_rad(tables: dict[str, tuple[Vec, Vec]]) -> Vec:
-    """The squareness ``[EC0Y, EA0Z, EB0Z]`` (rad) that the straightness tables' end-point
-    slopes amount to, shape (3,) (tables: name -> (positions mm, values mm))."""
-    squareness = np.zeros(3)
-    for name, (positions, values) in tables.items():
-        if name in SLOPE_TO_SQUARENESS and len(positions) > 1:
-            target, sign = SLOPE_TO_SQUARENESS[name]
-            slope = (values[-1] - values[0]) / (positions[-1] - positions[0])
-            squareness[SQUARENESS_NAMES.index(target)] += sign * slope
-    return squareness
-
-
 def squareness_deviation(machine_mm: ArrayLike, squareness_rad: ArrayLike) -> Vec:
     """Deviation caused by ``[EC0Y, EA0Z, EB0Z]`` at CNC points, mm, shape (N, 3)."""
     k = np.atleast_2d(np.asarray(machine_mm, dtype=float))

@@ -179,7 +179,7 @@ def post(
             write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
     if verification is not None:
-        console.print(_as_left(result, verification))
+        console.print(_as_left(machine_, result, verification))
     for note in dict.fromkeys(result.notes):
         console.print(note, markup=False, soft_wrap=True)
     drift = [check for c in result.compensation for check in c.drift]
@@ -205,10 +205,10 @@ def _post_verification(
     return post_stations(machine_, stations, applied)
 
 
-def _as_left(result: PostResult, verification: PostResult) -> RichTable:
+def _as_left(machine: Machine, result: PostResult, verification: PostResult) -> RichTable:
     from xmalign.report import as_left_table
 
-    table = as_left_table(result, verification)
+    table = as_left_table(machine, result, verification)
     shown = RichTable(title=table.title)
     for number, name in enumerate(table.header):
         shown.add_column(name, justify="right" if number > 1 else "left")

@@ -10,8 +10,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.geometry import Vec, skew
-from xmalign.rigid_body import Chain, ErrorModel, deviation
+from xmalign.post.ranges import measured_range_mm
+from xmalign.rigid_body import (
+    AXES,
+    TRANSLATION_NAMES,
+    Chain,
+    ErrorModel,
+    deviation,
+    squareness_deviation,
+)
 
 
 def remove_rigid_motion(points_mm: Vec, difference_mm: Vec) -> Vec:
@@ -48,3 +57,44 @@ def volumetric_rms_um(
     dp_reference, _ = deviation(chain, points_mm, np.zeros(3), reference)
     residual = remove_rigid_motion(points_mm, dp_model - dp_reference)
     return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1e3)
+
+
+def measured_box_mm(tables: ErrorTableSet) -> tuple[Vec, Vec]:
+    """Per axis, the measured range of its positioning table: lower and upper, (3,) each."""
+    low, high = np.zeros(3), np.zeros(3)
+    for k, axis in enumerate(AXES):
+        name = TRANSLATION_NAMES[axis][k]
+        table = next(tables.tables[n] for n in (name, name + "+", name + "-") if n in tables.tables)
+        low[k], high[k] = measured_range_mm(table)
+    return low, high
+
+
+def _shears(points_mm: Vec, dp_mm: Vec) -> Vec:
+    """The shears (xy, yz, xz) of a field's least-squares linear part, shape (3,)."""
+    design = np.concatenate([np.ones((len(points_mm), 1)), points_mm], axis=1)
+    coefficients, *_ = np.linalg.lstsq(design, dp_mm, rcond=None)
+    gradient = coefficients[1:].T  # gradient[i, j] = d dp_i / d p_j
+    return np.array(
+        [
+            gradient[0, 1] + gradient[1, 0],
+            gradient[1, 2] + gradient[2, 1],
+            gradient[0, 2] + gradient[2, 0],
+        ],
+        dtype=float,
+    )
+
+
+def tool_point_squareness_rad(chain: Chain, points_mm: Vec, model: ErrorModel) -> Vec:
+    """The squareness ``[EC0Y, EA0Z, EB0Z]`` the tool point shows over ``points``, rad (3,).
+
+    The shear of the volumetric error's linear part (a rigid rotation has none),
+    in the units of the three squareness errors: the machine's squareness plus
+    what the angular errors' Abbe terms and any loaded compensation add to it.
+    Comparable between a machine as found and as left; equal to the model's own
+    squareness only when nothing else is linear across the axes.
+    """
+    unit = np.column_stack(
+        [_shears(points_mm, squareness_deviation(points_mm, e)) for e in np.eye(3)]
+    )
+    dp_mm, _ = deviation(chain, points_mm, np.zeros(3), model)
+    return np.asarray(np.linalg.solve(unit, _shears(points_mm, dp_mm)), dtype=np.float64)

@@ -15,13 +15,7 @@ from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
-from xmalign.rigid_body import (
-    Chain,
-    ErrorModel,
-    ErrorTables,
-    deviation,
-    slopes_as_squareness_rad,
-)
+from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, deviation
 
 
 @dataclass
@@ -61,18 +55,6 @@ class PostResult:
 
         model = self.fit.tables.model(direction)
         return model if self.applied is None else RemainingErrors(model, self.applied)
-
-    def tool_point_squareness_rad(self) -> Vec:
-        """``[EC0Y, EA0Z, EB0Z]`` (rad) as the tool point sees them, compensation in.
-
-        A cross table that corrects one axis linearly with another takes out
-        squareness; in the table convention that slope belongs to the squareness.
-        """
-        squareness = self.fit.tables.model("").squareness_rad()
-        if self.applied is None:
-            return squareness
-        applied = self.applied.squareness_rad() + slopes_as_squareness_rad(self.applied.tables)
-        return squareness - applied
 
     @property
     def notes(self) -> list[str]:
@@ -115,9 +97,9 @@ def post_stations(
 
     ``applied``: the compensation the controller applied while measuring (a
     verification run). Its shift of the tool point is added back to the
-    readings before the fit, because a compensated machine is no rigid-body
-    chain (its axes still tilt, its tool point does not move with them); the
-    ISO 230-2 figures stay those of the readings (as left).
+    readings before the fit: a volumetric compensation moves the tool point by
+    tilts times lever arms, which leaves no rigid-body chain to fit; the ISO
+    230-2 figures stay those of the readings (as left).
     """
     compensation = [compensate(machine, station) for station in stations]
     lines = [
