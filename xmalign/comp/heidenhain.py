@@ -18,9 +18,15 @@ One table per axis (``X.COM`` = everything that depends on X): the fitted
 one-variable cross tables of that input axis (its own positioning, and the
 straightness, squareness and mean Abbe effect it causes in the other two
 axes), zero at the reference point, and with bidirectional data its own
-negative-direction values in ``BACKLASH``. Values are corrections (minus the
-error, mm); the sign convention is xmalign's reading of "compensation value"
-(docs/controllers.md).
+negative-direction values in ``BACKLASH``.
+
+Values are the *errors* (mm, actual minus nominal), not corrections: the
+technical manuals enter "only the compensation points of the error curve" in a
+correction table (TNC 306/TNC 406 Technical Manual, 3/97, "Machine axes",
+nonlinear axis-error compensation, p. 4-21: the example table holds the plotted
+error curve's values) and give the linear axis error MP720 "with the correct
+sign: positive if the table travel is too long" (TNC 407/415/425 Technical
+Manual, 01.98, p. 4-26); the control takes them out.
 """
 
 from __future__ import annotations
@@ -49,12 +55,12 @@ def _row(cells: list[str]) -> str:
 
 
 def _com_columns(fit: CompensationFit, axis: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Positions and column name -> corrections (mm) of the table that depends on ``axis``."""
+    """Positions and column name -> errors (mm) of the table that depends on ``axis``."""
     grid, _ = fitted(fit, axis, axis)
-    columns = {output: -fitted(fit, output, axis)[1] for output in AXES}
+    columns = {output: fitted(fit, output, axis)[1] for output in AXES}
     if has_reversal(fit, axis):
-        columns[axis] = -fitted(fit, axis, axis, "+")[1]
-        columns["BACKLASH"] = -fitted(fit, axis, axis, "-")[1]
+        columns[axis] = fitted(fit, axis, axis, "+")[1]
+        columns["BACKLASH"] = fitted(fit, axis, axis, "-")[1]
     return grid.positions_mm, columns
 
 

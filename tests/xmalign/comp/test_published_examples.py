@@ -6,6 +6,8 @@
 - ``sinumerik_k3_eec_example.ini``: the ``%_N_AX_EEC_INI`` example of the
   SINUMERIK 840D sl Function Manual Extended Functions, K3 "Compensations",
   4.4.2.3 "Example" (6FC5397-1BP40-3BA1, 03/2013, p. 242), points 3 .. 799 left out.
+- the FANUC Series 0i-PB Parameter Manual's pitch compensation example (values in
+  the test below).
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from tests.xmalign.comp.conftest import make_machine, make_tables, with_reversal
-from xmalign.comp import compensate
+from xmalign.comp import compensate, fanuc
+from xmalign.comp.fit import CompensationFit
+from xmalign.rigid_body import ErrorTables
 
 EXAMPLES = Path(__file__).parent / "examples"
 NUMBER = r"[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?"
@@ -75,3 +79,81 @@ def test_our_eec_init_program_has_the_manuals_structure():
         span = values["AA_ENC_COMP_MAX"] - values["AA_ENC_COMP_MIN"]
         assert max(points) * values["AA_ENC_COMP_STEP"] == np.float64(span)
         assert values["AA_ENC_COMP_IS_MODULO"] == 0
+
+
+#: FANUC Series 0i-PB Parameter Manual (B-63980EN/01), parameters 3620-3624, p. 100,
+#: "Example 1) For linear axis": reference position at 0 mm is compensation point No. 40,
+#: points every 50 mm; the incremental compensation values of points No. 33 .. 49.
+FANUC_EXAMPLE_FIRST = 33
+FANUC_EXAMPLE_REFERENCE = 40
+FANUC_EXAMPLE_VALUES = [2, 1, 1, -2, 0, -1, 0, -1, 2, 1, 0, -1, -1, -2, 0, 1, 2]
+
+
+def test_our_fanuc_pitch_data_reproduce_the_parameter_manuals_example():
+    # the absolute compensation the manual's figure plots, rebuilt from its increments:
+    # point R + i carries the change over the section ending at i x 50 mm
+    increments = np.array(FANUC_EXAMPLE_VALUES)
+    i = np.arange(FANUC_EXAMPLE_FIRST - FANUC_EXAMPLE_REFERENCE - 1, 10)  # -8 .. 9
+    steps = increments[i[1:] - i[0] - 1]
+    correction = np.concatenate([[0], np.cumsum(steps)])
+    correction -= correction[list(i).index(0)]  # zero at the reference position
+    positions = i * 50.0
+    error_mm = -correction * 1e-3  # 1 um detection unit; a correction is minus the error
+    tables = ErrorTables(tables={"EXX": (positions, error_mm)})
+    fit = CompensationFit(fanuc.MODEL, tables, tables, tables, 1.0, 0.0, 1, True)
+    machine = make_machine(controller="fanuc", detection_unit_um=1.0)
+    table = fanuc.pitch_table("X", fit, machine, next_free=FANUC_EXAMPLE_FIRST)
+    assert table.first_number == FANUC_EXAMPLE_FIRST
+    assert table.reference_number == FANUC_EXAMPLE_REFERENCE
+    assert table.last_number == FANUC_EXAMPLE_FIRST + len(FANUC_EXAMPLE_VALUES) - 1
+    assert (table.interval_units, table.magnification) == (50_000, 1)
+    assert table.values.tolist() == FANUC_EXAMPLE_VALUES
+
+
+#: The ISG CSV format's programming examples (Beckhoff Information System, TF5280
+#: Volumetric Compensation, "ISG CSV format"), the elided values left out.
+ISG_EXAMPLE = """// The header only contains position errors.
+Y0A Z0A X0B
+// Position errors are typically (but not necessarily)
+// constant. Therefore, one data row is usually sufficient here.
+0.1 0.2 0.11
+#
+// The header contains the argument "X" and component errors.
+X EXX EYX EZX EAX EBX ECX
+0.0 0.02 0.01 0.07 0.00 0.0042 0.003
+10.0 0.00 -0.1 0.01 0.00 0.0011 0.002
+"""
+#: Names the same documentation lists as supported ("List of parameters supported").
+ISG_POSITION_ERRORS = {f"{a}0{b}" for a in "XYZABC" for b in "XYZABC"}
+ISG_COMPONENT_ERRORS = {f"E{a}{b}" for a in "XYZABC" for b in "XYZABC"}
+
+
+def _isg_blocks(text: str) -> list[tuple[list[str], np.ndarray]]:
+    """(header, records) of every block, read by the format's rules: ``//`` comments,
+    ``#`` file breaks, a header naming arguments and parameters, numeric records."""
+    blocks = []
+    for part in text.split("\n#\n"):
+        lines = [line.split() for line in part.splitlines() if line and not line.startswith("//")]
+        header, rows = lines[0], lines[1:]
+        assert rows and all(len(row) == len(header) for row in rows), part
+        blocks.append((header, np.array(rows, dtype=float)))
+    return blocks
+
+
+def test_our_isg_file_follows_the_isg_csv_format_and_its_parameter_names():
+    for header, _ in _isg_blocks(ISG_EXAMPLE):  # the reader reads the published example
+        assert set(header) <= ISG_POSITION_ERRORS | ISG_COMPONENT_ERRORS | set("XYZ")
+    rng = np.random.default_rng(8)
+    tables = make_tables({name: rng.normal(0, 3, 5) for name in ("EXX", "EYX", "EBY")}, EC0Y=4)
+    ours = _isg_blocks(compensate(make_machine(), tables, "isg").files["vol_comp.csv"])
+    example_x_header = _isg_blocks(ISG_EXAMPLE)[1][0]
+    assert [header for header, _ in ours] == [
+        ["C0Y", "A0Z", "B0Z"],
+        example_x_header,
+        ["Y", "EXY", "EYY", "EZY", "EAY", "EBY", "ECY"],
+        ["Z", "EXZ", "EYZ", "EZZ", "EAZ", "EBZ", "ECZ"],
+    ]
+    for header, records in ours:
+        assert set(header) <= ISG_POSITION_ERRORS | ISG_COMPONENT_ERRORS | set("XYZ")
+        if header[0] in "XYZ":
+            assert np.all(np.diff(records[:, 0]) > 0)  # records ordered by their argument

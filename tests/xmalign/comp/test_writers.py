@@ -120,9 +120,9 @@ def test_heidenhain_com_and_cma():
     com = files["X.COM"].splitlines()
     assert com[0] == "BEGIN X.COM MM" and com[-1] == "[END]"
     assert com[1].split() == ["NR", "AXISPOS", "X", "Y", "Z", "BACKLASH"]
-    # correction = minus the error; forward in X, negative direction in BACKLASH
-    assert com[3].split() == ["1", "+100.0000", "-0.00400", "+0.00000", "+0.00000", "-0.00600"]
-    assert com[4].split()[4] == "-0.00400"
+    # the error itself (the manuals' error curve); forward in X, negative direction in BACKLASH
+    assert com[3].split() == ["1", "+100.0000", "+0.00400", "+0.00000", "+0.00000", "+0.00600"]
+    assert com[4].split()[4] == "+0.00400"
     assert files["Y.COM"].splitlines()[1].split() == ["NR", "AXISPOS", "X", "Y", "Z"]
     cma = files["CONFIG.CMA"].splitlines()
     assert cma[1].split() == ["NR", "X", "Y", "Z", "ACTIVE"]
