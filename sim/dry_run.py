@@ -28,7 +28,6 @@ from xmalign.calibration import (
     RunOutput,
     open_run_output,
 )
-from xmalign.comp import RemainingErrors
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
@@ -44,7 +43,7 @@ from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
-from xmalign.rigid_body import Chain, ErrorTables
+from xmalign.rigid_body import Chain, ErrorTables, RemainingErrors
 from xmalign.steps import (
     PROGRAM_SUFFIX,
     RunStepDevices,

@@ -171,3 +171,19 @@ class ErrorTables:
 
     def squareness_rad(self) -> Vec:
         return np.array([self.squareness.get(name, 0.0) for name in SQUARENESS_NAMES])
+
+
+@dataclass(frozen=True)
+class RemainingErrors:
+    """An error model minus the translation tables a controller applies (an ErrorModel)."""
+
+    model: ErrorModel
+    applied: ErrorTables
+
+    def motions(self, axis: str, position_mm: Vec) -> tuple[Vec, Vec]:
+        delta, eps = self.model.motions(axis, position_mm)
+        applied, applied_eps = self.applied.motions(axis, position_mm)
+        return delta - applied, eps - applied_eps
+
+    def squareness_rad(self) -> Vec:
+        return self.model.squareness_rad() - self.applied.squareness_rad()

@@ -13,6 +13,7 @@ both directions) is printed next to:
 - the best that controller's model allows: the same tables (nodes, reference
   point) fitted by the same code (``fit_tables``) to the *true* error field of
   the virtual machine instead of the one ``post`` predicts;
+- Fanuc with its straightness compensation option loaded too (``STRAIGHTNESS.TXT``);
 - the full 21-error model ``post`` fitted, applied ideally;
 - no compensation.
 
@@ -36,11 +37,11 @@ from bench_linuxcnc_volumetric import TOOL_OFFSET_MM, fitted_tables, held_out_ma
 
 from sim.machine import VirtualMachine  # noqa: E402
 from xmalign.comp import WRITERS, compensate, writer  # noqa: E402
-from xmalign.comp.fit import fit_tables, node_positions, travel_grid  # noqa: E402
+from xmalign.comp.fit import CompModel, fit_tables, node_positions, travel_grid  # noqa: E402
 from xmalign.formats.error_tables import ErrorTableSet  # noqa: E402
 from xmalign.machine import Machine  # noqa: E402
 from xmalign.post.compare import grid_points, remove_rigid_motion  # noqa: E402
-from xmalign.rigid_body import AXES, Chain, ErrorModel, deviation  # noqa: E402
+from xmalign.rigid_body import AXES, Chain, ErrorModel, ErrorTables, deviation  # noqa: E402
 
 MACHINES = (("FYXZ", 9101), ("FYXZ", 9202), ("XFYZ", 9303))
 CONTROLLERS = tuple(name for name in WRITERS if name != "linuxcnc-volumetric")
@@ -61,13 +62,27 @@ def controller_model(machine: Machine, tables: ErrorTableSet, controller: str) -
     return compensate(machine, tables, controller).fit.mean
 
 
+def with_option(machine: Machine, tables: ErrorTableSet, controller: str) -> ErrorModel | None:
+    """The controller's tables and its option's (Fanuc straightness) together, or None."""
+    fit = compensate(machine, tables, controller).fit
+    if fit.optional is None:
+        return None
+    return ErrorTables(tables={**fit.mean.tables, **fit.optional.tables})
+
+
 def best_model(
-    machine: Machine, tables: ErrorTableSet, controller: str, truth: VirtualMachine
+    machine: Machine,
+    tables: ErrorTableSet,
+    controller: str,
+    truth: VirtualMachine,
+    option: bool = False,
 ) -> ErrorModel:
-    """The controller's tables on our nodes, fitted to the true error field."""
+    """The controller's tables (with its option) on our nodes, fitted to the true field."""
     model = writer(controller).MODEL
     if model.volumetric:
         return truth
+    if option:
+        model = CompModel(model.pairs + model.optional, directional=False)
     nodes = {axis: node_positions(tables, axis) for axis in AXES}
     points = travel_grid(nodes, machine.travel_min_mm, machine.travel_max_mm)
     chain = Chain.parse(machine.chain)
@@ -82,8 +97,10 @@ def main() -> None:
         "residual over the whole travel, um RMS (rigid motion removed, t = [0, 0, -100] mm):"
         " after each controller's tables (best its model allows), the full model, none"
     )
-    print(f"| machine | {' | '.join(CONTROLLERS)} | full model | none |")
-    print("|---" * (len(CONTROLLERS) + 3) + "|")
+    options = [name for name in CONTROLLERS if writer(name).MODEL.optional]
+    columns = [*CONTROLLERS, *(f"{name} + option" for name in options)]
+    print(f"| machine | {' | '.join(columns)} | full model | none |")
+    print("|---" * (len(columns) + 3) + "|")
     for chain_name, seed in MACHINES:
         machine = held_out_machine(chain_name)
         chain = Chain.parse(chain_name)
@@ -95,6 +112,10 @@ def main() -> None:
             ours = left_um(chain, truth, controller_model(machine, tables, controller), points)
             best = left_um(chain, truth, best_model(machine, tables, controller, truth), points)
             cells.append(f"{ours:.2f} ({best:.2f})")
+        for controller in options:
+            ours = left_um(chain, truth, with_option(machine, tables, controller), points)
+            model = best_model(machine, tables, controller, truth, option=True)
+            cells.append(f"{ours:.2f} ({left_um(chain, truth, model, points):.2f})")
         full = left_um(chain, truth, tables.model(""), points)
         none = left_um(chain, truth, None, points)
         print(f"| {chain_name} {seed} | {' | '.join(cells)} | {full:.2f} | {none:.1f} |")

@@ -267,6 +267,12 @@ def comp(
         f" ({100 * fit.removed_share:.0f} % removed; {fit.grid_points} grid points)",
         highlight=False,
     )
+    if fit.after_optional_um is not None:
+        console.print(
+            f"with the optional tables too: {fit.after_optional_um:.2f} um"
+            f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
+            highlight=False,
+        )
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"

@@ -15,9 +15,8 @@ from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
 from xmalign.comp.fit import CompensationFit, fit_compensation
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.geometry import Vec
 from xmalign.machine import Machine
-from xmalign.rigid_body import Chain, ErrorModel, ErrorTables
+from xmalign.rigid_body import Chain, ErrorModel, RemainingErrors
 
 WRITERS: dict[str, ModuleType] = {
     module.NAME: module for module in (sinumerik, fanuc, heidenhain, linuxcnc, isg)
@@ -61,22 +60,6 @@ def compensate(machine: Machine, tables: ErrorTableSet, controller: str) -> Comp
     return Compensation(controller, fit, writer(controller).render(fit, machine))
 
 
-@dataclass(frozen=True)
-class RemainingErrors:
-    """An error model minus the translation tables a controller applies (an ErrorModel)."""
-
-    model: ErrorModel
-    applied: ErrorTables
-
-    def motions(self, axis: str, position_mm: Vec) -> tuple[Vec, Vec]:
-        delta, eps = self.model.motions(axis, position_mm)
-        applied, applied_eps = self.applied.motions(axis, position_mm)
-        return delta - applied, eps - applied_eps
-
-    def squareness_rad(self) -> Vec:
-        return self.model.squareness_rad() - self.applied.squareness_rad()
-
-
 def remaining_errors(tables: ErrorTableSet, controller: str, machine: Machine) -> ErrorModel:
     """The error model left after the controller's fitted tables (direction-free)."""
     return RemainingErrors(tables.model(""), fit_for(machine, tables, controller).mean)
@@ -85,7 +68,6 @@ def remaining_errors(tables: ErrorTableSet, controller: str, machine: Machine) -
 __all__ = [
     "WRITERS",
     "Compensation",
-    "RemainingErrors",
     "compensate",
     "fit_for",
     "remaining_errors",

@@ -25,7 +25,14 @@ is taken to be made in the positive direction). The detection unit is the
 machine file's ``cnc.detection_unit_um`` (1 um for IS-B, 0.1 um for IS-C).
 Bit parameter 3605#0 and the power cycle are left to the operator
 (``PITCH_README.TXT``): a tape would overwrite the other bits of 3605.
-Straightness compensation (an option with its own parameters) is not written.
+
+Straightness compensation is a Fanuc option with its own parameters, whose
+numbers and layout differ between series and could not be checked against a
+manual: xmalign writes no tape for it but ``STRAIGHTNESS.TXT``, the
+corrections of each other axis at the moving axis's pitch points (detection
+units, absolute, zero at the reference position) to enter by hand. They are
+fitted to what the pitch tables leave, so the pitch tables are right with or
+without the option.
 """
 
 from __future__ import annotations
@@ -35,14 +42,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from xmalign.comp.common import axis_number, check_count, has_reversal
-from xmalign.comp.fit import PITCH, CompensationFit, CompModel
+from xmalign.comp.fit import PITCH, STRAIGHTNESS, CompensationFit, CompModel
 from xmalign.errors import OutOfRangeError
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXES
 
 NAME = "fanuc"
-MODEL = CompModel(pairs=PITCH, directional=True)
+MODEL = CompModel(pairs=PITCH, directional=True, optional=STRAIGHTNESS)
 MAX_POINTS_PER_AXIS = 128
 MAX_POINTS_TOTAL = 1024
 MAX_VALUE = 127
@@ -202,12 +209,48 @@ def render_readme(tables: list[PitchTable], machine: Machine) -> str:
     lines += [
         "Load PITCH.TXT (parameters and pitch data) with parameter write enabled,",
         "switch the CNC off and on, then make a reference position return on every axis.",
-        "Straightness compensation (an option) is not written by xmalign.",
+        "STRAIGHTNESS.TXT: for the straightness compensation option (if the machine has it),",
+        "corrections to enter by hand; set up the option by the CNC's own manual.",
     ]
+    return "\n".join(lines) + "\n"
+
+
+def _pitch_points_mm(positions_mm: Vec, reference_mm: float, unit_mm: float) -> Vec:
+    """The pitch compensation points over a table's positions (as :func:`pitch_table`)."""
+    interval_mm = max(int(round(np.mean(np.diff(positions_mm)) / unit_mm)), 1) * unit_mm
+    return reference_mm + _sections(positions_mm, reference_mm, interval_mm) * interval_mm
+
+
+def render_straightness(fit: CompensationFit, machine: Machine) -> str:
+    """The optional straightness corrections, a table per moving axis (detection units)."""
+    assert fit.optional is not None
+    unit_mm = machine.cnc.detection_unit_um * 1e-3
+    lines = [
+        "xmalign: FANUC straightness compensation (optional, enter by hand)",
+        f"Corrections in detection units ({machine.cnc.detection_unit_um:g} um), absolute,"
+        " zero at the reference position, at the moving axis's pitch compensation points.",
+    ]
+    for moving in AXES:
+        reference = float(machine.cnc.reference[AXES.index(moving)])
+        others = [axis for axis in AXES if axis != moving]
+        positions, _ = fit.optional.tables[f"E{others[0]}{moving}"]
+        at = _pitch_points_mm(positions, reference, unit_mm)
+        lines += ["", f"moving axis {moving}", "  ".join([f"{moving} mm", *others])]
+        columns = []
+        for axis in others:
+            table = fit.optional.tables[f"E{axis}{moving}"]
+            error = np.interp(at, *table) - np.interp(reference, *table)
+            columns.append(np.round(-error / unit_mm).astype(int))
+        for k, position in enumerate(at):
+            lines.append("  ".join([f"{position:.3f}", *(f"{c[k]:+d}" for c in columns)]))
     return "\n".join(lines) + "\n"
 
 
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the parameter tape and its instructions."""
     tables = pitch_tables(fit, machine)
-    return {"PITCH.TXT": render_tape(tables), "PITCH_README.TXT": render_readme(tables, machine)}
+    return {
+        "PITCH.TXT": render_tape(tables),
+        "PITCH_README.TXT": render_readme(tables, machine),
+        "STRAIGHTNESS.TXT": render_straightness(fit, machine),
+    }

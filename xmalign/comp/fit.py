@@ -27,12 +27,22 @@ import scipy.sparse
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.geometry import Vec
-from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, ErrorModel, ErrorTables, deviation
+from xmalign.rigid_body import (
+    AXES,
+    AXIS_INDEX,
+    Chain,
+    ErrorModel,
+    ErrorTables,
+    RemainingErrors,
+    deviation,
+)
 
 #: Per-axis pitch: each axis corrected as a function of its own position.
 PITCH = tuple((axis, axis) for axis in AXES)
 #: One-variable cross tables: every axis corrected as a function of every axis.
 CROSS = tuple((output, axis) for axis in AXES for output in AXES)
+#: Straightness: every axis corrected as a function of each other axis.
+STRAIGHTNESS = tuple(pair for pair in CROSS if pair[0] != pair[1])
 #: Above this many grid points the midpoints between table nodes are left out.
 MAX_GRID_POINTS = 400_000
 #: Fewer than this share of the error removed is worth a warning.
@@ -46,12 +56,16 @@ class CompModel:
     ``pairs`` lists ``(output axis, input axis)`` of the one-variable tables;
     ``directional`` says whether an axis's own table can differ by direction
     of travel; ``volumetric`` means the controller applies the full rigid-body
-    model itself (the fitted tables are then ``post``'s own).
+    model itself (the fitted tables are then ``post``'s own). ``optional``
+    lists tables of a controller option (e.g. Fanuc's straightness
+    compensation): fitted to what ``pairs`` leave, so ``pairs`` stay right
+    without the option.
     """
 
     pairs: tuple[tuple[str, str], ...]
     directional: bool
     volumetric: bool = False
+    optional: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -62,6 +76,8 @@ class CompensationFit:
     negative direction (equal when the model or the data has no direction);
     ``mean`` is the direction-free fit. Residuals are RMS vector lengths over
     the grid and both directions, um, after removing the mean offset.
+    ``optional`` holds the tables of the model's option (none without one) and
+    ``after_optional_um`` the residual with them loaded too.
     """
 
     model: CompModel
@@ -72,6 +88,8 @@ class CompensationFit:
     after_um: float
     grid_points: int
     converged: bool
+    optional: ErrorTables | None = None
+    after_optional_um: float | None = None
 
     @property
     def removed_share(self) -> float:
@@ -249,6 +267,17 @@ def fit_compensation(
     applied = {"": mean, "+": forward, "-": reverse}
     before = np.concatenate([fields[d] for d in directions])
     after = np.concatenate([fields[d] - _field(chain, points, t, applied[d]) for d in directions])
+    optional, after_optional_um = None, None
+    if model.optional:
+        left = RemainingErrors(tables.model(""), mean)
+        option = CompModel(model.optional, directional=False)
+        optional, optional_converged = fit_tables(
+            option, nodes, chain, points, t, reference_mm, left
+        )
+        converged &= optional_converged
+        after_optional_um = _rms_um(
+            after - np.tile(_field(chain, points, t, optional), (len(directions), 1))
+        )
     return CompensationFit(
         model=model,
         mean=mean,
@@ -258,6 +287,8 @@ def fit_compensation(
         after_um=_rms_um(after),
         grid_points=len(points),
         converged=converged,
+        optional=optional,
+        after_optional_um=after_optional_um,
     )
 
 

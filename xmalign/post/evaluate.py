@@ -15,7 +15,7 @@ from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
-from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, deviation
+from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, RemainingErrors, deviation
 
 
 @dataclass
@@ -50,9 +50,6 @@ class PostResult:
 
     def tool_point_errors(self, direction: str = "") -> ErrorModel:
         """The errors the machine shows with its controller's compensation (if any) in."""
-        # imported here: the controllers' package builds on post's results
-        from xmalign.comp import RemainingErrors
-
         model = self.fit.tables.model(direction)
         return model if self.applied is None else RemainingErrors(model, self.applied)
 

@@ -105,6 +105,20 @@ def test_fanuc_bidirectional_pitch_and_detection_unit():
     np.testing.assert_array_equal(pitch.values, [-50, 50, 0, 0])  # forward -(e+ - e+(0))
 
 
+def test_fanuc_straightness_is_optional_and_leaves_the_pitch_tables_alone():
+    pitch_only = make_tables({"EXX": [0, -2, -3, -1, 1]})
+    bent = make_tables({"EXX": [0, -2, -3, -1, 1], "EYX": [0, 3, 4, 3, 0]})
+    assert _files("fanuc", bent)["PITCH.TXT"] == _files("fanuc", pitch_only)["PITCH.TXT"]
+    fit = compensate(make_machine(controller="fanuc"), bent, "fanuc").fit
+    assert fit.after_optional_um == pytest.approx(0.0, abs=1e-9) and fit.after_um > 1.0
+    text = _files("fanuc", bent)["STRAIGHTNESS.TXT"].splitlines()
+    moving_x = text[text.index("moving axis X") + 1 :][:6]
+    assert moving_x[0].split() == ["X", "mm", "Y", "Z"]
+    # the Y correction is minus the straightness error at X's pitch points (um)
+    assert [row.split()[1] for row in moving_x[1:]] == ["+0", "-3", "-4", "-3", "+0"]
+    assert "moving axis Y" in text and "moving axis Z" in text
+
+
 def test_fanuc_magnification_and_point_limit():
     big = make_tables({"EXX": [0, 300, 600, 900, 1200]})
     assert "N03623A1P3A2P1A3P1;" in _files("fanuc", big)["PITCH.TXT"]
