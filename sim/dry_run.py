@@ -177,6 +177,17 @@ class VirtualSetup:
     receiver: SimPositioningUnit
 
 
+def placement_scatter_mm(rng: np.random.Generator) -> Vec:
+    """How far the launch unit really stands from the machine file's coarse guess, mm (3,).
+
+    Up to :data:`PLACEMENT_SCATTER_MM` per axis, never below the guess in Z (a
+    technician sets the unit on the table, not into it).
+    """
+    scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
+    scatter[2] = abs(scatter[2])
+    return scatter
+
+
 def virtual_setup(
     machine: Machine, seed: int, amplitudes: ErrorAmplitudes | None = None
 ) -> VirtualSetup:
@@ -184,8 +195,7 @@ def virtual_setup(
     rng = np.random.default_rng(seed)
     placed = machine
     if machine.launch_unit is not None:
-        scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
-        scatter[2] = abs(scatter[2])
+        scatter = placement_scatter_mm(rng)
         launch_unit = machine.launch_unit.model_copy(
             update={"position_mm": list(np.asarray(machine.launch_unit.position_mm) + scatter)}
         )

@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 
 from sim.dry_run import (
-    PLACEMENT_SCATTER_MM,
     DryRunOptions,
     measured_strokes,
+    placement_scatter_mm,
     simulate_calibration,
     virtual_setup,
 )
@@ -289,10 +289,9 @@ def _plan_outcome(plan: MeasurementPlan, strategy_index: int) -> TrialOutcome:
 
 def _launch_truth(machine: Machine, rng: np.random.Generator) -> tuple[Vec, float]:
     """Where the unit really stands: as :func:`sim.dry_run.virtual_setup` scatters it."""
-    scatter = rng.uniform(-PLACEMENT_SCATTER_MM, PLACEMENT_SCATTER_MM, 3)
-    scatter[2] = abs(scatter[2])
-    guess = _launch_guess_mm(machine)
-    return guess + scatter, float(rng.uniform(-math.pi, math.pi))
+    return _launch_guess_mm(machine) + placement_scatter_mm(rng), float(
+        rng.uniform(-math.pi, math.pi)
+    )
 
 
 def identification_trial(spec: TrialSpec) -> TrialOutcome:
