@@ -43,8 +43,11 @@ PITCH = tuple((axis, axis) for axis in AXES)
 CROSS = tuple((output, axis) for axis in AXES for output in AXES)
 #: Straightness: every axis corrected as a function of each other axis.
 STRAIGHTNESS = tuple(pair for pair in CROSS if pair[0] != pair[1])
-#: Above this many grid points the midpoints between table nodes are left out.
+#: Above this many grid points the midpoints between table nodes are left out, then the
+#: full grid gives way to one slab per axis.
 MAX_GRID_POINTS = 400_000
+#: Points across each other axis in a slab.
+SLAB_POINTS = 15
 #: Fewer than this share of the error removed is worth a warning.
 WARN_REMOVED_SHARE = 0.5
 
@@ -117,10 +120,14 @@ def node_positions(tables: ErrorTableSet, axis: str) -> Vec:
 
 
 def travel_grid(nodes_mm: dict[str, Vec], low_mm: Vec, high_mm: Vec) -> Vec:
-    """Points over the whole travel, shape (N, 3): the grid of every axis's table nodes,
-    travel ends and (while the grid stays under :data:`MAX_GRID_POINTS`) the midpoints.
+    """Points over the whole travel at which the field is fitted, shape (N, 3).
 
-    Every node is a grid coordinate, so every table value is pinned by the fit.
+    The grid of every axis's table nodes and travel ends, with the midpoints
+    between them while that stays under :data:`MAX_GRID_POINTS`. Tables too
+    long even for that (a fine spacing on every axis) get one slab per axis
+    instead: all of its nodes and midpoints times :data:`SLAB_POINTS` points
+    across each other axis. Either way every node is a grid coordinate of its
+    axis, so every table value is pinned by the fit.
     """
     per_axis = []
     for axis in AXES:
@@ -128,9 +135,19 @@ def travel_grid(nodes_mm: dict[str, Vec], low_mm: Vec, high_mm: Vec) -> Vec:
         values = np.union1d(nodes_mm[axis], [low_mm[k], high_mm[k]])
         per_axis.append(values[(values >= low_mm[k]) & (values <= high_mm[k])])
     with_midpoints = [np.union1d(v, 0.5 * (v[1:] + v[:-1])) for v in per_axis]
-    if np.prod([len(v) for v in with_midpoints]) <= MAX_GRID_POINTS:
-        per_axis = with_midpoints
-    return np.stack(np.meshgrid(*per_axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    for candidate in (with_midpoints, per_axis):
+        if np.prod([len(v) for v in candidate]) <= MAX_GRID_POINTS:
+            return _tensor(candidate)
+    across = [np.linspace(low_mm[k], high_mm[k], SLAB_POINTS) for k in range(3)]
+    slabs = [
+        _tensor([with_midpoints[k] if k == along else across[k] for k in range(3)])
+        for along in range(3)
+    ]
+    return np.concatenate(slabs)
+
+
+def _tensor(coordinates: list[Vec]) -> Vec:
+    return np.stack(np.meshgrid(*coordinates, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def hat_basis(nodes_mm: Vec, x_mm: Vec) -> scipy.sparse.csr_array:
