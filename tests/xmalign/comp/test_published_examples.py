@@ -6,8 +6,9 @@
 - ``sinumerik_k3_eec_example.ini``: the ``%_N_AX_EEC_INI`` example of the
   SINUMERIK 840D sl Function Manual Extended Functions, K3 "Compensations",
   4.4.2.3 "Example" (6FC5397-1BP40-3BA1, 03/2013, p. 242), points 3 .. 799 left out.
-- the FANUC Series 0i-PB Parameter Manual's pitch compensation example (values in
-  the test below).
+- the FANUC Series 0i-PB Parameter Manual's pitch compensation example, the ISG CSV
+  format's programming example and the HEIDENHAIN TNC 306/406 technical manual's
+  correction table (values in the tests below).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import numpy as np
 from tests.xmalign.comp.conftest import make_machine, make_tables, with_reversal
 from xmalign.comp import compensate, fanuc
 from xmalign.comp.fit import CompensationFit
+from xmalign.formats.error_tables import Table
+from xmalign.machine import parse_machine
 from xmalign.rigid_body import ErrorTables
 
 EXAMPLES = Path(__file__).parent / "examples"
@@ -157,3 +160,41 @@ def test_our_isg_file_follows_the_isg_csv_format_and_its_parameter_names():
         assert set(header) <= ISG_POSITION_ERRORS | ISG_COMPONENT_ERRORS | set("XYZ")
         if header[0] in "XYZ":
             assert np.all(np.diff(records[:, 0]) > 0)  # records ordered by their argument
+
+
+#: HEIDENHAIN TNC 306/TNC 406 Technical Manual (3/97), "Machine axes", nonlinear
+#: axis-error compensation, p. 4-21: "Only the compensation points of the error curve
+#: should be entered. [...] the correction table is thus: Y = F(Z), DATUM POINT -990,
+#: SETUP 14" (2^14 um = 16.384 mm between points) with Y values 0, -0.06, -0.09, (no
+#: entry), (no entry), -0.12, -0.12, -0.1, -0.09 mm; the control interpolates linearly,
+#: so the two empty lines are -0.10 and -0.11 here.
+HEIDENHAIN_DATUM_MM = -990.0
+HEIDENHAIN_SPACING_MM = 16.384
+HEIDENHAIN_Y_OF_Z_MM = [0.0, -0.06, -0.09, -0.10, -0.11, -0.12, -0.12, -0.10, -0.09]
+
+
+def test_our_heidenhain_table_holds_the_manuals_error_curve():
+    z = HEIDENHAIN_DATUM_MM + HEIDENHAIN_SPACING_MM * np.arange(len(HEIDENHAIN_Y_OF_Z_MM))
+    machine = parse_machine(
+        {
+            "name": "TNC example",
+            "chain": "FYXZ",
+            "travel_mm": {"X": [0, 400], "Y": [0, 300], "Z": [float(z[0]), float(z[-1])]},
+            "feed_mm_min": {"rapid": 6000, "measure": 1000},
+            "controller": "heidenhain",
+            "receiver_offset_mm": [0, 0, -100],
+            "cnc": {"reference_mm": [0.0, 0.0, HEIDENHAIN_DATUM_MM]},
+        },
+        "test",
+    )
+    tables = make_tables()
+    for name in ("EXZ", "EYZ", "EZZ", "EAZ", "EBZ", "ECZ"):
+        values = HEIDENHAIN_Y_OF_Z_MM if name == "EYZ" else np.zeros(len(z))
+        tables.tables[name] = Table(z, np.asarray(values, dtype=float), np.zeros(len(z)))
+    com = compensate(machine, tables, "heidenhain").files["Z.COM"].splitlines()
+    header = com[1].split()
+    rows = [line.split() for line in com[2:-1]]
+    positions = [float(row[header.index("AXISPOS")]) for row in rows]
+    np.testing.assert_allclose(positions, z, atol=1e-4)
+    y = [float(row[header.index("Y")]) for row in rows]
+    np.testing.assert_allclose(y, HEIDENHAIN_Y_OF_Z_MM, atol=1e-5)  # the error, not minus it
