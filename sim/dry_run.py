@@ -395,11 +395,11 @@ def simulate_calibration(
     as_left = None
     if options.verify:
         stage("verify")
-        setup.world.machine.load_compensation(compensation.fit.mean)
+        applied = compensation.fit.mean
+        setup.world.machine.load_compensation(applied)
         verification = workdir / "verification.csv"
         with open_run_output(verification, plan, resume=False, environment=monitor) as output:
             measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
-        applied = compensation.fit.mean
         left = post_stations(
             machine,
             [Station(plan, read_measurements(verification), verification.name)],

@@ -83,6 +83,11 @@ def _sections(positions_mm: Vec, reference_mm: float, interval_mm: float) -> np.
     return np.arange(int(low), int(high) + 1)
 
 
+def _interval_units(positions_mm: Vec, unit_mm: float) -> int:
+    """The compensation point interval (parameter 3624): the table's mean spacing, units."""
+    return max(int(round(np.mean(np.diff(positions_mm)) / unit_mm)), 1)
+
+
 def _increments(correction: Vec, magnification: int) -> np.ndarray:
     """Incremental values for each section end (the first entry is the section start)."""
     return np.diff(np.round(correction / magnification)).astype(int)
@@ -98,7 +103,7 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
     reference = float(machine.cnc.reference[AXES.index(axis)])
     positions, forward = fit.table(axis, axis, "+")
     _, reverse = fit.table(axis, axis, "-")
-    interval = max(int(round(np.mean(np.diff(positions)) / unit_mm)), 1)
+    interval = _interval_units(positions, unit_mm)
     interval_mm = interval * unit_mm
     sections = _sections(positions, reference, interval_mm)
     at = reference + sections * interval_mm
@@ -217,7 +222,7 @@ def render_readme(tables: list[PitchTable], machine: Machine) -> str:
 
 def _pitch_points_mm(positions_mm: Vec, reference_mm: float, unit_mm: float) -> Vec:
     """The pitch compensation points over a table's positions (as :func:`pitch_table`)."""
-    interval_mm = max(int(round(np.mean(np.diff(positions_mm)) / unit_mm)), 1) * unit_mm
+    interval_mm = _interval_units(positions_mm, unit_mm) * unit_mm
     return reference_mm + _sections(positions_mm, reference_mm, interval_mm) * interval_mm
 
 

@@ -110,10 +110,9 @@ def post_stations(
         )
     ]
     chain = Chain.parse(machine.chain)
-    tool_offset_mm = machine.cnc.tool_offset
-    fitted = (
-        [_without(data, chain, applied, tool_offset_mm) for data in lines] if applied else lines
-    )
+    fitted = lines
+    if applied is not None:
+        fitted = [_without(data, chain, applied, machine.cnc.tool_offset) for data in lines]
     fit = fit_error_tables(
         fitted,
         chain,
