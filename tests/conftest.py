@@ -21,11 +21,34 @@ def reference_machine(reference_machine_path: Path) -> Machine:
     return load_machine(reference_machine_path)
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """pytest-xdist groups: a module's tests share a worker (and its module fixtures); one
-    worker runs every LinuxCNC test, as only one LinuxCNC runs per host. The LinuxCNC tests,
-    the longest group, come first so that the other workers share out the rest meanwhile."""
-    for item in items:
-        group = "linuxcnc" if "linuxcnc" in item.keywords else item.nodeid.split("::")[0]
-        item.add_marker(pytest.mark.xdist_group(group))
-    items.sort(key=lambda item: "linuxcnc" not in item.keywords)
+LINUXCNC_TESTS = "tests/linuxcnc/"
+
+
+def xdist_group(nodeid: str) -> str:
+    """The work unit of a test: every LinuxCNC test together (only one LinuxCNC runs per
+    host, tests/linuxcnc/harness.py), otherwise its module (module fixtures run once)."""
+    return "linuxcnc" if nodeid.startswith(LINUXCNC_TESTS) else nodeid.split("::")[0]
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """Hand pytest-xdist's workers whole groups (:func:`xdist_group`), the LinuxCNC group first.
+
+    Its own ``--dist loadgroup`` has no effect with pytest 9 (xdist 3.8 renames
+    ``item._nodeid``, which pytest 9 no longer reads): every test went to any worker,
+    module fixtures ran on both and the LinuxCNC tests waited for each other's lock.
+    Largest groups go first (xdist's ``--loadscope-reorder``); the LinuxCNC group,
+    the longest, before all, so the other worker shares out the rest meanwhile.
+    """
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_group(nodeid)
+
+        def _assign_work_unit(self, node: object) -> None:
+            if "linuxcnc" in self.workqueue:
+                self.workqueue.move_to_end("linuxcnc", last=False)
+            super()._assign_work_unit(node)
+
+    return GroupScheduling(config, log)
