@@ -10,9 +10,12 @@ import os
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
+import fcntl  # noqa: E402
+import pickle  # noqa: E402
 import shutil  # noqa: E402
-from collections.abc import Generator  # noqa: E402
+from collections.abc import Callable, Generator  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import pytest  # noqa: E402
 
@@ -29,6 +32,42 @@ def reference_machine_path() -> Path:
 @pytest.fixture(scope="session")
 def reference_machine(reference_machine_path: Path) -> Machine:
     return load_machine(reference_machine_path)
+
+
+DryRun = tuple[Any, Path]  # (sim.dry_run.DryRunReport, its own copy of the dry run's folder)
+
+
+@pytest.fixture(scope="session")
+def dry_run_of_seed(
+    tmp_path_factory: pytest.TempPathFactory, reference_machine: Machine
+) -> Callable[[int, str], DryRun]:
+    """``dry_run_of_seed(seed, name)``: the reference machine's dry run with ``seed``
+    (default options), as its report and a copy of its folder for the caller to write in.
+
+    The dry run is simulated once per test session, under a lock, in the folder that
+    pytest-xdist's workers share; a module asks for its copy in a module fixture.
+    """
+    from sim.dry_run import DryRunOptions, simulate_calibration
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+    def dry_run(seed: int, name: str) -> DryRun:
+        folder = shared / f"shared-dry-run-seed{seed}"
+        with open(shared / f"shared-dry-run-seed{seed}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            done = folder / "report.pickle"
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)
+                folder.mkdir()
+                options = DryRunOptions(seed=seed)
+                report = simulate_calibration(reference_machine, folder, options)
+                done.write_bytes(pickle.dumps(report))
+        copy = tmp_path_factory.mktemp(name)
+        shutil.copytree(folder, copy, dirs_exist_ok=True, ignore=shutil.ignore_patterns("*.pickle"))
+        return pickle.loads(done.read_bytes()), copy
+
+    return dry_run
 
 
 LINUXCNC_TESTS = "tests/linuxcnc/"
