@@ -91,15 +91,18 @@ def xdist_group(nodeid: str) -> str:
 
 
 @pytest.hookimpl(optionalhook=True)
-def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
-    """Hand pytest-xdist's workers whole groups (:func:`xdist_group`), the LinuxCNC group first.
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """``--dist loadscope`` or ``loadgroup``: hand pytest-xdist's workers whole groups
+    (:func:`xdist_group`), the LinuxCNC group first.
 
-    Its own ``--dist loadgroup`` has no effect with pytest 9 (xdist 3.8 renames
+    xdist's own ``--dist loadgroup`` has no effect with pytest 9 (xdist 3.8 renames
     ``item._nodeid``, which pytest 9 no longer reads): every test went to any worker,
     module fixtures ran on both and the LinuxCNC tests waited for each other's lock.
     Largest groups go first (xdist's ``--loadscope-reorder``); the LinuxCNC group,
-    the longest, before all, so the other worker shares out the rest meanwhile.
+    the longest, before all, so the other workers share out the rest meanwhile.
     """
+    if config.getoption("dist") not in ("loadscope", "loadgroup"):
+        return None  # --dist load, each, worksteal: as pytest-xdist documents them
     from xdist.scheduler import LoadScopeScheduling
 
     class GroupScheduling(LoadScopeScheduling):
