@@ -2,11 +2,24 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+import os
 
-import pytest
+# One BLAS thread per process, set before numpy loads (xmalign imports it below) and
+# inherited by the CLI subprocesses: the suite runs a process per core, and OpenBLAS's
+# second thread then spins on a busy core (a dry run: 6.9 s CPU with it, 3.3 s without).
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
 
-from xmalign.machine import Machine, load_machine
+import fcntl  # noqa: E402
+import pickle  # noqa: E402
+import shutil  # noqa: E402
+from collections.abc import Callable, Generator  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import pytest  # noqa: E402
+
+from xmalign.machine import Machine, load_machine  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,11 +34,84 @@ def reference_machine(reference_machine_path: Path) -> Machine:
     return load_machine(reference_machine_path)
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """pytest-xdist groups: a module's tests share a worker (and its module fixtures); one
-    worker runs every LinuxCNC test, as only one LinuxCNC runs per host. The LinuxCNC tests,
-    the longest group, come first so that the other workers share out the rest meanwhile."""
-    for item in items:
-        group = "linuxcnc" if "linuxcnc" in item.keywords else item.nodeid.split("::")[0]
-        item.add_marker(pytest.mark.xdist_group(group))
-    items.sort(key=lambda item: "linuxcnc" not in item.keywords)
+DryRun = tuple[Any, Path]  # (sim.dry_run.DryRunReport, its own copy of the dry run's folder)
+
+
+@pytest.fixture(scope="session")
+def dry_run_of_seed(
+    tmp_path_factory: pytest.TempPathFactory, reference_machine: Machine
+) -> Callable[[int, str], DryRun]:
+    """``dry_run_of_seed(seed, name)``: the reference machine's dry run with ``seed``
+    (default options), as its report and a copy of its folder for the caller to write in.
+
+    The dry run is simulated once per test session, under a lock, in the folder that
+    pytest-xdist's workers share; a module asks for its copy in a module fixture.
+    """
+    from sim.dry_run import DryRunOptions, simulate_calibration
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+    def dry_run(seed: int, name: str) -> DryRun:
+        folder = shared / f"shared-dry-run-seed{seed}"
+        with open(shared / f"shared-dry-run-seed{seed}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            done = folder / "report.pickle"
+            if not done.exists():
+                shutil.rmtree(folder, ignore_errors=True)
+                folder.mkdir()
+                options = DryRunOptions(seed=seed)
+                report = simulate_calibration(reference_machine, folder, options)
+                done.write_bytes(pickle.dumps(report))
+        copy = tmp_path_factory.mktemp(name)
+        shutil.copytree(folder, copy, dirs_exist_ok=True, ignore=shutil.ignore_patterns("*.pickle"))
+        return pickle.loads(done.read_bytes()), copy
+
+    return dry_run
+
+
+LINUXCNC_TESTS = "tests/linuxcnc/"
+
+
+@pytest.hookimpl(optionalhook=True, wrapper=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> Generator[None, int, int]:
+    """``-n auto``: one worker per core, and one more for the LinuxCNC group when LinuxCNC is
+    installed. That worker mostly waits (a real-time LinuxCNC takes well under a tenth of
+    a core); without it one core idles for the LinuxCNC group's minutes."""
+    workers = yield
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS") or shutil.which("linuxcnc") is None:
+        return workers
+    return workers + 1
+
+
+def xdist_group(nodeid: str) -> str:
+    """The work unit of a test: every LinuxCNC test together (only one LinuxCNC runs per
+    host, tests/linuxcnc/harness.py), otherwise its module (module fixtures run once)."""
+    return "linuxcnc" if nodeid.startswith(LINUXCNC_TESTS) else nodeid.split("::")[0]
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """``--dist loadscope`` or ``loadgroup``: hand pytest-xdist's workers whole groups
+    (:func:`xdist_group`), the LinuxCNC group first.
+
+    xdist's own ``--dist loadgroup`` has no effect with pytest 9 (xdist 3.8 renames
+    ``item._nodeid``, which pytest 9 no longer reads): every test went to any worker,
+    module fixtures ran on both and the LinuxCNC tests waited for each other's lock.
+    Largest groups go first (xdist's ``--loadscope-reorder``); the LinuxCNC group,
+    the longest, before all, so the other workers share out the rest meanwhile.
+    """
+    if config.getoption("dist") not in ("loadscope", "loadgroup"):
+        return None  # --dist load, each, worksteal: as pytest-xdist documents them
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_group(nodeid)
+
+        def _assign_work_unit(self, node: object) -> None:
+            if "linuxcnc" in self.workqueue:
+                self.workqueue.move_to_end("linuxcnc", last=False)
+            super()._assign_work_unit(node)
+
+    return GroupScheduling(config, log)

@@ -12,9 +12,8 @@ from xmalign.post.evaluate import post_process
 
 
 @pytest.fixture(scope="module")
-def dry_run(tmp_path_factory, reference_machine):
-    workdir = tmp_path_factory.mktemp("dry")
-    return simulate_calibration(reference_machine, workdir, DryRunOptions(seed=2)), workdir
+def dry_run(dry_run_of_seed):
+    return dry_run_of_seed(2, "dry")
 
 
 def test_dry_run_finds_the_pose_and_compensates_the_machine(dry_run):

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from sim.dry_run import DryRunOptions, measure_virtually, simulate_calibration, virtual_setup
+from sim.dry_run import measure_virtually, virtual_setup
 from sim.environment import ShopClimate, attach_shop
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
@@ -26,9 +26,8 @@ AIR = ("air_temp_c", "air_pressure_hpa", "air_humidity_percent", "material_temp_
 
 
 @pytest.fixture(scope="module")
-def drifting(tmp_path_factory, reference_machine):
-    workdir = tmp_path_factory.mktemp("drifting")
-    return simulate_calibration(reference_machine, workdir, DryRunOptions(seed=3)), workdir
+def drifting(dry_run_of_seed):
+    return dry_run_of_seed(3, "drifting")
 
 
 def test_every_row_records_the_drifting_shop(drifting):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.dry_run import DryRunOptions, measure_virtually, simulate_calibration, virtual_setup
+from sim.dry_run import measure_virtually, virtual_setup
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence, open_run_output
@@ -19,10 +19,8 @@ AFTER = 10
 
 
 @pytest.fixture(scope="module")
-def dry_run(tmp_path_factory, reference_machine):
-    workdir = tmp_path_factory.mktemp("recovery")
-    simulate_calibration(reference_machine, workdir, DryRunOptions(seed=SEED))
-    return workdir
+def dry_run(dry_run_of_seed):
+    return dry_run_of_seed(SEED, "recovery")[1]
 
 
 def _measure(machine, workdir, name, lines, on_point):

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error, run_cli
 
-from sim.dry_run import DryRunOptions, simulate_calibration
 from xmalign import __version__
 from xmalign.calibration import capture_sequence
 from xmalign.cli import main
@@ -49,11 +48,9 @@ def test_run_refuses_bad_invocations(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def dry(tmp_path_factory, reference_machine):
+def dry(dry_run_of_seed):
     """A dry run's folder: its plan, and its measurements as an uninterrupted run (seed 3)."""
-    workdir = tmp_path_factory.mktemp("dry")
-    simulate_calibration(reference_machine, workdir, DryRunOptions(seed=3))
-    return workdir
+    return dry_run_of_seed(3, "dry")[1]
 
 
 def _main(*args):

@@ -20,12 +20,8 @@ from xmalign.steps import (
 
 
 @pytest.fixture(scope="module")
-def dry_run_folder(tmp_path_factory, reference_machine):
-    from sim.dry_run import DryRunOptions, simulate_calibration
-
-    workdir = tmp_path_factory.mktemp("steps")
-    simulate_calibration(reference_machine, workdir, DryRunOptions(seed=3))
-    return workdir
+def dry_run_folder(dry_run_of_seed):
+    return dry_run_of_seed(3, "steps")[1]
 
 
 def _two_lines(workdir):

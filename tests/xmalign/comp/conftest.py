@@ -28,17 +28,24 @@ def make_machine(chain: str = "FYXZ", controller: str = "linuxcnc", **cnc: objec
 
 
 def make_tables(
-    values: dict[str, list[float]] | None = None, n: int = 5, **squareness: float
+    values: dict[str, list[float]] | None = None,
+    n: int | dict[str, int] = 5,
+    **squareness: float,
 ) -> ErrorTableSet:
-    """Zero tables on ``n`` points per axis over TRAVEL; ``values`` overrides (um or urad)."""
+    """Zero tables on ``n`` points per axis over TRAVEL (an int, or per axis: {"X": 257}
+    and 5 on the others); ``values`` overrides (um or urad).
+
+    The fit's grid is the product of the axes' nodes: a long table on one axis only
+    keeps it small (257 on every axis is 17 million points and 100 s)."""
     values = values or {}
     result = ErrorTableSet()
     for name in MOTION_NAMES:
         low, high = TRAVEL[name[2]]
-        positions = np.linspace(low, high, n)
+        count = n.get(name[2], 5) if isinstance(n, dict) else n
+        positions = np.linspace(low, high, count)
         scale = 1e-3 if name[1] in "XYZ" else 1e-6
-        v = np.asarray(values.get(name, np.zeros(n)), dtype=float) * scale
-        result.tables[name] = Table(positions, v, np.zeros(n))
+        v = np.asarray(values.get(name, np.zeros(count)), dtype=float) * scale
+        result.tables[name] = Table(positions, v, np.zeros(count))
     result.squareness = {s: (squareness.get(s, 0.0) * 1e-6, 0.0) for s in SQUARENESS_NAMES}
     return result
 

@@ -123,7 +123,7 @@ def test_fanuc_magnification_and_point_limit():
     big = make_tables({"EXX": [0, 300, 600, 900, 1200]})
     assert "N03623A1P3A2P1A3P1;" in _files("fanuc", big)["PITCH.TXT"]
     with pytest.raises(OutOfRangeError, match="limit of 128"):
-        _files("fanuc", make_tables(n=200))
+        _files("fanuc", make_tables(n={"X": 200}))
 
 
 def test_heidenhain_com_and_cma():
@@ -151,7 +151,7 @@ def test_linuxcnc_type0_triplets_are_actual_positions():
     assert files["z.comp"].splitlines()[0] == "-200.000000 -200.000000 -200.000000"
     assert "[JOINT_2]\nCOMP_FILE = z.comp\nCOMP_FILE_TYPE = 0" in files["joints.ini"]
     with pytest.raises(OutOfRangeError, match="limit of 256"):
-        _files("linuxcnc", make_tables(n=257))
+        _files("linuxcnc", make_tables(n={"X": 257}))
 
 
 def test_linuxcnc_gantry_gives_both_y_joints_the_y_table():
