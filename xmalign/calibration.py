@@ -496,16 +496,24 @@ def follow_machine(
     """Capture while the controller runs the program: wait for standstill at each target.
 
     ``on_line_start`` is called before each line (e.g. to tell the operator to
-    press cycle start once the units are set).
+    press cycle start once the units are set). Where the program stops twice
+    at one place (the last target of a run and the first back; the drift
+    check), the machine has to leave it before it counts as there again: the
+    program moves on to overrun and approach, and a capture while it does would
+    average a moving machine.
     """
     for line in lines:
         if run.line_is_done(line):
             continue
         run.prepare_line(line)
         on_line_start(line)
+        previous: CapturePoint | None = None
         for point in capture_sequence(line):
+            if previous is not None and np.allclose(previous.point_mm, point.point_mm):
+                _wait_left(position, run.clock, previous, tolerance_mm, timeout_s, poll_s)
             _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
+            previous = point
 
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
@@ -529,6 +537,25 @@ def _wait_at(
         clock.sleep(poll_s)
     raise DeviceTimeoutError(
         f"the machine did not stop at line {point.line.id} run {point.run} target "
+        f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
+    )
+
+
+def _wait_left(
+    position: MachinePositionSource,
+    clock: Clock,
+    point: CapturePoint,
+    tolerance_mm: float,
+    timeout_s: float,
+    poll_s: float,
+) -> None:
+    deadline = clock.now() + timeout_s
+    while clock.now() < deadline:
+        if not _stands_at(position, point, tolerance_mm):
+            return
+        clock.sleep(poll_s)
+    raise DeviceTimeoutError(
+        f"the machine did not move on from line {point.line.id} run {point.run} target "
         f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
     )
 
