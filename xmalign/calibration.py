@@ -66,6 +66,8 @@ from xmalign.roles import (
 LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 #: Fine-alignment distance guess when a plan does not give the line's beam distances, mm.
 DEFAULT_START_DISTANCE_MM = 500.0
+#: While a run waits for the machine, it reads the units this often (a lost link shows), s.
+DEVICE_CHECK_S = 1.0
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Capture waits for settled readings for at most this part of each dwell.
@@ -500,7 +502,9 @@ def follow_machine(
     at one place (the last target of a run and the first back; the drift
     check), the machine has to leave it before it counts as there again: the
     program moves on to overrun and approach, and a capture while it does would
-    average a moving machine.
+    average a moving machine. While waiting, the units are read every
+    ``DEVICE_CHECK_S``, so a lost link ends the run at once rather than at the
+    timeout.
     """
     for line in lines:
         if run.line_is_done(line):
@@ -510,8 +514,20 @@ def follow_machine(
         previous: CapturePoint | None = None
         for point in capture_sequence(line):
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
-                _wait_left(position, run.clock, previous, tolerance_mm, timeout_s, poll_s)
-            _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
+                _wait_for(
+                    run,
+                    lambda p=previous: not _stands_at(position, p, tolerance_mm),
+                    f"move on from {_where(previous)}",
+                    timeout_s,
+                    poll_s,
+                )
+            _wait_for(
+                run,
+                lambda p=point: _stands_at(position, p, tolerance_mm),
+                f"stop at {_where(point)}",
+                timeout_s,
+                poll_s,
+            )
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
 
@@ -522,42 +538,29 @@ def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_m
     return position.is_standstill() and miss <= tolerance_mm
 
 
-def _wait_at(
-    position: MachinePositionSource,
-    clock: Clock,
-    point: CapturePoint,
-    tolerance_mm: float,
-    timeout_s: float,
-    poll_s: float,
-) -> None:
-    deadline = clock.now() + timeout_s
-    while clock.now() < deadline:
-        if _stands_at(position, point, tolerance_mm):
-            return
-        clock.sleep(poll_s)
-    raise DeviceTimeoutError(
-        f"the machine did not stop at line {point.line.id} run {point.run} target "
-        f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
+def _where(point: CapturePoint) -> str:
+    return (
+        f"line {point.line.id} run {point.run} target {point.index + 1}"
+        f" {np.round(point.point_mm, 3).tolist()} mm"
     )
 
 
-def _wait_left(
-    position: MachinePositionSource,
-    clock: Clock,
-    point: CapturePoint,
-    tolerance_mm: float,
-    timeout_s: float,
-    poll_s: float,
+def _wait_for(
+    run: CalibrationRun, done: Callable[[], bool], what: str, timeout_s: float, poll_s: float
 ) -> None:
+    """Poll ``done`` until it holds; read the units every ``DEVICE_CHECK_S`` meanwhile."""
+    clock = run.clock
     deadline = clock.now() + timeout_s
+    checked_s = clock.now()
     while clock.now() < deadline:
-        if not _stands_at(position, point, tolerance_mm):
+        if done():
             return
+        if clock.now() - checked_s >= DEVICE_CHECK_S:
+            run.launch.angles_rad()
+            run.receiver.angles_rad()
+            checked_s = clock.now()
         clock.sleep(poll_s)
-    raise DeviceTimeoutError(
-        f"the machine did not move on from line {point.line.id} run {point.run} target "
-        f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
-    )
+    raise DeviceTimeoutError(f"the machine did not {what} within {timeout_s:.0f} s")
 
 
 def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: float) -> None:

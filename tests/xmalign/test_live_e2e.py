@@ -6,7 +6,8 @@ plan's G-code on cycle start (Enter on its standard input) and writes its
 position to a file. ``xmalign run --config`` runs in another process; the test
 plays the operator: it presses cycle start when the run says so, interrupts
 the run, kills the server. The plan is one short line (3 targets, one run each
-way) so that a complete run takes some 15 s of real time.
+way) on a machine at 20 m/min, so that a
+complete run takes some 10 s of real time.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from sim.world import build_world
 from trajectories.gcode import make_dialect
@@ -34,7 +36,7 @@ from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.machine import Machine
+from xmalign.machine import Machine, load_machine
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = 4
@@ -116,6 +118,8 @@ class World:
             [
                 "sim",
                 "serve",
+                "--machine",
+                "machine.yaml",
                 "--seed",
                 str(SEED),
                 "--gamma-deg",
@@ -166,12 +170,19 @@ def _truth_pose(machine: Machine) -> LaunchPose:
 
 
 @pytest.fixture(scope="module")
-def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine: Machine) -> Path:
-    """``xmalign program`` for line Z from the true pose, cut to 20 mm: plan.json and run.nc."""
+def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
+    """A quick machine (the reference one at 20 m/min) and its plan and program for line Z
+    from the true pose, the line cut to 20 mm: machine.yaml, plan.json and run.nc."""
     workdir = tmp_path_factory.mktemp("plan")
-    write_pose(workdir / "pose.json", _truth_pose(reference_machine))
+    quick = yaml.safe_load(reference_machine_path.read_text())
+    quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
+    quick["cnc"] = {"acceleration_mm_s2": 5000}
+    (workdir / "machine.yaml").write_text(yaml.safe_dump(quick))
+    machine = load_machine(workdir / "machine.yaml")
+    write_pose(workdir / "pose.json", _truth_pose(machine))
     subprocess.run(
-        [sys.executable, "-m", "xmalign", "program", "--lines", "Z", "--plan-out", "full.json"],
+        [sys.executable, "-m", "xmalign", "program", "--machine", "machine.yaml"]
+        + ["--lines", "Z", "--plan-out", "full.json"],
         cwd=workdir,
         env=ENV,
         check=True,
@@ -188,14 +199,15 @@ def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine: Mach
     )
     plan = dataclasses.replace(plan, lines=[short])
     write_plan(workdir / "plan.json", plan)
-    dialect = make_dialect("sinumerik", reference_machine)
-    (workdir / "run.nc").write_text(write_program(plan, reference_machine, dialect))
+    (workdir / "run.nc").write_text(
+        write_program(plan, machine, make_dialect("sinumerik", machine))
+    )
     return workdir
 
 
 @pytest.fixture
 def world(short_plan: Path, tmp_path: Path) -> Iterator[World]:
-    for name in ("plan.json", "run.nc"):
+    for name in ("machine.yaml", "plan.json", "run.nc"):
         (tmp_path / name).write_bytes((short_plan / name).read_bytes())
     served = World(tmp_path, tmp_path / "run.nc")
     yield served
@@ -204,7 +216,8 @@ def world(short_plan: Path, tmp_path: Path) -> Iterator[World]:
 
 def _start_run(world: World, *extra: str) -> Process:
     return Process(
-        ["run", "--config", "units.yaml", "--plan", "plan.json", "--out", "m.csv", *extra],
+        ["run", "--config", "units.yaml", "--machine", "machine.yaml"]
+        + ["--plan", "plan.json", "--out", "m.csv", *extra],
         world.workdir,
     )
 

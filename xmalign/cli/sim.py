@@ -128,9 +128,7 @@ def serve(
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
     log_handler = start_log_file(log_file)
     machine_model = machine_or_default(machine)
-    world = build_world(
-        machine_model, seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg)
-    )
+    world = build_world(machine_model, seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg))
     served_cnc = (
         _served_cnc(world, machine_model, position_file, program, dialect)
         if position_file is not None and program is not None
