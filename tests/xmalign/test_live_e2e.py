@@ -29,6 +29,8 @@ import numpy as np
 import pytest
 import yaml
 
+from sim.alignment_setup import point_by_truth
+from sim.units import SimPositioningUnit
 from sim.world import build_world
 from trajectories.gcode import make_dialect
 from trajectories.gcode.program import write_program
@@ -108,44 +110,30 @@ class Process:
 
 
 class World:
-    """``xmalign sim serve`` of the whole world: units, interferometer, CNC with a program."""
+    """``xmalign sim serve`` of a world: both units, the interferometer, and with a
+    ``program`` a CNC that runs it (else the machine stands at the travel's centre)."""
 
-    def __init__(self, workdir: Path, program: Path) -> None:
+    def __init__(self, workdir: Path, program: Path | None = None) -> None:
         self.workdir = workdir
         self.position_file = workdir / "position.txt"
         ports = [_free_port(), _free_port()]
-        self.server = Process(
-            [
-                "sim",
-                "serve",
-                "--machine",
-                "machine.yaml",
-                "--seed",
-                str(SEED),
-                "--gamma-deg",
-                str(GAMMA_DEG),
-                "--modbus",
-                str(ports[0]),
-                "--modbus-receiver",
-                str(ports[1]),
-                "--interferometer-pty",
-                "--position-file",
-                str(self.position_file),
-                "--program",
-                str(program),
-            ],
-            workdir,
-            stdin=subprocess.PIPE,
-        )
+        args = ["sim", "serve", "--seed", str(SEED), "--gamma-deg", str(GAMMA_DEG)]
+        args += ["--modbus", str(ports[0]), "--modbus-receiver", str(ports[1])]
+        args += ["--interferometer-pty"]
+        if program is not None:
+            args += ["--machine", "machine.yaml", "--program", str(program)]
+            args += ["--position-file", str(self.position_file)]
+        self.server = Process(args, workdir, stdin=subprocess.PIPE)
         pty = self.server.wait_for("interferometer on").split()[-1]
         self.server.wait_for("serving")
         self.config = workdir / "units.yaml"
+        position = f"{{source: file, file: {self.position_file.name}}}" if program else "{}"
         self.config.write_text(
             "format: xmalign.units/1\n"
             f"launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {ports[0]}}}\n"
             f"receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {ports[1]}}}\n"
-            f"interferometer: {{port: {pty}, rate_hz: 200}}\n"
-            f"machine_position: {{source: file, file: {self.position_file.name}}}\n"
+            f"interferometer: {{port: {pty}, rate_hz: 50}}\n"
+            f"machine_position: {position}\n"
             "timeouts: {io_s: 1.0, move_s: 30.0}\n"
         )
 
@@ -308,3 +296,38 @@ def test_server_killed_mid_run_one_line_and_the_points_kept(world: World) -> Non
     saved = len(load_measurements(out, torn_ok=True).rows)
     assert saved >= 2
     assert f"{saved} points kept in m.csv" in lines[0]
+
+
+def test_align_live_manual_then_fine_against_sim_serve(
+    tmp_path: Path, reference_machine: Machine
+) -> None:
+    """The operator jogs each axis to where the beam is in range, then fine alignment."""
+    served = World(tmp_path)
+    try:
+        truth = build_world(reference_machine, seed=SEED, gamma_rad=math.radians(GAMMA_DEG))
+        launch, receiver = SimPositioningUnit(truth.launch), SimPositioningUnit(truth.receiver)
+        start = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+        point_by_truth(truth, reference_machine, launch, receiver)
+        jogs = np.concatenate([launch.angles_rad(), receiver.angles_rad()]) - start
+        typed = "\na9 1\n" + "".join(
+            f"a{n} {math.degrees(step):.6f}\n" for n, step in enumerate(jogs, start=1)
+        )
+        result = subprocess.run(
+            [sys.executable, "-m", "xmalign", "align", "--live", "--manual"]
+            + ["--config", "units.yaml", "--log-file", "wire.log"],
+            cwd=tmp_path,
+            env=ENV,
+            input=typed + "\n",
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        served.server.stop()
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count("beam out of range") >= 2
+    assert "the beam is not in range yet" in result.stdout  # Enter before the beam is in range
+    assert "jog command 'a9 1': expected an axis a1..a5" in result.stdout
+    assert "beam in range:" in result.stdout
+    assert "s of wall time" in result.stdout and "units locked" in result.stdout
+    assert "write axis1.control @16 <- [9] = 9" in (tmp_path / "wire.log").read_text()
