@@ -29,16 +29,19 @@ import numpy as np
 import pytest
 import yaml
 
+from firmware_iface.machine_position import FilePositions
 from sim.alignment_setup import point_by_truth
 from sim.units import SimPositioningUnit
-from sim.world import build_world
+from sim.world import FixedPosition, build_world
 from trajectories.gcode import make_dialect
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import read_plan, write_plan
-from xmalign.formats.pose import LaunchPose, write_pose
+from xmalign.formats.pose import LaunchPose, read_pose, write_pose
+from xmalign.formats.session import read_session
 from xmalign.machine import Machine, load_machine
+from xmalign.steps import REFINE_AFTER, design_step
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = 4
@@ -93,6 +96,19 @@ class Process:
                 ) from None
             if text in line:
                 return line
+
+    def next_line(self, timeout_s: float = 60.0) -> str | None:
+        """The next output line; None once the process has ended and said everything."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                return self._new.get(timeout=0.2)
+            except queue.Empty:
+                if self.popen.poll() is not None and self._new.empty():
+                    time.sleep(0.2)  # the reader takes the last lines
+                    if self._new.empty():
+                        return None
+        raise AssertionError(f"no output within {timeout_s} s:\n{''.join(self.lines)}")
 
     def finish(self, timeout_s: float = 60.0) -> int:
         code = self.popen.wait(timeout=timeout_s)
@@ -331,3 +347,63 @@ def test_align_live_manual_then_fine_against_sim_serve(
     assert "beam in range:" in result.stdout
     assert "s of wall time" in result.stdout and "units locked" in result.stdout
     assert "write axis1.control @16 <- [9] = 9" in (tmp_path / "wire.log").read_text()
+
+
+def _identification_program(positions_mm: np.ndarray) -> str:
+    """The operator's program for an identification: to each position, then stop (M0)."""
+    moves = "".join(f"SUPA G0 X{x:.4f} Y{y:.4f} Z{z:.4f}\nM0\n" for x, y, z in positions_mm)
+    return f"G71 G90 G94\n{moves}M30\n"
+
+
+def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
+    tmp_path: Path, reference_machine_path: Path
+) -> None:
+    """``identify --live``: the operator runs the CNC to each position and jogs the units
+    into range where no pose guess can point them; the pose found is the served world's."""
+    quick = yaml.safe_load(reference_machine_path.read_text())
+    quick["feed_mm_min"] = {"rapid": 30000, "measure": 2000}
+    (tmp_path / "machine.yaml").write_text(yaml.safe_dump(quick))
+    machine = load_machine(tmp_path / "machine.yaml")
+    positions = design_step(machine, 4).machine_mm
+    (tmp_path / "ident.nc").write_text(_identification_program(positions))
+    served = World(tmp_path, tmp_path / "ident.nc")
+    truth = build_world(machine, seed=SEED, gamma_rad=math.radians(GAMMA_DEG))
+    launch, receiver = SimPositioningUnit(truth.launch), SimPositioningUnit(truth.receiver)
+    identify = Process(
+        ["identify", "--live", "--config", "units.yaml", "--machine", "machine.yaml"]
+        + ["--alignments", "4", "--session", "session.json", "--out", "pose.json"],
+        tmp_path,
+        stdin=subprocess.PIPE,
+    )
+    assert identify.popen.stdin is not None
+    try:
+        angles = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+        while (line := identify.next_line()) is not None:
+            if "Move the machine to" in line:
+                served.cycle_start()
+                served.server.wait_for("waiting for cycle start")
+                identify.popen.stdin.write("\n")
+            elif "Jog: " in line:  # the operator points the units by eye
+                truth.interferometer.position = FixedPosition(
+                    FilePositions(served.position_file).position_mm()
+                )
+                point_by_truth(truth, machine, launch, receiver)
+                aligned = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+                jogs = "".join(
+                    f"a{n} {math.degrees(step):.6f}\n"
+                    for n, step in enumerate(aligned - angles, start=1)
+                )
+                identify.popen.stdin.write(jogs + "\n")
+                angles = aligned
+            else:
+                continue
+            identify.popen.stdin.flush()
+        assert identify.finish() == 0, "".join(identify.lines) + identify.stderr
+    finally:
+        identify.stop()
+        served.server.stop()
+    assert "".join(identify.lines).count("Jog:") == REFINE_AFTER  # then the pose guess points
+    pose = read_pose(tmp_path / "pose.json")
+    assert len(read_session(tmp_path / "session.json").alignments) == 4
+    assert np.linalg.norm(pose.position_mm - truth.launch2mcs_mm) < 0.2
+    assert abs(math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)) < 200e-6
