@@ -69,6 +69,7 @@ class ServedCnc:
         self.tell = tell
         self._cycle_start = threading.Event()
         self._stop = threading.Event()
+        self._file_lock = threading.Lock()
         self._threads = [
             threading.Thread(target=self._write_positions, name="cnc-position", daemon=True),
             threading.Thread(target=self._run_programs, name="cnc-program", daemon=True),
@@ -90,6 +91,7 @@ class ServedCnc:
         self._cycle_start.set()
 
     def _wait_for_cycle_start(self) -> bool:
+        self._write_position()  # the file shows where it stops before anyone is told
         self.tell(WAITING)
         self._cycle_start.wait()
         self._cycle_start.clear()
@@ -110,10 +112,11 @@ class ServedCnc:
             self.tell("cnc: program end")
 
     def _write_position(self) -> None:
-        x, y, z = self.cnc.position_mm()
-        partial = self.position_file.with_name(self.position_file.name + ".part")
-        partial.write_text(f"{x:.4f} {y:.4f} {z:.4f}\n", encoding="utf-8")
-        os.replace(partial, self.position_file)
+        with self._file_lock:
+            x, y, z = self.cnc.position_mm()
+            partial = self.position_file.with_name(self.position_file.name + ".part")
+            partial.write_text(f"{x:.4f} {y:.4f} {z:.4f}\n", encoding="utf-8")
+            os.replace(partial, self.position_file)
 
     def _write_positions(self) -> None:
         while not self._stop.wait(POSITION_PERIOD_S):
