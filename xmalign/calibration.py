@@ -31,6 +31,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Protocol
 
@@ -516,14 +517,14 @@ def follow_machine(
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
                 _wait_for(
                     run,
-                    lambda p=previous: not _stands_at(position, p, tolerance_mm),
+                    partial(_has_left, position, previous, tolerance_mm),
                     f"move on from {_where(previous)}",
                     timeout_s,
                     poll_s,
                 )
             _wait_for(
                 run,
-                lambda p=point: _stands_at(position, p, tolerance_mm),
+                partial(_stands_at, position, point, tolerance_mm),
                 f"stop at {_where(point)}",
                 timeout_s,
                 poll_s,
@@ -536,6 +537,10 @@ def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_m
     """The machine stands still at the point (it has not gone on with the program)."""
     miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
     return position.is_standstill() and miss <= tolerance_mm
+
+
+def _has_left(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
+    return not _stands_at(position, point, tolerance_mm)
 
 
 def _where(point: CapturePoint) -> str:
