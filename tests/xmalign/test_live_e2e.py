@@ -372,6 +372,11 @@ def _unit_angles(served: World) -> np.ndarray:
     return np.array(angles)
 
 
+@pytest.mark.skipif(
+    os.environ.get("XMALIGN_E2E_IDENTIFY") != "1",
+    reason="not yet reliable on a loaded machine (the scripted operator's jog can miss the"
+    " beam; a starved heartbeat trips the watchdog): XMALIGN_E2E_IDENTIFY=1 runs it",
+)
 def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
     tmp_path: Path, reference_machine_path: Path
 ) -> None:
