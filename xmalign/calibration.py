@@ -31,6 +31,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Protocol
 
@@ -66,6 +67,8 @@ from xmalign.roles import (
 LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 #: Fine-alignment distance guess when a plan does not give the line's beam distances, mm.
 DEFAULT_START_DISTANCE_MM = 500.0
+#: While a run waits for the machine, it reads the units this often (a lost link shows), s.
+DEVICE_CHECK_S = 1.0
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Capture waits for settled readings for at most this part of each dwell.
@@ -496,16 +499,38 @@ def follow_machine(
     """Capture while the controller runs the program: wait for standstill at each target.
 
     ``on_line_start`` is called before each line (e.g. to tell the operator to
-    press cycle start once the units are set).
+    press cycle start once the units are set). Where the program stops twice
+    at one place (the last target of a run and the first back; the drift
+    check), the machine has to leave it before it counts as there again: the
+    program moves on to overrun and approach, and a capture while it does would
+    average a moving machine. While waiting, the units are read every
+    ``DEVICE_CHECK_S``, so a lost link ends the run at once rather than at the
+    timeout.
     """
     for line in lines:
         if run.line_is_done(line):
             continue
         run.prepare_line(line)
         on_line_start(line)
+        previous: CapturePoint | None = None
         for point in capture_sequence(line):
-            _wait_at(position, run.clock, point, tolerance_mm, timeout_s, poll_s)
+            if previous is not None and np.allclose(previous.point_mm, point.point_mm):
+                _wait_for(
+                    run,
+                    partial(_has_left, position, previous, tolerance_mm),
+                    f"move on from {_where(previous)}",
+                    timeout_s,
+                    poll_s,
+                )
+            _wait_for(
+                run,
+                partial(_stands_at, position, point, tolerance_mm),
+                f"stop at {_where(point)}",
+                timeout_s,
+                poll_s,
+            )
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
+            previous = point
 
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
@@ -514,23 +539,33 @@ def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_m
     return position.is_standstill() and miss <= tolerance_mm
 
 
-def _wait_at(
-    position: MachinePositionSource,
-    clock: Clock,
-    point: CapturePoint,
-    tolerance_mm: float,
-    timeout_s: float,
-    poll_s: float,
-) -> None:
-    deadline = clock.now() + timeout_s
-    while clock.now() < deadline:
-        if _stands_at(position, point, tolerance_mm):
-            return
-        clock.sleep(poll_s)
-    raise DeviceTimeoutError(
-        f"the machine did not stop at line {point.line.id} run {point.run} target "
-        f"{point.index + 1} {np.round(point.point_mm, 3).tolist()} mm within {timeout_s:.0f} s"
+def _has_left(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
+    return not _stands_at(position, point, tolerance_mm)
+
+
+def _where(point: CapturePoint) -> str:
+    return (
+        f"line {point.line.id} run {point.run} target {point.index + 1}"
+        f" {np.round(point.point_mm, 3).tolist()} mm"
     )
+
+
+def _wait_for(
+    run: CalibrationRun, done: Callable[[], bool], what: str, timeout_s: float, poll_s: float
+) -> None:
+    """Poll ``done`` until it holds; read the units every ``DEVICE_CHECK_S`` meanwhile."""
+    clock = run.clock
+    deadline = clock.now() + timeout_s
+    checked_s = clock.now()
+    while clock.now() < deadline:
+        if done():
+            return
+        if clock.now() - checked_s >= DEVICE_CHECK_S:
+            run.launch.angles_rad()
+            run.receiver.angles_rad()
+            checked_s = clock.now()
+        clock.sleep(poll_s)
+    raise DeviceTimeoutError(f"the machine did not {what} within {timeout_s:.0f} s")
 
 
 def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: float) -> None:

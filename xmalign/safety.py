@@ -31,11 +31,18 @@ def lock_all(units: tuple[PositioningUnit, ...]) -> list[str]:
     """
     problems = []
     for unit in units:
+        failed: dict[str, list[RotaryAxis]] = {}  # reason -> the axes it left unlocked
         for axis in unit.axes:
             try:
                 axis.lock()
             except Exception as error:  # noqa: BLE001 - every axis must get its chance
-                problems.append(f"could not lock {_label(axis, unit)}: {error}")
+                failed.setdefault(str(error), []).append(axis)
+        for reason, axes in failed.items():
+            if len(axes) == 1:
+                problems.append(f"could not lock {_label(axes[0], unit)}: {reason}")
+            else:  # a lost link: one sentence for the unit, not the same one per axis
+                names = ", ".join(axis.name for axis in axes)
+                problems.append(f"could not lock axes {names} of the {unit.kind} unit: {reason}")
     return problems
 
 

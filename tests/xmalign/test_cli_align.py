@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+import re
 import socket
+import subprocess
+import sys
 import textwrap
 from pathlib import Path
 
@@ -104,3 +107,33 @@ def test_align_live_over_modbus_and_the_serial_line(tmp_path) -> None:  # noqa: 
         pty.stop()
         for server in servers:
             server.stop()
+
+
+def test_align_sim_refuses_a_tool_point_it_cannot_use() -> None:
+    assert_one_line_error(run_cli("align", "--sim", "--at", "a,b,c"), "'a,b,c' is not 'x,y,z'")
+    assert_one_line_error(
+        run_cli("align", "--sim", "--at", "1,2,3000"), "1,2,3000 is outside the travel"
+    )
+
+
+def test_align_sim_manual_jog_loop_answers_the_operator() -> None:
+    """In range from the start: a wrong command is explained, Enter hands over to fine
+    alignment; without an operator (end of input) the command ends in one line."""
+    answered = subprocess.run(
+        [sys.executable, "-m", "xmalign", "align", "--sim", "--manual", "--seed", "3"],
+        input="a2 far\na2 0.003\n\n",
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert answered.returncode == 0, answered.stderr
+    assert "jog command 'a2 far': expected an axis a1..a5" in answered.stdout
+    shown = [line for line in answered.stdout.splitlines() if "beam in range: sv" in line]
+    assert len(shown) == 3  # before each answer
+    used = [[int(v) for v in re.findall(r"(\d+)%", line)] for line in shown]
+    # 52 µrad on a2 moves the channels by some 10 % of their ranges; noise by 1 %
+    assert np.abs(np.subtract(used[2], used[1])).max() >= 5
+    assert "units locked" in answered.stdout
+    assert_one_line_error(
+        run_cli("align", "--sim", "--manual"), "no answer from the operator (end of input)"
+    )

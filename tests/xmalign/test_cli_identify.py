@@ -46,3 +46,14 @@ def test_unknown_method_and_missing_input(tmp_path):
     assert_one_line_error(
         run_cli("identify", "--input", str(tmp_path / "missing.json")), "missing.json"
     )
+
+
+def test_live_and_uncertainty_options_are_checked_first(tmp_path):
+    assert_one_line_error(
+        run_cli("identify", "--live", "--config", str(tmp_path / "units.yaml")),
+        "--live needs --config UNITS.yaml and --session SESSION.json",
+    )
+    assert_one_line_error(
+        run_cli("identify", "--sim", "--encoder-urad", "-1"),
+        "encoder_rad: the uncertainty must be positive",
+    )

@@ -383,3 +383,9 @@ def test_run_writes_a_timestamped_log_file(dry, tmp_path):
     lines = log.read_text().splitlines()
     assert lines, "the log file is empty"
     assert all(re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z ", line) for line in lines)
+
+
+def test_run_sim_refuses_an_unknown_shop_before_creating_the_file(dry, tmp_path):
+    out = tmp_path / "m.csv"
+    assert_one_line_error(_run_sim(dry, out, "--shop", "cellar"), "--shop: 'cellar' is not one")
+    assert not out.exists()

@@ -100,3 +100,21 @@ def test_lock_all_reports_each_axis_that_cannot_be_locked() -> None:
         "could not lock axis a2 of the launch unit at 10.0.0.5:502: lost the"
         " connection to the launch unit at 10.0.0.5:502"
     ]
+
+
+class UnreachableUnit:
+    """A unit whose link is lost: every axis fails to lock for the same reason."""
+
+    kind = "receiver"
+
+    def __init__(self) -> None:
+        self.axes = (UnreachableAxis(), UnreachableAxis(), UnreachableAxis())
+        for axis, name in zip(self.axes, ("a3", "a4", "a5"), strict=True):
+            axis.name = name
+
+
+def test_a_lost_unit_is_one_sentence_not_one_per_axis() -> None:
+    assert lock_all((UnreachableUnit(),)) == [
+        "could not lock axes a3, a4, a5 of the receiver unit: lost the connection to the"
+        " launch unit at 10.0.0.5:502"
+    ]

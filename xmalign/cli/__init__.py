@@ -10,6 +10,7 @@ is printed instead of the generic one.
 
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Annotated, Any
 
@@ -118,6 +119,10 @@ def _stopped(interrupt: KeyboardInterrupt | None) -> None:
 
 def main() -> None:
     """Console-script entry point."""
+    # the drivers' and libraries' warnings (a retried request, a reconnect) go to --log-file;
+    # without a handler of its own, Python would print them to the terminal, and the
+    # operator is to read one line saying what happened
+    logging.getLogger().addHandler(logging.NullHandler())
     try:
         app()
     except SystemExit as stop:

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import threading
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 
@@ -20,6 +21,11 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.machine import Machine
+
+if TYPE_CHECKING:
+    from sim.servers.served_cnc import ServedCnc
+    from sim.world import World
 
 sim_app = typer.Typer(help="The simulator: virtual machine, positioning units, interferometer.")
 
@@ -40,6 +46,13 @@ def serve(
     modbus: Annotated[
         str | None,
         typer.Option(help="Serve the unit over Modbus TCP on PORT (on --host) or HOST:PORT."),
+    ] = None,
+    modbus_receiver: Annotated[
+        str | None,
+        typer.Option(
+            help="Also serve the receiver unit of the same world over Modbus TCP on PORT or"
+            " HOST:PORT (--unit is then the launch unit)."
+        ),
     ] = None,
     rtu: Annotated[
         bool, typer.Option("--rtu", help="Serve the unit over Modbus RTU on a new pty.")
@@ -73,6 +86,23 @@ def serve(
         bool,
         typer.Option(help="Serve a weather station (drifting 22-25 °C shop) on a new pty."),
     ] = False,
+    position_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="Run a simulated CNC that writes its tool point to this file (units.yaml"
+            " machine_position source: file); needs --program."
+        ),
+    ] = None,
+    program: Annotated[
+        Path | None,
+        typer.Option(
+            help="The G-code the CNC of --position-file runs: Enter on standard input is"
+            " cycle start (starts it, goes on after each M0, starts it again after its end)."
+        ),
+    ] = None,
+    dialect: Annotated[
+        str | None, typer.Option(help="G-code dialect of --program (default: controller's).")
+    ] = None,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -80,20 +110,29 @@ def serve(
 
     if unit not in ("launch", "receiver"):
         raise InputError(f"--unit '{unit}': expected launch or receiver")
-    nothing = modbus is None and not rtu and canopen is None
-    if nothing and not interferometer_pty and not station_pty:
+    if modbus_receiver is not None and unit != "launch":
+        raise InputError("--modbus-receiver serves the receiver: --unit must be launch")
+    if (position_file is None) != (program is None):
+        raise InputError("--position-file and --program go together")
+    nothing = modbus is None and modbus_receiver is None and not rtu and canopen is None
+    if nothing and not interferometer_pty and not station_pty and position_file is None:
         raise InputError(
-            "nothing to serve: give --modbus, --rtu, --canopen, --interferometer-pty"
-            " and/or --station-pty"
+            "nothing to serve: give --modbus, --modbus-receiver, --rtu, --canopen,"
+            " --interferometer-pty, --station-pty and/or --position-file"
         )
     check_seed(seed)
     if can_hop_limit < 0:
         raise InputError(f"--can-hop-limit {can_hop_limit}: expected 0 or more")
     address = _host_port(modbus, host) if modbus is not None else None
+    receiver_address = _host_port(modbus_receiver, host) if modbus_receiver is not None else None
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
     log_handler = start_log_file(log_file)
-    world = build_world(
-        machine_or_default(machine), seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg)
+    machine_model = machine_or_default(machine)
+    world = build_world(machine_model, seed=seed, real_time=True, gamma_rad=math.radians(gamma_deg))
+    served_cnc = (
+        _served_cnc(world, machine_model, position_file, program, dialect)
+        if position_file is not None and program is not None
+        else None
     )
     stopped = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stopped.set())
@@ -110,6 +149,15 @@ def serve(
             server.start()
             servers.callback(server.stop)
             console.print(f"modbus {kind} unit on {server.where} (device id {device_id})")
+        if receiver_address is not None:
+            from sim.servers.modbus import ModbusUnitServer
+
+            receiver_server = ModbusUnitServer(world.receiver, *receiver_address, device_id)
+            receiver_server.start()
+            servers.callback(receiver_server.stop)
+            console.print(
+                f"modbus receiver unit on {receiver_server.where} (device id {device_id})"
+            )
         if rtu:
             from sim.servers.modbus import ModbusRtuUnitServer
 
@@ -146,10 +194,51 @@ def serve(
 
             port = serve_station(world, servers)
             console.print(f"weather station on {port}", highlight=False)
+        if served_cnc is not None:
+            served_cnc.start()
+            servers.callback(served_cnc.stop)
+            console.print(f"cnc position in {position_file}", highlight=False)
+            _press_cycle_start_on_enter(served_cnc)
         console.print("serving; Ctrl-C to stop", highlight=False)
         while not stopped.wait(0.2):
             pass
     console.print("stopped")
+
+
+def _served_cnc(
+    world: World, machine: Machine, position_file: Path, program: Path, dialect: str | None
+) -> ServedCnc:
+    """The world's machine moved by a simulated CNC running ``program`` (checked here)."""
+    from sim.cnc import SimulatedCnc
+    from sim.servers.served_cnc import ServedCnc
+    from trajectories.gcode import resolve_dialect
+    from xmalign.cli.run import read_text
+
+    cnc = SimulatedCnc(machine, world.clock)
+    world.interferometer.position = cnc
+
+    def tell(message: str) -> None:
+        console.print(message, markup=False, highlight=False)
+
+    return ServedCnc(
+        cnc,
+        machine,
+        world.clock,
+        read_text(program, "G-code program"),
+        resolve_dialect(machine, dialect),
+        position_file,
+        tell,
+    )
+
+
+def _press_cycle_start_on_enter(served_cnc: ServedCnc) -> None:
+    """Every line on standard input is a press of cycle start (until end of input)."""
+
+    def read() -> None:
+        for _ in sys.stdin:
+            served_cnc.cycle_start()
+
+    threading.Thread(target=read, name="cycle-start", daemon=True).start()
 
 
 def register(app: typer.Typer) -> None:

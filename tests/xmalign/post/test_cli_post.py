@@ -204,3 +204,17 @@ def test_a_rezeroed_minus_pass_is_reported(files, reference_machine):
     )
     assert result.exit_code == 0, result.output
     assert "warning:" in result.output and "re-zeroed" in result.output.replace("\n", " ")
+
+
+def test_verify_plan_alone_is_refused(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "xmalign", "post", "--plan", "p.json", "--data", "m.csv"]
+        + ["--out", str(tmp_path / "e.csv"), "--verify-plan", "p.json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip() == (
+        "xmalign: error: --verify-plan needs --verify-data (the verification measurement)"
+    )

@@ -1,0 +1,432 @@
+"""The live commands end to end against ``xmalign sim serve`` processes, as on a shop floor.
+
+One ``sim serve`` process serves a whole virtual world on 127.0.0.1: both
+units over Modbus TCP, the interferometer on a pty and a CNC that runs the
+plan's G-code on cycle start (Enter on its standard input) and writes its
+position to a file. ``xmalign run --config`` runs in another process; the test
+plays the operator: it presses cycle start when the run says so, interrupts
+the run, kills the server. The plan is one short line (3 targets, one run each
+way) on a machine at 20 m/min, so that a
+complete run takes some 10 s of real time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from pymodbus.client import ModbusTcpClient
+
+from firmware_iface.machine_position import FilePositions
+from sim.alignment_setup import point_by_truth
+from sim.units import SimPositioningUnit
+from sim.world import FixedPosition, build_world
+from trajectories.gcode import make_dialect
+from trajectories.gcode.program import write_program
+from xmalign.calibration import capture_sequence
+from xmalign.formats.measurements import load_measurements
+from xmalign.formats.plan import read_plan, write_plan
+from xmalign.formats.pose import LaunchPose, read_pose, write_pose
+from xmalign.formats.session import read_session
+from xmalign.machine import Machine, load_machine
+from xmalign.steps import design_step
+
+ROOT = Path(__file__).resolve().parents[2]
+SEED = 4
+GAMMA_DEG = -60.0
+ENV = {**os.environ, "COLUMNS": "200", "PYTHONPATH": str(ROOT)}
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Process:
+    """A process whose output lines are collected as they come (``wait_for`` one)."""
+
+    def __init__(self, args: list[str], cwd: Path, stdin: int | None = None) -> None:
+        self.popen = subprocess.Popen(
+            [sys.executable, "-m", "xmalign", *args],
+            cwd=cwd,
+            stdin=stdin if stdin is not None else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+        )
+        self.lines: list[str] = []
+        self._new: queue.Queue[str] = queue.Queue()
+        self.stderr = ""
+        threading.Thread(target=self._read, daemon=True).start()
+        threading.Thread(target=self._read_stderr, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            self.lines.append(line)
+            self._new.put(line)
+
+    def _read_stderr(self) -> None:
+        assert self.popen.stderr is not None
+        self.stderr = self.popen.stderr.read()
+
+    def wait_for(self, text: str, timeout_s: float = 60.0) -> str:
+        """The next output line (after those already waited for) that holds ``text``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                line = self._new.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(
+                    f"no '{text}' within {timeout_s} s:\n{''.join(self.lines)}{self.stderr}"
+                ) from None
+            if text in line:
+                return line
+
+    def next_line(self, timeout_s: float = 60.0) -> str | None:
+        """The next output line; None once the process has ended and said everything."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                return self._new.get(timeout=0.2)
+            except queue.Empty:
+                if self.popen.poll() is not None and self._new.empty():
+                    time.sleep(0.2)  # the reader takes the last lines
+                    if self._new.empty():
+                        return None
+        raise AssertionError(f"no output within {timeout_s} s:\n{''.join(self.lines)}")
+
+    def finish(self, timeout_s: float = 60.0) -> int:
+        code = self.popen.wait(timeout=timeout_s)
+        time.sleep(0.1)  # the readers take the last lines
+        return code
+
+    def stop(self) -> None:
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGINT)
+            try:
+                self.popen.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()
+
+
+class World:
+    """``xmalign sim serve`` of a world: both units, the interferometer, and with a
+    ``program`` a CNC that runs it (else the machine stands at the travel's centre)."""
+
+    def __init__(self, workdir: Path, program: Path | None = None) -> None:
+        self.workdir = workdir
+        self.position_file = workdir / "position.txt"
+        self.ports = ports = [_free_port(), _free_port()]
+        args = ["sim", "serve", "--seed", str(SEED), "--gamma-deg", str(GAMMA_DEG)]
+        args += ["--modbus", str(ports[0]), "--modbus-receiver", str(ports[1])]
+        args += ["--interferometer-pty"]
+        if program is not None:
+            args += ["--machine", "machine.yaml", "--program", str(program)]
+            args += ["--position-file", str(self.position_file)]
+        self.server = Process(args, workdir, stdin=subprocess.PIPE)
+        pty = self.server.wait_for("interferometer on").split()[-1]
+        self.server.wait_for("serving")
+        self.config = workdir / "units.yaml"
+        position = f"{{source: file, file: {self.position_file.name}}}" if program else "{}"
+        self.config.write_text(
+            "format: xmalign.units/1\n"
+            f"launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {ports[0]}}}\n"
+            f"receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {ports[1]}}}\n"
+            f"interferometer: {{port: {pty}, rate_hz: 50}}\n"
+            f"machine_position: {position}\n"
+            "timeouts: {io_s: 1.0, move_s: 30.0}\n"
+        )
+
+    def cycle_start(self) -> None:
+        """The operator presses cycle start on the CNC."""
+        stdin = self.server.popen.stdin
+        assert stdin is not None
+        stdin.write("\n")
+        stdin.flush()
+
+
+def _truth_pose(machine: Machine) -> LaunchPose:
+    """The served world's true launch pose (the same seed builds the same world)."""
+    world = build_world(machine, seed=SEED, gamma_rad=math.radians(GAMMA_DEG))
+    offsets = world.offsets
+    return LaunchPose(
+        world.launch2mcs_mm,
+        world.gamma_rad,
+        np.diag([1e-4, 1e-4, 1e-4, 1e-10]),
+        {"c2": offsets.c2, "c3": offsets.c3, "c4": offsets.c4},
+    )
+
+
+@pytest.fixture(scope="module")
+def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
+    """A quick machine (the reference one at 20 m/min) and its plan and program for line Z
+    from the true pose, the line cut to 20 mm: machine.yaml, plan.json and run.nc."""
+    workdir = tmp_path_factory.mktemp("plan")
+    quick = yaml.safe_load(reference_machine_path.read_text())
+    quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
+    quick["cnc"] = {"acceleration_mm_s2": 5000}
+    (workdir / "machine.yaml").write_text(yaml.safe_dump(quick))
+    machine = load_machine(workdir / "machine.yaml")
+    write_pose(workdir / "pose.json", _truth_pose(machine))
+    subprocess.run(
+        [sys.executable, "-m", "xmalign", "program", "--machine", "machine.yaml"]
+        + ["--lines", "Z", "--plan-out", "full.json"],
+        cwd=workdir,
+        env=ENV,
+        check=True,
+        capture_output=True,
+    )
+    plan = read_plan(workdir / "full.json")
+    line = plan.lines[0]
+    short = dataclasses.replace(
+        line,
+        targets_mm=np.array([0.0, 10.0, 20.0]),
+        end_mm=line.start_mm + 20.0 * line.frame[0],
+        runs=1,
+        extra={**line.extra, "length_mm": 20.0},
+    )
+    plan = dataclasses.replace(plan, lines=[short])
+    write_plan(workdir / "plan.json", plan)
+    (workdir / "run.nc").write_text(
+        write_program(plan, machine, make_dialect("sinumerik", machine))
+    )
+    return workdir
+
+
+@pytest.fixture
+def world(short_plan: Path, tmp_path: Path) -> Iterator[World]:
+    for name in ("machine.yaml", "plan.json", "run.nc"):
+        (tmp_path / name).write_bytes((short_plan / name).read_bytes())
+    served = World(tmp_path, tmp_path / "run.nc")
+    yield served
+    served.server.stop()
+
+
+def _start_run(world: World, *extra: str) -> Process:
+    return Process(
+        ["run", "--config", "units.yaml", "--machine", "machine.yaml"]
+        + ["--plan", "plan.json", "--out", "m.csv", *extra],
+        world.workdir,
+    )
+
+
+def _keys(path: Path) -> list[tuple]:
+    return [(r.line, r.run, r.direction, r.index) for r in load_measurements(path).rows]
+
+
+def _expected_keys(plan_path: Path) -> list[tuple]:
+    line = read_plan(plan_path).lines[0]
+    return [(line.id, p.run, p.direction, p.index) for p in capture_sequence(line)]
+
+
+def _run_to_line_start(world: World) -> Process:
+    """Cycle start: the CNC goes to the line start and stops (M0); the run sets the units."""
+    world.cycle_start()
+    world.server.wait_for("program started")
+    world.server.wait_for("waiting for cycle start")
+    run = _start_run(world)
+    run.wait_for("press cycle start")
+    world.cycle_start()
+    return run
+
+
+def _wait_for_rows(path: Path, count: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists() and len(load_measurements(path, torn_ok=True).rows) >= count:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"{path} holds fewer than {count} points after {timeout_s} s")
+
+
+def test_live_run_captures_every_point_of_the_plan(world: World) -> None:
+    run = _run_to_line_start(world)
+    assert run.finish() == 0, run.stderr
+    out = world.workdir / "m.csv"
+    assert _keys(out) == _expected_keys(world.workdir / "plan.json")
+    assert "7 points captured; 7 points in m.csv" in "".join(run.lines)
+    assert "Traceback" not in run.stderr
+    rows = load_measurements(out).rows
+    # captured where the plan says, with the beam well inside the ±250 µm straightness range
+    targets = read_plan(world.workdir / "plan.json").lines[0].target_points_mm()
+    assert all(np.allclose(r.machine_mm, targets[r.index], atol=0.005) for r in rows)
+    assert max(np.abs(r.channels[1:3]).max() for r in rows) < 100.0
+    # each reading of a machine standing still: the linear error over 20 mm is some µm, not the
+    # millimetres of a machine averaged while it moves on (two stops at one place: see
+    # xmalign.calibration.follow_machine)
+    assert max(abs(r.channels[0]) for r in rows) < 20.0
+    world.server.wait_for("program end")
+
+
+def test_live_run_interrupted_then_resumed_loses_and_repeats_no_point(world: World) -> None:
+    out = world.workdir / "m.csv"
+    run = _run_to_line_start(world)
+    _wait_for_rows(out, 2)
+    run.popen.send_signal(signal.SIGINT)
+    assert run.finish() == 130
+    kept = load_measurements(out, torn_ok=True).rows
+    assert len(kept) >= 2
+    assert f"stopped: {len(kept)} points kept in m.csv; go on with --resume" in run.stderr
+    assert "Traceback" not in run.stderr
+    world.server.wait_for("program end")  # the CNC ran on to the program's end
+    resumed = _start_run(world, "--resume", "--log-file", "wire.log")
+    resumed.wait_for("press cycle start")
+    world.cycle_start()  # runs the program again from the top: to the line start, M0
+    world.server.wait_for("program started")
+    world.server.wait_for("waiting for cycle start")
+    world.cycle_start()
+    assert resumed.finish() == 0, resumed.stderr
+    assert _keys(out) == _expected_keys(world.workdir / "plan.json")
+    rows = load_measurements(out).rows
+    assert max(abs(r.channels[0]) for r in rows) < 20.0
+    again = rows[: len(kept)]
+    assert all(np.array_equal(a.channels, b.channels) for a, b in zip(again, kept, strict=True))
+
+
+def test_server_killed_mid_run_one_line_and_the_points_kept(world: World) -> None:
+    out = world.workdir / "m.csv"
+    run = _run_to_line_start(world)
+    _wait_for_rows(out, 2)
+    world.server.popen.kill()
+    world.server.popen.wait()
+    code = run.finish()
+    assert code not in (0, 130)
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("xmalign: error: "), run.stderr
+    saved = len(load_measurements(out, torn_ok=True).rows)
+    assert saved >= 2
+    assert f"{saved} points kept in m.csv" in lines[0]
+
+
+def test_align_live_manual_then_fine_against_sim_serve(
+    tmp_path: Path, reference_machine: Machine
+) -> None:
+    """The operator jogs each axis to where the beam is in range, then fine alignment."""
+    served = World(tmp_path)
+    try:
+        truth = build_world(reference_machine, seed=SEED, gamma_rad=math.radians(GAMMA_DEG))
+        launch, receiver = SimPositioningUnit(truth.launch), SimPositioningUnit(truth.receiver)
+        start = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+        point_by_truth(truth, reference_machine, launch, receiver)
+        jogs = np.concatenate([launch.angles_rad(), receiver.angles_rad()]) - start
+        typed = "\na9 1\n" + "".join(
+            f"a{n} {math.degrees(step):.6f}\n" for n, step in enumerate(jogs, start=1)
+        )
+        result = subprocess.run(
+            [sys.executable, "-m", "xmalign", "align", "--live", "--manual"]
+            + ["--config", "units.yaml", "--log-file", "wire.log"],
+            cwd=tmp_path,
+            env=ENV,
+            input=typed + "\n",
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        served.server.stop()
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert result.stdout.count("beam out of range") >= 2
+    assert "the beam is not in range yet" in result.stdout  # Enter before the beam is in range
+    assert "jog command 'a9 1': expected an axis a1..a5" in result.stdout
+    assert "beam in range:" in result.stdout
+    assert "s of wall time" in result.stdout and "units locked" in result.stdout
+    assert "write axis1.control @16 <- [9] = 9" in (tmp_path / "wire.log").read_text()
+
+
+def _identification_program(positions_mm: np.ndarray) -> str:
+    """The operator's program for an identification: to each position, then stop (M0)."""
+    moves = "".join(f"SUPA G0 X{x:.4f} Y{y:.4f} Z{z:.4f}\nM0\n" for x, y, z in positions_mm)
+    return f"G71 G90 G94\n{moves}M30\n"
+
+
+def _unit_angles(served: World) -> np.ndarray:
+    """a1..a5 as the units' displays show them (read by a second, monitoring Modbus client)."""
+    angles = []
+    for port, axes in zip(served.ports, (2, 3), strict=True):
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        assert client.connect()
+        try:
+            for n in range(axes):  # axis n's 'actual', int32 counts, high word first
+                high, low = client.read_holding_registers(20 + 16 * n, count=2).registers
+                counts = (high << 16 | low) - (1 << 32 if high & 0x8000 else 0)
+                angles.append(2 * math.pi * counts / 2**23)
+        finally:
+            client.close()
+    return np.array(angles)
+
+
+@pytest.mark.skipif(
+    os.environ.get("XMALIGN_E2E_IDENTIFY") != "1",
+    reason="not yet reliable on a loaded machine (the scripted operator's jog can miss the"
+    " beam; a starved heartbeat trips the watchdog): XMALIGN_E2E_IDENTIFY=1 runs it",
+)
+def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
+    tmp_path: Path, reference_machine_path: Path
+) -> None:
+    """``identify --live``: the operator runs the CNC to each position and jogs the units
+    into range where no pose guess can point them; the pose found is the served world's."""
+    quick = yaml.safe_load(reference_machine_path.read_text())
+    quick["feed_mm_min"] = {"rapid": 30000, "measure": 2000}
+    (tmp_path / "machine.yaml").write_text(yaml.safe_dump(quick))
+    machine = load_machine(tmp_path / "machine.yaml")
+    positions = design_step(machine, 4).machine_mm
+    (tmp_path / "ident.nc").write_text(_identification_program(positions))
+    served = World(tmp_path, tmp_path / "ident.nc")
+    truth = build_world(machine, seed=SEED, gamma_rad=math.radians(GAMMA_DEG))
+    launch, receiver = SimPositioningUnit(truth.launch), SimPositioningUnit(truth.receiver)
+    identify = Process(
+        ["identify", "--live", "--config", "units.yaml", "--machine", "machine.yaml"]
+        + ["--alignments", "4", "--session", "session.json", "--out", "pose.json"],
+        tmp_path,
+        stdin=subprocess.PIPE,
+    )
+    assert identify.popen.stdin is not None
+    try:
+        while (line := identify.next_line()) is not None:
+            if "Move the machine to" in line:
+                served.cycle_start()
+                served.server.wait_for("waiting for cycle start")
+                identify.popen.stdin.write("\n")
+            elif "Jog: " in line:  # the operator points the units by eye
+                truth.interferometer.position = FixedPosition(
+                    FilePositions(served.position_file).position_mm()
+                )
+                point_by_truth(truth, machine, launch, receiver)
+                aligned = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+                jogs = "".join(
+                    f"a{n} {math.degrees(step):.6f}\n"
+                    for n, step in enumerate(aligned - _unit_angles(served), start=1)
+                )
+                identify.popen.stdin.write(jogs + "\n")
+            else:
+                continue
+            identify.popen.stdin.flush()
+        assert identify.finish() == 0, "".join(identify.lines) + identify.stderr
+    finally:
+        identify.stop()
+        served.server.stop()
+    said = "".join(identify.lines)
+    # the first alignment needs the operator (no azimuth yet); the last is pointed by the guess
+    assert said.index("Jog: ") < said.index("Move the machine to", 1)
+    assert "Jog: " not in said[said.rindex("Move the machine to") :]
+    pose = read_pose(tmp_path / "pose.json")
+    assert len(read_session(tmp_path / "session.json").alignments) == 4
+    assert np.linalg.norm(pose.position_mm - truth.launch2mcs_mm) < 0.2
+    assert abs(math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)) < 200e-6
