@@ -1,0 +1,337 @@
+"""The live paths of ``run``, ``identify`` and ``align`` in this process, over the real protocols.
+
+The virtual setup of a seed-3 dry run is served as a technician finds real hardware: both
+units over Modbus TCP on 127.0.0.1, the interferometer on a pty. The operator is a script
+at the terminal (``sys.stdin``/``sys.stdout``): it reads what xmalign asks, moves the
+virtual machine where it is told and answers, or jogs, or presses Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import re
+import socket
+import subprocess
+import sys
+import textwrap
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import pytest
+from cli_helpers import assert_one_line_error
+
+from sim.dry_run import DryRunOptions, VirtualSetup, simulate_calibration, virtual_setup
+from sim.servers.modbus import ModbusUnitServer
+from sim.servers.serial_pty import PtyInterferometerServer
+from sim.world import FixedPosition
+from xmalign.calibration import capture_sequence
+from xmalign.cli import main
+from xmalign.formats.measurements import read_measurements
+from xmalign.formats.plan import read_plan
+
+SEED = 3
+#: What xmalign tells the operator before each move of the machine (OperatorPrompt).
+MOVE = re.compile(r"Move the machine to X(\S+) Y(\S+) Z(\S+)")
+
+
+@pytest.fixture(scope="module")
+def dry(tmp_path_factory, reference_machine):
+    """A seed-3 dry run's folder (its plan fits the virtual setup of seed 3)."""
+    workdir = tmp_path_factory.mktemp("dry")
+    simulate_calibration(reference_machine, workdir, DryRunOptions(seed=SEED))
+    return workdir
+
+
+@pytest.fixture
+def short_plan(dry, tmp_path):
+    """The dry run's plan cut to line Z, three targets, one bidirectional run, short dwell."""
+    data = json.loads((dry / "plan.json").read_text())
+    line = next(line for line in data["lines"] if line["id"] == "Z")
+    line.update(targets_mm=line["targets_mm"][:3], runs=1, bidirectional=True, dwell_s=0.1)
+    data["lines"] = [line]
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+class Terminal:
+    """The operator's terminal: what xmalign prints, and a script that answers its prompts.
+
+    ``answer(printed)`` gets the text printed since the last prompt and returns the line
+    typed (None: end of input); it may raise KeyboardInterrupt as a Ctrl-C.
+    """
+
+    def __init__(self, answer: Callable[[str], str | None]) -> None:
+        self.out = io.StringIO()
+        self.answer = answer
+        self.prompts = 0
+        self._seen = 0
+
+    def readline(self) -> str:
+        text = self.out.getvalue()
+        printed, self._seen = text[self._seen :], len(text)
+        self.prompts += 1
+        reply = self.answer(printed)
+        return "" if reply is None else reply + "\n"
+
+
+def xmalign(terminal: Terminal, *args: str) -> subprocess.CompletedProcess:
+    """``xmalign ARGS`` in this process at ``terminal``: exit code, stdout, stderr."""
+    stderr = io.StringIO()
+    with (
+        mock.patch.object(sys, "argv", ["xmalign", *args]),
+        mock.patch.object(sys, "stdin", terminal),
+        contextlib.redirect_stdout(terminal.out),
+        contextlib.redirect_stderr(stderr),
+    ):
+        try:
+            main()
+            code = 0
+        except SystemExit as exit_:
+            code = exit_.code
+    return subprocess.CompletedProcess(args, code, terminal.out.getvalue(), stderr.getvalue())
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@dataclass
+class Served:
+    """A virtual setup served over the real protocols, and the units.yaml that names it."""
+
+    setup: VirtualSetup
+    machine: FixedPosition
+    launch: ModbusUnitServer
+    receiver: ModbusUnitServer
+    interferometer: PtyInterferometerServer
+    config: Path
+
+    def axes(self) -> list:
+        world = self.setup.world
+        return [*world.launch.axes, *world.receiver.axes]
+
+
+@contextlib.contextmanager
+def served(
+    machine, folder: Path, plan_path: Path | None = None, position_mm=None
+) -> Iterator[Served]:
+    """Serve the seed-3 virtual setup; the units stand at the plan's first line's angles.
+
+    The units are set in simulated time, then the clock follows the wall clock, as the
+    served devices of ``xmalign sim serve`` do.
+    """
+    setup = virtual_setup(machine, SEED)
+    world = setup.world
+    position = FixedPosition(setup.cnc.position_mm() if position_mm is None else position_mm)
+    world.interferometer.position = position
+    if plan_path is not None:
+        line = read_plan(plan_path).lines[0]
+        setup.launch.move_to(line.launch_rad, 30.0)
+        setup.receiver.move_to(line.receiver_rad, 30.0)
+    clock = world.clock
+    clock._wall_origin_s = _monotonic() - clock.now()
+    clock.real_time = True
+    launch = ModbusUnitServer(world.launch, "127.0.0.1", _free_port())
+    receiver = ModbusUnitServer(world.receiver, "127.0.0.1", _free_port())
+    pty = PtyInterferometerServer(world.interferometer, rate_hz=200.0)
+    started = []
+    try:
+        for server in (launch, receiver, pty):
+            server.start()
+            started.append(server)
+        config = folder / "units.yaml"
+        config.write_text(
+            textwrap.dedent(f"""\
+            format: xmalign.units/1
+            launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {launch.port}}}
+            receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {receiver.port}}}
+            interferometer: {{port: {pty.port}, rate_hz: 200}}
+            timeouts: {{io_s: 0.5, move_s: 10.0}}
+            """)
+        )
+        yield Served(setup, position, launch, receiver, pty, config)
+    finally:
+        for server in reversed(started):
+            with contextlib.suppress(Exception):
+                server.stop()
+
+
+def _monotonic() -> float:
+    import time
+
+    return time.monotonic()
+
+
+def moving_operator(
+    position: FixedPosition, then: Callable[[int], None] = lambda prompt: None
+) -> Callable[[str], str | None]:
+    """An operator who moves the machine where told and presses Enter (the target as typed).
+
+    ``then(n)`` is called at the n-th prompt first (n from 1): to press Ctrl-C, pull a cable.
+    """
+    count = [0]
+
+    def answer(printed: str) -> str | None:
+        count[0] += 1
+        then(count[0])
+        moves = MOVE.findall(printed)
+        assert moves, f"asked without a move: {printed!r}"
+        position.position = np.array([float(v) for v in moves[-1]])
+        return ""
+
+    return answer
+
+
+def _points(plan_path: Path) -> list[tuple]:
+    plan = read_plan(plan_path)
+    return sorted(
+        (p.line.id, p.run, p.direction, p.index)
+        for line in plan.lines
+        for p in capture_sequence(line)
+    )
+
+
+def _keys(csv_path: Path) -> list[tuple]:
+    return sorted((r.line, r.run, r.direction, r.index) for r in read_measurements(csv_path))
+
+
+def _run(terminal: Terminal, world: Served, plan: Path, out: Path, *extra: str):
+    return xmalign(
+        terminal,
+        "run",
+        "--plan",
+        str(plan),
+        "--config",
+        str(world.config),
+        "--out",
+        str(out),
+        *extra,
+    )
+
+
+def test_live_run_stepped_by_the_operator_captures_every_point(
+    reference_machine, short_plan, tmp_path
+):
+    out = tmp_path / "m.csv"
+    with served(reference_machine, tmp_path, short_plan) as world:
+        terminal = Terminal(moving_operator(world.machine))
+        result = _run(terminal, world, short_plan, out, "--log-file", str(tmp_path / "wire.log"))
+        assert result.returncode == 0, result.stderr + result.stdout
+        assert all(axis.is_locked() for axis in world.axes())
+    points = _points(short_plan)
+    assert _keys(out) == points
+    assert f"{len(points)} points captured; {len(points)} points in {out}" in result.stdout
+    assert "write axis1.control" in (tmp_path / "wire.log").read_text()
+    rows = read_measurements(out)
+    assert all(row.beam_ok for row in rows) if hasattr(rows[0], "beam_ok") else True
+
+
+def test_live_run_stopped_by_ctrl_c_keeps_its_points_and_resumes_without_a_repeat(
+    reference_machine, short_plan, tmp_path
+):
+    out = tmp_path / "m.csv"
+    with served(reference_machine, tmp_path, short_plan) as world:
+
+        def ctrl_c_at_the_fifth_prompt(n: int) -> None:
+            if n == 5:
+                raise KeyboardInterrupt
+
+        stopped = _run(
+            Terminal(moving_operator(world.machine, ctrl_c_at_the_fifth_prompt)),
+            world,
+            short_plan,
+            out,
+        )
+        assert stopped.returncode == 130, stopped.stderr
+        saved = len(read_measurements(out))
+        assert 0 < saved < len(_points(short_plan))
+        assert stopped.stderr.strip().splitlines() == [
+            f"xmalign: stopped: {saved} points kept in {out}; go on with --resume"
+        ]
+        assert all(axis.is_locked() for axis in world.axes())
+        resumed = _run(Terminal(moving_operator(world.machine)), world, short_plan, out, "--resume")
+        assert resumed.returncode == 0, resumed.stderr
+    assert _keys(out) == _points(short_plan)
+    total = len(_points(short_plan))
+    assert f"{total - saved} points captured; {total} points in {out}" in resumed.stdout
+    assert "setup kept" in resumed.stdout or "aligned again" in resumed.stdout
+
+
+def test_the_interferometer_gone_mid_run_is_one_line_and_keeps_the_points(
+    reference_machine, short_plan, tmp_path
+):
+    out = tmp_path / "m.csv"
+    with served(reference_machine, tmp_path, short_plan) as world:
+
+        def pull_the_cable_at_the_fifth_prompt(n: int) -> None:
+            if n == 5:
+                world.interferometer.stop()
+
+        result = _run(
+            Terminal(moving_operator(world.machine, pull_the_cable_at_the_fifth_prompt)),
+            world,
+            short_plan,
+            out,
+        )
+        assert all(axis.is_locked() for axis in world.axes())
+    saved = len(read_measurements(out))
+    assert 0 < saved < len(_points(short_plan))
+    assert_one_line_error(result, "interferometer", f"{saved} points kept in {out}")
+
+
+def test_a_unit_server_gone_mid_run_is_said_after_the_last_point(
+    reference_machine, short_plan, tmp_path
+):
+    """The units are locked while the machine steps: a unit lost then costs no point,
+    but its axes cannot be locked at the end, and the run says so."""
+    out = tmp_path / "m.csv"
+    with served(reference_machine, tmp_path, short_plan) as world:
+
+        def pull_the_cable_at_the_fifth_prompt(n: int) -> None:
+            if n == 5:
+                world.launch.stop()
+
+        result = _run(
+            Terminal(moving_operator(world.machine, pull_the_cable_at_the_fifth_prompt)),
+            world,
+            short_plan,
+            out,
+        )
+    assert _keys(out) == _points(short_plan)
+    assert_one_line_error(
+        result, "could not lock axis a1 of the launch unit", f"6 points kept in {out}"
+    )
+
+
+def test_live_run_refuses_an_unreachable_unit_before_creating_the_file(short_plan, tmp_path):
+    config = tmp_path / "units.yaml"
+    config.write_text(
+        textwrap.dedent(f"""\
+        format: xmalign.units/1
+        launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {_free_port()}}}
+        receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {_free_port()}}}
+        interferometer: {{port: {tmp_path / "no-tty"}}}
+        timeouts: {{io_s: 0.2, move_s: 1.0}}
+        """)
+    )
+    out = tmp_path / "m.csv"
+    result = xmalign(
+        Terminal(lambda printed: None),
+        "run",
+        "--plan",
+        str(short_plan),
+        "--config",
+        str(config),
+        "--out",
+        str(out),
+    )
+    assert_one_line_error(result, "launch unit")
+    assert not out.exists()
