@@ -335,3 +335,56 @@ def test_live_run_refuses_an_unreachable_unit_before_creating_the_file(short_pla
     )
     assert_one_line_error(result, "launch unit")
     assert not out.exists()
+
+
+def scripted(*lines: str | None) -> Callable[[str], str | None]:
+    """An operator who types ``lines`` in turn, whatever is shown (None: end of input)."""
+    answers = iter(lines)
+    return lambda printed: next(answers)
+
+
+def _at_line_start(short_plan: Path) -> dict:
+    line = read_plan(short_plan).lines[0]
+    return {
+        "position_mm": line.target_points_mm()[0],
+        "distance_mm": str(line.extra["beam_distance_mm"][0]),
+    }
+
+
+def test_align_live_manual_jogs_out_of_range_and_back_then_fine_aligns(
+    reference_machine, short_plan, tmp_path
+):
+    start = _at_line_start(short_plan)
+    with served(reference_machine, tmp_path, short_plan, start["position_mm"]) as world:
+        terminal = Terminal(scripted("hello", "a2 150", "a2 -0.5", "", "a2 0.5", ""))
+        result = xmalign(
+            terminal,
+            "align", "--live", "--manual", "--config", str(world.config),
+            "--distance-mm", start["distance_mm"],
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        assert all(axis.is_locked() for axis in world.axes())
+        geometry = world.setup.world.interferometer.geometry()
+    assert terminal.prompts == 6
+    shown = " ".join(result.stdout.split())  # rich wraps at the terminal width
+    assert "jog command 'hello': expected an axis a1..a5" in shown
+    assert "axis a2 of the launch unit at 127.0.0.1" in shown and "out of its range" in shown
+    times = [float(t) for t in re.findall(r"^│ +(-?[\d.]+) │", result.stdout, re.M)]
+    assert times[0] == 0.0 and times == sorted(times) and times[-1] < 10.0  # s since the first
+    assert "beam out of range" in shown and "the beam is not in range yet" in shown
+    assert re.search(r"beam in range: sv \d+%", shown)
+    assert "s of wall time" in shown and "units locked" in shown
+    assert np.all(np.abs(geometry.channels[1:3]) < 3.0)
+
+
+def test_align_live_manual_without_an_operator_is_one_line_and_locks_the_units(
+    reference_machine, short_plan, tmp_path
+):
+    start = _at_line_start(short_plan)
+    with served(reference_machine, tmp_path, short_plan, start["position_mm"]) as world:
+        result = xmalign(
+            Terminal(scripted("a1 0.01", None)),
+            "align", "--live", "--manual", "--config", str(world.config),
+        )  # fmt: skip
+        assert all(axis.is_locked() for axis in world.axes())
+    assert_one_line_error(result, "no answer from the operator (end of input)")
