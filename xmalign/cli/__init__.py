@@ -23,6 +23,7 @@ from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
 from xmalign.cli import run as run_command
 from xmalign.cli import sim as sim_command
+from xmalign.cli.common import keep_library_logs_off_the_terminal
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import os_problem
 
@@ -118,6 +119,7 @@ def _stopped(interrupt: KeyboardInterrupt | None) -> None:
 
 def main() -> None:
     """Console-script entry point."""
+    keep_library_logs_off_the_terminal()
     try:
         app()
     except SystemExit as stop:
