@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -476,3 +477,45 @@ def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
         math.remainder(identified.gamma_rad - truth.gamma_rad, math.tau),
     )
     assert np.all(np.abs(error) < 3 * sigma), (error, sigma)  # within its own uncertainty
+
+
+def _rows_in(path: Path) -> int:
+    """Data rows written so far (read while the run writes)."""
+    if not path.exists():
+        return 0
+    lines = path.read_bytes().split(b"\n")[:-1]  # a row counts once its newline is there
+    return sum(1 for line in lines if line and not line.startswith((b"#", b"line,")))
+
+
+def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
+    reference_machine, short_plan, tmp_path
+):
+    """machine_position source: file. The machine here is a script that stands at each
+    target of the program in turn, writes it to the position file and goes on once the
+    point is in the measurement file, as a controller running the program with dwells."""
+    out, position_file = tmp_path / "m.csv", tmp_path / "position.txt"
+    points = [p.point_mm for line in read_plan(short_plan).lines for p in capture_sequence(line)]
+    with served(reference_machine, tmp_path, short_plan, points[0]) as world:
+        world.config.write_text(
+            world.config.read_text()
+            + f"machine_position: {{source: file, file: {position_file}}}\n"
+        )
+        stop = threading.Event()
+
+        def controller() -> None:
+            for k, point_mm in enumerate(points):
+                world.machine.position = np.asarray(point_mm)
+                position_file.write_text("# X Y Z\n" + " ".join(f"{v:.4f}" for v in point_mm))
+                while _rows_in(out) <= k and not stop.wait(0.01):
+                    pass
+
+        thread = threading.Thread(target=controller, daemon=True)
+        thread.start()
+        try:
+            result = _run(Terminal(lambda printed: None), world, short_plan, out)
+        finally:
+            stop.set()
+            thread.join(timeout=5)
+        assert result.returncode == 0, result.stderr
+    assert "line Z: units aligned and locked; press cycle start" in result.stdout
+    assert _keys(out) == _points(short_plan)
