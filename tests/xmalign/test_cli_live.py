@@ -18,7 +18,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,9 +139,7 @@ def served(
         line = read_plan(plan_path).lines[0]
         setup.launch.move_to(line.launch_rad, 30.0)
         setup.receiver.move_to(line.receiver_rad, 30.0)
-    clock = world.clock
-    clock._wall_origin_s = time.monotonic() - clock.now()
-    clock.real_time = True
+    world.clock.follow_wall_clock()
     launch = ModbusUnitServer(world.launch, "127.0.0.1", _free_port())
     receiver = ModbusUnitServer(world.receiver, "127.0.0.1", _free_port())
     pty = PtyInterferometerServer(world.interferometer, rate_hz=200.0)
