@@ -516,3 +516,41 @@ def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
         assert result.returncode == 0, result.stderr
     assert "line Z: units aligned and locked; press cycle start" in result.stdout
     assert _keys(out) == _points(short_plan)
+
+
+def test_a_program_for_more_lines_than_the_plan_is_refused_with_the_points_kept(dry, tmp_path):
+    """run --sim executes the dry run's program (six lines) against its plan cut to line X."""
+    data = json.loads((dry / "plan.json").read_text())
+    data["lines"] = data["lines"][:1]
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps(data))
+    out = tmp_path / "m.csv"
+    program = next(dry.glob("run.*"))
+    result = xmalign(
+        Terminal(lambda printed: None),
+        "run", "--sim", "--seed", str(SEED), "--plan", str(plan), "--out", str(out),
+        "--program", str(program),
+    )  # fmt: skip
+    kept = len(read_measurements(out))
+    assert kept == len(_points(plan))  # line X was measured before the program went on
+    assert_one_line_error(
+        result, "the program stops for more lines than the plan has", f"{kept} points kept"
+    )
+
+
+def test_a_live_resume_of_a_file_recorded_with_the_environment_needs_the_same_source(
+    reference_machine, short_plan, tmp_path
+):
+    out = tmp_path / "m.csv"
+    recorded = xmalign(
+        Terminal(lambda printed: None),
+        "run", "--sim", "--seed", str(SEED), "--plan", str(short_plan), "--out", str(out),
+    )  # fmt: skip
+    assert recorded.returncode == 0, recorded.stderr
+    before = out.read_bytes()
+    with served(reference_machine, tmp_path, short_plan) as world:
+        result = _run(Terminal(lambda printed: None), world, short_plan, out, "--resume")
+    assert_one_line_error(
+        result, str(out), "was recorded with the environment", "same environment source"
+    )
+    assert out.read_bytes() == before
