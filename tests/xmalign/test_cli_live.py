@@ -1,6 +1,6 @@
 """The live paths of ``run``, ``identify`` and ``align`` in this process, over the real protocols.
 
-The virtual setup of a seed-3 dry run is served as a technician finds real hardware: both
+The seed-3 virtual setup is served as a technician finds real hardware: both
 units over Modbus TCP on 127.0.0.1, the interferometer on a pty. The operator is a script
 at the terminal (``sys.stdin``/``sys.stdout``): it reads what xmalign asks, moves the
 virtual machine where it is told and answers, or jogs, or presses Ctrl-C.
@@ -12,6 +12,7 @@ import contextlib
 import io
 import json
 import math
+import os
 import re
 import socket
 import subprocess
@@ -27,15 +28,18 @@ import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error
 
-from sim.dry_run import DryRunOptions, VirtualSetup, simulate_calibration, virtual_setup
+from sim.dry_run import VirtualSetup, virtual_setup
 from sim.servers.modbus import ModbusUnitServer
 from sim.servers.serial_pty import PtyInterferometerServer
 from sim.world import FixedPosition
+from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.gcode.program import write_program
+from trajectories.planner import plan_measurement
 from xmalign.calibration import capture_sequence
 from xmalign.cli import main
 from xmalign.formats.measurements import read_measurements
-from xmalign.formats.plan import read_plan
-from xmalign.formats.pose import read_pose
+from xmalign.formats.plan import read_plan, write_plan
+from xmalign.formats.pose import LaunchPose, read_pose
 
 SEED = 3
 #: What xmalign tells the operator before each move of the machine (OperatorPrompt).
@@ -43,17 +47,30 @@ MOVE = re.compile(r"Move the machine to X(\S+) Y(\S+) Z(\S+)")
 
 
 @pytest.fixture(scope="module")
-def dry(tmp_path_factory, reference_machine):
-    """A seed-3 dry run's folder (its plan fits the virtual setup of seed 3)."""
-    workdir = tmp_path_factory.mktemp("dry")
-    simulate_calibration(reference_machine, workdir, DryRunOptions(seed=SEED))
-    return workdir
+def plans(tmp_path_factory, reference_machine):
+    """Lines Z and X planned for the true pose of the seed-3 virtual setup (a perfect
+    identification), the G-code program of both."""
+    world = virtual_setup(reference_machine, SEED).world
+    offsets = world.offsets
+    pose = LaunchPose(
+        world.launch2mcs_mm,
+        world.gamma_rad,
+        np.diag([1e-4, 1e-4, 1e-4, 1e-10]),
+        {"c2": offsets.c2, "c3": offsets.c3, "c4": offsets.c4},
+        n_alignments=6,
+    )
+    folder = tmp_path_factory.mktemp("plans")
+    plan = plan_measurement(reference_machine, pose, ("Z", "X")).plan
+    write_plan(folder / "plan.json", plan)
+    dialect = make_dialect(resolve_dialect(reference_machine, None), reference_machine)
+    (folder / "run.nc").write_text(write_program(plan, reference_machine, dialect))
+    return folder
 
 
 @pytest.fixture
-def short_plan(dry, tmp_path):
-    """The dry run's plan cut to line Z, three targets, one bidirectional run, short dwell."""
-    data = json.loads((dry / "plan.json").read_text())
+def short_plan(plans, tmp_path):
+    """Line Z cut to three targets, one bidirectional run, short dwell."""
+    data = json.loads((plans / "plan.json").read_text())
     line = next(line for line in data["lines"] if line["id"] == "Z")
     line.update(targets_mm=line["targets_mm"][:3], runs=1, bidirectional=True, dwell_s=0.1)
     data["lines"] = [line]
@@ -357,7 +374,6 @@ def test_align_live_manual_jogs_out_of_range_and_back_then_fine_aligns(
         )  # fmt: skip
         assert result.returncode == 0, result.stderr
         assert all(axis.is_locked() for axis in world.axes())
-        geometry = world.setup.world.interferometer.geometry()
     assert terminal.prompts == 6
     shown = " ".join(result.stdout.split())  # rich wraps at the terminal width
     assert "jog command 'hello': expected an axis a1..a5" in shown
@@ -367,7 +383,11 @@ def test_align_live_manual_jogs_out_of_range_and_back_then_fine_aligns(
     assert "beam out of range" in shown and "the beam is not in range yet" in shown
     assert re.search(r"beam in range: sv \d+%", shown)
     assert "s of wall time" in shown and "units locked" in shown
-    assert np.all(np.abs(geometry.channels[1:3]) < 3.0)
+    cells = r" +([-+]?[\d.]+) │"
+    rows = re.findall(r"^│" + cells * 7, result.stdout, re.M)
+    sv, sw, aw, av, au = (float(v) for v in rows[-1][1:6])  # um, urad
+    # the receiver faces the beam (the launch unit does not steer: FineAlignmentSettings)
+    assert abs(sw) <= 1.0 and abs(av) <= 3.0 and abs(au) <= 3.0, rows[-1]
 
 
 def test_align_live_manual_without_an_operator_is_one_line_and_locks_the_units(
@@ -502,7 +522,9 @@ def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
         def controller() -> None:
             for k, point_mm in enumerate(points):
                 world.machine.position = np.asarray(point_mm)
-                position_file.write_text("# X Y Z\n" + " ".join(f"{v:.4f}" for v in point_mm))
+                written = position_file.with_suffix(".new")  # replaced whole, never torn
+                written.write_text("# X Y Z\n" + " ".join(f"{v:.4f}" for v in point_mm))
+                os.replace(written, position_file)
                 while _rows_in(out) <= k and not stop.wait(0.01):
                     pass
 
@@ -518,21 +540,21 @@ def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
     assert _keys(out) == _points(short_plan)
 
 
-def test_a_program_for_more_lines_than_the_plan_is_refused_with_the_points_kept(dry, tmp_path):
-    """run --sim executes the dry run's program (six lines) against its plan cut to line X."""
-    data = json.loads((dry / "plan.json").read_text())
+def test_a_program_for_more_lines_than_the_plan_is_refused_with_the_points_kept(plans, tmp_path):
+    """run --sim executes the program of lines Z and X against the plan cut to line Z."""
+    data = json.loads((plans / "plan.json").read_text())
     data["lines"] = data["lines"][:1]
     plan = tmp_path / "plan.json"
     plan.write_text(json.dumps(data))
     out = tmp_path / "m.csv"
-    program = next(dry.glob("run.*"))
+    program = plans / "run.nc"
     result = xmalign(
         Terminal(lambda printed: None),
         "run", "--sim", "--seed", str(SEED), "--plan", str(plan), "--out", str(out),
         "--program", str(program),
     )  # fmt: skip
     kept = len(read_measurements(out))
-    assert kept == len(_points(plan))  # line X was measured before the program went on
+    assert kept == len(_points(plan))  # line Z was measured before the program went on
     assert_one_line_error(
         result, "the program stops for more lines than the plan has", f"{kept} points kept"
     )
