@@ -28,6 +28,13 @@ class SimClock:
         with self._lock:
             return self._now_s
 
+    def follow_wall_clock(self) -> None:
+        """Go on in real time from the current ``now()`` (a setup prepared in virtual time,
+        then served)."""
+        with self._lock:
+            self._wall_origin_s = time.monotonic() - self._now_s
+            self.real_time = True
+
     def sleep(self, seconds: float) -> None:
         if self.real_time:
             time.sleep(max(0.0, seconds))

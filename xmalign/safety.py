@@ -88,9 +88,12 @@ def units_locked_on_exit(*units: PositioningUnit) -> Iterator[None]:
         raise DeviceError("; ".join(problems))
 
 
-def interrupted(error: KeyboardInterrupt) -> XmalignError:
-    """The one-line error a command reports for Ctrl-C inside :func:`units_locked_on_exit`."""
+def interrupted(error: KeyboardInterrupt) -> KeyboardInterrupt:
+    """The one line a command reports for Ctrl-C inside :func:`units_locked_on_exit`.
+
+    Still a KeyboardInterrupt: the CLI prints it and exits with 130, as for any Ctrl-C.
+    """
     notes = getattr(error, "__notes__", [])
     if notes:
-        return XmalignError("interrupted by the operator; " + "; ".join(notes))
-    return XmalignError("interrupted by the operator; all axes were stopped and locked")
+        return KeyboardInterrupt("interrupted by the operator; " + "; ".join(notes))
+    return KeyboardInterrupt("interrupted by the operator; all axes were stopped and locked")

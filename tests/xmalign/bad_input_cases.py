@@ -522,6 +522,24 @@ _CLI_CASES = [
     Case("dry-run-seed", ("dry-run", "--seed", "-5", "--out", "dr"), ("--seed", "-5")),
     Case("identify-seed", ("identify", "--sim", "--seed", "-1"), ("--seed",)),
     Case("align-seed", ("align", "--sim", "--seed", "-3"), ("--seed",)),
+    Case(
+        "identify-live-no-session", ("identify", "--live", "--config", "units.yaml"), ("--session",)
+    ),
+    Case(
+        "identify-uncertainty-negative",
+        ("identify", "--input", S, "--encoder-urad", "-1"),
+        ("encoder_rad", "must be positive"),
+    ),  # noqa: E501
+    Case(
+        "run-shop-unknown",
+        ("run", "--sim", "--plan", L, "--out", "new.csv", "--shop", "nowhere"),
+        ("--shop", "'nowhere'", "drifting"),
+    ),  # noqa: E501
+    Case(
+        "comp-ini-for-another-controller",
+        ("comp", "--errors", E, "--out", "comp", "--controller", "sinumerik", "--ini", M),
+        ("--ini is for the linuxcnc controller", "sinumerik"),
+    ),  # noqa: E501
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
     # command-line mistakes: one line too, not click's box

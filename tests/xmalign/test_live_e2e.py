@@ -430,3 +430,46 @@ def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
     assert len(read_session(tmp_path / "session.json").alignments) == 4
     assert np.linalg.norm(pose.position_mm - truth.launch2mcs_mm) < 0.2
     assert abs(math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)) < 200e-6
+
+
+def _align_waiting_at_the_jog_prompt(served: World) -> Process:
+    """``align --live --manual`` started against the served world, at its first report."""
+    align = Process(
+        ["align", "--live", "--manual", "--config", "units.yaml", "--log-file", "wire.log"],
+        served.workdir,
+        stdin=subprocess.PIPE,
+    )
+    align.wait_for("beam out of range")
+    return align
+
+
+def test_align_live_stopped_by_ctrl_c_locks_the_units(tmp_path: Path) -> None:
+    served = World(tmp_path)
+    try:
+        align = _align_waiting_at_the_jog_prompt(served)
+        align.popen.send_signal(signal.SIGINT)
+        assert align.finish() == 130, align.stderr
+    finally:
+        served.server.stop()
+    (line,) = align.stderr.strip().splitlines()
+    assert line == "xmalign: interrupted by the operator; all axes were stopped and locked"
+    wire = (tmp_path / "wire.log").read_text()
+    assert "write axis1.control @16 <- [9] = 9" in wire  # a lock on each unit's first axis
+    assert wire.count("axis1.control @16 <- [9]") >= 2
+
+
+def test_align_live_with_the_server_killed_is_one_line(tmp_path: Path) -> None:
+    served = World(tmp_path)
+    try:
+        align = _align_waiting_at_the_jog_prompt(served)
+        served.server.popen.kill()
+        served.server.popen.wait()
+        assert align.popen.stdin is not None
+        align.popen.stdin.write("a1 1.0\n")
+        align.popen.stdin.close()
+        code = align.finish()
+    finally:
+        served.server.stop()
+    assert code == 2, align.stderr
+    (line,) = align.stderr.strip().splitlines()
+    assert line.startswith("xmalign: error:") and "launch unit" in line, line

@@ -10,7 +10,6 @@ is printed instead of the generic one.
 
 from __future__ import annotations
 
-import logging
 import sys
 from typing import Annotated, Any
 
@@ -24,6 +23,7 @@ from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
 from xmalign.cli import run as run_command
 from xmalign.cli import sim as sim_command
+from xmalign.cli.common import keep_library_logs_off_the_terminal
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import os_problem
 
@@ -119,10 +119,7 @@ def _stopped(interrupt: KeyboardInterrupt | None) -> None:
 
 def main() -> None:
     """Console-script entry point."""
-    # the drivers' and libraries' warnings (a retried request, a reconnect) go to --log-file;
-    # without a handler of its own, Python would print them to the terminal, and the
-    # operator is to read one line saying what happened
-    logging.getLogger().addHandler(logging.NullHandler())
+    keep_library_logs_off_the_terminal()
     try:
         app()
     except SystemExit as stop:

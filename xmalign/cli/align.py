@@ -10,6 +10,7 @@ locked however the command ends.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -35,7 +36,7 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
-from xmalign.errors import InputError, XmalignError
+from xmalign.errors import InputError, OutOfRangeError, XmalignError
 from xmalign.machine import Machine
 from xmalign.roles import WallClock
 from xmalign.safety import interrupted, units_locked_on_exit
@@ -53,9 +54,17 @@ def _step_table() -> Table:
     return table
 
 
-def _add_step(table: Table, start_s: float, step: AlignmentStep) -> None:
-    values = [f"{v:+.2f}" for v in step.error] + [""] * (len(_SHORT) - len(step.error))
-    table.add_row(f"{step.time_s - start_s:.3f}", *values, f"{step.distance_mm:.0f}")
+def _step_adder(table: Table) -> Callable[[AlignmentStep], None]:
+    """Add each step as a row; times from the first reading (the interferometer's clock,
+    which is not the host's)."""
+    first_s: list[float] = []
+
+    def add(step: AlignmentStep) -> None:
+        first_s[:] = first_s or [step.time_s]
+        values = [f"{v:+.2f}" for v in step.error] + [""] * (len(_SHORT) - len(step.error))
+        table.add_row(f"{step.time_s - first_s[0]:.3f}", *values, f"{step.distance_mm:.0f}")
+
+    return add
 
 
 def run_fine_alignment(
@@ -63,7 +72,6 @@ def run_fine_alignment(
 ) -> FineAlignmentResult:
     """Fine-align with a live table of the steps; the units are locked on any exit."""
     table = _step_table()
-    start_s = devices.clock.now()
     with units_locked_on_exit(devices.launch, devices.receiver):
         result = fine_align(
             devices.launch,
@@ -72,7 +80,7 @@ def run_fine_alignment(
             devices.clock,
             devices.distance_mm,
             settings,
-            on_step=lambda step: _add_step(table, start_s, step),
+            on_step=_step_adder(table),
         )
     console.print(table)
     console.print(
@@ -110,11 +118,9 @@ def manual_alignment(devices: AlignmentDevices, machine: Machine, move_timeout_s
             console.print("the beam is not in range yet", markup=False)
             continue
         try:
-            command = parse_jog(text)
-        except InputError as error:
+            jog(devices.launch, devices.receiver, parse_jog(text), move_timeout_s)
+        except (InputError, OutOfRangeError) as error:  # a typo or a refused step: ask again
             console.print(str(error), markup=False)
-            continue
-        jog(devices.launch, devices.receiver, command, move_timeout_s)
 
 
 def _parse_at(text: str | None, machine: Machine) -> np.ndarray:

@@ -133,6 +133,9 @@ LogFileOption = Annotated[
 
 #: Packages whose loggers record the wire traffic (drivers, simulated servers, core).
 WIRE_LOGGERS = ("firmware_iface", "sim", "xmalign")
+#: Third-party protocol libraries: their own warnings (retries, aborted transfers) go to
+#: the log file too, at the level they log at; never to the terminal.
+LIBRARY_LOGGERS = ("pymodbus", "canopen", "can")
 _LOG_FORMAT = "%(asctime)s.%(msecs)03dZ %(name)s %(levelname)s %(message)s"
 
 
@@ -155,13 +158,23 @@ def start_log_file(path: Path | None) -> logging.Handler | None:
         logger = logging.getLogger(name)
         logger.setLevel(logging.DEBUG)
         logger.addHandler(handler)
+    for name in LIBRARY_LOGGERS:
+        logging.getLogger(name).addHandler(handler)
     return handler
+
+
+def keep_library_logs_off_the_terminal() -> None:
+    """Without any handler, Python prints a library's warnings on stderr (pymodbus'
+    "Connection ... failed", canopen's "Transfer aborted"), next to the one-line error."""
+    root = logging.getLogger()
+    if not root.handlers:
+        root.addHandler(logging.NullHandler())
 
 
 def stop_log_file(handler: logging.Handler | None) -> None:
     """Detach and close a handler of :func:`start_log_file`."""
     if handler is None:
         return
-    for name in WIRE_LOGGERS:
+    for name in WIRE_LOGGERS + LIBRARY_LOGGERS:
         logging.getLogger(name).removeHandler(handler)
     handler.close()
