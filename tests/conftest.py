@@ -71,17 +71,21 @@ def dry_run_of_seed(
 
 
 LINUXCNC_TESTS = "tests/linuxcnc/"
+#: Groups that mostly wait on real time (a real-time LinuxCNC; served devices running at
+#: wall-clock speed), longest first: they start first, on workers of their own.
+WAITING_GROUPS = ("linuxcnc", "tests/xmalign/test_live_e2e.py", "tests/xmalign/test_cli_live.py")
 
 
 @pytest.hookimpl(optionalhook=True, wrapper=True)
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> Generator[None, int, int]:
-    """``-n auto``: one worker per core, and one more for the LinuxCNC group when LinuxCNC is
-    installed. That worker mostly waits (a real-time LinuxCNC takes well under a tenth of
-    a core); without it one core idles for the LinuxCNC group's minutes."""
+    """``-n auto``: one worker per core, and one more for the groups that mostly wait
+    (the live tests; with LinuxCNC installed, one more for its group): a real-time
+    LinuxCNC or a served device takes well under a tenth of a core, and without extra
+    workers one core idles for the minutes they run."""
     workers = yield
-    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS") or shutil.which("linuxcnc") is None:
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return workers
-    return workers + 1
+    return workers + (2 if shutil.which("linuxcnc") else 1)
 
 
 def xdist_group(nodeid: str) -> str:
@@ -98,8 +102,8 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | 
     xdist's own ``--dist loadgroup`` has no effect with pytest 9 (xdist 3.8 renames
     ``item._nodeid``, which pytest 9 no longer reads): every test went to any worker,
     module fixtures ran on both and the LinuxCNC tests waited for each other's lock.
-    Largest groups go first (xdist's ``--loadscope-reorder``); the LinuxCNC group,
-    the longest, before all, so the other workers share out the rest meanwhile.
+    Largest groups go first (xdist's ``--loadscope-reorder``); the :data:`WAITING_GROUPS`
+    before all, so the other workers share out the rest meanwhile.
     """
     if config.getoption("dist") not in ("loadscope", "loadgroup"):
         return None  # --dist load, each, worksteal: as pytest-xdist documents them
@@ -110,8 +114,9 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | 
             return xdist_group(nodeid)
 
         def _assign_work_unit(self, node: object) -> None:
-            if "linuxcnc" in self.workqueue:
-                self.workqueue.move_to_end("linuxcnc", last=False)
+            for group in reversed(WAITING_GROUPS):
+                if group in self.workqueue:
+                    self.workqueue.move_to_end(group, last=False)
             super()._assign_work_unit(node)
 
     return GroupScheduling(config, log)
