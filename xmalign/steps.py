@@ -253,11 +253,24 @@ def post_step(
 
 
 def comp_step(
-    machine: Machine, tables: ErrorTableSet, out_dir: Path, controller: str | None = None
+    machine: Machine,
+    tables: ErrorTableSet,
+    out_dir: Path,
+    controller: str | None = None,
+    more_files: Callable[[Compensation], dict[str, str]] | None = None,
+    check_outputs: Callable[[list[Path]], None] | None = None,
 ) -> Compensation:
-    """Fit the controller's model and write all of its files into ``out_dir`` (or none)."""
+    """Fit the controller's model and write all of its files into ``out_dir`` (or none).
+
+    ``more_files(compensation)`` adds files made from the fit (a merged LinuxCNC INI);
+    ``check_outputs(paths)`` may refuse the paths about to be written (raise). The
+    returned compensation's ``files`` are all that was written.
+    """
     compensation = compensate(machine, tables, controller or machine.controller)
-    atomic_write_files(
-        {out_dir / name: text.encode("utf-8") for name, text in compensation.files.items()}
-    )
+    if more_files is not None:
+        compensation.files.update(more_files(compensation))
+    paths = {out_dir / name: text.encode("utf-8") for name, text in compensation.files.items()}
+    if check_outputs is not None:
+        check_outputs(list(paths))
+    atomic_write_files(paths)
     return compensation

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import partial
 from pathlib import Path
 from typing import Annotated
 
@@ -18,7 +19,7 @@ from xmalign.cli.common import (
     output_folder,
     refuse_overwriting,
 )
-from xmalign.comp import WRITERS, Compensation, compensate, fit_for, linuxcnc
+from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files, read_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
@@ -27,6 +28,7 @@ from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
+from xmalign.steps import comp_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -254,14 +256,21 @@ def comp(
         _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
         console.print(done, highlight=False)
         return
-    result = compensate(machine_, tables, name)
-    files = dict(result.files)
-    if ini is not None:
-        files.update(_linuxcnc_ini(name, machine_, result, ini, out))
-    _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
+    inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
+    output_folder(out, "--out")
+    result = comp_step(
+        machine_,
+        tables,
+        out,
+        name,
+        more_files=None
+        if ini is None
+        else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
+        check_outputs=lambda paths: refuse_overwriting(inputs, {"--out": paths}),
+    )
     fit = result.fit
     console.print(
-        f"{name}: wrote {', '.join(sorted(files))} in {out}\n"
+        f"{name}: wrote {', '.join(sorted(result.files))} in {out}\n"
         f"predicted volumetric error over the travel (RMS, both directions): before"
         f" {fit.before_um:.2f} um, after these tables {fit.after_um:.2f} um"
         f" ({100 * fit.removed_share:.0f} % removed; {fit.grid_points} grid points)",
