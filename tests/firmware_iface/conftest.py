@@ -2,33 +2,27 @@
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 
 import pytest
+from cli_helpers import free_port as free_tcp_port
 
 from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 @pytest.fixture
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on."""
-    return _free_port()
+    return free_tcp_port()
 
 
 @pytest.fixture
 def served_launch() -> Iterator[tuple[SimUnit, ModbusUnitServer]]:
     """A real-time simulated launch unit behind a Modbus TCP server on 127.0.0.1."""
     unit = SimUnit("launch", SimClock(real_time=True), seed=1)
-    server = ModbusUnitServer(unit, "127.0.0.1", _free_port())
+    server = ModbusUnitServer(unit, "127.0.0.1", free_tcp_port())
     server.start()
     yield unit, server
     server.stop()

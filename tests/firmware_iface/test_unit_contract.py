@@ -9,7 +9,6 @@ heartbeat reported as a ``HeartbeatError`` with every axis stopped and locked.
 from __future__ import annotations
 
 import math
-import socket
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -17,6 +16,7 @@ from dataclasses import dataclass
 import canopen
 import numpy as np
 import pytest
+from cli_helpers import free_port
 
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
@@ -38,12 +38,6 @@ class Implementation:
     stall_heartbeat: Callable[[], None]
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _powered_on_long_ago(clock: SimClock) -> SimUnit:
     firmware = SimUnit(KIND, clock, seed=7)
     clock.sleep(firmware.register_map.quick_stop_start_s + 0.01)  # the watchdog has tripped
@@ -55,7 +49,7 @@ def _powered_on_long_ago(clock: SimClock) -> SimUnit:
 def modbus_tcp() -> Iterator[Implementation]:
     clock = SimClock(real_time=True)
     firmware = _powered_on_long_ago(clock)
-    server = ModbusUnitServer(firmware, "127.0.0.1", _free_port())
+    server = ModbusUnitServer(firmware, "127.0.0.1", free_port())
     server.start()
     transport = tcp_transport("127.0.0.1", server.port, "launch unit", timeout_s=2.0)
     unit = ModbusUnit(transport, expected_kind=KIND)

@@ -1,5 +1,4 @@
-import socket
-
+import cli_helpers
 import numpy as np
 import pytest
 
@@ -12,10 +11,9 @@ def machine():
 
 
 @pytest.fixture
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on."""
+    return cli_helpers.free_port()
 
 
 class StandingCnc:

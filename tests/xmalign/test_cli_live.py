@@ -14,19 +14,16 @@ import json
 import math
 import os
 import re
-import socket
 import subprocess
-import sys
 import textwrap
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from unittest import mock
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error
+from cli_helpers import assert_one_line_error, free_port, run_in_process
 
 from sim.dry_run import VirtualSetup, virtual_setup
 from sim.servers.modbus import ModbusUnitServer
@@ -36,7 +33,6 @@ from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.program import write_program
 from trajectories.planner import plan_measurement
 from xmalign.calibration import capture_sequence
-from xmalign.cli import main
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, read_pose
@@ -102,25 +98,7 @@ class Terminal:
 
 def xmalign(terminal: Terminal, *args: str) -> subprocess.CompletedProcess:
     """``xmalign ARGS`` in this process at ``terminal``: exit code, stdout, stderr."""
-    stderr = io.StringIO()
-    with (
-        mock.patch.object(sys, "argv", ["xmalign", *args]),
-        mock.patch.object(sys, "stdin", terminal),
-        contextlib.redirect_stdout(terminal.out),
-        contextlib.redirect_stderr(stderr),
-    ):
-        try:
-            main()
-            code = 0
-        except SystemExit as exit_:
-            code = exit_.code
-    return subprocess.CompletedProcess(args, code, terminal.out.getvalue(), stderr.getvalue())
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    return run_in_process(*args, stdin=terminal, stdout=terminal.out)
 
 
 @dataclass
@@ -157,8 +135,8 @@ def served(
         setup.launch.move_to(line.launch_rad, 30.0)
         setup.receiver.move_to(line.receiver_rad, 30.0)
     world.clock.follow_wall_clock()
-    launch = ModbusUnitServer(world.launch, "127.0.0.1", _free_port())
-    receiver = ModbusUnitServer(world.receiver, "127.0.0.1", _free_port())
+    launch = ModbusUnitServer(world.launch, "127.0.0.1", free_port())
+    receiver = ModbusUnitServer(world.receiver, "127.0.0.1", free_port())
     pty = PtyInterferometerServer(world.interferometer, rate_hz=200.0)
     started = []
     try:
@@ -328,8 +306,8 @@ def test_live_run_refuses_an_unreachable_unit_before_creating_the_file(short_pla
     config.write_text(
         textwrap.dedent(f"""\
         format: xmalign.units/1
-        launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {_free_port()}}}
-        receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {_free_port()}}}
+        launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {free_port()}}}
+        receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {free_port()}}}
         interferometer: {{port: {tmp_path / "no-tty"}}}
         timeouts: {{io_s: 0.2, move_s: 1.0}}
         """)

@@ -1,5 +1,3 @@
-import contextlib
-import io
 import json
 import re
 import shutil
@@ -7,15 +5,13 @@ import signal
 import subprocess
 import sys
 import time
-from unittest import mock
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 
 from xmalign import __version__
 from xmalign.calibration import capture_sequence
-from xmalign.cli import main
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
 
@@ -53,24 +49,8 @@ def dry(dry_run_of_seed):
     return dry_run_of_seed(3, "dry")[1]
 
 
-def _main(*args):
-    """``xmalign ARGS`` in this process (quicker than a new interpreter for a refusal)."""
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with (
-        mock.patch.object(sys, "argv", ["xmalign", *args]),
-        contextlib.redirect_stdout(stdout),
-        contextlib.redirect_stderr(stderr),
-    ):
-        try:
-            main()
-            code = 0
-        except SystemExit as exit_:
-            code = exit_.code
-    return subprocess.CompletedProcess(args, code, stdout.getvalue(), stderr.getvalue())
-
-
 def _run_sim(dry, out, *extra):
-    return _main(
+    return run_in_process(
         "run", "--plan", str(dry / "plan.json"), "--sim", "--seed", "3", "--out", str(out), *extra
     )
 
@@ -86,7 +66,7 @@ def test_run_never_replaces_measurements(dry, tmp_path):
     before = existing.read_bytes()
     refusals = [
         _run_sim(dry, existing),
-        _main(
+        run_in_process(
             "run",
             "--plan",
             str(dry / "plan.json"),
@@ -236,7 +216,7 @@ def test_post_refuses_measurements_recorded_for_another_plan(dry, tmp_path):
     plan["lines"][0]["dwell_s"] += 1.0
     other = tmp_path / "other-plan.json"
     other.write_text(json.dumps(plan))
-    result = _main(
+    result = run_in_process(
         "post",
         "--plan",
         str(other),
@@ -250,8 +230,8 @@ def test_post_refuses_measurements_recorded_for_another_plan(dry, tmp_path):
 
 
 def test_version_and_flags_in_help():
-    assert _main("--version").stdout.strip() == f"xmalign {__version__}"
-    help_text = _main("run", "--help").stdout
+    assert run_in_process("--version").stdout.strip() == f"xmalign {__version__}"
+    help_text = run_in_process("run", "--help").stdout
     assert "--sim " in help_text and "--resume " in help_text and "<bool>" not in help_text
 
 
@@ -272,7 +252,7 @@ def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, refe
             str(tmp_path / "e.csv"),
         ),
     ):
-        result = _main(*command, "--machine", str(other))
+        result = run_in_process(*command, "--machine", str(other))
         assert_one_line_error(
             result, "plan.json was made for machine 'Example FYXZ gantry mill'", str(other)
         )
@@ -280,7 +260,7 @@ def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, refe
     renamed = tmp_path / "renamed.json"
     renamed.write_text((dry / "plan.json").read_text().replace("Example FYXZ", "Another"))
     assert_one_line_error(
-        _main(
+        run_in_process(
             "post",
             "--plan",
             str(renamed),
@@ -325,15 +305,17 @@ def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
         f"xmalign: stopped: {saved} points kept in {csv_path}; go on with --resume ("
     )
     command = line[line.index("(xmalign ") + len("(xmalign ") : -1].split()
-    finished = _main(*command)
+    finished = run_in_process(*command)
     assert finished.returncode == 0, finished.stderr
     plan = read_plan(folder / "plan.json")
     assert len(read_measurements(csv_path)) == sum(
         1 for line in plan.lines for _ in capture_sequence(line)
     )
-    assert_one_line_error(_main("dry-run", "--out", str(folder)), "already holds a dry run")
     assert_one_line_error(
-        _main("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed: -5"
+        run_in_process("dry-run", "--out", str(folder)), "already holds a dry run"
+    )
+    assert_one_line_error(
+        run_in_process("dry-run", "--seed", "-5", "--out", str(tmp_path / "x")), "--seed: -5"
     )
 
 
