@@ -37,7 +37,7 @@ from bench_linuxcnc_volumetric import TOOL_OFFSET_MM, fitted_tables, held_out_ma
 
 from sim.machine import VirtualMachine  # noqa: E402
 from xmalign.comp import WRITERS, compensate, writer  # noqa: E402
-from xmalign.comp.fit import CompModel, fit_tables, node_positions, travel_grid  # noqa: E402
+from xmalign.comp.fit import CompModel, fit_tables, travel_grid  # noqa: E402
 from xmalign.formats.error_tables import ErrorTableSet  # noqa: E402
 from xmalign.machine import Machine  # noqa: E402
 from xmalign.post.compare import grid_points, remove_rigid_motion  # noqa: E402
@@ -83,7 +83,7 @@ def best_model(
         return truth
     if option:
         model = CompModel(model.pairs + model.optional, directional=False)
-    nodes = {axis: node_positions(tables, axis) for axis in AXES}
+    nodes = {axis: tables.positioning_table(axis).positions_mm for axis in AXES}
     points = travel_grid(nodes, machine.travel_min_mm, machine.travel_max_mm)
     chain = Chain.parse(machine.chain)
     tool = machine.cnc.tool_offset

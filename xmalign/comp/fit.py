@@ -24,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
-from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.geometry import Vec
 from xmalign.rigid_body import (
@@ -108,15 +107,6 @@ class CompensationFit:
         """``(positions mm, error mm)`` of one fitted table (``direction`` ``""``, ``+``, ``-``)."""
         source = {"": self.mean, "+": self.forward, "-": self.reverse}[direction]
         return source.tables[f"E{output}{axis}"]
-
-
-def node_positions(tables: ErrorTableSet, axis: str) -> Vec:
-    """The measured positions of ``axis`` (its positioning table's), mm."""
-    name = f"E{axis}{axis}"
-    for candidate in (name, name + "+", name + "-"):
-        if candidate in tables.tables:
-            return tables.tables[candidate].positions_mm
-    raise InputError(f"{tables.source}: no table {name} (run xmalign post on all six lines)")
 
 
 def travel_grid(nodes_mm: dict[str, Vec], low_mm: Vec, high_mm: Vec) -> Vec:
@@ -267,7 +257,7 @@ def fit_compensation(
         Reference point of each axis; one-variable tables are zero there.
     """
     low, high = (np.asarray(v, dtype=float) for v in travel_mm)
-    nodes = {axis: node_positions(tables, axis) for axis in AXES}
+    nodes = {axis: tables.positioning_table(axis).positions_mm for axis in AXES}
     points = travel_grid(nodes, low, high)
     t = np.asarray(tool_offset_mm, dtype=float)
     directions = ("+", "-") if _has_directions(tables) else ("",)

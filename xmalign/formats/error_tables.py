@@ -90,6 +90,20 @@ class ErrorTableSet:
     squareness: dict[str, tuple[float, float]] = field(default_factory=dict)
     source: str = "the error tables"
 
+    def positioning_table(self, axis: str) -> Table:
+        """The positioning table of ``axis`` (``EXX``, else ``EXX+``, else ``EXX-``).
+
+        Raises
+        ------
+        InputError
+            The file holds none (it was not posted from all six lines).
+        """
+        name = f"E{axis}{axis}"
+        for candidate in (name, name + "+", name + "-"):
+            if candidate in self.tables:
+                return self.tables[candidate]
+        raise InputError(f"{self.source}: no table {name} (run xmalign post on all six lines)")
+
     def model(self, direction: str = "") -> ErrorTables:
         """The interpolating error model of one direction (``""``, ``"+"`` or ``"-"``).
 

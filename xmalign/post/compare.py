@@ -15,7 +15,6 @@ from xmalign.geometry import Vec, skew
 from xmalign.post.ranges import measured_range_mm
 from xmalign.rigid_body import (
     AXES,
-    TRANSLATION_NAMES,
     Chain,
     ErrorModel,
     deviation,
@@ -63,9 +62,7 @@ def measured_box_mm(tables: ErrorTableSet) -> tuple[Vec, Vec]:
     """Per axis, the measured range of its positioning table: lower and upper, (3,) each."""
     low, high = np.zeros(3), np.zeros(3)
     for k, axis in enumerate(AXES):
-        name = TRANSLATION_NAMES[axis][k]
-        table = next(tables.tables[n] for n in (name, name + "+", name + "-") if n in tables.tables)
-        low[k], high[k] = measured_range_mm(table)
+        low[k], high[k] = measured_range_mm(tables.positioning_table(axis))
     return low, high
 
 

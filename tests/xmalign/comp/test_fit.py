@@ -65,9 +65,7 @@ def test_the_fit_is_least_squares_over_the_grid(machine):
     fit = _fit(model, tables, machine)
     assert 0.0 < fit.after_um < fit.before_um
     chain = Chain.parse(machine.chain)
-    from xmalign.comp.fit import node_positions
-
-    nodes = {axis: node_positions(tables, axis) for axis in AXES}
+    nodes = {axis: tables.positioning_table(axis).positions_mm for axis in AXES}
     points = travel_grid(nodes, machine.travel_min_mm, machine.travel_max_mm)
     field = deviation(chain, points, np.zeros(3), tables.model(""))[0]
 
