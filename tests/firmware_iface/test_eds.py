@@ -1,5 +1,7 @@
-"""The EDS against CiA 306 (our checker; no eds-validate exists) and canopen's EDS import."""
+"""The EDS against CiA 306: our checker, ``eds-validate`` (eds-utils) and canopen's EDS import."""
 
+import shutil
+import subprocess
 from pathlib import Path
 
 import canopen
@@ -18,6 +20,36 @@ OPTIONAL_OBJECTS = {
 def test_the_eds_is_clean():
     assert check_eds(EDS_PATH) == []
     assert main([str(EDS_PATH)]) == 0
+
+
+#: eds-validate (eds-utils 0.3.1) reports an empty [ManufacturerObjects] as missing, although
+#: CiA 306 counts it with SupportedObjects=0 and eds-utils' own writer writes it so.
+EMPTY_MANUFACTURER_SECTION = "AUTO-FIXED: Section [ManufacturerObjects] was missing"
+
+
+def _eds_validate(path: Path) -> list[str]:
+    if shutil.which("eds-validate") is None:
+        pytest.fail("eds-validate not installed: pip install -e '.[test]' (eds-utils)")
+    found = subprocess.run(["eds-validate", str(path)], capture_output=True, text=True)
+    return [line for line in found.stderr.splitlines() if line.strip()]
+
+
+def test_eds_validate_finds_nothing_but_its_own_empty_section_false_positive(tmp_path):
+    assert _eds_validate(EDS_PATH) == [EMPTY_MANUFACTURER_SECTION]
+    # the same finding for the file eds-utils itself writes from ours
+    from eds_utils.core.file_io.read_eds import read_eds
+    from eds_utils.core.file_io.write_eds import write_eds
+
+    eds, _ = read_eds(str(EDS_PATH))
+    written = tmp_path / "written.eds"
+    write_eds(eds, str(written))
+    assert "[ManufacturerObjects]\nSupportedObjects=0" in written.read_text()
+    assert _eds_validate(written) == [EMPTY_MANUFACTURER_SECTION]
+
+
+def test_eds_validate_finds_a_damaged_object_list(tmp_path):
+    path = damaged(tmp_path, "24=0x6502\n", "")
+    assert any("0x6502" in line for line in _eds_validate(path))
 
 
 def test_canopen_imports_it_with_every_listed_object_and_the_pdo_mapping():
