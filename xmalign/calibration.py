@@ -491,15 +491,20 @@ def follow_machine(
     run: CalibrationRun,
     position: MachinePositionSource,
     lines: Iterable[PlanLine],
-    on_line_start: Callable[[PlanLine], None],
+    tell: Callable[[str], None],
+    overrun_mm: float,
     tolerance_mm: float = 0.005,
     timeout_s: float = 600.0,
     poll_s: float = 0.05,
 ) -> None:
     """Capture while the controller runs the program: wait for standstill at each target.
 
-    ``on_line_start`` is called before each line (e.g. to tell the operator to
-    press cycle start once the units are set). Where the program stops twice
+    The units are set for a line once the machine stands at the line's
+    pre-position (``overrun_mm`` before the first target, where the program
+    stops for it): fine alignment needs a machine at rest where the plan
+    aligned the beam. ``tell`` gets what the operator is to do: run the
+    program while the machine is not there, press cycle start once the units
+    are set. Where the program stops twice
     at one place (the last target of a run and the first back; the drift
     check), the machine has to leave it before it counts as there again: the
     program moves on to overrun and approach, and a capture while it does would
@@ -510,8 +515,14 @@ def follow_machine(
     for line in lines:
         if run.line_is_done(line):
             continue
+        pre_position_mm = line.target_points_mm()[0] - overrun_mm * line.frame[0]
+        there = partial(_stands_at_mm, position, pre_position_mm, tolerance_mm)
+        where = f"the pre-position of line {line.id} {np.round(pre_position_mm, 3).tolist()} mm"
+        if not there():
+            tell(f"line {line.id}: waiting for the machine to stop at {where} (run the program)")
+            _wait_for(run, there, f"stop at {where}", timeout_s, poll_s)
         run.prepare_line(line)
-        on_line_start(line)
+        tell(f"line {line.id}: units aligned and locked; press cycle start")
         previous: CapturePoint | None = None
         for point in capture_sequence(line):
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
@@ -535,7 +546,11 @@ def follow_machine(
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
     """The machine stands still at the point (it has not gone on with the program)."""
-    miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
+    return _stands_at_mm(position, point.point_mm, tolerance_mm)
+
+
+def _stands_at_mm(position: MachinePositionSource, point_mm: Vec, tolerance_mm: float) -> bool:
+    miss = float(np.linalg.norm(position.position_mm() - point_mm))
     return position.is_standstill() and miss <= tolerance_mm
 
 

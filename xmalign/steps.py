@@ -33,7 +33,7 @@ from xmalign.comp import Compensation, compensate
 from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
 from xmalign.formats.measurements import read_measurements
-from xmalign.formats.plan import Plan, PlanLine, read_plan, write_plan
+from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import Session
 from xmalign.identification_routine import (
@@ -199,10 +199,14 @@ def stepping_drive(mover: MachineMover, machine: Machine) -> Drive:
 
 
 def following_drive(
-    position: MachinePositionSource, on_line_start: Callable[[PlanLine], None]
+    position: MachinePositionSource, tell: Callable[[str], None], machine: Machine
 ) -> Drive:
-    """Capture while the controller runs the program, at each standstill on a target."""
-    return lambda run: follow_machine(run, position, run.plan.lines, on_line_start)
+    """Capture while the controller runs the program, at each standstill on a target
+    (the units set at each line's pre-position, the machine file's overrun before it);
+    ``tell`` says the operator's part (run the program, press cycle start)."""
+    return lambda run: follow_machine(
+        run, position, run.plan.lines, tell, machine.measurement.overrun_mm
+    )
 
 
 @dataclass

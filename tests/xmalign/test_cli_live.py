@@ -484,17 +484,34 @@ def _rows_in(path: Path) -> int:
     return sum(1 for line in lines if line and not line.startswith((b"#", b"line,")))
 
 
+@pytest.fixture
+def two_short_lines(plans, tmp_path):
+    """Lines Z and X, each cut to three targets, one bidirectional run, short dwell."""
+    data = json.loads((plans / "plan.json").read_text())
+    for line in data["lines"]:
+        line.update(targets_mm=line["targets_mm"][:3], runs=1, bidirectional=True, dwell_s=0.1)
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
 def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
-    reference_machine, short_plan, tmp_path
+    reference_machine, two_short_lines, tmp_path
 ):
-    """machine_position source: file. The machine here is a script that stands at each
-    target of the program in turn, writes it to the position file and goes on once the
-    point is in the measurement file, as a controller running the program with dwells.
-    Where the program stops twice at one place (end of a run and start of the way back,
-    the drift check), it moves away and back first, as the program's overrun does."""
+    """machine_position source: file. The machine here is a script that runs the program
+    as a controller would: to each line's pre-position, where it stops until cycle start
+    (the run sets the units there), then to each target in turn, going on once the point
+    is in the measurement file; where the program stops twice at one place (end of a run
+    and start of the way back, the drift check), it moves away and back first, as the
+    program's overrun does. Between lines it travels (retract and approach): the run
+    must not set the units for the next line before the machine stands at its
+    pre-position."""
     out, position_file = tmp_path / "m.csv", tmp_path / "position.txt"
-    points = [p.point_mm for line in read_plan(short_plan).lines for p in capture_sequence(line)]
-    with served(reference_machine, tmp_path, short_plan, points[0]) as world:
+    lines = read_plan(two_short_lines).lines
+    overrun_mm = reference_machine.measurement.overrun_mm
+    pre_positions = [line.target_points_mm()[0] - overrun_mm * line.frame[0] for line in lines]
+    terminal = Terminal(lambda printed: None)
+    with served(reference_machine, tmp_path, two_short_lines, pre_positions[0]) as world:
         world.config.write_text(
             world.config.read_text()
             + f"machine_position: {{source: file, file: {position_file}}}\n"
@@ -508,24 +525,39 @@ def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
             os.replace(written, position_file)
 
         def controller() -> None:
-            for k, point_mm in enumerate(points):
-                if k and np.allclose(point_mm, points[k - 1]):
-                    stand_at(np.asarray(point_mm) + 2.0)  # the overrun
-                    stop.wait(0.3)  # the run polls every 0.05 s
-                stand_at(point_mm)
-                while _rows_in(out) <= k and not stop.wait(0.01):
+            captured = 0
+            for number, (line, pre_mm) in enumerate(zip(lines, pre_positions, strict=True)):
+                if number:  # the retract and approach: a while, and the units stay locked
+                    stand_at((pre_positions[number - 1] + pre_mm) / 2)
+                    stop.wait(1.0)
+                    while not all(a.is_locked() for a in world.axes()) and not stop.wait(0.01):
+                        pass
+                stand_at(pre_mm)  # M0: cycle start once the units are set
+                said = f"line {line.id}: units aligned and locked; press cycle start"
+                while said not in terminal.out.getvalue() and not stop.wait(0.01):
                     pass
+                points = [p.point_mm for p in capture_sequence(line)]
+                for k, point_mm in enumerate(points):
+                    if k and np.allclose(point_mm, points[k - 1]):
+                        stand_at(np.asarray(point_mm) + 2.0)  # the overrun
+                        stop.wait(0.3)  # the run polls every 0.05 s
+                    stand_at(point_mm)
+                    captured += 1
+                    while _rows_in(out) < captured and not stop.wait(0.01):
+                        pass
 
         thread = threading.Thread(target=controller, daemon=True)
         thread.start()
         try:
-            result = _run(Terminal(lambda printed: None), world, short_plan, out)
+            result = _run(terminal, world, two_short_lines, out)
         finally:
             stop.set()
             thread.join(timeout=5)
         assert result.returncode == 0, result.stderr
-    assert "line Z: units aligned and locked; press cycle start" in result.stdout
-    assert _keys(out) == _points(short_plan)
+    assert _keys(out) == _points(two_short_lines)
+    rows = read_measurements(out)
+    # aligned where the plan aligned the beam: both lines well inside the straightness range
+    assert max(np.abs(r.channels[1:3]).max() for r in rows) < 100.0
 
 
 def test_a_program_for_more_lines_than_the_plan_is_refused_with_the_points_kept(plans, tmp_path):

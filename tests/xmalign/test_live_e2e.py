@@ -287,10 +287,11 @@ def test_live_run_interrupted_then_resumed_loses_and_repeats_no_point(world: Wor
     assert "Traceback" not in run.stderr
     world.server.wait_for("program end")  # the CNC ran on to the program's end
     resumed = _start_run(world, "--resume", "--log-file", "wire.log")
-    resumed.wait_for("press cycle start")
+    resumed.wait_for("waiting for the machine to stop at the pre-position of line")
     world.cycle_start()  # runs the program again from the top: to the line start, M0
     world.server.wait_for("program started")
     world.server.wait_for("waiting for cycle start")
+    resumed.wait_for("press cycle start")
     world.cycle_start()
     assert resumed.finish() == 0, resumed.stderr
     assert _keys(out) == _expected_keys(world.workdir / "plan.json")

@@ -168,7 +168,7 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
 
     def capture(output: RunOutput) -> CalibrationRun:
         drive = (
-            following_drive(devices.mover, _tell_cycle_start)
+            following_drive(devices.mover, _tell_operator, machine)
             if config.machine_position.source == "file"
             else stepping_drive(devices.mover, machine)
         )
@@ -188,11 +188,8 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
         devices.close()
 
 
-def _tell_cycle_start(line: object) -> None:
-    console.print(
-        f"line {getattr(line, 'id', '?')}: units aligned and locked; press cycle start",
-        markup=False,
-    )
+def _tell_operator(message: str) -> None:
+    console.print(message, markup=False)
 
 
 def read_text(path: Path, what: str) -> str:
