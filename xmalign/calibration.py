@@ -519,7 +519,10 @@ def follow_machine(
         there = partial(_stands_at_mm, position, pre_position_mm, tolerance_mm)
         where = f"the pre-position of line {line.id} {np.round(pre_position_mm, 3).tolist()} mm"
         if not there():
-            tell(f"line {line.id}: waiting for the machine to stop at {where} (run the program)")
+            tell(
+                f"line {line.id}: waiting for the machine to stop at {where}"
+                " (start the program if it is not running)"
+            )
             _wait_for(run, there, f"stop at {where}", timeout_s, poll_s)
         run.prepare_line(line)
         tell(f"line {line.id}: units aligned and locked; press cycle start")
