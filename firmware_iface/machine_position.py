@@ -148,7 +148,8 @@ class OperatorPrompt:
     target as typed-in position), or, with ``source``, read from it after the
     operator confirms. A typed position must be three numbers inside the
     travel and within ``max_deviation_mm`` of the target; otherwise the
-    operator is asked again.
+    operator is asked again. A position read from ``source`` is checked the same way
+    after each Enter (pressed before the machine got there: asked again).
 
     Parameters
     ----------
@@ -193,10 +194,19 @@ class OperatorPrompt:
         if not self.machine.within_travel(target):
             raise OutOfRangeError(f"{_format(target)} is outside the machine's travel")
         self.tell(f"Move the machine to {_format(target)} (tool point, CNC coordinates).")
-        if self.source is not None:
-            self._answer("Press Enter when the machine stands there: ")
+        if self.source is None:
+            self._position_mm = self._typed(target)
             return
-        self._position_mm = self._typed(target)
+        while True:  # Enter pressed before the machine got there: say where it is, ask again
+            self._answer("Press Enter when the machine stands there: ")
+            position = self.position_mm()
+            miss = float(np.linalg.norm(position - target))
+            if miss <= self.max_deviation_mm:
+                return
+            self.tell(
+                f"the machine stands at {_format(position)}, {miss:.1f} mm from the target;"
+                " move it there first"
+            )
 
     def _answer(self, prompt: str) -> str:
         try:

@@ -17,6 +17,7 @@ quick-stops and brakes (fault 4), so it is at rest and locked by 500 ms.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Callable
@@ -38,6 +39,8 @@ from xmalign.errors import (
 )
 from xmalign.geometry import Vec, rot_x, rot_y, rot_z
 from xmalign.roles import Clock
+
+log = logging.getLogger(__name__)
 
 COUNTS_PER_REV = 1 << 23
 FIRMWARE_VERSION = 0x0100
@@ -360,6 +363,12 @@ class SimUnit:
         expiry_s = self._heartbeat_time_s + self.register_map.quick_stop_start_s
         if self.clock.now() >= expiry_s:
             self._watchdog_tripped = True
+            log.warning(
+                "%s unit: heartbeat watchdog expired: no heartbeat for %.0f ms; every axis"
+                " quick-stopped and locked (fault 4)",
+                self.kind,
+                1000.0 * (self.clock.now() - self._heartbeat_time_s),
+            )
             for axis in self.axes:
                 axis.fault(HEARTBEAT_FAULT, expiry_s, self.register_map.quick_stop_rad_s2)
             self._control = [c & ~Control.UNLOCK for c in self._control]

@@ -29,7 +29,7 @@ from xmalign.formats.session import Alignment, Session, read_session, write_sess
 from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
 from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
 from xmalign.machine import Machine
-from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit, move_axes
 from xmalign.safety import units_locked_on_exit
 
 logger = logging.getLogger(__name__)
@@ -164,14 +164,16 @@ def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None
 def _point_units(
     guess: PoseGuess, cp_mm: Vec, session: Session, devices: RoutineDevices, timeout_s: float
 ) -> float:
-    """Move both units to the angles predicted by the guess; returns the predicted distance."""
+    """Move both units at once to the angles predicted by the guess (``timeout_s`` for all
+    axes together); returns the predicted distance."""
     assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
     predicted = aligned_angles(
         guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
     )
     receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
-    devices.launch.move_to(predicted.launch_rad, timeout_s)
-    devices.receiver.move_to(receiver_target[: len(devices.receiver.axes)], timeout_s)
+    axes = [*devices.launch.axes, *devices.receiver.axes]
+    targets = np.concatenate([predicted.launch_rad, receiver_target])[: len(axes)]
+    move_axes(axes, targets, timeout_s, "positioning units", devices.clock)
     return predicted.distance_mm
 
 

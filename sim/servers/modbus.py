@@ -91,7 +91,12 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
         host.seen(connection)
         if set_values and not host.may_write(connection):
             log.debug(
-                "fc %d @%d <- %s from %s: busy", function_code, address, set_values, id(connection)
+                "%s unit: fc %d @%d <- %s from %s: busy",
+                unit.kind,
+                function_code,
+                address,
+                set_values,
+                id(connection),
             )
             return ExcCodes.DEVICE_BUSY
         try:
@@ -99,16 +104,24 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
                 unit.write_registers(address, [int(v) for v in set_values])
             current_registers[:] = unit.read_registers(start_address, register_count)
         except OutOfRangeError as error:
-            log.debug("fc %d @%d: exception 3 (%s)", function_code, address, error)
+            log.debug(
+                "%s unit: fc %d @%d: exception 3 (%s)", unit.kind, function_code, address, error
+            )
             return ExcCodes.ILLEGAL_VALUE
         except InputError as error:
-            log.debug("fc %d @%d: exception 2 (%s)", function_code, address, error)
+            log.debug(
+                "%s unit: fc %d @%d: exception 2 (%s)", unit.kind, function_code, address, error
+            )
             return ExcCodes.ILLEGAL_ADDRESS
         if set_values:
-            log.debug("fc %d @%d <- %s", function_code, address, list(set_values))
+            log.debug(
+                "%s unit: fc %d @%d <- %s", unit.kind, function_code, address, list(set_values)
+            )
         else:
             served = current_registers[address - start_address : address - start_address + count]
-            log.debug("fc %d @%d x%d -> %s", function_code, address, count, served)
+            log.debug(
+                "%s unit: fc %d @%d x%d -> %s", unit.kind, function_code, address, count, served
+            )
         return None
 
     registers = SimData(0, count=register_count, values=0, datatype=DataType.REGISTERS)

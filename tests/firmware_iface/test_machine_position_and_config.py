@@ -90,6 +90,28 @@ def test_operator_prompt_reads_the_position_from_a_file(reference_machine, tmp_p
     np.testing.assert_allclose(mover.position_mm(), [500.001, 400.0, -100.002])
 
 
+def test_operator_prompt_asks_again_while_the_file_shows_the_machine_elsewhere(
+    reference_machine, tmp_path
+) -> None:  # noqa: ANN001
+    """Enter pressed while the CNC is still on its way: the position is not taken."""
+    path = tmp_path / "pos.txt"
+    path.write_text("0 0 0\n")
+    operator = Operator(["", ""])
+
+    def ask(prompt: str) -> str:
+        if len(operator.answers) == 1:  # the second Enter: the CNC has arrived
+            path.write_text("500.002 400 -100\n")
+        return operator.ask(prompt)
+
+    mover = OperatorPrompt(reference_machine, ask, operator.tell, FilePositions(path))
+    mover.move_to([500.0, 400.0, -100.0], 2000.0)
+    np.testing.assert_allclose(mover.position_mm(), [500.002, 400.0, -100.0])
+    assert operator.told[1] == (
+        "the machine stands at X0.000 Y0.000 Z0.000, 648.1 mm from the target; move it there first"
+    )
+    assert not operator.answers
+
+
 def test_file_positions_name_the_bad_line(tmp_path) -> None:  # noqa: ANN001
     path = tmp_path / "pos.txt"
     path.write_text("1 2 3\n1 2\n")

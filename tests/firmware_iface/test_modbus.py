@@ -212,3 +212,30 @@ def test_a_failed_background_heartbeat_is_reported_on_the_next_beat() -> None:
         unit.beat()
     unit.stop_heartbeat()
     unit.stop_heartbeat()  # stopped already: nothing to do
+
+
+class TickingStop:
+    """A stop event for the heartbeat loop: each wait advances ``clock`` by its timeout and
+    counts; the ``ticks``-th wait stops the loop."""
+
+    def __init__(self, clock: SimClock, ticks: int) -> None:
+        self.clock, self.ticks, self.waits = clock, ticks, 0
+
+    def wait(self, timeout_s: float) -> bool:
+        self.clock.sleep(timeout_s)
+        self.waits += 1
+        return self.waits >= self.ticks
+
+
+def test_the_background_heartbeat_beats_on_every_wake_a_quarter_period_apart() -> None:
+    clock = SimClock()
+    sim = SimUnit("launch", clock, seed=3)
+    unit = ModbusUnit(sim, "launch unit", clock=clock)
+    heartbeat = unit.register_map.device["heartbeat"].address
+    before = sim.read_registers(heartbeat, 1)[0]
+    stop = TickingStop(clock, ticks=9)
+    unit._heartbeat_stop = stop  # type: ignore[assignment]
+    unit._heartbeat_loop()
+    # 8 wakes of 50 ms (the 9th stops): 8 beats, the value counting up by one each
+    assert stop.waits == 9 and clock.now() == pytest.approx(0.45)
+    assert sim.read_registers(heartbeat, 1)[0] == before + 8

@@ -76,8 +76,10 @@ def test_sim_serve_over_every_protocol_until_sigint(free_port, tmp_path):
     logged = log_file.read_text().splitlines()
     # every request with a UTC timestamp, e.g. "2026-11-22T09:00:00.123Z sim.servers.modbus ..."
     assert all(re.match(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z ", line) for line in logged)
-    assert any("sim.servers.modbus DEBUG fc 3 @0 x3 -> [1, 256, 2]" in line for line in logged)
-    assert any("fc 16 @3 <- [1]" in line for line in logged)  # the RTU host's first heartbeat
+    assert any(
+        "sim.servers.modbus DEBUG launch unit: fc 3 @0 x3 -> [1, 256, 2]" in line for line in logged
+    )
+    assert any("unit: fc 16 @3 <- [1]" in line for line in logged)  # the RTU host's first beat
     assert any(
         "sim.servers.canopen_node DEBUG node 3 SDO write 0x6040:0 <- 6" in line for line in logged
     )

@@ -201,3 +201,43 @@ def test_virtual_sessions_with_machine_errors_agree_with_the_stated_uncertainty(
             wrap_angle(result.gamma_rad - setup.world.gamma_rad),
         )
         assert delta @ np.linalg.solve(result.covariance, delta) <= limit
+
+
+def test_coarse_pointing_starts_every_axis_of_both_units_before_waiting(
+    reference_machine: Machine, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both units turn together: pointing takes the longest axis move, not the sum of
+    the launch unit's and the receiver's."""
+    world, devices = simulated(reference_machine)
+    axis_type = type(devices.launch.axes[0])
+    calls: list[str] = []
+    pointing = False
+
+    def recorded(verb: str) -> object:
+        original = getattr(axis_type, verb)
+
+        def call(axis: object, *args: object) -> None:
+            if pointing:
+                calls.append(f"{verb} {axis.name}")  # type: ignore[attr-defined]
+            original(axis, *args)
+
+        return call
+
+    for verb in ("move_to", "wait_in_position"):
+        monkeypatch.setattr(axis_type, verb, recorded(verb))
+
+    def on_event(event: RoutineEvent) -> None:
+        nonlocal pointing
+        pointing = event.stage == "pointing"
+
+    guess = PoseGuess(world.launch2mcs_mm, world.gamma_rad)
+    run_identification(
+        spread_positions(reference_machine, 1),
+        reference_machine,
+        devices,
+        tmp_path / "session.json",
+        guess,
+        on_event=on_event,
+    )
+    names = [axis.name for unit in (devices.launch, devices.receiver) for axis in unit.axes]
+    assert calls == [f"move_to {n}" for n in names] + [f"wait_in_position {n}" for n in names]
