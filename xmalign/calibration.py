@@ -495,11 +495,16 @@ def follow_machine(
     tolerance_mm: float = 0.005,
     timeout_s: float = 600.0,
     poll_s: float = 0.05,
+    overrun_mm: float | None = None,
 ) -> None:
     """Capture while the controller runs the program: wait for standstill at each target.
 
     ``on_line_start`` is called before each line (e.g. to tell the operator to
-    press cycle start once the units are set). Where the program stops twice
+    press cycle start once the units are set). After a line, the program goes
+    on by itself to the next line's programmed stop; with ``overrun_mm`` (the
+    machine's ``measurement.overrun_mm``) the units are set for that line only
+    once the machine stands at its pre-position, where the program stops (the
+    first line's is the operator's to start). Where the program stops twice
     at one place (the last target of a run and the first back; the drift
     check), the machine has to leave it before it counts as there again: the
     program moves on to overrun and approach, and a capture while it does would
@@ -507,11 +512,22 @@ def follow_machine(
     ``DEVICE_CHECK_S``, so a lost link ends the run at once rather than at the
     timeout.
     """
+    followed = False
     for line in lines:
         if run.line_is_done(line):
             continue
+        if followed and overrun_mm is not None:
+            pre_position_mm = line.target_points_mm()[0] - overrun_mm * line.frame[0]
+            _wait_for(
+                run,
+                partial(_stands_near, position, pre_position_mm, tolerance_mm),
+                f"stop at the pre-position of line {line.id}",
+                timeout_s,
+                poll_s,
+            )
         run.prepare_line(line)
         on_line_start(line)
+        followed = True
         previous: CapturePoint | None = None
         for point in capture_sequence(line):
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
@@ -535,7 +551,11 @@ def follow_machine(
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
     """The machine stands still at the point (it has not gone on with the program)."""
-    miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
+    return _stands_near(position, point.point_mm, tolerance_mm)
+
+
+def _stands_near(position: MachinePositionSource, point_mm: Vec, tolerance_mm: float) -> bool:
+    miss = float(np.linalg.norm(position.position_mm() - point_mm))
     return position.is_standstill() and miss <= tolerance_mm
 
 

@@ -199,10 +199,18 @@ def stepping_drive(mover: MachineMover, machine: Machine) -> Drive:
 
 
 def following_drive(
-    position: MachinePositionSource, on_line_start: Callable[[PlanLine], None]
+    position: MachinePositionSource,
+    on_line_start: Callable[[PlanLine], None],
+    overrun_mm: float | None = None,
 ) -> Drive:
-    """Capture while the controller runs the program, at each standstill on a target."""
-    return lambda run: follow_machine(run, position, run.plan.lines, on_line_start)
+    """Capture while the controller runs the program, at each standstill on a target.
+
+    With ``overrun_mm`` (the machine's), each line after the first is set up
+    once the machine stands at its pre-position (the program's stop there).
+    """
+    return lambda run: follow_machine(
+        run, position, run.plan.lines, on_line_start, overrun_mm=overrun_mm
+    )
 
 
 @dataclass

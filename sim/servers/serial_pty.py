@@ -6,8 +6,11 @@ The server owns the pty's master side; a client opens :attr:`PtyInterferometerSe
 
 from __future__ import annotations
 
+import array
+import fcntl
 import os
 import select
+import termios
 import threading
 import time
 import tty
@@ -20,12 +23,17 @@ from firmware_iface.xm_line_protocol import (
     parse_command,
     rate_hz,
 )
+from sim.clock import LockstepClock
 from xmalign.errors import FormatError
 from xmalign.roles import Interferometer
 
 IDENTIFICATION = "XMALIGN-SIM XM-60 class 1.0"
 _POLL_S = 0.05
 _MAX_LATE_S = 0.25
+#: Lockstep: how often to look whether the host has read the last sample, and how long to
+#: wait after it has before the next sample (wall time).
+_LOCKSTEP_POLL_S = 50e-6
+_LOCKSTEP_GRACE_S = 300e-6
 
 
 class PtyInterferometerServer:
@@ -37,12 +45,23 @@ class PtyInterferometerServer:
         Usually a :class:`sim.interferometer.SimInterferometer` on a real-time clock.
     rate_hz : float
         Initial stream rate.
+    lockstep : LockstepClock, optional
+        The virtual clock the interferometer shares with its host in this
+        process: while streaming, each sample advances it by one sample period,
+        once the host has read the previous one (the host's readings are those
+        of the in-process interferometer). Default: samples on the wall clock.
     """
 
-    def __init__(self, interferometer: Interferometer, rate_hz: float = 50.0) -> None:
+    def __init__(
+        self,
+        interferometer: Interferometer,
+        rate_hz: float = 50.0,
+        lockstep: LockstepClock | None = None,
+    ) -> None:
         self.interferometer = interferometer
         self.rate_hz = rate_hz
-        self.streaming = False
+        self.lockstep = lockstep
+        self._streaming = threading.Event()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
@@ -50,8 +69,23 @@ class PtyInterferometerServer:
         self._write_lock = threading.Lock()
         self._threads = [
             threading.Thread(target=self._serve_commands, name="xm-commands", daemon=True),
-            threading.Thread(target=self._serve_stream, name="xm-stream", daemon=True),
+            threading.Thread(
+                target=self._serve_stream if lockstep is None else self._serve_lockstep,
+                name="xm-stream",
+                daemon=True,
+            ),
         ]
+
+    @property
+    def streaming(self) -> bool:
+        return self._streaming.is_set()
+
+    @streaming.setter
+    def streaming(self, on: bool) -> None:
+        if on:
+            self._streaming.set()
+        else:
+            self._streaming.clear()
 
     def start(self) -> None:
         for thread in self._threads:
@@ -60,6 +94,7 @@ class PtyInterferometerServer:
     def stop(self) -> None:
         """Stop both threads and close the pty."""
         self._stop.set()
+        self._streaming.set()  # wakes a lockstep stream waiting for STREAM ON
         for thread in self._threads:
             if thread.is_alive():
                 thread.join(2.0)
@@ -122,3 +157,27 @@ class PtyInterferometerServer:
                 return
             if self.streaming:
                 self._send(encode_sample(self.interferometer.read()))
+
+    def _unread_bytes(self) -> int:
+        """Bytes sent that the client has not read yet."""
+        count = array.array("i", [0])
+        fcntl.ioctl(self._slave, termios.FIONREAD, count)
+        return count[0]
+
+    def _serve_lockstep(self) -> None:
+        """Send the next sample, one period of virtual time later, once the host read the last.
+
+        The short wait after the host has read lets a STREAM OFF that follows the
+        host's last sample arrive before virtual time moves on.
+        """
+        assert self.lockstep is not None
+        while not self._stop.is_set():
+            self._streaming.wait()
+            if self._unread_bytes():
+                time.sleep(_LOCKSTEP_POLL_S)
+                continue
+            time.sleep(_LOCKSTEP_GRACE_S)
+            if self._stop.is_set() or not self.streaming or self._unread_bytes():
+                continue
+            self.lockstep.sleep(1.0 / self.rate_hz)
+            self._send(encode_sample(self.interferometer.read()))

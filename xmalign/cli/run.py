@@ -168,7 +168,7 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
 
     def capture(output: RunOutput) -> CalibrationRun:
         drive = (
-            following_drive(devices.mover, _tell_cycle_start)
+            following_drive(devices.mover, _tell_cycle_start, machine.measurement.overrun_mm)
             if config.machine_position.source == "file"
             else stepping_drive(devices.mover, machine)
         )
