@@ -91,10 +91,11 @@ class SerialInterferometer:
         return self._next_sample()
 
     def average(self, duration_s: float) -> InterferometerReading:
+        """Mean of the streamed samples that cover ``duration_s`` (each covers one period)."""
         self._command(Command("STREAM", "ON"))
         try:
-            samples = [self._next_sample()]
-            while samples[-1].time_s - samples[0].time_s < duration_s:
+            samples = [self._next_sample(), self._next_sample()]
+            while _covered_s(samples) < duration_s:
                 samples.append(self._next_sample())
         finally:
             self._send(Command("STREAM", "OFF"))
@@ -149,6 +150,16 @@ class SerialInterferometer:
                 self.corrupted_lines += 1
                 last = error
         raise TransportError(f"the line from the {self.device_name} is corrupted: {last}") from last
+
+
+def _covered_s(samples: list[InterferometerReading]) -> float:
+    """The time ``samples`` (two or more, evenly streamed) stand for: one period each, s.
+
+    The same count as an instrument averaging ``duration_s`` at its rate takes
+    (``duration_s * rate`` samples), not one more to span the duration.
+    """
+    span_s = samples[-1].time_s - samples[0].time_s
+    return span_s * len(samples) / (len(samples) - 1)
 
 
 class RecordingInterferometer:

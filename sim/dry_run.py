@@ -28,6 +28,7 @@ from xmalign.calibration import (
     CalibrationRun,
     RunOutput,
     open_run_output,
+    pre_position_mm,
 )
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
@@ -62,6 +63,10 @@ from xmalign.steps import (
 #: anywhere within this horizontally, and up to this much higher (the reference
 #: guess sits at the lowest height the receiver reaches, so lower is infeasible).
 PLACEMENT_SCATTER_MM = 25.0
+#: How often the served run reads the position file, s: the served CNC writes it at every
+#: step of virtual time, so a short poll finds the machine at a target at once (the live
+#: default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
+FOLLOW_POLL_S = 0.01
 #: How well a technician aligns the units by hand (standard deviation per axis), rad.
 HAND_RAD = 20e-6
 STAGES = ("identify", "program", "run", "post", "comp")
@@ -330,13 +335,20 @@ def measure_served(
         devices = open_devices(
             served.config, machine, ask=_no_operator, tell=lambda text: None, clock=served.clock
         )
+        following = following_drive(
+            devices.mover,
+            lambda line: served.press_cycle_start(),
+            machine.measurement.overrun_mm,
+            FOLLOW_POLL_S,
+        )
+
+        def drive(run: CalibrationRun) -> None:
+            first = next((line for line in plan.lines if not run.line_is_done(line)), None)
+            if first is not None:
+                served.run_to_stop_at(pre_position_mm(first, machine.measurement.overrun_mm))
+            following(run)
+
         try:
-            served.start_program()
-            drive = following_drive(
-                devices.mover,
-                lambda line: served.press_cycle_start(),
-                machine.measurement.overrun_mm,
-            )
             roles = RunStepDevices(
                 devices.launch, devices.receiver, devices.interferometer, served.clock
             )

@@ -318,7 +318,10 @@ class CalibrationRun:
     def _settled_average(self, started_s: float, dwell_s: float) -> InterferometerReading:
         """The mean of the settled readings up to ``AVERAGE_END_FRACTION`` of the dwell."""
         probe = self._settle(started_s + SETTLE_FRACTION * dwell_s)
-        left_s = max(started_s + AVERAGE_END_FRACTION * dwell_s - self.clock.now(), 1e-3)
+        left_s = started_s + AVERAGE_END_FRACTION * dwell_s - self.clock.now()
+        if probe is not None and left_s < SETTLE_PROBE_S / 2:
+            return probe  # the settling took the time (a late start): no average past the dwell
+        left_s = max(left_s, 1e-3)
         reading = self.interferometer.average(left_s)
         if probe is None:
             return reading
@@ -517,10 +520,9 @@ def follow_machine(
         if run.line_is_done(line):
             continue
         if followed and overrun_mm is not None:
-            pre_position_mm = line.target_points_mm()[0] - overrun_mm * line.frame[0]
             _wait_for(
                 run,
-                partial(_stands_near, position, pre_position_mm, tolerance_mm),
+                partial(_stands_near, position, pre_position_mm(line, overrun_mm), tolerance_mm),
                 f"stop at the pre-position of line {line.id}",
                 timeout_s,
                 poll_s,
@@ -547,6 +549,11 @@ def follow_machine(
             )
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
+
+
+def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:
+    """Where the program stops before a line: its first target less the overrun, mm (3,)."""
+    return line.target_points_mm()[0] - overrun_mm * line.frame[0]
 
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:

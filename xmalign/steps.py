@@ -202,14 +202,16 @@ def following_drive(
     position: MachinePositionSource,
     on_line_start: Callable[[PlanLine], None],
     overrun_mm: float | None = None,
+    poll_s: float = 0.05,
 ) -> Drive:
     """Capture while the controller runs the program, at each standstill on a target.
 
     With ``overrun_mm`` (the machine's), each line after the first is set up
     once the machine stands at its pre-position (the program's stop there).
+    ``poll_s``: how often the position is read while waiting.
     """
     return lambda run: follow_machine(
-        run, position, run.plan.lines, on_line_start, overrun_mm=overrun_mm
+        run, position, run.plan.lines, on_line_start, poll_s=poll_s, overrun_mm=overrun_mm
     )
 
 

@@ -67,6 +67,9 @@ class PtyInterferometerServer:
         self.port = os.ttyname(self._slave)
         self._stop = threading.Event()
         self._write_lock = threading.Lock()
+        #: Lockstep: a command and a sample (advance, read, send) never interleave, so no
+        #: sample of one stream arrives after the reply that ends it.
+        self._sample_lock = threading.Lock()
         self._threads = [
             threading.Thread(target=self._serve_commands, name="xm-commands", daemon=True),
             threading.Thread(
@@ -107,6 +110,10 @@ class PtyInterferometerServer:
 
     def handle(self, line: bytes) -> None:
         """Execute one command line and send the answer."""
+        with self._sample_lock:  # a lockstep sample is sent whole before or after it
+            self._handle(line)
+
+    def _handle(self, line: bytes) -> None:
         try:
             command = parse_command(line)
         except FormatError as error:
@@ -177,7 +184,8 @@ class PtyInterferometerServer:
                 time.sleep(_LOCKSTEP_POLL_S)
                 continue
             time.sleep(_LOCKSTEP_GRACE_S)
-            if self._stop.is_set() or not self.streaming or self._unread_bytes():
-                continue
-            self.lockstep.sleep(1.0 / self.rate_hz)
-            self._send(encode_sample(self.interferometer.read()))
+            with self._sample_lock:
+                if self._stop.is_set() or not self.streaming or self._unread_bytes():
+                    continue
+                self.lockstep.sleep(1.0 / self.rate_hz)
+                self._send(encode_sample(self.interferometer.read()))

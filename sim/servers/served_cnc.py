@@ -32,6 +32,8 @@ logger = logging.getLogger(__name__)
 POSITION_PERIOD_S = 0.02
 #: What ``tell`` says when the CNC waits for cycle start (an operator watches for it).
 WAITING = "cnc: waiting for cycle start"
+#: What ``tell`` says when the program has ended.
+PROGRAM_END = "cnc: program end"
 
 
 class ServedCnc:
@@ -136,7 +138,7 @@ class ServedCnc:
             except XmalignError as error:
                 self.tell(f"cnc: program aborted: {error}")
                 continue
-            self.tell("cnc: program end")
+            self.tell(PROGRAM_END)
 
     def _write_position(self) -> None:
         with self._file_lock:

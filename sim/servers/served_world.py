@@ -23,14 +23,17 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from firmware_iface.config import UnitsConfig, load_units_config
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.servers.modbus import ModbusUnitServer
 from sim.servers.serial_pty import PtyInterferometerServer
-from sim.servers.served_cnc import WAITING, ServedCnc
+from sim.servers.served_cnc import PROGRAM_END, WAITING, ServedCnc
 from sim.world import World
-from xmalign.errors import DeviceTimeoutError
+from xmalign.errors import DeviceError, DeviceTimeoutError
+from xmalign.geometry import Vec
 from xmalign.machine import Machine
 
 #: Where every served device listens.
@@ -86,11 +89,31 @@ class ServedWorld:
     #: What the CNC said, in order (``sim serve`` prints the same).
     cnc_messages: list[str] = field(default_factory=list)
 
-    def start_program(self) -> None:
-        """The operator presses cycle start and waits until the CNC stops at the first M0."""
-        self.press_cycle_start()
+    def run_to_stop_at(self, position_mm: Vec, tolerance_mm: float = 0.005) -> None:
+        """The operator presses cycle start until the CNC waits at ``position_mm`` (3,).
+
+        As a technician brings the program to the line a run starts with (a
+        resumed run skips the lines it has); DeviceError when the program
+        ends twice without stopping there.
+        """
+        ends = 0
+        while True:
+            self.press_cycle_start()
+            self._wait_for_stop()
+            miss = float(np.linalg.norm(self.cnc.cnc.position_mm() - position_mm))
+            if miss <= tolerance_mm:
+                return
+            ends += self.cnc_messages.count(PROGRAM_END)
+            self.cnc_messages.clear()
+            if ends >= 2:
+                raise DeviceError(
+                    f"the served CNC's program never stops at {np.round(position_mm, 3).tolist()}"
+                    " mm: program and plan do not match"
+                )
+
+    def _wait_for_stop(self) -> None:
         deadline_s = self.clock.now() + REACH_STOP_S
-        while self.cnc_messages[-1] != WAITING:
+        while not self.cnc_messages or self.cnc_messages[-1] != WAITING:
             if self.clock.now() >= deadline_s:
                 raise DeviceTimeoutError(
                     f"the served CNC did not reach a programmed stop in {REACH_STOP_S:.0f} s"
