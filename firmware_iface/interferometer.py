@@ -38,6 +38,8 @@ from xmalign.roles import CHANNELS, Interferometer, InterferometerReading, mean_
 STREAM_HEADER = ("time_s", *CHANNELS, "beam_ok")
 #: Consecutive corrupted lines tolerated (each is discarded) before the line counts as broken.
 MAX_CORRUPTED_LINES = 5
+#: Sample times are rounded (to 1 µs in the line protocol): a duration is covered within this.
+_TIME_TOLERANCE_S = 1e-5
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +97,7 @@ class SerialInterferometer:
         self._command(Command("STREAM", "ON"))
         try:
             samples = [self._next_sample(), self._next_sample()]
-            while _covered_s(samples) < duration_s:
+            while _covered_s(samples) < duration_s - _TIME_TOLERANCE_S:
                 samples.append(self._next_sample())
         finally:
             self._send(Command("STREAM", "OFF"))

@@ -5,6 +5,9 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class SimClock:
@@ -177,6 +180,22 @@ class LockstepClock(SimClock):
             follower.running = False
             self._state.notify_all()
             self._state.wait_for(lambda: follower.running)
+
+    def peek(self, time_s: float, evaluate: Callable[[], T]) -> T:
+        """``evaluate()`` as of ``time_s`` (later than now) without advancing to it.
+
+        Nothing due on the way runs, so only what is analytic in time (motion,
+        the shop's drift) is seen there; a served instrument sends a sample
+        ahead this way and advances the time only once the host has taken it.
+        """
+        with self._advancing:
+            with self._lock:
+                now_s, self._now_s = self._now_s, max(self._now_s, time_s)
+            try:
+                return evaluate()
+            finally:
+                with self._lock:
+                    self._now_s = now_s
 
     def _next_due(self, until_s: float) -> Follower | _Timer | None:
         with self._state:

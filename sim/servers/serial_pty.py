@@ -30,10 +30,10 @@ from xmalign.roles import Interferometer
 IDENTIFICATION = "XMALIGN-SIM XM-60 class 1.0"
 _POLL_S = 0.05
 _MAX_LATE_S = 0.25
-#: Lockstep: how often to look whether the host has read the last sample, and how long to
-#: wait after it has before the next sample (wall time).
+#: Lockstep: how often to look whether the host has read the last sample (wall time).
 _LOCKSTEP_POLL_S = 50e-6
-_LOCKSTEP_GRACE_S = 300e-6
+#: Lockstep: longest time the kernel takes to queue a sample for the host (wall time).
+_PUSH_WAIT_S = 0.05
 
 
 class PtyInterferometerServer:
@@ -69,7 +69,11 @@ class PtyInterferometerServer:
         self._write_lock = threading.Lock()
         #: Lockstep: a command and a sample (advance, read, send) never interleave, so no
         #: sample of one stream arrives after the reply that ends it.
-        self._sample_lock = threading.Lock()
+        self._sample_lock = threading.RLock()
+        #: Lockstep: the time of the sample sent ahead, not yet reached.
+        self._ahead_s: float | None = None
+        #: Lockstep: when the last sample was sent (wall time), and whether it was seen queued.
+        self._sent = (0.0, True)
         self._threads = [
             threading.Thread(target=self._serve_commands, name="xm-commands", daemon=True),
             threading.Thread(
@@ -130,6 +134,7 @@ class PtyInterferometerServer:
             self.interferometer.zero()
         elif command.name == "STREAM":
             self.streaming = command.argument == "ON"
+            self._ahead_s = None
             return f"STREAM {command.argument}"
         elif command.name == "RATE":
             self.rate_hz = rate_hz(command.argument)
@@ -143,14 +148,15 @@ class PtyInterferometerServer:
             ready, _, _ = select.select([self._master], [], [], _POLL_S)
             if not ready:
                 continue
-            try:
-                buffer += os.read(self._master, 1024)
-            except OSError:  # the client side went away; keep serving for the next one
-                continue
-            *lines, buffer = buffer.split(b"\n")
-            for line in lines:
-                if line.strip():
-                    self.handle(line)
+            with self._sample_lock:  # lockstep: read and answer before the next sample
+                try:
+                    buffer += os.read(self._master, 1024)
+                except OSError:  # the client side went away; keep serving for the next one
+                    continue
+                *lines, buffer = buffer.split(b"\n")
+                for line in lines:
+                    if line.strip():
+                        self.handle(line)
 
     def _serve_stream(self) -> None:
         """Send samples on a fixed schedule, so a busy computer does not lower the rate."""
@@ -171,21 +177,47 @@ class PtyInterferometerServer:
         fcntl.ioctl(self._slave, termios.FIONREAD, count)
         return count[0]
 
-    def _serve_lockstep(self) -> None:
-        """Send the next sample, one period of virtual time later, once the host read the last.
+    def _host_has_read(self) -> bool:
+        """Whether the host has read the last sample sent.
 
-        The short wait after the host has read lets a STREAM OFF that follows the
-        host's last sample arrive before virtual time moves on.
+        The kernel hands bytes written to the master to the slave's queue a
+        little later, so an empty queue counts only once the sample has been
+        seen in it (or after ``_PUSH_WAIT_S``, a host that read it at once).
+        """
+        if self._unread_bytes():
+            self._sent = (self._sent[0], True)
+            return False
+        sent_s, seen = self._sent
+        return seen or time.monotonic() - sent_s > _PUSH_WAIT_S
+
+    def _host_has_written(self) -> bool:
+        ready, _, _ = select.select([self._master], [], [], 0)
+        return bool(ready)
+
+    def _serve_lockstep(self) -> None:
+        """Stream one sample ahead; virtual time reaches a sample once the host has taken it.
+
+        Each sample is computed one period after the present (``LockstepClock.peek``)
+        and sent; when the host has read it and sent nothing (it waits for
+        more), time advances to it and the next is sent. A host that has
+        enough sends STREAM OFF before it reads on, so the sample it skips never
+        advances the time: an average takes as much virtual time as in-process,
+        whatever the wall clock does (at most the last sample's period less).
         """
         assert self.lockstep is not None
+        clock = self.lockstep
         while not self._stop.is_set():
             self._streaming.wait()
-            if self._unread_bytes():
+            if not self._host_has_read():
                 time.sleep(_LOCKSTEP_POLL_S)
                 continue
-            time.sleep(_LOCKSTEP_GRACE_S)
             with self._sample_lock:
-                if self._stop.is_set() or not self.streaming or self._unread_bytes():
-                    continue
-                self.lockstep.sleep(1.0 / self.rate_hz)
-                self._send(encode_sample(self.interferometer.read()))
+                waiting = self.streaming and not self._host_has_written()
+                if waiting and not self._stop.is_set():
+                    if self._ahead_s is not None:
+                        clock.sleep(self._ahead_s - clock.now())
+                    self._ahead_s = clock.now() + 1.0 / self.rate_hz
+                    self._send(encode_sample(clock.peek(self._ahead_s, self.interferometer.read)))
+                    self._sent = (time.monotonic(), False)
+            if not waiting:
+                time.sleep(_LOCKSTEP_POLL_S)
