@@ -152,12 +152,13 @@ class LockstepClock(SimClock):
             self._state.notify_all()
             self._state.wait_for(lambda: follower.running)
 
-    def release(self, follower: Follower) -> None:
-        """Let a follower run freely from now on: its waits return at once (to end it)."""
+    def release(self, follower: Follower, timeout_s: float = 5.0) -> None:
+        """Let a follower run freely from now on (its waits return at once) until it ends."""
         with self._state:
             follower.released = True
             follower.running = True
             self._state.notify_all()
+            self._state.wait_for(lambda: follower.done, timeout_s)
 
     def resume(self, follower: Follower) -> None:
         """Let a follower that waits for a resume run now, until it blocks again."""
