@@ -65,7 +65,7 @@ from xmalign.formats.common import (
     validate,
 )
 from xmalign.machine import Machine
-from xmalign.roles import EnvironmentSource, Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import Clock, EnvironmentSource, Interferometer, MachineMover, PositioningUnit
 
 UNITS_FORMAT = "xmalign.units/1"
 
@@ -198,6 +198,7 @@ def _open_unit(
     timeouts: Timeouts,
     networks: dict[tuple[str, str], canopen.Network],
     closers: list[Callable[[], None]],
+    clock: Clock | None = None,
 ) -> PositioningUnit:
     name = f"{kind} unit"
     if isinstance(config, CanopenUnitConfig):
@@ -230,7 +231,7 @@ def _open_unit(
             config.serial_port, name, config.baudrate, config.device_id, timeouts.io_s
         )
     closers.append(transport.close)
-    modbus_unit = ModbusUnit(transport, expected_kind=kind)
+    modbus_unit = ModbusUnit(transport, expected_kind=kind, clock=clock)
     modbus_unit.start_heartbeat()
     closers.append(modbus_unit.stop_heartbeat)
     return modbus_unit
@@ -253,16 +254,21 @@ def open_devices(
     machine: Machine,
     ask: Callable[[str], str] = input,
     tell: Callable[[str], None] = print,
+    clock: Clock | None = None,
 ) -> LiveDevices:
     """Open both units, the interferometer and the machine-position source of ``config``.
 
     Anything opened before a failure is closed again before the error propagates.
+    ``clock`` is what the Modbus units wait on (default the wall clock; the
+    simulator's shared virtual clock when it serves the devices in-process).
     """
     closers: list[Callable[[], None]] = []
     networks: dict[tuple[str, str], canopen.Network] = {}
     try:
-        launch = _open_unit(config.launch, "launch", config.timeouts, networks, closers)
-        receiver = _open_unit(config.receiver, "receiver", config.timeouts, networks, closers)
+        launch = _open_unit(config.launch, "launch", config.timeouts, networks, closers, clock)
+        receiver = _open_unit(
+            config.receiver, "receiver", config.timeouts, networks, closers, clock
+        )
         interferometer = _open_interferometer(config.interferometer, config.timeouts, closers)
         environment = (
             None

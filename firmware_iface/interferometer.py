@@ -38,6 +38,8 @@ from xmalign.roles import CHANNELS, Interferometer, InterferometerReading, mean_
 STREAM_HEADER = ("time_s", *CHANNELS, "beam_ok")
 #: Consecutive corrupted lines tolerated (each is discarded) before the line counts as broken.
 MAX_CORRUPTED_LINES = 5
+#: Sample times are rounded (to 1 µs in the line protocol): a duration is covered within this.
+_TIME_TOLERANCE_S = 1e-5
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +93,11 @@ class SerialInterferometer:
         return self._next_sample()
 
     def average(self, duration_s: float) -> InterferometerReading:
+        """Mean of the streamed samples that cover ``duration_s`` (each covers one period)."""
         self._command(Command("STREAM", "ON"))
         try:
-            samples = [self._next_sample()]
-            while samples[-1].time_s - samples[0].time_s < duration_s:
+            samples = [self._next_sample(), self._next_sample()]
+            while _covered_s(samples) < duration_s - _TIME_TOLERANCE_S:
                 samples.append(self._next_sample())
         finally:
             self._send(Command("STREAM", "OFF"))
@@ -149,6 +152,16 @@ class SerialInterferometer:
                 self.corrupted_lines += 1
                 last = error
         raise TransportError(f"the line from the {self.device_name} is corrupted: {last}") from last
+
+
+def _covered_s(samples: list[InterferometerReading]) -> float:
+    """The time ``samples`` (two or more, evenly streamed) stand for: one period each, s.
+
+    The same count as an instrument averaging ``duration_s`` at its rate takes
+    (``duration_s * rate`` samples), not one more to span the duration.
+    """
+    span_s = samples[-1].time_s - samples[0].time_s
+    return span_s * len(samples) / (len(samples) - 1)
 
 
 class RecordingInterferometer:

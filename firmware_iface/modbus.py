@@ -319,6 +319,7 @@ class ModbusUnit(AxisGroup):
         self._heartbeat_thread: threading.Thread | None = None
         self._heartbeat_stop = threading.Event()
         self._heartbeat_failure: Exception | None = None
+        self._cancel_heartbeat: Callable[[], None] | None = None
         kinds: dict[int, Literal["launch", "receiver"]] = {
             code: kind  # type: ignore[misc]  # registers.yaml names exactly these two
             for kind, code in self.register_map.device_types.items()
@@ -402,8 +403,18 @@ class ModbusUnit(AxisGroup):
         self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
 
     def start_heartbeat(self) -> None:
-        """Beat from a background thread (wall time) until :meth:`stop_heartbeat`."""
-        if self._heartbeat_thread is not None:
+        """Beat from a background thread (wall time) until :meth:`stop_heartbeat`.
+
+        A clock that offers ``call_every(period_s, callback) -> cancel`` (the
+        simulator's :class:`sim.clock.LockstepClock`, whose time a wall-clock
+        thread would not keep pace with) calls the beat in its own time instead.
+        """
+        if self._heartbeat_thread is not None or self._cancel_heartbeat is not None:
+            return
+        call_every = getattr(self.clock, "call_every", None)
+        if call_every is not None:
+            period_s = self.register_map.heartbeat_period_s / 2.0
+            self._cancel_heartbeat = call_every(period_s, self._background_beat)
             return
         self._heartbeat_stop.clear()
         self._heartbeat_thread = threading.Thread(
@@ -412,6 +423,9 @@ class ModbusUnit(AxisGroup):
         self._heartbeat_thread.start()
 
     def stop_heartbeat(self) -> None:
+        if self._cancel_heartbeat is not None:
+            self._cancel_heartbeat()
+            self._cancel_heartbeat = None
         if self._heartbeat_thread is None:
             return
         self._heartbeat_stop.set()
@@ -423,12 +437,19 @@ class ModbusUnit(AxisGroup):
         # period has passed: a host process stalled by its computer for up to 300 ms
         # (the 350 ms expiry less one wake) does not trip the watchdog (docs/hardware.md).
         period_s = self.register_map.heartbeat_period_s / 4.0
-        while not self._heartbeat_stop.wait(period_s):
-            try:
-                self._beat_if_older(period_s / 2.0)
-            except XmalignError as error:
-                self._heartbeat_failure = error
-                return
+        while not self._heartbeat_stop.wait(period_s) and self._background_beat():
+            pass
+
+    def _background_beat(self) -> bool:
+        """A beat of the background heartbeat; False (the failure kept) when it failed."""
+        if self._heartbeat_failure is not None:
+            return False
+        try:
+            self._beat_if_older(self.register_map.heartbeat_period_s / 8.0)
+        except XmalignError as error:
+            self._heartbeat_failure = error
+            return False
+        return True
 
     # --- unit operations ------------------------------------------------------------------
     def home(self, timeout_s: float) -> None:

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class SimClock:
@@ -41,3 +45,185 @@ class SimClock:
             return
         with self._lock:
             self._now_s += max(0.0, seconds)
+
+
+class Follower:
+    """A thread of a :class:`LockstepClock` that runs only when the clock lets it.
+
+    ``wake_s`` is when its ``sleep`` ends (None: it waits for :meth:`LockstepClock.resume`).
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.wake_s: float | None = None
+        self.running = True
+        self.done = False
+        self.released = False
+        self.error: BaseException | None = None
+
+
+class _Timer:
+    def __init__(self, next_s: float, period_s: float, callback: Callable[[], None]) -> None:
+        self.next_s = next_s
+        self.period_s = period_s
+        self.callback = callback
+        self.cancelled = False
+
+
+class LockstepClock(SimClock):
+    """Virtual time shared by a host and served devices in threads of one process.
+
+    Time advances only when a *driving* thread (the host; a streaming
+    instrument) calls :meth:`sleep`. Threads started with
+    :meth:`start_follower` (a served CNC running its program) instead block in
+    ``sleep`` until virtual time reaches their wake time: the driving thread's
+    ``sleep`` stops at every wake time and timer on its way, sets the time
+    there, lets that follower or timer run until it blocks again, and goes on.
+    So every device acts at its own virtual time, whatever the wall clock does,
+    and a served world behaves as the same world in-process does. Listeners
+    (:meth:`on_advance`) are called after every advance, in the driving thread.
+    """
+
+    def __init__(self, start_s: float = 0.0) -> None:
+        super().__init__(start_s)
+        self._state = threading.Condition()
+        self._advancing = threading.RLock()
+        self._followers: dict[int, Follower] = {}
+        self._timers: list[_Timer] = []
+        self._listeners: list[Callable[[], None]] = []
+
+    def _set_now(self, time_s: float) -> None:
+        with self._lock:
+            self._now_s = max(self._now_s, time_s)
+
+    def on_advance(self, listener: Callable[[], None]) -> Callable[[], None]:
+        """Call ``listener()`` after every advance; returns the function that removes it."""
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener)
+
+    def call_every(self, period_s: float, callback: Callable[[], None]) -> Callable[[], None]:
+        """Call ``callback()`` every ``period_s`` of virtual time; returns the cancel function."""
+        timer = _Timer(self.now() + period_s, period_s, callback)
+        with self._state:
+            self._timers.append(timer)
+
+        def cancel() -> None:
+            with self._state:
+                timer.cancelled = True
+                if timer in self._timers:
+                    self._timers.remove(timer)
+
+        return cancel
+
+    def start_follower(self, target: Callable[[], None], name: str) -> Follower:
+        """Run ``target`` in a new follower thread until it first blocks; returns its handle."""
+        follower = Follower(name)
+
+        def run() -> None:
+            with self._state:
+                self._followers[threading.get_ident()] = follower
+            try:
+                target()
+            except BaseException as error:  # kept for the thread that stops it
+                follower.error = error
+            finally:
+                with self._state:
+                    self._followers.pop(threading.get_ident(), None)
+                    follower.running = False
+                    follower.done = True
+                    self._state.notify_all()
+
+        threading.Thread(target=run, name=name, daemon=True).start()
+        self._wait_blocked(follower)
+        return follower
+
+    def _wait_blocked(self, follower: Follower) -> None:
+        with self._state:
+            self._state.wait_for(lambda: not follower.running)
+
+    def wait_for_resume(self) -> None:
+        """In a follower: block until a driving thread calls :meth:`resume`."""
+        follower = self._followers[threading.get_ident()]
+        if follower.released:
+            return
+        with self._state:
+            follower.wake_s = None
+            follower.running = False
+            self._state.notify_all()
+            self._state.wait_for(lambda: follower.running)
+
+    def release(self, follower: Follower, timeout_s: float = 5.0) -> None:
+        """Let a follower run freely from now on (its waits return at once) until it ends."""
+        with self._state:
+            follower.released = True
+            follower.running = True
+            self._state.notify_all()
+            self._state.wait_for(lambda: follower.done, timeout_s)
+
+    def resume(self, follower: Follower) -> None:
+        """Let a follower that waits for a resume run now, until it blocks again."""
+        with self._state:
+            if follower.done or follower.running or follower.wake_s is not None:
+                return
+            follower.running = True
+            self._state.notify_all()
+        self._wait_blocked(follower)
+
+    def sleep(self, seconds: float) -> None:
+        follower = self._followers.get(threading.get_ident())
+        if follower is None:
+            self._advance(max(0.0, seconds))
+            return
+        if seconds <= 0.0 or follower.released:
+            return
+        with self._state:
+            follower.wake_s = self.now() + seconds
+            follower.running = False
+            self._state.notify_all()
+            self._state.wait_for(lambda: follower.running)
+
+    def peek(self, time_s: float, evaluate: Callable[[], T]) -> T:
+        """``evaluate()`` as of ``time_s`` (later than now) without advancing to it.
+
+        Nothing due on the way runs, so only what is analytic in time (motion,
+        the shop's drift) is seen there; a served instrument sends a sample
+        ahead this way and advances the time only once the host has taken it.
+        """
+        with self._advancing:
+            with self._lock:
+                now_s, self._now_s = self._now_s, max(self._now_s, time_s)
+            try:
+                return evaluate()
+            finally:
+                with self._lock:
+                    self._now_s = now_s
+
+    def _next_due(self, until_s: float) -> Follower | _Timer | None:
+        with self._state:
+            due: list[tuple[float, Follower | _Timer]] = [
+                (f.wake_s, f)
+                for f in self._followers.values()
+                if f.wake_s is not None and f.wake_s <= until_s
+            ]
+            due += [(t.next_s, t) for t in self._timers if t.next_s <= until_s]
+        return min(due, key=lambda entry: entry[0])[1] if due else None
+
+    def _advance(self, seconds: float) -> None:
+        with self._advancing:
+            until_s = self.now() + seconds
+            while (due := self._next_due(until_s)) is not None:
+                if isinstance(due, Follower):
+                    assert due.wake_s is not None
+                    self._set_now(due.wake_s)
+                    with self._state:
+                        due.wake_s = None
+                        due.running = True
+                        self._state.notify_all()
+                    self._wait_blocked(due)
+                else:
+                    self._set_now(due.next_s)
+                    due.next_s += due.period_s
+                    due.callback()
+            self._set_now(until_s)
+            for listener in list(self._listeners):
+                listener()

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.environment import SHOPS, attach_shop
 from sim.machine import ErrorAmplitudes
@@ -27,6 +28,7 @@ from xmalign.calibration import (
     CalibrationRun,
     RunOutput,
     open_run_output,
+    pre_position_mm,
 )
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
@@ -49,6 +51,7 @@ from xmalign.steps import (
     RunStepDevices,
     comp_step,
     design_step,
+    following_drive,
     identify_step,
     post_step,
     program_drive,
@@ -60,6 +63,10 @@ from xmalign.steps import (
 #: anywhere within this horizontally, and up to this much higher (the reference
 #: guess sits at the lowest height the receiver reaches, so lower is infeasible).
 PLACEMENT_SCATTER_MM = 25.0
+#: How often the served run reads the position file, s: the served CNC writes it at every
+#: step of virtual time, so a short poll finds the machine at a target at once (the live
+#: default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
+FOLLOW_POLL_S = 0.01
 #: How well a technician aligns the units by hand (standard deviation per axis), rad.
 HAND_RAD = 20e-6
 STAGES = ("identify", "program", "run", "post", "comp")
@@ -105,6 +112,9 @@ class DryRunOptions:
     shop: str = "drifting"
     #: Measure again with the controller's tables loaded (as left).
     verify: bool = False
+    #: Run the measurement through the real protocol servers (:func:`measure_served`)
+    #: rather than in-process (:func:`measure_virtually`, the faster shortcut).
+    served: bool = False
 
 
 @dataclass(frozen=True)
@@ -189,9 +199,16 @@ def placement_scatter_mm(rng: np.random.Generator) -> Vec:
 
 
 def virtual_setup(
-    machine: Machine, seed: int, amplitudes: ErrorAmplitudes | None = None
+    machine: Machine,
+    seed: int,
+    amplitudes: ErrorAmplitudes | None = None,
+    lockstep: bool = False,
 ) -> VirtualSetup:
-    """The seeded virtual setup: the same seed gives the same machine, units and placement."""
+    """The seeded virtual setup: the same seed gives the same machine, units and placement.
+
+    With ``lockstep`` its clock is a :class:`~sim.clock.LockstepClock`, so the
+    setup can be served (:func:`measure_served`); in-process it behaves the same.
+    """
     rng = np.random.default_rng(seed)
     placed = machine
     if machine.launch_unit is not None:
@@ -205,6 +222,7 @@ def virtual_setup(
         seed=int(rng.integers(2**31)),
         gamma_rad=float(rng.uniform(-math.pi, math.pi)),
         amplitudes=amplitudes,
+        clock=LockstepClock() if lockstep else None,
     )
     cnc = SimulatedCnc(machine, world.clock)
     world.interferometer.position = cnc
@@ -291,6 +309,53 @@ def measure_virtually(
     return run_step(plan, virtual_run_devices(setup), output, drive)
 
 
+def measure_served(
+    setup: VirtualSetup,
+    machine: Machine,
+    plan: Plan,
+    program: str,
+    dialect: str,
+    output: RunOutput,
+) -> CalibrationRun:
+    """:func:`~xmalign.steps.run_step` over the real protocols, as a live run does it.
+
+    The setup (on a :class:`~sim.clock.LockstepClock`) is served on 127.0.0.1
+    (:func:`sim.servers.served_world.serve_world`: Modbus TCP units, the
+    interferometer on a pty, a CNC running ``program`` with a position file);
+    the host opens the generated ``units.yaml`` with
+    :func:`~firmware_iface.config.open_devices` and follows the machine as
+    ``xmalign run --config`` does, a simulated operator pressing cycle start.
+    """
+    from firmware_iface.config import open_devices
+    from sim.servers.served_world import serve_world
+
+    for unit in (setup.world.launch, setup.world.receiver):
+        unit.keep_heartbeat(False)  # the in-process host of the identification is gone
+    with serve_world(setup.world, machine, program, dialect, setup.cnc) as served:
+        devices = open_devices(
+            served.config, machine, ask=_no_operator, tell=lambda text: None, clock=served.clock
+        )
+        following = following_drive(devices.mover, served.operator, machine, FOLLOW_POLL_S)
+
+        def drive(run: CalibrationRun) -> None:
+            first = next((line for line in plan.lines if not run.line_is_done(line)), None)
+            if first is not None:
+                served.run_to_stop_at(pre_position_mm(first, machine.measurement.overrun_mm))
+            following(run)
+
+        try:
+            roles = RunStepDevices(
+                devices.launch, devices.receiver, devices.interferometer, served.clock
+            )
+            return run_step(plan, roles, output, drive)
+        finally:
+            devices.close()
+
+
+def _no_operator(prompt: str) -> str:
+    raise EOFError(prompt)
+
+
 def _margins(plan: MeasurementPlan, rows: list, machine: Machine) -> list[LineMargin]:
     """Room left in the straightness and angle ranges: predicted (95 %) and measured."""
     ranges = machine.interferometer
@@ -345,7 +410,7 @@ def simulate_calibration(
     stage = on_stage or (lambda name: None)
     check_dry_run_folder(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    setup = virtual_setup(machine, options.seed, options.amplitudes)
+    setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
     station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
     clock = setup.world.clock
 
@@ -370,13 +435,20 @@ def simulate_calibration(
     )
     measurement_plan, plan = programmed.measurement, programmed.plan
 
+    def measure(output: RunOutput) -> CalibrationRun:
+        if options.served:
+            return measure_served(
+                setup, machine, plan, programmed.program, programmed.dialect, output
+            )
+        return measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
+
     stage("run")
     started = clock.now()
     csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
     with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
         output.on_saved = on_point or (lambda saved: None)
-        run = measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
+        run = measure(output)
     run_s = clock.now() - started
 
     stage("post")
@@ -399,7 +471,7 @@ def simulate_calibration(
         setup.world.machine.load_compensation(applied)
         verification = workdir / "verification.csv"
         with open_run_output(verification, plan, resume=False, environment=monitor) as output:
-            measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
+            measure(output)
         left = post_stations(
             machine,
             [Station(plan, read_measurements(verification), verification.name)],

@@ -58,6 +58,7 @@ def build_world(
     real_time: bool = False,
     gamma_rad: float = 0.0,
     amplitudes: ErrorAmplitudes | None = None,
+    clock: SimClock | None = None,
 ) -> World:
     """A seeded virtual setup on ``machine``.
 
@@ -65,10 +66,11 @@ def build_world(
     (else below the travel's lower corner) with azimuth ``gamma_rad``; both
     units get random imperfections of :meth:`UnitImperfections.random`.
     ``position`` is the ``MachinePositionSource`` (default: a CNC standing at
-    the centre of the travel).
+    the centre of the travel). ``clock`` (default: a new one, following the
+    wall clock with ``real_time``) is the time of every device.
     """
     rng = np.random.default_rng(seed)
-    clock = SimClock(real_time=real_time)
+    clock = clock or SimClock(real_time=real_time)
     vm = VirtualMachine(machine, amplitudes, seed=int(rng.integers(2**31)))
     launch = SimUnit(
         "launch", clock, UnitImperfections.random(rng, 2), seed=int(rng.integers(2**31))

@@ -73,7 +73,12 @@ def dry_run_of_seed(
 LINUXCNC_TESTS = "tests/linuxcnc/"
 #: Groups that mostly wait on real time (a real-time LinuxCNC; served devices running at
 #: wall-clock speed), longest first: they start first, on workers of their own.
-WAITING_GROUPS = ("linuxcnc", "tests/xmalign/test_live_e2e.py", "tests/xmalign/test_cli_live.py")
+WAITING_GROUPS = (
+    "linuxcnc",
+    "tests/xmalign/test_live_e2e.py",
+    "tests/xmalign/test_live_identify_e2e.py",
+    "tests/xmalign/test_cli_live.py",
+)
 
 
 @pytest.hookimpl(optionalhook=True, wrapper=True)

@@ -69,6 +69,8 @@ LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
 DEFAULT_START_DISTANCE_MM = 500.0
 #: While a run waits for the machine, it reads the units this often (a lost link shows), s.
 DEVICE_CHECK_S = 1.0
+#: The end of what a run following the machine tells the operator once a line's units are set.
+PRESS_CYCLE_START = "press cycle start"
 #: Time the units may take to reach the plan's angles, s.
 UNIT_MOVE_TIMEOUT_S = 120.0
 #: Capture waits for settled readings for at most this part of each dwell.
@@ -318,7 +320,10 @@ class CalibrationRun:
     def _settled_average(self, started_s: float, dwell_s: float) -> InterferometerReading:
         """The mean of the settled readings up to ``AVERAGE_END_FRACTION`` of the dwell."""
         probe = self._settle(started_s + SETTLE_FRACTION * dwell_s)
-        left_s = max(started_s + AVERAGE_END_FRACTION * dwell_s - self.clock.now(), 1e-3)
+        left_s = started_s + AVERAGE_END_FRACTION * dwell_s - self.clock.now()
+        if probe is not None and left_s < SETTLE_PROBE_S / 2:
+            return probe  # the settling took the time (a late start): no average past the dwell
+        left_s = max(left_s, 1e-3)
         reading = self.interferometer.average(left_s)
         if probe is None:
             return reading
@@ -515,9 +520,9 @@ def follow_machine(
     for line in lines:
         if run.line_is_done(line):
             continue
-        pre_position_mm = line.target_points_mm()[0] - overrun_mm * line.frame[0]
-        there = partial(_stands_at_mm, position, pre_position_mm, tolerance_mm)
-        where = f"the pre-position of line {line.id} {np.round(pre_position_mm, 3).tolist()} mm"
+        pre_mm = pre_position_mm(line, overrun_mm)
+        there = partial(_stands_at_mm, position, pre_mm, tolerance_mm)
+        where = f"the pre-position of line {line.id} {np.round(pre_mm, 3).tolist()} mm"
         if not there():
             tell(
                 f"line {line.id}: waiting for the machine to stop at {where}"
@@ -525,7 +530,7 @@ def follow_machine(
             )
             _wait_for(run, there, f"stop at {where}", timeout_s, poll_s)
         run.prepare_line(line)
-        tell(f"line {line.id}: units aligned and locked; press cycle start")
+        tell(f"line {line.id}: units aligned and locked; {PRESS_CYCLE_START}")
         previous: CapturePoint | None = None
         for point in capture_sequence(line):
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
@@ -545,6 +550,11 @@ def follow_machine(
             )
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
+
+
+def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:
+    """Where the program stops before a line: its first target less the overrun, mm (3,)."""
+    return line.target_points_mm()[0] - overrun_mm * line.frame[0]
 
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:

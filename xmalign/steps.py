@@ -199,13 +199,17 @@ def stepping_drive(mover: MachineMover, machine: Machine) -> Drive:
 
 
 def following_drive(
-    position: MachinePositionSource, tell: Callable[[str], None], machine: Machine
+    position: MachinePositionSource,
+    tell: Callable[[str], None],
+    machine: Machine,
+    poll_s: float = 0.05,
 ) -> Drive:
     """Capture while the controller runs the program, at each standstill on a target
     (the units set at each line's pre-position, the machine file's overrun before it);
-    ``tell`` says the operator's part (run the program, press cycle start)."""
+    ``tell`` says the operator's part (run the program, press cycle start); ``poll_s``:
+    how often the position is read while waiting."""
     return lambda run: follow_machine(
-        run, position, run.plan.lines, tell, machine.measurement.overrun_mm
+        run, position, run.plan.lines, tell, machine.measurement.overrun_mm, poll_s=poll_s
     )
 
 

@@ -171,7 +171,8 @@ class ModbusUnitServer:
     unit : SimUnit
         Should run on a real-time clock.
     host, port : str, int
-        Where to listen (``127.0.0.1`` unless the user asks otherwise).
+        Where to listen (``127.0.0.1`` unless the user asks otherwise); port 0
+        takes a free port (:attr:`port` then says which).
     device_id : int
         The Modbus unit id the unit answers to.
     controlling_host : ControllingHost, optional
@@ -215,6 +216,10 @@ class ModbusUnitServer:
         self._server = self._build()
         if not await self._server.listen():
             raise OSError(f"cannot listen on {self.where}")
+        sockets = getattr(self._server.transport, "sockets", None)
+        if self.port == 0 and sockets:  # an ephemeral port: say which one it is
+            self.port = int(sockets[0].getsockname()[1])
+            self.where = f"{self.host}:{self.port}"
         self._started.set()
         await self._server.serving
 

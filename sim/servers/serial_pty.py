@@ -6,8 +6,11 @@ The server owns the pty's master side; a client opens :attr:`PtyInterferometerSe
 
 from __future__ import annotations
 
+import array
+import fcntl
 import os
 import select
+import termios
 import threading
 import time
 import tty
@@ -20,12 +23,17 @@ from firmware_iface.xm_line_protocol import (
     parse_command,
     rate_hz,
 )
+from sim.clock import LockstepClock
 from xmalign.errors import FormatError
 from xmalign.roles import Interferometer
 
 IDENTIFICATION = "XMALIGN-SIM XM-60 class 1.0"
 _POLL_S = 0.05
 _MAX_LATE_S = 0.25
+#: Lockstep: how often to look whether the host has read the last sample (wall time).
+_LOCKSTEP_POLL_S = 50e-6
+#: Lockstep: longest time the kernel takes to queue a sample for the host (wall time).
+_PUSH_WAIT_S = 0.05
 
 
 class PtyInterferometerServer:
@@ -37,21 +45,54 @@ class PtyInterferometerServer:
         Usually a :class:`sim.interferometer.SimInterferometer` on a real-time clock.
     rate_hz : float
         Initial stream rate.
+    lockstep : LockstepClock, optional
+        The virtual clock the interferometer shares with its host in this
+        process: while streaming, each sample advances it by one sample period,
+        once the host has read the previous one (the host's readings are those
+        of the in-process interferometer). Default: samples on the wall clock.
     """
 
-    def __init__(self, interferometer: Interferometer, rate_hz: float = 50.0) -> None:
+    def __init__(
+        self,
+        interferometer: Interferometer,
+        rate_hz: float = 50.0,
+        lockstep: LockstepClock | None = None,
+    ) -> None:
         self.interferometer = interferometer
         self.rate_hz = rate_hz
-        self.streaming = False
+        self.lockstep = lockstep
+        self._streaming = threading.Event()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
         self._stop = threading.Event()
         self._write_lock = threading.Lock()
+        #: Lockstep: a command and a sample (advance, read, send) never interleave, so no
+        #: sample of one stream arrives after the reply that ends it.
+        self._sample_lock = threading.RLock()
+        #: Lockstep: the time of the sample sent ahead, not yet reached.
+        self._ahead_s: float | None = None
+        #: Lockstep: when the last sample was sent (wall time), and whether it was seen queued.
+        self._sent = (0.0, True)
         self._threads = [
             threading.Thread(target=self._serve_commands, name="xm-commands", daemon=True),
-            threading.Thread(target=self._serve_stream, name="xm-stream", daemon=True),
+            threading.Thread(
+                target=self._serve_stream if lockstep is None else self._serve_lockstep,
+                name="xm-stream",
+                daemon=True,
+            ),
         ]
+
+    @property
+    def streaming(self) -> bool:
+        return self._streaming.is_set()
+
+    @streaming.setter
+    def streaming(self, on: bool) -> None:
+        if on:
+            self._streaming.set()
+        else:
+            self._streaming.clear()
 
     def start(self) -> None:
         for thread in self._threads:
@@ -60,6 +101,7 @@ class PtyInterferometerServer:
     def stop(self) -> None:
         """Stop both threads and close the pty."""
         self._stop.set()
+        self._streaming.set()  # wakes a lockstep stream waiting for STREAM ON
         for thread in self._threads:
             if thread.is_alive():
                 thread.join(2.0)
@@ -72,6 +114,10 @@ class PtyInterferometerServer:
 
     def handle(self, line: bytes) -> None:
         """Execute one command line and send the answer."""
+        with self._sample_lock:  # a lockstep sample is sent whole before or after it
+            self._handle(line)
+
+    def _handle(self, line: bytes) -> None:
         try:
             command = parse_command(line)
         except FormatError as error:
@@ -88,6 +134,7 @@ class PtyInterferometerServer:
             self.interferometer.zero()
         elif command.name == "STREAM":
             self.streaming = command.argument == "ON"
+            self._ahead_s = None
             return f"STREAM {command.argument}"
         elif command.name == "RATE":
             self.rate_hz = rate_hz(command.argument)
@@ -101,14 +148,15 @@ class PtyInterferometerServer:
             ready, _, _ = select.select([self._master], [], [], _POLL_S)
             if not ready:
                 continue
-            try:
-                buffer += os.read(self._master, 1024)
-            except OSError:  # the client side went away; keep serving for the next one
-                continue
-            *lines, buffer = buffer.split(b"\n")
-            for line in lines:
-                if line.strip():
-                    self.handle(line)
+            with self._sample_lock:  # lockstep: read and answer before the next sample
+                try:
+                    buffer += os.read(self._master, 1024)
+                except OSError:  # the client side went away; keep serving for the next one
+                    continue
+                *lines, buffer = buffer.split(b"\n")
+                for line in lines:
+                    if line.strip():
+                        self.handle(line)
 
     def _serve_stream(self) -> None:
         """Send samples on a fixed schedule, so a busy computer does not lower the rate."""
@@ -122,3 +170,54 @@ class PtyInterferometerServer:
                 return
             if self.streaming:
                 self._send(encode_sample(self.interferometer.read()))
+
+    def _unread_bytes(self) -> int:
+        """Bytes sent that the client has not read yet."""
+        count = array.array("i", [0])
+        fcntl.ioctl(self._slave, termios.FIONREAD, count)
+        return count[0]
+
+    def _host_has_read(self) -> bool:
+        """Whether the host has read the last sample sent.
+
+        The kernel hands bytes written to the master to the slave's queue a
+        little later, so an empty queue counts only once the sample has been
+        seen in it (or after ``_PUSH_WAIT_S``, a host that read it at once).
+        """
+        if self._unread_bytes():
+            self._sent = (self._sent[0], True)
+            return False
+        sent_s, seen = self._sent
+        return seen or time.monotonic() - sent_s > _PUSH_WAIT_S
+
+    def _host_has_written(self) -> bool:
+        ready, _, _ = select.select([self._master], [], [], 0)
+        return bool(ready)
+
+    def _serve_lockstep(self) -> None:
+        """Stream one sample ahead; virtual time reaches a sample once the host has taken it.
+
+        Each sample is computed one period after the present (``LockstepClock.peek``)
+        and sent; when the host has read it and sent nothing (it waits for
+        more), time advances to it and the next is sent. A host that has
+        enough sends STREAM OFF before it reads on, so the sample it skips never
+        advances the time: an average takes as much virtual time as in-process,
+        whatever the wall clock does (at most the last sample's period less).
+        """
+        assert self.lockstep is not None
+        clock = self.lockstep
+        while not self._stop.is_set():
+            self._streaming.wait()
+            if not self._host_has_read():
+                time.sleep(_LOCKSTEP_POLL_S)
+                continue
+            with self._sample_lock:
+                waiting = self.streaming and not self._host_has_written()
+                if waiting and not self._stop.is_set():
+                    if self._ahead_s is not None:
+                        clock.sleep(self._ahead_s - clock.now())
+                    self._ahead_s = clock.now() + 1.0 / self.rate_hz
+                    self._send(encode_sample(clock.peek(self._ahead_s, self.interferometer.read)))
+                    self._sent = (time.monotonic(), False)
+            if not waiting:
+                time.sleep(_LOCKSTEP_POLL_S)

@@ -59,8 +59,9 @@ def calibration() -> Iterator[Path]:
     folder = Path(tempfile.mkdtemp(prefix="xmalign-lcnc-comp-"))
     (folder / "machine.yaml").write_text(yaml.safe_dump(MACHINE))
     result = run_cli(
-        "dry-run", "--machine", str(folder / "machine.yaml"), "--out", str(folder / "dry")
-    )
+        "dry-run", "--machine", str(folder / "machine.yaml"), "--out", str(folder / "dry"),
+        "--in-process",
+    )  # fmt: skip
     assert result.returncode == 0, result.stderr
     yield folder
     shutil.rmtree(folder, ignore_errors=True)

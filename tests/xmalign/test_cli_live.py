@@ -570,7 +570,7 @@ def test_a_program_for_more_lines_than_the_plan_is_refused_with_the_points_kept(
     program = plans / "run.nc"
     result = xmalign(
         Terminal(lambda printed: None),
-        "run", "--sim", "--seed", str(SEED), "--plan", str(plan), "--out", str(out),
+        "run", "--sim", "--in-process", "--seed", str(SEED), "--plan", str(plan), "--out", str(out),
         "--program", str(program),
     )  # fmt: skip
     kept = len(read_measurements(out))
@@ -586,7 +586,8 @@ def test_a_live_resume_of_a_file_recorded_with_the_environment_needs_the_same_so
     out = tmp_path / "m.csv"
     recorded = xmalign(
         Terminal(lambda printed: None),
-        "run", "--sim", "--seed", str(SEED), "--plan", str(short_plan), "--out", str(out),
+        "run", "--sim", "--in-process", "--seed", str(SEED), "--plan", str(short_plan),
+        "--out", str(out),
     )  # fmt: skip
     assert recorded.returncode == 0, recorded.stderr
     before = out.read_bytes()

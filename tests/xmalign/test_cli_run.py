@@ -18,7 +18,7 @@ from xmalign.formats.plan import read_plan
 
 def test_dry_run_then_run_sim_on_its_plan(tmp_path):
     out = tmp_path / "dry"
-    result = run_cli("dry-run", "--out", str(out), "--seed", "3")
+    result = run_cli("dry-run", "--out", str(out), "--seed", "3", "--in-process")
     assert result.returncode == 0, result.stderr
     assert "Dry run against the simulator's truth" in result.stdout
     assert "volumetric" in result.stdout and "on-machine time" in result.stdout
@@ -27,8 +27,9 @@ def test_dry_run_then_run_sim_on_its_plan(tmp_path):
     assert any((out / "comp").iterdir())
     csv_path = tmp_path / "m.csv"
     again = run_cli(
-        "run", "--plan", str(out / "plan.json"), "--sim", "--seed", "3", "--out", str(csv_path)
-    )
+        "run", "--plan", str(out / "plan.json"), "--sim", "--seed", "3", "--out", str(csv_path),
+        "--in-process",
+    )  # fmt: skip
     assert again.returncode == 0, again.stderr
     assert len(read_measurements(csv_path)) == len(read_measurements(out / "measurements.csv"))
 
@@ -50,9 +51,11 @@ def dry(dry_run_of_seed):
 
 
 def _run_sim(dry, out, *extra):
+    """``run --sim --in-process`` on the dry run's plan (served: tests/sim/test_served_world.py)."""
     return run_in_process(
-        "run", "--plan", str(dry / "plan.json"), "--sim", "--seed", "3", "--out", str(out), *extra
-    )
+        "run", "--plan", str(dry / "plan.json"), "--sim", "--seed", "3", "--out", str(out),
+        "--in-process", *extra,
+    )  # fmt: skip
 
 
 def _data_rows(path):
@@ -159,6 +162,7 @@ def _start(dry, out, *extra):
             "3",
             "--out",
             str(out),
+            "--in-process",
             *extra,
         ],
         stdout=subprocess.DEVNULL,
@@ -288,7 +292,8 @@ def test_program_finds_pose_json_in_the_working_folder(dry, tmp_path):
 def test_ctrl_c_in_a_dry_run_says_how_to_finish_the_run(tmp_path):
     folder = tmp_path / "dry"
     process = subprocess.Popen(
-        [sys.executable, "-m", "xmalign", "dry-run", "--seed", "3", "--out", str(folder)],
+        [sys.executable, "-m", "xmalign", "dry-run", "--seed", "3", "--out", str(folder)]
+        + ["--in-process"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         stdin=subprocess.DEVNULL,

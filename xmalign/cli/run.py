@@ -47,6 +47,14 @@ ShopOption = Annotated[
         " (air 22 -> 25 °C, machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
     ),
 ]
+InProcessOption = Annotated[
+    bool,
+    typer.Option(
+        "--in-process",
+        help="With --sim: the simulated devices as in-process objects, faster, instead of"
+        " served over Modbus TCP, a serial pty and a position file (docs/simulator.md).",
+    ),
+]
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
 ]
@@ -126,9 +134,10 @@ def _sim_measurement(
     program: Path | None,
     dialect: str | None,
     shop: str,
+    in_process: bool,
 ) -> Iterator[Measurement]:
     """Check the --sim options; the measurement on the virtual machine in a simulated shop."""
-    from sim.dry_run import measure_virtually, virtual_setup
+    from sim.dry_run import measure_served, measure_virtually, virtual_setup
     from sim.environment import SHOPS, attach_shop
     from trajectories.gcode import make_dialect, resolve_dialect
     from trajectories.gcode.program import write_program
@@ -140,11 +149,16 @@ def _sim_measurement(
         if program is not None
         else write_program(plan, machine, make_dialect(dialect_name, machine))
     )
-    setup = virtual_setup(machine, seed)
+    setup = virtual_setup(machine, seed, lockstep=not in_process)
     station = attach_shop(setup.world, SHOPS[shop](), seed)
 
+    def capture(output: RunOutput) -> CalibrationRun:
+        if in_process:
+            return measure_virtually(setup, plan, text, dialect_name, output)
+        return measure_served(setup, machine, plan, text, dialect_name, output)
+
     def measure(output: RunOutput) -> None:
-        _measure(output, plan, lambda: measure_virtually(setup, plan, text, dialect_name, output))
+        _measure(output, plan, lambda: capture(output))
 
     yield Measurement(measure, EnvironmentMonitor(station, "simulated weather station"))
 
@@ -225,6 +239,7 @@ def run_command(
     ] = None,
     dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
     shop: ShopOption = "drifting",
+    in_process: InProcessOption = False,
     log_file: LogFileOption = None,
 ) -> None:
     """Drive the units, lock them, step the machine through the plan and capture every point.
@@ -234,6 +249,8 @@ def run_command(
     """
     if sim == (config is not None):
         raise InputError("give either --sim or --config UNITS.yaml")
+    if in_process and not sim:
+        raise InputError("--in-process is for --sim (a live run always uses the hardware)")
     check_seed(seed)
     check_run_output(out, resume)
     plan_model = read_plan(plan)
@@ -244,7 +261,7 @@ def run_command(
     try:
         with (
             _measurement(
-                machine_model, plan_model, sim, config, seed, program, dialect, shop
+                machine_model, plan_model, sim, config, seed, program, dialect, shop, in_process
             ) as measurement,
             open_run_output(out, plan_model, resume, limits, measurement.environment) as output,
         ):
@@ -265,9 +282,10 @@ def _measurement(
     program: Path | None,
     dialect: str | None,
     shop: str,
+    in_process: bool = False,
 ) -> AbstractContextManager[Measurement]:
     if sim:
-        return _sim_measurement(machine, plan, seed, program, dialect, shop)
+        return _sim_measurement(machine, plan, seed, program, dialect, shop, in_process)
     assert config is not None
     return _live_measurement(machine, plan, config)
 
@@ -332,7 +350,13 @@ def _results_table(report: object) -> Table:
 
 
 def _dry_run_stopped(
-    out: Path, stage: str, seed: int, machine: Path | None, dialect: str | None, shop: str
+    out: Path,
+    stage: str,
+    seed: int,
+    machine: Path | None,
+    dialect: str | None,
+    shop: str,
+    in_process: bool = False,
 ) -> KeyboardInterrupt:
     """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
     if stage != "run":
@@ -340,6 +364,7 @@ def _dry_run_stopped(
     options = f" --machine {machine}" if machine else ""
     options += f" --dialect {dialect}" if dialect else ""
     options += f" --shop {shop}"
+    options += " --in-process" if in_process else ""
     return _stopped(
         out / "measurements.csv",
         f" (xmalign run --sim --seed {seed}{options} --plan {out / 'plan.json'}"
@@ -372,6 +397,14 @@ def dry_run_command(
             " (verification.csv: as left).",
         ),
     ] = False,
+    in_process: Annotated[
+        bool,
+        typer.Option(
+            "--in-process",
+            help="Measure with the simulated devices in-process (faster) instead of over"
+            " Modbus TCP, a serial pty and a position file (docs/simulator.md).",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
@@ -386,6 +419,7 @@ def dry_run_command(
         dialect=dialect,
         shop=shop,
         verify=verify,
+        served=not in_process,
     )
     if stations == 2:
         if verify:
@@ -410,7 +444,7 @@ def dry_run_command(
             report = simulate_calibration(machine_model, out, options, on_stage, on_point)
         except KeyboardInterrupt:
             stage = started[-1] if started else "start"
-            raise _dry_run_stopped(out, stage, seed, machine, dialect, shop) from None
+            raise _dry_run_stopped(out, stage, seed, machine, dialect, shop, in_process) from None
         progress.update(task, completed=stages, description="dry run: done")
     console.print(_results_table(report))
     design = [f"identification design: {warning}" for warning in report.design_warnings]

@@ -209,21 +209,16 @@ def _served_cnc(
     world: World, machine: Machine, position_file: Path, program: Path, dialect: str | None
 ) -> ServedCnc:
     """The world's machine moved by a simulated CNC running ``program`` (checked here)."""
-    from sim.cnc import SimulatedCnc
-    from sim.servers.served_cnc import ServedCnc
+    from sim.servers.served_world import served_cnc
     from trajectories.gcode import resolve_dialect
     from xmalign.cli.run import read_text
-
-    cnc = SimulatedCnc(machine, world.clock)
-    world.interferometer.position = cnc
 
     def tell(message: str) -> None:
         console.print(message, markup=False, highlight=False)
 
-    return ServedCnc(
-        cnc,
+    return served_cnc(
+        world,
         machine,
-        world.clock,
         read_text(program, "G-code program"),
         resolve_dialect(machine, dialect),
         position_file,

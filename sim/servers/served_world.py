@@ -1,0 +1,167 @@
+"""A virtual world served over the real protocols to a host in the same process.
+
+:func:`serve_world` starts, on 127.0.0.1 and new ptys, what ``xmalign sim
+serve`` serves to another process: both positioning units as Modbus TCP
+servers (ephemeral ports), the interferometer's line protocol on a pty, and a
+CNC running the G-code program that keeps a position file up to date. It
+writes the ``units.yaml`` a technician would write for them, so the host opens
+them with :func:`firmware_iface.config.open_devices` exactly as in a live run.
+
+Host and servers share one :class:`~sim.clock.LockstepClock` (the world's):
+virtual time advances only when the host sleeps or the interferometer streams
+a sample the host waits for; the CNC runs its program as a follower of that
+clock, the units' watchdogs and the host's heartbeat count in it. A
+ten-minute measuring program therefore takes seconds, and the host reads what
+the same world in-process would give (docs/simulator.md).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from firmware_iface.config import UnitsConfig, load_units_config
+from sim.clock import LockstepClock
+from sim.cnc import SimulatedCnc
+from sim.servers.modbus import ModbusUnitServer
+from sim.servers.serial_pty import PtyInterferometerServer
+from sim.servers.served_cnc import PROGRAM_END, WAITING, ServedCnc
+from sim.world import World
+from xmalign.calibration import PRESS_CYCLE_START
+from xmalign.errors import DeviceError, DeviceTimeoutError
+from xmalign.geometry import Vec
+from xmalign.machine import Machine
+
+#: Where every served device listens.
+LOOPBACK = "127.0.0.1"
+#: How long the simulated operator lets the CNC reach a programmed stop, virtual s.
+REACH_STOP_S = 600.0
+
+
+def served_cnc(
+    world: World,
+    machine: Machine,
+    program: str,
+    dialect: str,
+    position_file: Path,
+    tell: Callable[[str], None],
+    cnc: SimulatedCnc | None = None,
+) -> ServedCnc:
+    """The world's machine moved by a CNC running ``program`` (checked here, InputError).
+
+    ``cnc`` (default: a new one, which the interferometer then follows) is the
+    CNC of the world; on a :class:`LockstepClock` the program follows its time.
+    """
+    if cnc is None:
+        cnc = SimulatedCnc(machine, world.clock)
+        world.interferometer.position = cnc
+    lockstep = world.clock if isinstance(world.clock, LockstepClock) else None
+    return ServedCnc(
+        cnc, machine, world.clock, program, dialect, position_file, tell, lockstep=lockstep
+    )
+
+
+def units_yaml(
+    launch_port: int, receiver_port: int, interferometer_port: str, position_file: Path
+) -> str:
+    """The ``units.yaml`` of the served devices (docs/hardware.md)."""
+    return (
+        "format: xmalign.units/1\n"
+        f"launch: {{transport: modbus-tcp, host: {LOOPBACK}, port: {launch_port}}}\n"
+        f"receiver: {{transport: modbus-tcp, host: {LOOPBACK}, port: {receiver_port}}}\n"
+        f"interferometer: {{port: {interferometer_port}, rate_hz: 50}}\n"
+        f"machine_position: {{source: file, file: {position_file}}}\n"
+    )
+
+
+@dataclass
+class ServedWorld:
+    """The served devices of a world, its ``units.yaml`` and the CNC's operator."""
+
+    clock: LockstepClock
+    cnc: ServedCnc
+    config_path: Path
+    config: UnitsConfig
+    #: What the CNC said, in order (``sim serve`` prints the same).
+    cnc_messages: list[str] = field(default_factory=list)
+
+    def run_to_stop_at(self, position_mm: Vec, tolerance_mm: float = 0.005) -> None:
+        """The operator presses cycle start until the CNC waits at ``position_mm`` (3,).
+
+        As a technician brings the program to the line a run starts with (a
+        resumed run skips the lines it has); DeviceError when the program
+        ends twice without stopping there.
+        """
+        ends = 0
+        while True:
+            self.press_cycle_start()
+            self._wait_for_stop()
+            miss = float(np.linalg.norm(self.cnc.cnc.position_mm() - position_mm))
+            if miss <= tolerance_mm:
+                return
+            ends += self.cnc_messages.count(PROGRAM_END)
+            self.cnc_messages.clear()
+            if ends >= 2:
+                raise DeviceError(
+                    f"the served CNC's program never stops at {np.round(position_mm, 3).tolist()}"
+                    " mm: program and plan do not match"
+                )
+
+    def _wait_for_stop(self) -> None:
+        deadline_s = self.clock.now() + REACH_STOP_S
+        while not self.cnc_messages or self.cnc_messages[-1] != WAITING:
+            if self.clock.now() >= deadline_s:
+                raise DeviceTimeoutError(
+                    f"the served CNC did not reach a programmed stop in {REACH_STOP_S:.0f} s"
+                )
+            self.clock.sleep(0.1)
+
+    def press_cycle_start(self) -> None:
+        self.cnc.cycle_start()
+
+    def operator(self, message: str) -> None:
+        """The technician told by the run: presses cycle start once the units are set (the
+        program is brought to the first line's stop beforehand, :meth:`run_to_stop_at`)."""
+        if message.endswith(PRESS_CYCLE_START):
+            self.press_cycle_start()
+
+
+@contextmanager
+def serve_world(
+    world: World, machine: Machine, program: str, dialect: str, cnc: SimulatedCnc | None = None
+) -> Iterator[ServedWorld]:
+    """Serve ``world`` (on a :class:`LockstepClock`) with a CNC running ``program``.
+
+    Everything is stopped again on exit; the ``units.yaml`` and the position
+    file live in a temporary folder until then.
+    """
+    if not isinstance(world.clock, LockstepClock):
+        raise TypeError("serve_world needs a world built on a LockstepClock")
+    clock = world.clock
+    with ExitStack() as stack:
+        folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="xmalign-served-")))
+        messages: list[str] = []
+        servers = [ModbusUnitServer(unit, LOOPBACK, 0) for unit in (world.launch, world.receiver)]
+        for server in servers:
+            server.start()
+            stack.callback(server.stop)
+        pty = PtyInterferometerServer(world.interferometer, lockstep=clock)
+        pty.start()
+        stack.callback(pty.stop)
+        position_file = folder / "position.txt"
+        cnc_server = served_cnc(
+            world, machine, program, dialect, position_file, messages.append, cnc
+        )
+        cnc_server.start()
+        stack.callback(cnc_server.stop)
+        config_path = folder / "units.yaml"
+        config_path.write_text(
+            units_yaml(servers[0].port, servers[1].port, pty.port, position_file),
+            encoding="utf-8",
+        )
+        yield ServedWorld(clock, cnc_server, config_path, load_units_config(config_path), messages)
