@@ -6,6 +6,7 @@ from rich.console import Console
 
 from sim.mc import Strategy, StrategyResult
 from sim.mc_plots import histogram_range, plot_histograms
+from tests.xmalign.bad_input_cases import run_main
 from xmalign.cli.mc import _plot, _table, estimate_decimals
 from xmalign.montecarlo import AdaptiveStudy
 
@@ -60,3 +61,28 @@ def test_a_plot_failure_is_a_warning(capsys):
 
     assert _plot(broken, "histograms.png") is None
     assert "warning: histograms.png not drawn (ValueError: Too many bins" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "named"),
+    [
+        ("--error-scale", "-0.5", "--error-scale"),
+        ("--squareness-urad", "-1", "--squareness-urad"),
+        ("--workers", "-2", "--workers -2"),
+    ],
+)
+def test_mc_refuses_a_negative_setting_before_any_trial(tmp_path, option, value, named):
+    out = tmp_path / "mc"
+    code, stderr, escaped = run_main(("mc", "--trials", "2", option, value, "--out", str(out)))
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert (code, escaped) == (2, "")
+    assert len(lines) == 1 and lines[0].startswith("xmalign: error: ") and named in lines[0]
+    assert not out.exists()  # refused before a trial ran or a file was written
+
+
+@pytest.mark.parametrize(
+    ("mean", "u"), [(float("inf"), 1.0), (float("nan"), float("nan")), (0.0, 0.0)]
+)
+def test_an_estimate_without_a_resolution_shows_no_decimals(mean, u):
+    # all trials failed (nan), diverged (inf) or exactly zero: the table still draws
+    assert estimate_decimals(mean, u) == 0

@@ -117,3 +117,27 @@ def test_a_resume_after_a_recovery_goes_on_in_a_segment_of_its_own(dry_run, refe
     rows = read_measurements(path)
     assert _every_point_once(plan, rows)
     assert [row.segment for row in rows] == [0] * AFTER + [1] * 5 + [2] * (len(rows) - AFTER - 5)
+
+
+def test_a_beam_lost_again_while_the_point_is_captured_again_stops_the_run(
+    dry_run, reference_machine
+):
+    def cross_then_block_at_the_new_datum(interferometer):
+        interferometer.interrupt(2.5)  # back by itself (as in the test above)
+        set_datum = interferometer.zero
+
+        def zero_then_block():
+            set_datum()
+            interferometer.zero = set_datum
+            interferometer.interrupt(1e6)  # lost again during the capture's dwell
+
+        interferometer.zero = zero_then_block
+
+    with pytest.raises(BeamLostError) as lost:
+        _measure(reference_machine, dry_run, "lost-again.csv", 1, cross_then_block_at_the_new_datum)
+    message = str(lost.value)
+    assert message.startswith(f"beam lost on line X run 1 (+) target {AFTER + 1} (")
+    assert message.endswith(
+        "the units are locked; check the beam path, re-align and continue with --resume"
+    )
+    assert len(read_measurements(dry_run / "lost-again.csv")) == AFTER
