@@ -83,14 +83,14 @@ WAITING_GROUPS = (
 
 @pytest.hookimpl(optionalhook=True, wrapper=True)
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> Generator[None, int, int]:
-    """``-n auto``: one worker per core, and one more for the groups that mostly wait
-    (the live tests; with LinuxCNC installed, one more for its group): a real-time
-    LinuxCNC or a served device takes well under a tenth of a core, and without extra
-    workers one core idles for the minutes they run."""
+    """``-n auto``: one worker per core, and one more for each group that mostly waits
+    (:data:`WAITING_GROUPS`; the LinuxCNC group only when LinuxCNC is installed): a
+    real-time LinuxCNC or devices served in real time take a fraction of a core, and
+    without workers of their own the cores would idle for the minutes they run."""
     workers = yield
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return workers
-    return workers + (2 if shutil.which("linuxcnc") else 1)
+    return workers + len(WAITING_GROUPS) - (0 if shutil.which("linuxcnc") else 1)
 
 
 def xdist_group(nodeid: str) -> str:

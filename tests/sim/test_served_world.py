@@ -133,15 +133,16 @@ def test_served_run_resumes_after_the_lines_it_has(reference_machine, short_plan
     assert len(resumed) == sum(1 for line in plan.lines for _ in capture_sequence(line))
 
 
-def test_run_sim_is_served_by_default_and_in_process_on_request(short_plan, tmp_path):
-    outputs = {}
-    for name, extra in (("served", ()), ("in-process", ("--in-process",))):
-        out = tmp_path / f"{name}.csv"
-        result = run_cli(
-            "run", "--sim", "--seed", str(SEED), "--plan", str(short_plan), "--out", str(out),
-            *extra,
-        )  # fmt: skip
-        assert result.returncode == 0, result.stderr
-        assert "14 points captured" in result.stdout
-        outputs[name] = read_measurements(out)
-    _assert_close(outputs["served"], outputs["in-process"])
+def test_run_sim_is_served_by_default(short_plan, tmp_path):
+    """``run --sim`` goes over the protocols unless told ``--in-process`` (the in-process
+    path: tests/xmalign/test_cli_run.py): the wire log shows Modbus and the serial line."""
+    out, wire = tmp_path / "served.csv", tmp_path / "wire.log"
+    result = run_cli(
+        "run", "--sim", "--seed", str(SEED), "--plan", str(short_plan), "--out", str(out),
+        "--log-file", str(wire),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "14 points captured" in result.stdout
+    logged = wire.read_text()
+    assert "write axis1.control" in logged and "STREAM ON" in logged
+    assert len(read_measurements(out)) == 14
