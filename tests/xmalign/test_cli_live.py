@@ -207,6 +207,23 @@ def _run(terminal: Terminal, world: Served, plan: Path, out: Path, *extra: str):
     )
 
 
+def _run_with_a_fifth_prompt_that(
+    happens: Callable[[], None], world: Served, plan: Path, out: Path
+) -> subprocess.CompletedProcess:
+    """``run`` with an operator who moves the machine where told; at the fifth prompt,
+    ``happens()`` first (a Ctrl-C, a pulled cable)."""
+
+    def at_the_fifth_prompt(n: int) -> None:
+        if n == 5:
+            happens()
+
+    return _run(Terminal(moving_operator(world.machine, at_the_fifth_prompt)), world, plan, out)
+
+
+def _presses_ctrl_c() -> None:
+    raise KeyboardInterrupt
+
+
 def test_live_run_stepped_by_the_operator_captures_every_point(
     reference_machine, short_plan, tmp_path
 ):
@@ -227,17 +244,7 @@ def test_live_run_stopped_by_ctrl_c_keeps_its_points_and_resumes_without_a_repea
 ):
     out = tmp_path / "m.csv"
     with served(reference_machine, tmp_path, short_plan) as world:
-
-        def ctrl_c_at_the_fifth_prompt(n: int) -> None:
-            if n == 5:
-                raise KeyboardInterrupt
-
-        stopped = _run(
-            Terminal(moving_operator(world.machine, ctrl_c_at_the_fifth_prompt)),
-            world,
-            short_plan,
-            out,
-        )
+        stopped = _run_with_a_fifth_prompt_that(_presses_ctrl_c, world, short_plan, out)
         assert stopped.returncode == 130, stopped.stderr
         saved = len(read_measurements(out))
         assert 0 < saved < len(_points(short_plan))
@@ -258,17 +265,7 @@ def test_the_interferometer_gone_mid_run_is_one_line_and_keeps_the_points(
 ):
     out = tmp_path / "m.csv"
     with served(reference_machine, tmp_path, short_plan) as world:
-
-        def pull_the_cable_at_the_fifth_prompt(n: int) -> None:
-            if n == 5:
-                world.interferometer.stop()
-
-        result = _run(
-            Terminal(moving_operator(world.machine, pull_the_cable_at_the_fifth_prompt)),
-            world,
-            short_plan,
-            out,
-        )
+        result = _run_with_a_fifth_prompt_that(world.interferometer.stop, world, short_plan, out)
         assert all(axis.is_locked() for axis in world.axes())
     saved = len(read_measurements(out))
     assert 0 < saved < len(_points(short_plan))
@@ -282,17 +279,7 @@ def test_a_unit_server_gone_mid_run_is_said_after_the_last_point(
     but its axes cannot be locked at the end, and the run says so."""
     out = tmp_path / "m.csv"
     with served(reference_machine, tmp_path, short_plan) as world:
-
-        def pull_the_cable_at_the_fifth_prompt(n: int) -> None:
-            if n == 5:
-                world.launch.stop()
-
-        result = _run(
-            Terminal(moving_operator(world.machine, pull_the_cable_at_the_fifth_prompt)),
-            world,
-            short_plan,
-            out,
-        )
+        result = _run_with_a_fifth_prompt_that(world.launch.stop, world, short_plan, out)
     assert _keys(out) == _points(short_plan)
     assert_one_line_error(
         result,
