@@ -103,6 +103,14 @@ def serve(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect of --program (default: controller's).")
     ] = None,
+    follow_position_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="A file another CNC keeps its tool point in (last line 'x y z', mm; e.g. a"
+            " real LinuxCNC's actual position): the virtual machine carries the receiver"
+            " there. A line 'block-beam SECONDS' on standard input then interrupts the beam."
+        ),
+    ] = None,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -114,6 +122,8 @@ def serve(
         raise InputError("--modbus-receiver serves the receiver: --unit must be launch")
     if (position_file is None) != (program is None):
         raise InputError("--position-file and --program go together")
+    if follow_position_file is not None and position_file is not None:
+        raise InputError("--follow-position-file and --position-file: the machine has one CNC")
     nothing = modbus is None and modbus_receiver is None and not rtu and canopen is None
     if nothing and not interferometer_pty and not station_pty and position_file is None:
         raise InputError(
@@ -194,6 +204,9 @@ def serve(
 
             port = serve_station(world, servers)
             console.print(f"weather station on {port}", highlight=False)
+        if follow_position_file is not None:
+            _follow_position_file(world, follow_position_file, servers)
+            console.print(f"machine follows {follow_position_file}", highlight=False)
         if served_cnc is not None:
             served_cnc.start()
             servers.callback(served_cnc.stop)
@@ -224,6 +237,27 @@ def _served_cnc(
         position_file,
         tell,
     )
+
+
+def _follow_position_file(world: World, path: Path, servers: ExitStack) -> None:
+    """The world's receiver carried where the file says the CNC stands; 'block-beam S'
+    lines on standard input interrupt the beam for S seconds."""
+    from firmware_iface.machine_position import FilePositions
+    from sim.servers.followed_machine import FollowedMachine
+
+    followed = FollowedMachine(FilePositions(path))
+    world.interferometer.position = followed
+    followed.start()
+    servers.callback(followed.stop)
+
+    def read() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if len(words) == 2 and words[0] == "block-beam":
+                world.interferometer.interrupt(float(words[1]))
+                console.print(f"beam blocked for {words[1]} s", highlight=False)
+
+    threading.Thread(target=read, name="beam-commands", daemon=True).start()
 
 
 def _press_cycle_start_on_enter(served_cnc: ServedCnc) -> None:
