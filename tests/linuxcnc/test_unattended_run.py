@@ -105,6 +105,8 @@ class CablePuller:
     def pull(self) -> None:
         """Every connection cut, none accepted until :meth:`plug`."""
         if self._listener is not None:
+            with suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)  # wakes the thread in accept()
             self._listener.close()
             self._listener = None
         for connection in self._connections:
