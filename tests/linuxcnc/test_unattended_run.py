@@ -40,6 +40,8 @@ from harness import SimMachine, linuxcnc_serving, write_sim_config
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, _truth_pose
+from trajectories.gcode import make_dialect
+from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import read_plan, write_plan
@@ -174,6 +176,14 @@ class Shop:
         stdin.write(f"block-beam {seconds}\n")
         stdin.flush()
 
+    def program_state(self) -> str:
+        """What LinuxCNC says about the program, asked over a session of the test's own."""
+        cnc = open_linuxcnc("127.0.0.1", self.cable.target_port, 5.0, enable_password=None)
+        try:
+            return cnc.program_state()
+        finally:
+            cnc.close()
+
     def run(self, *extra: str) -> Process:
         return Process(
             ["run", "--config", "units.yaml", "--machine", "machine.yaml", "--plan", "plan.json"]
@@ -286,3 +296,34 @@ def test_a_pulled_cable_stops_the_run_and_resume_completes_it(shop: Shop) -> Non
     assert _keys(out) == _expected_keys(shop.workdir / "plan.json")
     again = load_measurements(out).rows[: len(kept)]
     assert all(np.array_equal(a.channels, b.channels) for a, b in zip(again, kept, strict=True))
+
+
+def test_a_program_that_is_not_the_plans_stops_the_run_with_one_line(shop: Shop) -> None:
+    """The shared folder misconfigured: LinuxCNC opens an old program whose line Z lies 1 mm
+    off the plan's. The machine stops at that program's first stop; xmalign refuses to
+    set the units there, stops the program and says so in one line."""
+    plan = read_plan(shop.workdir / "plan.json")
+    machine = load_machine(shop.workdir / "machine.yaml")
+    first = plan.lines[0]
+    moved = dataclasses.replace(first, start_mm=first.start_mm + np.array([1.0, 0.0, 0.0]))
+    stale = shop.workdir / "cnc" / "old.ngc"
+    stale.write_text(
+        write_program(
+            dataclasses.replace(plan, lines=[moved, *plan.lines[1:]]),
+            machine,
+            make_dialect("linuxcnc", machine, "old", stop_at_points=True),
+        )
+    )
+    stale.chmod(0o644)
+    config = shop.workdir / "units.yaml"
+    config.write_text(
+        config.read_text().replace(
+            "program: run.ngc}", f"program: run.ngc, program_on_cnc: {stale}}}"
+        )
+    )
+    run = shop.run()
+    assert run.finish(timeout_s=120) == 2, run.said()
+    (line,) = [text for text in run.stderr.splitlines() if text.strip()]
+    assert "program and plan do not match" in line and "pre-position of line Z" in line, line
+    assert "1.0000 mm from" in line and "the program was stopped on the controller" in line
+    assert shop.program_state() == "idle"
