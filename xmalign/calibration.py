@@ -269,6 +269,7 @@ class CalibrationRun:
 
         A line that has rows but must be aligned again continues in a new segment.
         """
+        self.count_lost = False  # the line starts with its own datum
         recorded = self.setups.get(line.id)
         if recorded is not None and self._stands_at(recorded):
             self.launch.lock()
@@ -667,7 +668,7 @@ def _resume(run: CalibrationRun, program: ControlledProgram, stop_mm: Vec) -> No
         moved = float(np.linalg.norm(controller.position_mm() - stop_mm))
         return controller.program_state() != "paused" or moved > program.tolerance_mm
 
-    _wait_for(run, going, "go on after the stop", program.timeout_s, 0.0)
+    _wait_for(run, going, "go on after the stop", program.timeout_s, 0.01)
 
 
 def _wait_program(
