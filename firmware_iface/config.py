@@ -19,10 +19,12 @@
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it), file or linuxcncrsh
+      source: prompt               # prompt (operator types it), file, linuxcncrsh or mtconnect
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
       # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
       #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # mtconnect: {url: http://192.168.10.30:5000, device: VMC}
+      #                            (source: mtconnect; read-only, the operator runs it)
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
@@ -61,6 +63,7 @@ from firmware_iface.linuxcncrsh import (
 )
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
+from firmware_iface.mtconnect import MTConnectAgent
 from firmware_iface.weather_station import (
     EnvironmentConfig,
     open_environment,
@@ -75,7 +78,14 @@ from xmalign.formats.common import (
     validate,
 )
 from xmalign.machine import Machine
-from xmalign.roles import Clock, EnvironmentSource, Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import (
+    Clock,
+    EnvironmentSource,
+    Interferometer,
+    MachineMover,
+    MachinePositionSource,
+    PositioningUnit,
+)
 
 UNITS_FORMAT = "xmalign.units/1"
 
@@ -148,10 +158,19 @@ class LinuxcncrshConfig(_Strict):
         return self.program_on_cnc or str(self.program.resolve())
 
 
+class MTConnectConfig(_Strict):
+    """An MTConnect agent xmalign reads the position from (read-only; docs/hardware.md)."""
+
+    url: str
+    #: The device's name in the agent (default: its first device).
+    device: str | None = None
+
+
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file", "linuxcncrsh"] = "prompt"
+    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect"] = "prompt"
     file: Path | None = None
     linuxcncrsh: LinuxcncrshConfig | None = None
+    mtconnect: MTConnectConfig | None = None
 
     @model_validator(mode="after")
     def _source_given(self) -> MachinePositionConfig:
@@ -159,7 +178,14 @@ class MachinePositionConfig(_Strict):
             raise ValueError("'file' is required with source: file, and only then")
         if (self.source == "linuxcncrsh") != (self.linuxcncrsh is not None):
             raise ValueError("'linuxcncrsh' is required with source: linuxcncrsh, and only then")
+        if (self.source == "mtconnect") != (self.mtconnect is not None):
+            raise ValueError("'mtconnect' is required with source: mtconnect, and only then")
         return self
+
+    @property
+    def follows_the_machine(self) -> bool:
+        """The operator runs the program; xmalign follows the machine's position."""
+        return self.source in ("file", "mtconnect")
 
 
 class Timeouts(_Strict):
@@ -328,14 +354,24 @@ def open_devices(
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
         controller = _open_controller(config, closers)
+        position = controller or _position_source(config)
     except BaseException:
         for close in reversed(closers):
             close()
         raise
-    source = config.machine_position
-    position = controller or (FilePositions(source.file) if source.file is not None else None)
     mover = OperatorPrompt(machine, ask, tell, position)
     return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
+
+
+def _position_source(config: UnitsConfig) -> MachinePositionSource | None:
+    """Where an operator-run machine's position is read: a file, an MTConnect agent."""
+    source = config.machine_position
+    if source.file is not None:
+        return FilePositions(source.file)
+    if source.mtconnect is not None:
+        agent = source.mtconnect
+        return MTConnectAgent(agent.url, config.timeouts.io_s, agent.device)
+    return None
 
 
 def _open_controller(config: UnitsConfig, closers: list[Callable[[], None]]) -> LinuxCnc | None:

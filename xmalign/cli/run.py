@@ -200,7 +200,7 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
                 rsh.tolerance_mm,
                 config.timeouts.machine_s,
             )
-        elif config.machine_position.source == "file":
+        elif config.machine_position.follows_the_machine:
             drive = following_drive(devices.mover, _tell_operator, machine)
         else:
             drive = stepping_drive(devices.mover, machine)
