@@ -103,6 +103,13 @@ def serve(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect of --program (default: controller's).")
     ] = None,
+    linuxcncrsh: Annotated[
+        str | None,
+        typer.Option(
+            help="Serve a simulated CNC as LinuxCNC's remote shell linuxcncrsh on PORT (or"
+            " HOST:PORT): units.yaml machine_position source: linuxcncrsh runs its program."
+        ),
+    ] = None,
     follow_position_file: Annotated[
         Path | None,
         typer.Option(
@@ -122,8 +129,12 @@ def serve(
         raise InputError("--modbus-receiver serves the receiver: --unit must be launch")
     if (position_file is None) != (program is None):
         raise InputError("--position-file and --program go together")
-    if follow_position_file is not None and position_file is not None:
-        raise InputError("--follow-position-file and --position-file: the machine has one CNC")
+    cncs = [follow_position_file, position_file, linuxcncrsh]
+    if sum(option is not None for option in cncs) > 1:
+        raise InputError(
+            "give one of --position-file, --follow-position-file and --linuxcncrsh:"
+            " the machine has one CNC"
+        )
     nothing = modbus is None and modbus_receiver is None and not rtu and canopen is None
     if nothing and not interferometer_pty and not station_pty and position_file is None:
         raise InputError(
@@ -204,6 +215,9 @@ def serve(
 
             port = serve_station(world, servers)
             console.print(f"weather station on {port}", highlight=False)
+        if linuxcncrsh is not None:
+            where = _serve_linuxcncrsh(world, machine_model, _host_port(linuxcncrsh, host), servers)
+            console.print(f"linuxcncrsh on {where}", highlight=False)
         if follow_position_file is not None:
             _follow_position_file(world, follow_position_file, servers)
             console.print(f"machine follows {follow_position_file}", highlight=False)
@@ -237,6 +251,21 @@ def _served_cnc(
         position_file,
         tell,
     )
+
+
+def _serve_linuxcncrsh(
+    world: World, machine: Machine, address: tuple[str, int], servers: ExitStack
+) -> str:
+    """A simulated CNC moving the world's machine, commanded over linuxcncrsh's protocol."""
+    from sim.cnc import SimulatedCnc
+    from sim.servers.linuxcncrsh import LinuxcncrshServer
+
+    cnc = SimulatedCnc(machine, world.clock)
+    world.interferometer.position = cnc
+    server = LinuxcncrshServer(cnc, machine, *address)
+    server.start()
+    servers.callback(server.stop)
+    return server.where
 
 
 def _follow_position_file(world: World, path: Path, servers: ExitStack) -> None:
