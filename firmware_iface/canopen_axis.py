@@ -3,16 +3,18 @@
 The object dictionary is ``cia402_axis.eds`` beside this file; the node
 behaviour is docs/canopen-axis.md. The driver takes a connected
 ``canopen.Network`` (transport apart from driver: a socketcan, PCAN, virtual
-or udp_multicast bus are interchangeable) and uses SDOs only, so it needs no
+or udp_local bus are interchangeable, firmware_iface/can_bus.py) and uses SDOs only, so it needs no
 PDO configuration:
 
 * profile position moves (``0x6060`` = 1) with the new-set-point handshake;
 * cyclic synchronous velocity (``0x6060`` = 9) for tracking (:meth:`CanopenAxis.run_at`);
 * homing (``0x6060`` = 6), fault reset, and locking = *switched on* (brake applied).
 
-The host heartbeat (CAN id ``0x77F``) that the nodes' watchdog consumes is
-produced by :class:`CanopenUnit` while it is open; opening clears a heartbeat
-fault left from power-on or an earlier host. Every SDO read and write is logged
+The nodes boot into NMT *pre-operational*; :class:`CanopenUnit` starts each
+one (NMT start) once it has answered an SDO. The host heartbeat (CAN id
+``0x77F``) that the nodes' watchdog consumes is produced by
+:class:`CanopenUnit` while it is open; opening clears a heartbeat fault left
+from power-on or an earlier host. Every SDO read and write is logged
 on the ``firmware_iface.canopen_axis`` logger at DEBUG.
 """
 
@@ -92,6 +94,14 @@ class CanopenAxis:
         self.poll_s = poll_s
         self._mode: int | None = None
         self.counts_per_rev = self._read(ENCODER_RESOLUTION, 1)
+
+    def start(self) -> None:
+        """NMT start: the node goes to *operational* (it boots into *pre-operational*)."""
+        log.debug("%s: NMT start", self.label)
+        try:
+            self.node.nmt.state = "OPERATIONAL"
+        except (can.CanError, OSError) as error:
+            raise TransportError(f"lost the CAN bus of {self.label}: {error}") from error
 
     # --- SDO access with errors that name the axis ----------------------------------------
     def _sdo(self, action: Callable[[], T], verb: str) -> T:
@@ -266,6 +276,8 @@ class CanopenUnit(AxisGroup):
             )
             for i, node_id in enumerate(ids)
         )
+        for axis in self._axes:
+            axis.start()
         self.clear_heartbeat_faults()
 
     def close(self) -> None:
