@@ -50,6 +50,10 @@ NEW_SET_POINT, HALT, FAULT_RESET = 0x10, 0x100, 0x80
 FAULT, TARGET_REACHED, SET_POINT_ACK = 0x08, 0x400, 0x1000
 #: Statusword mask and value of *operation enabled* (the only state with the brake released).
 STATE_MASK, SWITCHED_ON_STATE, OPERATION_ENABLED = 0x6F, 0x23, 0x27
+#: *Fault reaction active* (mask, value): the node stops the axis and takes no command.
+FAULT_REACTION_MASK, FAULT_REACTION_ACTIVE = 0x4F, 0x0F
+#: The longest fault reaction of a node: a stop from full speed (0.33 s on the units).
+FAULT_REACTION_TIMEOUT_S = 2.0
 #: SDO abort code "value range of parameter exceeded": the node refuses a target.
 ABORT_VALUE_RANGE = 0x06090030
 #: ``0x603F`` holds ``FAULT_CODE_BASE + fault code`` of registers.yaml.
@@ -206,6 +210,14 @@ class CanopenAxis:
         self._write(CONTROLWORD, SWITCH_ON)
 
     def reset_fault(self) -> None:
+        """Fault reset (once the fault reaction is over: the node ignores it before), enable."""
+        deadline = self.clock.now() + FAULT_REACTION_TIMEOUT_S
+        while self._read(STATUSWORD) & FAULT_REACTION_MASK == FAULT_REACTION_ACTIVE:
+            if self.clock.now() >= deadline:
+                raise DeviceTimeoutError(
+                    f"{self.label} did not end its fault reaction in {FAULT_REACTION_TIMEOUT_S:g} s"
+                )
+            self.clock.sleep(self.poll_s)
         self._write(CONTROLWORD, 0)
         self._write(CONTROLWORD, FAULT_RESET)
         self.enable()

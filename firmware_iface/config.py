@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import canopen
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from firmware_iface.can_bus import (
     LOOPBACK,
@@ -106,12 +106,16 @@ class CanopenUnitConfig(_Strict):
     #: udp_local and udp_multicast: TTL of the frames; 0 keeps the bus on this computer.
     hop_limit: Annotated[int, Field(ge=0, le=255)] = 0
 
-    @model_validator(mode="after")
-    def _known_bus(self) -> CanopenUnitConfig:
-        check_interface(self.interface)
-        if self.interface == UDP_LOCAL:
-            multicast_group(self.channel)
-        return self
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, interface: str) -> str:
+        check_interface(interface)
+        return interface
+
+    @field_validator("channel")
+    @classmethod
+    def _group_of_udp_local(cls, channel: str, info: ValidationInfo) -> str:
+        return multicast_group(channel) if info.data.get("interface") == UDP_LOCAL else channel
 
 
 UnitConfig = Annotated[
