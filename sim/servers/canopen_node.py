@@ -390,6 +390,7 @@ class CanopenUnitServer:
             first = 1 if unit.kind == "launch" else 3
             for n in range(1, len(unit.axes) + 1):
                 self.axes[node_base + first + n - 1] = Cia402Axis(unit, n)
+        self.bus_info = ""  # the bus, once started
         self._heartbeats = 0
         self._stop = threading.Event()
         self._poll_thread = threading.Thread(target=self._poll, name="canopen-nodes", daemon=True)
@@ -400,9 +401,9 @@ class CanopenUnitServer:
 
     def start(self) -> None:
         """Open the bus (TransportError if it cannot be), boot every node into pre-operational."""
-        self.network.bus = open_can_bus(
-            self.interface, self.channel, host=self.host, hop_limit=self.hop_limit
-        )
+        bus = open_can_bus(self.interface, self.channel, host=self.host, hop_limit=self.hop_limit)
+        self.bus_info = bus.channel_info
+        self.network.bus = bus
         self.network.connect()
         for node_id, axis in self.axes.items():
             node = canopen.LocalNode(node_id, str(EDS_PATH))

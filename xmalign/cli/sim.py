@@ -207,7 +207,7 @@ def serve(
             servers.callback(nodes.stop)
             nodes.start()
             console.print(
-                f"canopen nodes {nodes.node_ids} on {nodes.network.bus.channel_info}",
+                f"canopen nodes {nodes.node_ids} on {nodes.bus_info}",
                 highlight=False,
             )
         if interferometer_pty:
