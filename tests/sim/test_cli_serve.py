@@ -37,7 +37,7 @@ def test_sim_serve_over_every_protocol_until_sigint(free_port, tmp_path):
             str(free_port),  # on --host, 127.0.0.1 by default
             "--rtu",
             "--canopen",
-            group,  # udp_multicast with TTL 0: this computer only
+            group,  # udp_local: the loopback only, TTL 0
             "--interferometer-pty",
             "--log-file",
             str(log_file),
