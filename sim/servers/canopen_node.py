@@ -24,6 +24,7 @@ import logging
 import struct
 import threading
 from collections.abc import Callable
+from functools import partial
 
 import canopen
 from canopen import SdoAbortedError
@@ -52,7 +53,6 @@ _NOTIFIER_CYCLE_S = 0.1
 _CONTROLWORD = struct.Struct("<H")  # RPDO 1
 _TARGET_POSITION = struct.Struct("<i")  # RPDO 2
 _TPDO1 = struct.Struct("<Hi")  # statusword, position actual value
-RPDO_CONTENT = {0x200: _CONTROLWORD, 0x300: _TARGET_POSITION}  # COB-ID base -> content
 #: NMT commands (CiA 301): start, stop, enter pre-operational, reset node, reset communication.
 NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x81, 0x82
 
@@ -347,6 +347,13 @@ class Cia402Axis:
             return _TPDO1.pack(self.statusword(), rad_to_counts(self.axis.reported_rad()))
 
 
+#: The RPDOs: COB-ID base -> (content, what the node does with it).
+RPDOS: dict[int, tuple[struct.Struct, Callable[[Cia402Axis, bytes], None]]] = {
+    0x200: (_CONTROLWORD, Cia402Axis.on_controlword_pdo),
+    0x300: (_TARGET_POSITION, Cia402Axis.on_target_pdo),
+}
+
+
 class CanopenUnitServer:
     """Every axis of the given units as CiA 402 nodes on one CAN bus.
 
@@ -411,8 +418,9 @@ class CanopenUnitServer:
             node.add_write_callback(_writer(node_id, axis))
             self.network.add_node(node)
             self.nodes[node_id] = node
-            for base, content in RPDO_CONTENT.items():
-                self.network.subscribe(base + node_id, self._rpdo_handler(node_id, axis, content))
+            for base, (content, apply) in RPDOS.items():
+                handler = self._rpdo_handler(node_id, content, partial(apply, axis))
+                self.network.subscribe(base + node_id, handler)
         self.network.subscribe(0, self._on_nmt_command)  # after each node's own NMT handler
         self.network.subscribe(0x700 + HOST_NODE_ID, self._on_host_heartbeat)
         for node_id in self.axes:
@@ -475,7 +483,7 @@ class CanopenUnitServer:
             self.network.send_message(0x180 + node_id, data)
 
     def _rpdo_handler(
-        self, node_id: int, axis: Cia402Axis, content: struct.Struct
+        self, node_id: int, content: struct.Struct, apply: Callable[[bytes], None]
     ) -> Callable[[int, bytearray, float], None]:
         def on_rpdo(can_id: int, data: bytearray, timestamp: float) -> None:
             if self.nodes[node_id].nmt.state != "OPERATIONAL":
@@ -484,11 +492,7 @@ class CanopenUnitServer:
             if len(data) < content.size:
                 log.warning("node %d: RPDO 0x%03X of %d bytes dropped", node_id, can_id, len(data))
                 return
-            payload = bytes(data[: content.size])
-            if content is _CONTROLWORD:
-                axis.on_controlword_pdo(payload)
-            else:
-                axis.on_target_pdo(payload)
+            apply(bytes(data[: content.size]))
 
         return on_rpdo
 
