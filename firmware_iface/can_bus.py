@@ -23,6 +23,7 @@ and the drivers, not here.
 from __future__ import annotations
 
 import ipaddress
+import logging
 import select
 import socket
 import sys
@@ -33,6 +34,8 @@ import can
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 from xmalign.errors import TransportError
+
+log = logging.getLogger(__name__)
 
 #: The interface name of :class:`LocalUdpBus` for :func:`open_can_bus` and python-can.
 UDP_LOCAL = "udp_local"
@@ -121,9 +124,8 @@ class LocalUdpBus(can.BusABC):
             try:
                 message = unpack_message(data, replace={"timestamp": time.time()}, check=True)
             except Exception as error:  # msgpack raises several types for a foreign datagram
-                raise can.CanOperationError(
-                    f"{self.channel_info}: a datagram from {sender[0]} is not a CAN frame"
-                ) from error
+                log.warning("%s: dropped a datagram from %s: %s", self.channel_info, sender, error)
+                continue  # one stray datagram must not end the bus's reader
             return message, False
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:

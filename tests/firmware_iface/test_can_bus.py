@@ -56,6 +56,16 @@ def test_another_group_is_another_bus(two) -> None:  # noqa: ANN001
         other.shutdown()
 
 
+def test_a_stray_datagram_is_dropped_and_the_bus_goes_on(two, group: str) -> None:  # noqa: ANN001
+    first, second = two
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stray:
+        stray.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+        stray.sendto(b"not a frame", (group, DEFAULT_PORT))
+    first.send(frame(0x77F, b"\x05"))
+    received = second.recv(1.0)
+    assert received is not None and received.arbitration_id == 0x77F
+
+
 def test_it_stays_on_the_loopback_with_ttl_0(two, group: str) -> None:  # noqa: ANN001
     first, _ = two
     assert first._receiver.getsockname() == (group, DEFAULT_PORT)  # no unicast reaches it
