@@ -258,6 +258,8 @@ class ModbusAxis:
         self._control(Control.ENABLE)
 
     def reset_fault(self) -> None:
+        """Reset the axis's fault; a heartbeat goes first (the unit refuses it without one)."""
+        self.unit.beat_now()
         self._control(Control.ENABLE | Control.FAULT_RESET)
         self._control(Control.ENABLE)
 
@@ -316,6 +318,7 @@ class ModbusUnit(AxisGroup):
         self.register_map = register_map or load_register_map()
         self._heartbeat_value = 0
         self._last_beat_s = -math.inf
+        self._heartbeat_lock = threading.Lock()
         self._heartbeat_thread: threading.Thread | None = None
         self._heartbeat_stop = threading.Event()
         self._heartbeat_failure: Exception | None = None
@@ -389,18 +392,28 @@ class ModbusUnit(AxisGroup):
         """Change the heartbeat register if half a heartbeat period has passed."""
         self._beat_if_older(self.register_map.heartbeat_period_s / 2.0)
 
+    def beat_now(self) -> None:
+        """Change the heartbeat register now (before a fault reset, which needs a fresh one).
+
+        The register holds the driver's previous beat (just after opening, whatever an
+        earlier host left, but the open's first beat went before), so this one is a
+        change either way and the unit takes the fault reset that follows.
+        """
+        self._beat_if_older(0.0)
+
     def _beat_if_older(self, age_s: float) -> None:
         if self._heartbeat_failure is not None:
             raise HeartbeatError(
                 f"the heartbeat to the {self.device_name} stalled: {self._heartbeat_failure}"
             ) from self._heartbeat_failure
-        now = self.clock.now()
-        if now - self._last_beat_s < age_s:
-            return
-        self._last_beat_s = now
-        # 1..65535: the power-on value 0 never comes back, so every beat is a change
-        self._heartbeat_value = self._heartbeat_value % (_UINT16 - 1) + 1
-        self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
+        with self._heartbeat_lock:  # the background thread and the calls: one count
+            now = self.clock.now()
+            if now - self._last_beat_s < age_s:
+                return
+            self._last_beat_s = now
+            # 1..65535: the power-on value 0 never comes back, so every beat is a change
+            self._heartbeat_value = self._heartbeat_value % (_UINT16 - 1) + 1
+            self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
 
     def start_heartbeat(self) -> None:
         """Beat from a background thread (wall time) until :meth:`stop_heartbeat`.

@@ -9,10 +9,14 @@ inside are rad; the registers speak encoder counts.
 
 Firmware rules (docs/registers.md): ``start``, ``home`` and ``fault_reset`` act
 on their rising edge; ``start`` needs ``enable | unlock`` and no fault;
-clearing ``unlock`` stops the axis and it is locked once at rest. The watchdog
-runs from power-on: until the heartbeat register has changed, ``enable`` and
-``unlock`` are ignored; 350 ms after the last change (or power-on) every axis
-quick-stops and brakes (fault 4), so it is at rest and locked by 500 ms.
+clearing ``unlock`` stops the axis and it is locked once at rest; a stop never
+rewrites the target, so "in position" means at the target the host wrote. The
+watchdog runs from power-on: 350 ms after the last change of the heartbeat
+register (or power-on) every axis quick-stops and brakes (fault 4), so it is at
+rest and locked by 500 ms. Until the heartbeat has changed (after power-on, and
+again after every expiry) the watchdog is not armed: every control bit but
+``stop`` is ignored (no enable, unlock, start, home, track nor fault reset), so
+fault 4 stays and nothing moves until the host is beating again.
 """
 
 from __future__ import annotations
@@ -249,7 +253,6 @@ class SimAxis:
         deceleration = deceleration_rad_s2 or self.limits.acceleration_rad_s2
         self.profile = motion.stop(self.profile, when, deceleration)
         self._homing = False
-        self.target_rad = self.profile.final_position
 
     def fault(
         self, code: int, time_s: float | None = None, deceleration_rad_s2: float | None = None
@@ -261,6 +264,18 @@ class SimAxis:
 
     def reset_fault(self) -> None:
         self.fault_code = 0
+
+
+#: The control bits a unit ignores while its watchdog is not armed (no heartbeat since
+#: power-on or since the watchdog expired): all but ``stop``.
+NEEDS_HEARTBEAT = (
+    Control.ENABLE
+    | Control.UNLOCK
+    | Control.START
+    | Control.FAULT_RESET
+    | Control.HOME
+    | Control.TRACK
+)
 
 
 @dataclass(frozen=True)
@@ -320,6 +335,7 @@ class SimUnit:
         )
         self._control = [Control(0)] * len(self.axes)
         self._heartbeat = 0
+        #: The watchdog is armed: the heartbeat changed since power-on and since its last expiry.
         self.heartbeat_seen = False
         self._heartbeat_time_s = self.clock.now()
         self._watchdog_tripped = False
@@ -333,9 +349,19 @@ class SimUnit:
             self.check_watchdog()
             if value != self._heartbeat:
                 self._heartbeat = value
-                self._heartbeat_time_s = self.clock.now()
-                self.heartbeat_seen = True
-                self._watchdog_tripped = False
+                self._arm_watchdog()
+
+    def heartbeat_age_s(self) -> float:
+        """Time since the heartbeat last changed (or power-on), on the unit's clock."""
+        with self.lock:
+            self.check_watchdog()
+            return self.clock.now() - self._heartbeat_time_s
+
+    def _arm_watchdog(self) -> None:
+        """A heartbeat: the watchdog counts from now, and a fault reset is accepted again."""
+        self._heartbeat_time_s = self.clock.now()
+        self.heartbeat_seen = True
+        self._watchdog_tripped = False
 
     def keep_heartbeat(self, on: bool) -> None:
         """An in-process host's background heartbeat: while on, the heartbeat is never stale.
@@ -346,15 +372,14 @@ class SimUnit:
         with self.lock:
             self.check_watchdog()
             if on or self._host_beating:
-                self._heartbeat_time_s = self.clock.now()
-                self.heartbeat_seen = True
-                self._watchdog_tripped = False
+                self._arm_watchdog()
             self._host_beating = on
 
     def check_watchdog(self) -> None:
         """Quick-stop and brake every axis (fault 4) once the heartbeat is stale.
 
         Evaluated retroactively: the stop begins at the expiry, however late it is noticed.
+        The watchdog is then disarmed until the heartbeat changes again (:meth:`control`).
         """
         if self._host_beating:
             self._heartbeat_time_s = self.clock.now()
@@ -363,6 +388,7 @@ class SimUnit:
         expiry_s = self._heartbeat_time_s + self.register_map.quick_stop_start_s
         if self.clock.now() >= expiry_s:
             self._watchdog_tripped = True
+            self.heartbeat_seen = False
             log.warning(
                 "%s unit: heartbeat watchdog expired: no heartbeat for %.0f ms; every axis"
                 " quick-stopped and locked (fault 4)",
@@ -457,8 +483,9 @@ class SimUnit:
     def control(self, n: int, value: Control) -> None:
         """Apply a control-register write to axis ``n`` (1-based)."""
         with self.lock:
-            if not self.heartbeat_seen:  # no host heartbeat yet: the axis stays disabled, locked
-                value &= ~(Control.ENABLE | Control.UNLOCK)
+            self.check_watchdog()
+            if not self.heartbeat_seen:  # the watchdog is not armed: nothing but stop
+                value &= ~NEEDS_HEARTBEAT
             axis = self.axes[n - 1]
             edges = _Edges(rising=value & ~self._control[n - 1], value=value)
             self._control[n - 1] = value
@@ -597,11 +624,13 @@ class _SimRotaryAxis:
             with self.unit.lock:
                 self._raise_fault()
                 remaining_s = self._axis.profile.end_s - clock.now()
-            if remaining_s <= 0.0:
-                return
+                if remaining_s <= 0.0 and self._axis.in_position():
+                    return
             if clock.now() >= deadline_s:
                 raise DeviceTimeoutError(f"axis {self.name} not in position after {timeout_s:g} s")
-            clock.sleep(min(remaining_s, step_s, deadline_s - clock.now()))
+            # at rest short of the target (stopped): nothing will change before the deadline
+            wait_s = remaining_s if remaining_s > 0.0 else deadline_s - clock.now()
+            clock.sleep(min(wait_s, step_s, deadline_s - clock.now()))
 
     def stop(self) -> None:
         self.host.beat()
@@ -629,7 +658,7 @@ class _SimRotaryAxis:
             return self._axis.fault_code
 
     def reset_fault(self) -> None:
-        self.host.beat()
+        self.host.beat(now=True)  # the unit takes a fault reset only with the heartbeat running
         self.unit.control(self.n, Control.ENABLE | Control.FAULT_RESET)
         self.unit.control(self.n, Control.ENABLE)
 
@@ -666,12 +695,15 @@ class SimPositioningUnit(AxisGroup):
         """Stop the background heartbeat; the calls still beat."""
         self.unit.keep_heartbeat(False)
 
-    def beat(self) -> None:
-        """Change the heartbeat if half a heartbeat period has passed on the unit's clock."""
-        now = self.clock.now()
-        if now - self._last_beat_s < self.unit.register_map.heartbeat_period_s / 2.0:
+    def beat(self, now: bool = False) -> None:
+        """Change the heartbeat if half a heartbeat period has passed on the unit's clock.
+
+        ``now``: change it whenever it last changed (before a fault reset).
+        """
+        time_s = self.clock.now()
+        if not now and time_s - self._last_beat_s < self.unit.register_map.heartbeat_period_s / 2:
             return
-        self._last_beat_s = now
+        self._last_beat_s = time_s
         self._heartbeat_value = self._heartbeat_value % 0xFFFF + 1
         self.unit.heartbeat(self._heartbeat_value)
 

@@ -32,6 +32,9 @@ OPEN_LAUNCH_UNIT = [
     ("read", 2, 1, [2]),  # axis count
     ("write", 3, [1], None),  # first heartbeat: 1, never the power-on 0
     ("read", 24, 1, [4]),  # axis 1 fault code: the power-on watchdog
+    # a fresh heartbeat right before the fault reset, which the unit refuses without one:
+    # 1 then 2 is a change whatever value an earlier host left in the register
+    ("write", 3, [2], None),
     ("write", 16, [ENABLE | FAULT_RESET], None),  # fault reset on the rising edge...
     ("write", 16, [ENABLE], None),  # ...and back, still locked
     ("read", 40, 1, [0]),  # axis 2 fault code: none
@@ -53,7 +56,7 @@ def test_modbus_open_move_heartbeat_and_lock() -> None:
         ("write", 32, [ENABLE | UNLOCK | START], None),
         ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0
         ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0.05
-        ("write", 3, [2], None),  # t = 0.1: half a heartbeat period since the last change
+        ("write", 3, [3], None),  # t = 0.1: half a heartbeat period since the last change
         ("read", 17, 1, [ENABLED | IN_POSITION | HOMED]),
         ("read", 33, 1, [ENABLED | IN_POSITION | HOMED]),
     ]
@@ -179,7 +182,7 @@ def test_modbus_homing_that_never_ends_times_out() -> None:
         ("write", 32, [ENABLE | UNLOCK | HOME], None),
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.05
-        ("write", 3, [2], None),  # the heartbeat goes on while waiting
+        ("write", 3, [3], None),  # the heartbeat goes on while waiting
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.1: past the deadline
     ]
     with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *home]) as script:

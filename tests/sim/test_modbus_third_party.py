@@ -2,9 +2,12 @@
 
 Pinned: identity registers, 32-bit values high word first, exception 3 for an
 out-of-range value, exception 6 for a write from a second connection while the
-first one controls the unit, and control passing on when it closes.
+first one controls the unit, and control passing on when it closes; the watchdog
+after a trip (no reset, no motion until the heartbeat changes again, and a trip
+again when it goes stale again).
 """
 
+import math
 import shutil
 import subprocess
 import time
@@ -14,9 +17,12 @@ from pyModbusTCP.client import ModbusClient
 
 from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
-from sim.units import COUNTS_PER_REV, SimUnit
+from sim.units import COUNTS_PER_REV, SimUnit, rad_to_counts
 
 TARGET_A4 = 16 * 2 + 2  # receiver axis 2 (a4) target, int32
+CONTROL_A3, STATUS_A3, TARGET_A3, ACTUAL_A3, FAULT_A3 = 16, 17, 18, 20, 24
+ENABLE, UNLOCK, START, FAULT_RESET = 1, 2, 4, 16
+IN_POSITION, MOVING, FAULT, LOCKED = 2, 4, 8, 16
 
 
 @pytest.fixture
@@ -101,4 +107,49 @@ def test_pymodbustcp_reads_and_is_refused_out_of_range(server):
     assert client.read_holding_registers(0, 6) == [2, 0x0100, 3, 0, COUNTS_PER_REV >> 16, 0]
     assert client.write_multiple_registers(TARGET_A4, [0x7FFF, 0xFFFF]) is False
     assert client.last_except == 3
+    client.close()
+
+
+def _words(value):
+    value &= 0xFFFFFFFF
+    return [value >> 16, value & 0xFFFF]
+
+
+def _wait_for(condition, timeout_s, what):
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def test_pymodbustcp_after_a_trip_nothing_moves_until_the_heartbeat_changes_again(server):
+    """The reported sequence: one heartbeat, the watchdog trips, then fault reset,
+    enable, unlock, start with no new heartbeat (it moved 90 deg at full speed)."""
+    unit, port = server
+    client = ModbusClient(host="127.0.0.1", port=port, auto_open=True, auto_close=False)
+    assert client.write_multiple_registers(3, [1])
+    _wait_for(lambda: client.read_holding_registers(FAULT_A3, 1) == [4], 2.0, "no trip")
+    target = _words(rad_to_counts(math.radians(90.0)))
+    for words in ([ENABLE | FAULT_RESET], [ENABLE], [ENABLE | UNLOCK], [ENABLE | UNLOCK | START]):
+        assert client.write_multiple_registers(CONTROL_A3, words)
+        if words == [ENABLE]:
+            assert client.write_multiple_registers(TARGET_A3, target)
+    time.sleep(0.5)
+    status = client.read_holding_registers(STATUS_A3, 1)[0]
+    assert status & (FAULT | LOCKED | MOVING) == FAULT | LOCKED
+    assert client.read_holding_registers(FAULT_A3, 1) == [4]
+    assert client.read_holding_registers(ACTUAL_A3, 2) == [0, 0]
+    # the heartbeat changes: the reset is taken and the move runs
+    assert client.write_multiple_registers(3, [2])
+    assert client.write_multiple_registers(CONTROL_A3, [ENABLE | FAULT_RESET])
+    assert client.read_holding_registers(FAULT_A3, 1) == [0]
+    assert client.write_multiple_registers(CONTROL_A3, [ENABLE | UNLOCK])
+    assert client.write_multiple_registers(CONTROL_A3, [ENABLE | UNLOCK | START])
+    assert client.read_holding_registers(STATUS_A3, 1)[0] & MOVING
+    # no further heartbeat: the watchdog trips again and the axis stops short, not in position
+    _wait_for(lambda: client.read_holding_registers(FAULT_A3, 1) == [4], 2.0, "no second trip")
+    _wait_for(lambda: client.read_holding_registers(STATUS_A3, 1)[0] & LOCKED, 1.0, "not locked")
+    assert not client.read_holding_registers(STATUS_A3, 1)[0] & IN_POSITION
+    assert client.read_holding_registers(TARGET_A3, 2) == target
+    assert unit.axes[0].reported_rad() < math.radians(20.0)
     client.close()

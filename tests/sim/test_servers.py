@@ -74,7 +74,13 @@ def test_modbus_move_lock_and_refusals(modbus):
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
     assert Status.MOVING in mb_status(client, 2)
-    assert wait_for(lambda: Status.IN_POSITION in mb_status(client, 2))
+    beats = iter(range(2, 1000))
+
+    def beating_in_position():  # the host beats while it waits (the move takes 360 ms)
+        client.write_registers(3, [next(beats)], device_id=1)
+        return Status.IN_POSITION in mb_status(client, 2)
+
+    assert wait_for(beating_in_position)
     actual = client.read_holding_registers(RMAP.axis(2, "actual").address, count=2, device_id=1)
     high, low = actual.registers
     assert abs((high << 16 | low) - rad_to_counts(0.05)) <= 200  # encoder noise
