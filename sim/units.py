@@ -31,7 +31,13 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
+from firmware_iface.register_map import (
+    Control,
+    Register,
+    RegisterMap,
+    Status,
+    load_register_map,
+)
 from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
 from sim import motion
 from sim.clock import SimClock
@@ -276,8 +282,6 @@ NEEDS_HEARTBEAT = (
     | Control.HOME
     | Control.TRACK
 )
-
-
 _DEFINED_CONTROL_BITS = sum(int(bit) for bit in Control)
 
 
@@ -439,13 +443,17 @@ class SimUnit:
             if (name, axis) not in touched:
                 touched.append((name, axis))
         for name, axis in touched:
-            reg = self.register_map.axis(axis, name) if axis else self.register_map.device[name]
+            reg = self._register(name, axis)
             if any(a not in words for a in range(reg.address, reg.address + reg.width)):
                 raise InputError(
                     f"register {reg.address} ({reg.name}) is 32 bits: write both words"
                     f" ({reg.address}-{reg.address + 1}) in one request"
                 )
         return touched
+
+    def _register(self, name: str, axis: int) -> Register:
+        """Register ``name`` of axis ``axis``, or of the device for axis 0."""
+        return self.register_map.axis(axis, name) if axis else self.register_map.device[name]
 
     def _register_at(self, address: int) -> tuple[str, int]:
         rmap = self.register_map
@@ -462,7 +470,7 @@ class SimUnit:
         raise InputError(f"register {address} is not a register of the {self.kind} unit")
 
     def _value(self, name: str, axis: int, words: dict[int, int]) -> int:
-        reg = self.register_map.axis(axis, name) if axis else self.register_map.device[name]
+        reg = self._register(name, axis)
         raw = [words[a] & 0xFFFF for a in range(reg.address, reg.address + reg.width)]
         if reg.width == 1:
             return raw[0]
