@@ -282,6 +282,8 @@ def comp(
             f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
             highlight=False,
         )
+    for line in result.loading.lines():
+        console.print(line, highlight=False)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
