@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from xmalign.comp.fit import CompensationFit
-from xmalign.errors import InputError, OutOfRangeError
+from xmalign.errors import MachineKeyError, OutOfRangeError
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXIS_INDEX
@@ -145,10 +145,11 @@ def own_tables(fit: CompensationFit, axis: str, machine: Machine, controller: st
     direction = machine.reference_return(axis)
     if direction is None:
         if bidirectional:
-            raise InputError(
-                f"{controller}: cnc.reference_return.{axis} is needed: the reference point"
-                f" lies inside the {axis} travel, so the direction of its reference return"
-                " ('+' or '-') cannot be told, and the reversal table starts from it"
+            raise MachineKeyError(
+                f"cnc.reference_return.{axis}",
+                f"needed for the {controller} tables: the reference point lies inside the"
+                f" {axis} travel, so the direction of its reference return ('+' or '-')"
+                " cannot be told, and the reversal table starts from it",
             )
         direction = "+"
     backlash_um = (machine.cnc.backlash(axis) or 0.0) if bidirectional else 0.0

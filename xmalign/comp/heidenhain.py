@@ -57,7 +57,7 @@ from xmalign.comp.common import (
     reversal_statement,
 )
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
-from xmalign.errors import OutOfRangeError
+from xmalign.errors import MachineKeyError
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXES
@@ -186,9 +186,10 @@ def render_readme(fit: CompensationFit, machine: Machine) -> str:
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the three ``.COM`` tables, the ``.CMA`` table and the notes."""
     if machine.series in REFUSED_SERIES:
-        raise OutOfRangeError(
-            f"Heidenhain {machine.series}: its .COM layout could not be confirmed from a manual;"
-            " xmalign writes MANUALplus 620 / TNC 620 / TNC 640 and TNC 4xx tables only"
+        raise MachineKeyError(
+            "cnc.series",
+            f"Heidenhain {machine.series}: its .COM layout could not be confirmed from a"
+            " manual; xmalign writes MANUALplus 620 / TNC 620 / TNC 640 and TNC 4xx tables",
         )
     files = {f"{axis}.COM": render_com(fit, machine, axis) for axis in AXES}
     files[CMA_NAME] = render_cma()

@@ -59,6 +59,7 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
             lines.append(" ".join([_number(position), *(_number(v) for v in values)]))
         records += len(positions)
     lines.insert(1, f"// records: {records} (vol_comp[i].max_records must be at least this)")
+    lines[2:2] = loading(fit, machine).lines("// ")
     return {FILE_NAME: "\n".join(lines) + "\n"}
 
 

@@ -62,7 +62,9 @@ def render(
 ) -> dict[str, str]:
     """File name -> text of one comp file per axis and the keys for each joint."""
     files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
-    files["joints.ini"] = render_keys(list(joints or machine.cnc.joints or AXES))
+    keys = render_keys(list(joints or machine.cnc.joints or AXES))
+    notes = "\n".join(loading(fit, machine).lines("# "))
+    files["joints.ini"] = keys.replace("\n\n", f"\n{notes}\n\n", 1)
     return files
 
 

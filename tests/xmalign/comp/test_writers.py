@@ -184,7 +184,9 @@ def test_isg_volumetric_csv():
     tables = make_tables({"EAX": [0, 7, 0, 0, 0], "EXY": [0, 3, 0, 0, 0]}, EC0Y=12.5)
     text = _files("isg", tables)[isg.FILE_NAME]
     lines = text.splitlines()
-    assert lines[3:5] == ["C0Y A0Z B0Z", "1.25e-05 0 0"]
+    start = lines.index("C0Y A0Z B0Z")
+    assert lines[start : start + 2] == ["C0Y A0Z B0Z", "1.25e-05 0 0"]
+    assert all(line.startswith("//") for line in lines[:start])  # notes are comments
     x_header = lines.index("X EXX EYX EZX EAX EBX ECX")
     assert lines[x_header + 2].split()[:5] == ["100", "0", "0", "0", "7e-06"]
     table_side = _files("isg", tables, make_machine("YFXZ", "isg"))[isg.FILE_NAME].splitlines()
