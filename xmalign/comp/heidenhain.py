@@ -14,9 +14,10 @@ Two layouts, by the control's series (the machine file's ``cnc.series``):
   compensation points lie at a power-of-two spacing (2^n um) from a datum, the
   error curve starts at 0 at the datum, and the compensation acts only once MP730
   selects nonlinear compensation for the axis and a valid ``.CMA`` file exists.
-  xmalign puts the datum at the start of the travel and picks the smallest
-  power of two that keeps the table within 256 points; every column is zero at
-  the datum (the axis's own, approached in its reference-return direction).
+  xmalign puts the datum at the start of the travel and, as that manual's example
+  does, the largest spacing 2^n x 0.1 um not above the measured one (coarser if 256
+  points would not span the travel); every column is zero at the datum (the axis's
+  own, approached in its reference-return direction).
 
 The ``*.CMA`` table assigns the ``*.COM`` tables: ``[axis column in .COM] =
 F(axis column of .CMA in which the .COM is entered)``; a ``*`` in column
@@ -84,12 +85,19 @@ def _row(cells: list[str]) -> str:
     return "".join(cell.ljust(_WIDTH) for cell in cells).rstrip()
 
 
-def power_of_two_grid(start_mm: float, end_mm: float) -> tuple[Grid, int]:
-    """Points from ``start`` at the finest 2^n um spacing that spans the travel in 256 points."""
-    exponent = max(0, math.ceil(math.log2((end_mm - start_mm) * 1000.0 / (MAX_ENTRIES - 1))))
-    step_mm = 2.0**exponent / 1000.0
-    count = math.ceil((end_mm - start_mm) / step_mm - 1e-9) + 1
-    return Grid(start_mm, step_mm, count), exponent
+def power_of_two_grid(start_mm: float, end_mm: float, wanted_mm: float) -> tuple[Grid, int]:
+    """Points from ``start`` at 2^n x 0.1 um: the largest such spacing not above ``wanted``.
+
+    The TNC 407/415/425 Technical Manual's rule and unit (01.98, p. 4-28: "required
+    distance of compensation points = 7 mm, possible power of two = 2^16 = 6.5536 mm");
+    coarser where 256 points would not span the travel. Returns the grid and ``n``.
+    """
+    length_mm = end_mm - start_mm
+    exponent = max(0, math.floor(math.log2(wanted_mm * 1e4)))
+    while math.ceil(length_mm / (2.0**exponent * 1e-4) - 1e-9) + 1 > MAX_ENTRIES:
+        exponent += 1
+    step_mm = 2.0**exponent * 1e-4
+    return Grid(start_mm, step_mm, math.ceil(length_mm / step_mm - 1e-9) + 1), exponent
 
 
 def _com_columns(fit: CompensationFit, machine: Machine, axis: str) -> tuple[Vec, dict[str, Vec]]:
@@ -104,13 +112,18 @@ def _com_columns(fit: CompensationFit, machine: Machine, axis: str) -> tuple[Vec
     if machine.series not in POWER_OF_TWO_SERIES:
         return grid.positions_mm, ordered
     low, high = next(limits for a, limits in machine.travel_mm.items() if a == axis)
-    datum_grid, _ = power_of_two_grid(low, high)
+    datum_grid, _ = power_of_two_grid(low, high, grid.step_mm)
     at = datum_grid.positions_mm
     moved = {name: np.interp(at, grid.positions_mm, values) for name, values in ordered.items()}
     own_name = "BACKLASH" if own.bidirectional and own.return_direction == "-" else axis
     datum = {name: values[0] for name, values in moved.items()}
     datum[axis] = datum["BACKLASH"] = datum[own_name]  # the reversal at the datum stays
     return at, {name: values - datum[name] for name, values in moved.items()}
+
+
+def render_positions(fit: CompensationFit, machine: Machine, axis: str) -> Vec:
+    """The compensation points of ``<axis>.COM``, mm."""
+    return _com_columns(fit, machine, axis)[0]
 
 
 def render_com(fit: CompensationFit, machine: Machine, axis: str) -> str:
@@ -163,11 +176,12 @@ def render_readme(fit: CompensationFit, machine: Machine) -> str:
     lines = [f"xmalign: HEIDENHAIN {machine.series} nonlinear axis error compensation"]
     if machine.series in POWER_OF_TWO_SERIES:
         for axis in AXES:
-            low, high = next(limits for a, limits in machine.travel_mm.items() if a == axis)
-            grid, exponent = power_of_two_grid(low, high)
+            positions = render_positions(fit, machine, axis)
+            exponent = round(math.log2((positions[1] - positions[0]) * 1e4))
             lines.append(
-                f"{axis}.COM: datum {low:g} mm, spacing 2^{exponent} um = {grid.step_mm:g} mm,"
-                f" {grid.count} points; every column starts at 0 at the datum"
+                f"{axis}.COM: datum {positions[0]:g} mm, spacing 2^{exponent} x 0.1 um ="
+                f" {positions[1] - positions[0]:g} mm, {len(positions)} points; every column"
+                " starts at 0 at the datum"
             )
         lines.append(
             "Activation: MP730 bit per axis = 1 (nonlinear axis error compensation) and"

@@ -117,17 +117,28 @@ def test_sinumerik_828d_refuses_more_than_200_points():
 
 def test_heidenhain_tnc_4xx_tables_start_at_zero_at_the_datum_with_power_of_two_spacing():
     machine = make_machine(controller="heidenhain", series="TNC 4xx")
-    tables, _ = _errors()
+    tables, _ = _errors()  # 100 mm between the measured points on X
     files = compensate(machine, tables, "heidenhain").files
     rows = [line.split() for line in files["X.COM"].splitlines()[2:-1]]
-    grid, exponent = power_of_two_grid(*TRAVEL["X"])
-    assert exponent == 11 and grid.step_mm == 2.048  # 400 mm in at most 256 points
-    assert float(rows[1][1]) == pytest.approx(2.048) and len(rows) == grid.count
+    # 2^19 x 0.1 um = 52.4288 mm: the largest power of two not above 100 mm; 400 mm
+    # of travel from the datum x = 0 in 8 spacings, 9 points
+    assert [float(row[1]) for row in rows] == pytest.approx(52.4288 * np.arange(9))
     header = files["X.COM"].splitlines()[1].split()
     assert header == ["NR", "AXISPOS", "X", "Y", "Z", "BACKLASH"]
     # the curves start at 0; X returns '-': its BACKLASH column, X keeps the reversal there
     assert [float(value) for value in rows[0][2:]] == [-0.003, 0.0, 0.0, 0.0]
-    assert "MP730" in files["HEIDENHAIN.TXT"] and "TNC 4xx" in files["HEIDENHAIN.TXT"]
+    readme = files["HEIDENHAIN.TXT"]
+    assert "MP730" in readme and "TNC 4xx" in readme and "2^19 x 0.1 um" in readme
+
+
+def test_heidenhain_tnc_4xx_spacing_follows_the_manuals_example():
+    """TNC 407/415/425 Technical Manual, 01.98, p. 4-28: a required distance of 7 mm gives
+    2^16 = 6.5536 mm; 500 mm of Y travel (datum -90) then needs 77 spacings."""
+    grid, exponent = power_of_two_grid(-90.0, 410.0, 7.0)
+    assert exponent == 16 and grid.step_mm == pytest.approx(6.5536)
+    assert grid.start_mm == -90.0 and grid.count - 1 == 77
+    _, coarser = power_of_two_grid(0.0, 4000.0, 7.0)  # 256 points at most
+    assert coarser == 18
 
 
 def test_heidenhain_itnc_530_is_refused_in_one_line():
