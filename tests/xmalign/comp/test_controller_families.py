@@ -4,6 +4,8 @@ reference-return direction; the family's limits; the loading notes."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -183,3 +185,24 @@ def test_every_writer_says_who_carries_the_reversal_and_the_check(controller):
     assert loading.reversal and loading.check
     lines = loading.lines()
     assert lines[0].startswith("Reversal: ") and lines[1].startswith("Check before use: ")
+
+
+def test_comp_prints_who_carries_the_reversal_and_the_check(tmp_path):
+    from tests.cli_helpers import run_in_process
+
+    root = Path(__file__).resolve().parents[3] / "examples"
+    result = run_in_process(
+        "comp",
+        "--errors",
+        str(root / "errors.csv"),
+        "--out",
+        str(tmp_path / "comp"),
+        "--controller",
+        "fanuc",
+    )
+    assert result.returncode == 0, result.stderr
+    assert "Reversal: the tables carry the reversal of X, Y, Z" in result.stdout
+    assert "Check before use: read parameter 3624 back" in result.stdout
+    assert "Not confirmed from a manual: the unit of 3624" in result.stdout
+    readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
+    assert "Check before use:" in readme and "X 0 (-)" in readme
