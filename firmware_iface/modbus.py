@@ -43,6 +43,10 @@ from xmalign.roles import Clock, WallClock
 ILLEGAL_DATA_VALUE = 3
 #: Modbus exception code "server device busy": another host controls the unit.
 SERVER_DEVICE_BUSY = 6
+#: Modbus exception code "illegal data address": no such (writable, whole) register.
+ILLEGAL_DATA_ADDRESS = 2
+#: Modbus exception code "gateway target device failed to respond": no unit with that id.
+GATEWAY_TARGET_FAILED = 11
 #: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 _UINT16 = 1 << 16
@@ -152,7 +156,18 @@ class ModbusTransport:
         if code == SERVER_DEVICE_BUSY:
             return DeviceError(
                 f"the {self.device_name} refused the {verb} at register {address}: another host"
-                " controls it (Modbus exception 6, server device busy)"
+                " controls it (Modbus exception 6, server device busy; it is free once that"
+                " host closes its connection or stops changing the heartbeat for 500 ms)"
+            )
+        if code == ILLEGAL_DATA_ADDRESS:
+            return DeviceError(
+                f"the {self.device_name} refused the {verb} at register {address}: no such"
+                " register, a read-only one, or one word of a 32-bit value (Modbus exception 2)"
+            )
+        if code == GATEWAY_TARGET_FAILED:
+            return DeviceError(
+                f"the {self.device_name} has no unit with device id {self.device_id}"
+                f" (Modbus exception 11 to the {verb} at register {address}); check device_id"
             )
         if code == ILLEGAL_DATA_VALUE:
             return OutOfRangeError(

@@ -31,7 +31,13 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
+from firmware_iface.register_map import (
+    Control,
+    Register,
+    RegisterMap,
+    Status,
+    load_register_map,
+)
 from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
 from sim import motion
 from sim.clock import SimClock
@@ -276,6 +282,7 @@ NEEDS_HEARTBEAT = (
     | Control.HOME
     | Control.TRACK
 )
+_DEFINED_CONTROL_BITS = sum(int(bit) for bit in Control)
 
 
 @dataclass(frozen=True)
@@ -428,13 +435,25 @@ class SimUnit:
         return self.register_map.axis_stride * (len(self.axes) + 1)
 
     def _written(self, words: dict[int, int]) -> list[tuple[str, int]]:
-        """The registers (name, axis number or 0) a write touches; InputError if not writable."""
+        """The registers (name, axis number or 0) a write touches; InputError if not writable
+        or if it covers only one word of a 32-bit register (a value is written whole)."""
         touched: list[tuple[str, int]] = []
         for address in words:
             name, axis = self._register_at(address)
             if (name, axis) not in touched:
                 touched.append((name, axis))
+        for name, axis in touched:
+            reg = self._register(name, axis)
+            if any(a not in words for a in range(reg.address, reg.address + reg.width)):
+                raise InputError(
+                    f"register {reg.address} ({reg.name}) is 32 bits: write both words"
+                    f" ({reg.address}-{reg.address + 1}) in one request"
+                )
         return touched
+
+    def _register(self, name: str, axis: int) -> Register:
+        """Register ``name`` of axis ``axis``, or of the device for axis 0."""
+        return self.register_map.axis(axis, name) if axis else self.register_map.device[name]
 
     def _register_at(self, address: int) -> tuple[str, int]:
         rmap = self.register_map
@@ -451,12 +470,8 @@ class SimUnit:
         raise InputError(f"register {address} is not a register of the {self.kind} unit")
 
     def _value(self, name: str, axis: int, words: dict[int, int]) -> int:
-        reg = self.register_map.axis(axis, name) if axis else self.register_map.device[name]
-        current = self._image()
-        raw = [
-            words.get(a, current.get(a, 0)) & 0xFFFF
-            for a in range(reg.address, reg.address + reg.width)
-        ]
+        reg = self._register(name, axis)
+        raw = [words[a] & 0xFFFF for a in range(reg.address, reg.address + reg.width)]
         if reg.width == 1:
             return raw[0]
         value = (raw[0] << 16) | raw[1]
@@ -478,7 +493,12 @@ class SimUnit:
             return lambda: axis.set_velocity_limit(
                 min(counts_to_rad(value), axis.limits.max_velocity_rad_s)
             )
-        return lambda: self.control(n, Control(value & 0x7F))
+        undefined = value & ~_DEFINED_CONTROL_BITS
+        if undefined:
+            raise OutOfRangeError(
+                f"axis {axis.name}: control bits {undefined:#06x} are not defined (bits 0-6 are)"
+            )
+        return lambda: self.control(n, Control(value))
 
     def control(self, n: int, value: Control) -> None:
         """Apply a control-register write to axis ``n`` (1-based)."""

@@ -76,6 +76,44 @@ def test_modbus_a_heartbeat_fault_is_read_and_named() -> None:
             unit.axes[0].check()
 
 
+def test_modbus_a_live_host_recovers_from_a_trip_with_a_heartbeat_before_each_reset() -> None:
+    """The unit refuses a fault reset until the heartbeat changes after a trip: the
+    driver changes it right before each reset, even 0 s after the last beat."""
+    clock = SimClock()
+    check = [("read", 17, 1, [FAULT | LOCKED | HOMED]), ("read", 24, 1, [4])]
+    reset = [
+        ("write", 3, [3], None),
+        ("write", 16, [ENABLE | FAULT_RESET], None),
+        ("write", 16, [ENABLE], None),
+        ("write", 3, [4], None),
+        ("write", 32, [ENABLE | FAULT_RESET], None),
+        ("write", 32, [ENABLE], None),
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *check, *reset]) as script:
+        unit = opened(script, clock)
+        with pytest.raises(HeartbeatError):
+            unit.axes[0].check()
+        unit.reset_faults()
+
+
+def test_modbus_an_axis_stopped_short_never_arrives() -> None:
+    """After a stop the unit keeps the host's target: at rest but not in position, the
+    wait polls (and beats) to its deadline."""
+    clock = SimClock()
+    wait = [
+        ("write", 16, [ENABLE | UNLOCK | STOP], None),
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0: at rest, short of the target
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0.05
+        ("write", 3, [3], None),
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0.1: the deadline
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *wait]) as script:
+        unit = opened(script, clock)
+        unit.axes[0].stop()
+        with pytest.raises(DeviceTimeoutError, match="a1 .* did not reach its target in 0.1 s"):
+            unit.axes[0].wait_in_position(0.1)
+
+
 def test_a_leftover_step_fails() -> None:
     clock = SimClock()
     with pytest.raises(AssertionError, match="1 scripted steps left over"):  # noqa: SIM117

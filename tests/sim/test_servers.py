@@ -205,12 +205,11 @@ def test_canopen_over_udp_local_stays_on_the_loopback():
         server.stop()
 
 
-def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
+def test_one_controlling_host_across_tcp_and_rtu(free_port):
     from pymodbus.client import ModbusSerialClient
 
     from sim.servers import modbus as servers
 
-    monkeypatch.setattr(servers, "SERIAL_MASTER_GONE_S", 0.6)
     unit = SimUnit("launch", SimClock(real_time=True))
     host = servers.ControllingHost()
     tcp = ModbusUnitServer(unit, "127.0.0.1", free_port, controlling_host=host)
@@ -227,10 +226,11 @@ def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
         tcp_client.close()
         assert wait_for(lambda: not rtu_client.write_registers(3, [2], device_id=1).isError())
         assert tcp_client.connect()
-        rtu_client.read_holding_registers(0, count=1, device_id=1)  # the master is still there
         assert tcp_client.write_registers(3, [3], device_id=1).exception_code == 6
-        time.sleep(0.7)  # the serial master is silent: taken as gone
+        rtu_client.read_holding_registers(0, count=1, device_id=1)  # reads do not hold the unit
+        time.sleep(RMAP.watchdog_timeout_s + 0.1)  # the serial master's heartbeat went stale
         assert not tcp_client.write_registers(3, [3], device_id=1).isError()
+        assert rtu_client.write_registers(3, [4], device_id=1).exception_code == 6
     finally:
         tcp_client.close()
         rtu_client.close()

@@ -95,6 +95,31 @@ def test_out_of_range_target_moves_nothing():
     assert unit.read_registers(16, 9) == before
 
 
+@pytest.mark.parametrize("name", ["target", "velocity_limit"])
+@pytest.mark.parametrize("word", [0, 1])
+def test_a_32_bit_value_is_written_whole_or_refused(name, word):
+    unit = SimUnit("launch", SimClock())
+    Host(unit)
+    address = RMAP.axis(1, name).address
+    before = unit.read_registers(16, 9)
+    with pytest.raises(InputError, match=f"is 32 bits: write both words \\({address}-"):
+        unit.write_registers(address + word, [0x0001])
+    assert unit.read_registers(16, 9) == before
+    unit.write_registers(address, words(rad_to_counts(0.1)))
+    assert unit.read_registers(address, 2) == words(rad_to_counts(0.1))
+
+
+@pytest.mark.parametrize("bits", [1 << 7, 1 << 15, 0x0083])
+def test_undefined_control_bits_are_refused(bits):
+    unit = SimUnit("launch", SimClock())
+    Host(unit)
+    control = RMAP.axis(1, "control").address
+    with pytest.raises(OutOfRangeError, match="control bits .* not defined"):
+        unit.write_registers(control, [bits])
+    assert unit.read_registers(control, 1) == [0]
+    assert Status.ENABLED not in status(unit)
+
+
 def test_read_only_and_unknown_registers():
     unit = SimUnit("launch", SimClock())
     with pytest.raises(InputError, match="read-only"):
