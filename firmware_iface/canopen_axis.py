@@ -97,6 +97,9 @@ class CanopenAxis:
         self.clock = clock or WallClock()
         self.poll_s = poll_s
         self._mode: int | None = None
+        #: Bit 8 (halt) of the controlword this driver wrote last: with it CiA 402 sets
+        #: statusword bit 10 for "velocity 0", not for "target reached".
+        self._halted = False
         self.counts_per_rev = self._read(ENCODER_RESOLUTION, 1)
 
     def start(self) -> None:
@@ -135,6 +138,8 @@ class CanopenAxis:
 
         log.debug("%s: SDO write 0x%04X:0 <- %d (0x%X)", self.label, index, value, value)
         self._sdo(write, f"write of 0x{index:04X}")
+        if index == CONTROLWORD:
+            self._halted = bool(value & HALT)
 
     def _set_mode(self, mode: int) -> None:
         if self._mode != mode:
@@ -184,11 +189,13 @@ class CanopenAxis:
             self.enable()
 
     def wait_in_position(self, timeout_s: float) -> None:
-        self._wait_for(TARGET_REACHED, timeout_s, "reach its target")
+        """Wait for target reached (bit 10). After :meth:`stop` (halt) the bit only says the
+        axis stands: a halted axis never reaches its target, and the wait runs to its end."""
+        self._wait_for(TARGET_REACHED, timeout_s, "reach its target", unless_halted=True)
 
-    def _wait_for(self, bit: int, timeout_s: float, what: str) -> None:
+    def _wait_for(self, bit: int, timeout_s: float, what: str, unless_halted: bool = False) -> None:
         deadline = self.clock.now() + timeout_s
-        while not self.statusword() & bit:
+        while not self.statusword() & bit or (unless_halted and self._halted):
             if self.clock.now() >= deadline:
                 raise DeviceTimeoutError(f"{self.label} did not {what} in {timeout_s:g} s")
             self.clock.sleep(self.poll_s)

@@ -184,6 +184,22 @@ def test_cia402_heartbeat_fault_reads_the_error_code() -> None:
             axis.wait_in_position(1.0)
 
 
+def test_cia402_a_halted_axis_has_not_reached_its_target() -> None:
+    """With halt (bit 8) set, CiA 402 sets statusword bit 10 for "velocity 0"."""
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("write", 0x6040, 0, 0x010F, None),  # halt
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0: standing
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.05
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.1: the deadline
+    ]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock(), poll_s=0.05)  # type: ignore[arg-type]
+        axis.stop()
+        with pytest.raises(DeviceTimeoutError, match="a1 .* did not reach its target in 0.1 s"):
+            axis.wait_in_position(0.1)
+
+
 def test_cia402_fault_reset_waits_until_the_fault_reaction_is_over() -> None:
     steps = [
         ("read", 0x608F, 1, 2**23),
