@@ -414,6 +414,7 @@ class CanopenUnitServer:
         self.network.connect()
         for node_id, axis in self.axes.items():
             node = canopen.LocalNode(node_id, str(EDS_PATH))
+            node.sdo.on_request = _silent_when_stopped(node)  # type: ignore[method-assign]
             node.add_read_callback(_reader(node_id, axis))
             node.add_write_callback(_writer(node_id, axis))
             self.network.add_node(node)
@@ -503,6 +504,17 @@ class CanopenUnitServer:
         for node in self.nodes.values():
             node.nmt.stop_heartbeat()
         self.network.disconnect()
+
+
+def _silent_when_stopped(node: canopen.LocalNode) -> Callable[[int, bytearray, float], None]:
+    """The node's SDO server, silent in NMT stopped (CiA 301: only NMT and heartbeat there)."""
+    answer = node.sdo.on_request
+
+    def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
+        if node.nmt.state != "STOPPED":
+            answer(can_id, data, timestamp)
+
+    return on_request
 
 
 def _reader(node_id: int, axis: Cia402Axis) -> Callable[..., int | None]:

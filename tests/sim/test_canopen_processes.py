@@ -186,6 +186,9 @@ def test_the_nodes_boot_up_in_pre_operational_and_pdos_wait_for_nmt_start(served
         after_boot_up = frames[frames.index((0x705, b"\x00")) + 1 :]
         assert 0x185 not in {can_id for can_id, _ in after_boot_up}  # TPDO 1 came every 50 ms
         assert sdo_state(node) & 0x6F == 0x21  # the drive kept its state
+        node.nmt.state = "STOPPED"  # only NMT and heartbeat: no SDO answer, no PDO
+        with pytest.raises(canopen.SdoCommunicationError):
+            sdo_state(node)
         node.nmt.state = "RESET"  # reset node: the drive too
         wait_until(lambda: sdo_state(node) & FAULT_MASK == 0x40, what="switch on disabled")
 
