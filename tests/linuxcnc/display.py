@@ -144,6 +144,20 @@ class Display:
         self.command.teleop_enable(1)
         self.command.wait_complete()
 
+    def op_estop(self, action):
+        self.command.state(linuxcnc.STATE_ESTOP)
+        self.command.wait_complete()
+        self.wait_for(lambda s: s.task_state == linuxcnc.STATE_ESTOP, 5, "estop")
+
+    def op_unhome(self, action):
+        self.set_mode(linuxcnc.MODE_MANUAL)
+        self.command.teleop_enable(0)
+        self.command.wait_complete()
+        self.command.unhome(-1)
+        self.command.wait_complete()
+        joints = self.poll().joints
+        self.wait_for(lambda s: not any(s.homed[:joints]), 5, "unhoming")
+
     def op_mdi(self, action):
         self.set_mode(linuxcnc.MODE_MDI)
         self.command.mdi(action["gcode"])
