@@ -441,7 +441,12 @@ def merge_config(
     if any(c.isspace() for c in str(table_path)):
         raise InputError(f"{table_path}: HAL's loadrt cannot take a path with spaces; use --out")
     merged = merge_hal(sources, len(coordinates), table_path)
-    signals = {pin: _signal_of(merged, pin) for pin in _sources(len(coordinates))}
+    # a pin the copies no longer name (the drive command) gets a signal of its own
+    rewritten = _rewrites(len(coordinates))
+    signals = {
+        pin: None if pin in rewritten else _signal_of(sources, pin)
+        for pin in _sources(len(coordinates))
+    }
     files = {_merged_name(name): text for name, text in merged.items()}
     files[WIRING_FILE] = wiring_hal(len(coordinates), signals)
     files[TABLE_FILE] = table_text
