@@ -298,6 +298,44 @@ def test_no_correction_reaches_the_drives_before_homing_and_the_joints_home_as_w
     np.testing.assert_allclose(_applied(after, coordinates), per_joint, rtol=0, atol=TOLERANCE_MM)
 
 
+def test_the_correction_is_held_in_estop_and_returns_to_zero_when_the_joints_are_unhomed(
+    component, linuxcnc_dir
+):
+    ini, volumetric = _merged(linuxcnc_dir, "XYZ", "XFYZ")
+    point = np.array([250.0, 120.0, -80.0])
+    names = _pin_names(3) + _correction_pins(3)
+    run = run_linuxcnc(
+        ini,
+        [
+            *standard_start(),
+            _goto(point, "go"),
+            {"op": "pins", "names": names, "label": "on"},
+            {"op": "estop", "label": "estop"},
+            {"op": "sleep", "seconds": 0.2},
+            {"op": "pins", "names": names, "label": "off"},
+            {"op": "estop_reset"},
+            {"op": "machine_on"},
+            {"op": "unhome", "label": "unhome"},
+            {"op": "sleep", "seconds": 0.3},
+            {"op": "pins", "names": names, "label": "unhomed"},
+        ],
+    )
+
+    expected = volumetric.correction(point)[0]
+    assert np.abs(expected).max() > 0.001
+    on, off, unhomed = (run.value(label) for label in ("on", "off", "unhomed"))
+    np.testing.assert_allclose(_applied(on, "XYZ"), expected, rtol=0, atol=TOLERANCE_MM)
+    held = [on[f"{INSTANCE}.correction-{a}"] for a in range(3)]
+    assert on[f"{INSTANCE}.active"] and not off[f"{INSTANCE}.active"]
+    assert [off[f"{INSTANCE}.correction-{a}"] for a in range(3)] == held
+    assert not unhomed[f"{INSTANCE}.active"]
+    for a in range(3):
+        assert unhomed[f"{INSTANCE}.correction-{a}"] == 0.0
+        assert unhomed[f"{INSTANCE}.target-{a}"] == 0.0
+    np.testing.assert_array_equal(_applied(unhomed, "XYZ"), 0.0)
+    assert run.report["state"]["homed"] == [False] * 3
+
+
 def test_leaving_the_tables_trips_the_estop_and_holds_the_correction(component, linuxcnc_dir):
     # the X tables end at 300 mm of the 400 mm travel
     ini, volumetric = _merged(linuxcnc_dir, "XYYZ", "FYXZ", x_tables_to_mm=300.0)
