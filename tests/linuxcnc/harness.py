@@ -14,8 +14,8 @@ Usage::
     run.value("at")["joint.0.pos-cmd"]
 
 Actions (run in order by ``display.py``; the first that fails ends the list):
-``estop_reset``, ``machine_on``, ``home``, ``estop``, ``unhome`` (all joints), ``mdi`` (``gcode``; waits until idle
-and in position), ``pins`` (``names``: ``hal.get_value`` of each),
+``estop_reset``, ``machine_on``, ``home``, ``estop``, ``unhome`` (all joints), ``mdi``
+(``gcode``; waits until idle and in position), ``pins`` (``names``: ``hal.get_value`` of each),
 ``setp`` (``name``, ``value``), ``sleep`` (``seconds``), ``run`` (``program``:
 runs it to the end, resuming after every M0; ``watch``: pins whose largest
 absolute value is returned; ``feed_override``: set before the start;

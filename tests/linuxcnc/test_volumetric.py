@@ -228,7 +228,7 @@ def test_corrections_at_the_pins_equal_the_model_and_add_no_following_error(
 RESOLUTION_MM = 1e-9
 
 
-def _correction_pins(joints: int) -> list[str]:
+def _correction_pins() -> list[str]:
     return [f"{INSTANCE}.{pin}" for pin in ("target-0", "target-1", "target-2", "active")] + [
         f"{INSTANCE}.correction-{a}" for a in range(3)
     ]
@@ -278,7 +278,7 @@ def test_no_correction_reaches_the_drives_before_homing_and_the_joints_home_as_w
             {"op": "home"},
             {"op": "pins", "names": offsets, "label": "homed"},
             {"op": "sleep", "seconds": 0.3},
-            {"op": "pins", "names": _pin_names(joints) + _correction_pins(joints), "label": "after"},
+            {"op": "pins", "names": _pin_names(joints) + _correction_pins(), "label": "after"},
         ],
     )
 
@@ -303,7 +303,7 @@ def test_the_correction_is_held_in_estop_and_returns_to_zero_when_the_joints_are
 ):
     ini, volumetric = _merged(linuxcnc_dir, "XYZ", "XFYZ")
     point = np.array([250.0, 120.0, -80.0])
-    names = _pin_names(3) + _correction_pins(3)
+    names = _pin_names(3) + _correction_pins()
     run = run_linuxcnc(
         ini,
         [

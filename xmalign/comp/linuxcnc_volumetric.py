@@ -364,7 +364,7 @@ def merge_hal(hal_files: dict[str, str], joints: int, table_path: Path) -> dict[
     rewrites = _rewrites(joints)
     seen = dict.fromkeys(rewrites, False)
     placed = False
-    merged = {}
+    merged: dict[str, str] = {}
     for name, text in hal_files.items():
         if _pin_pattern(COMPONENT).search(text):
             raise InputError(f"{name}: loads {COMPONENT} already (merge the original files)")
