@@ -184,6 +184,37 @@ def test_cia402_heartbeat_fault_reads_the_error_code() -> None:
             axis.wait_in_position(1.0)
 
 
+def test_cia402_a_halted_axis_has_not_reached_its_target() -> None:
+    """With halt (bit 8) set, CiA 402 sets statusword bit 10 for "velocity 0"."""
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("write", 0x6040, 0, 0x010F, None),  # halt
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0: standing
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.05
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.1: the deadline
+    ]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock(), poll_s=0.05)  # type: ignore[arg-type]
+        axis.stop()
+        with pytest.raises(DeviceTimeoutError, match="a1 .* did not reach its target in 0.1 s"):
+            axis.wait_in_position(0.1)
+
+
+def test_cia402_fault_reset_waits_until_the_fault_reaction_is_over() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("read", 0x6041, 0, 0x021F),  # fault reaction active: the node takes no command
+        ("read", 0x6041, 0, 0x021F),
+        ("read", 0x6041, 0, 0x0218),  # fault: at rest
+        ("write", 0x6040, 0, 0x00, None),
+        ("write", 0x6040, 0, 0x80, None),  # fault reset on the rising edge of bit 7 (15)
+        ("write", 0x6040, 0, 0x06, None),
+        ("write", 0x6040, 0, 0x07, None),  # enabled, brake applied
+    ]
+    with ExpectedSdo(3, steps) as node:
+        CanopenAxis(node, "a3", "receiver unit", SimClock()).reset_fault()  # type: ignore[arg-type]
+
+
 HOME = 32
 
 

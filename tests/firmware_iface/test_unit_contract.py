@@ -189,19 +189,9 @@ def test_a_live_host_resets_a_trip_and_moves_on(implementation: Implementation) 
     role.lock()
 
 
-def test_an_axis_the_host_stopped_short_never_arrives(
-    implementation: Implementation, request: pytest.FixtureRequest
-) -> None:
+def test_an_axis_the_host_stopped_short_never_arrives(implementation: Implementation) -> None:
     """'In position' means at the target the host wrote: after a stop mid-move the wait
     runs to its deadline instead of taking the rest for arrival."""
-    if "canopen" in request.node.callspec.id:
-        request.applymarker(
-            pytest.mark.xfail(
-                strict=True,
-                reason="CanopenAxis.wait_in_position takes statusword bit 10 as arrival, but with"
-                " halt set CiA 402 gives it for 'velocity 0' (firmware_iface/canopen_axis.py)",
-            )
-        )
     role, firmware, clock = implementation.role, implementation.firmware, implementation.clock
     role.axes[0].move_to(1.5)
     clock.sleep(0.3)

@@ -10,6 +10,7 @@ import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
 
+from firmware_iface.can_bus import DEFAULT_PORT, LocalUdpBus
 from firmware_iface.register_map import Control, Status, load_register_map
 from firmware_iface.xm_line_protocol import Reply, decode_line
 from sim.clock import SimClock
@@ -186,17 +187,16 @@ def test_interferometer_on_a_pty(machine):
         server.stop()
 
 
-def test_canopen_over_udp_multicast_stays_on_this_computer():
+def test_canopen_over_udp_local_stays_on_the_loopback():
     group = "239.74.{}.{}".format(*uuid.uuid4().bytes[:2])  # a group of its own per run
-    server = CanopenUnitServer(
-        [SimUnit("launch", SimClock(real_time=True))], group, "udp_multicast"
-    )
+    server = CanopenUnitServer([SimUnit("launch", SimClock(real_time=True))], group, "udp_local")
     server.start()
-    network = canopen.Network()
-    network.connect(interface="udp_multicast", channel=group, hop_limit=0)
+    network = canopen.Network(LocalUdpBus(group))
+    network.connect()
     try:
-        sockets = [server.network.bus._multicast._socket, network.bus._multicast._socket]
+        sockets = [server.network.bus._sender, network.bus._sender]
         assert [s.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) for s in sockets] == [0, 0]
+        assert server.network.bus._receiver.getsockname() == (group, DEFAULT_PORT)
         node = canopen.RemoteNode(2, str(EDS_PATH))
         network.add_node(node)
         assert node.sdo[0x6502].raw == 0x121  # frames go round on loopback

@@ -570,6 +570,16 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
+    Case(
+        "serve-can-interface-unknown",
+        ("sim", "serve", "--canopen", "x", "--can-interface", "nosuchbus"),
+        ("--can-interface nosuchbus", "no CAN interface", "udp_local"),
+    ),
+    Case(
+        "serve-canopen-not-a-group",
+        ("sim", "serve", "--canopen", "999.999.1.1"),
+        ("--canopen 999.999.1.1", "not an IPv4 multicast group"),
+    ),
     # command-line mistakes: one line too, not click's box
     Case("usage-seed-text", ("dry-run", "--seed", "abc"), ("dry-run", "--seed", "--help")),
     Case("usage-missing-value", ("post", "--plan"), ("--plan", "requires an argument")),
