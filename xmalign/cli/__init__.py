@@ -10,7 +10,10 @@ is printed instead of the generic one.
 
 from __future__ import annotations
 
+import functools
+import math
 import sys
+from collections.abc import Callable
 from typing import Annotated, Any
 
 import typer
@@ -34,10 +37,42 @@ def _is_usage_error(error: Exception) -> bool:
     return "UsageError" in names and "NoArgsIsHelpError" not in names
 
 
+def _not_finite(value: object) -> float | None:
+    """The first NaN or infinity in an option's value (a number, or several), else None."""
+    values = value if isinstance(value, list | tuple) else (value,)
+    return next((v for v in values if isinstance(v, float) and not math.isfinite(v)), None)
+
+
+def _finite_numbers_only(command: Any) -> None:
+    """Every number option of ``command`` and its subcommands refuses NaN and infinity.
+
+    One check for all options (click's ranges refuse neither): a NaN would pass
+    every ``value < 0`` test and end as a traceback, or a hang, deep in the maths.
+    """
+    for subcommand in getattr(command, "commands", {}).values():
+        _finite_numbers_only(subcommand)
+    callback: Callable[..., Any] | None = command.callback
+    if callback is None or getattr(callback, "finite_numbers_only", False):
+        return
+    names = {param.name: param.opts[0] for param in command.params if param.opts}
+
+    @functools.wraps(callback)
+    def checked(**options: Any) -> Any:
+        for name, value in options.items():
+            bad = _not_finite(value)
+            if bad is not None:
+                raise InputError(f"option {names.get(name, name)}: {bad} is not a finite number")
+        return callback(**options)
+
+    checked.finite_numbers_only = True  # type: ignore[attr-defined]
+    command.callback = checked
+
+
 class _OneLineUsageErrors(TyperGroup):
     """A command-line mistake (unknown option, bad value) as one line, like a bad file."""
 
     def invoke(self, ctx: Any) -> Any:
+        _finite_numbers_only(self)
         try:
             return super().invoke(ctx)
         except Exception as error:
