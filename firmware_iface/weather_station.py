@@ -126,7 +126,7 @@ class FileEnvironment:
     def read(self) -> EnvironmentReading:
         try:
             modified = self.path.stat().st_mtime
-            lines = self.path.read_text(encoding="utf-8").splitlines()
+            lines = self.path.read_text(encoding="utf-8-sig").splitlines()
         except OSError as error:
             raise TransportError(
                 f"cannot read the environment file {self.path} ({error.strerror})"

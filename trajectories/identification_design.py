@@ -65,6 +65,8 @@ def count_problem(count: int) -> str | None:
             " while the design time grows with the cube of the count)"
         )
     return None
+
+
 #: Steepest beam a design may use, degrees above (or below) the horizontal.
 MAX_ELEVATION_DEG = 60.0
 #: Smallest distance between two positions, as a fraction of the travel's diagonal.

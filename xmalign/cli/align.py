@@ -158,7 +158,8 @@ def register(app: typer.Typer) -> None:
             typer.Option(
                 min=DISTANCE_LIMITS_MM[0],
                 max=DISTANCE_LIMITS_MM[1],
-                help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000).",
+                help="First guess of the cp-to-cp distance, mm (--sim: the true one,"
+                " --live: 1000).",
             ),
         ] = None,
         timeout_s: Annotated[

@@ -56,7 +56,9 @@ def _uncertainty(
     }
     for option, (key, value) in overrides.items():
         if value is not None and value <= 0:
-            raise InputError(f"option {option} ({key}): {value:g}: the uncertainty must be positive")
+            raise InputError(
+                f"option {option} ({key}): {value:g}: the uncertainty must be positive"
+            )
     changes = {key: value * scale[key] for key, value in overrides.values() if value is not None}
     return IdentificationUncertainty(**{**base.__dict__, **changes})
 

@@ -235,7 +235,7 @@ def mc(
         typer.Option(
             min=0,
             help="Report the share of trials within this: volumetric error after comp "
-            "(calibration) or launch position error (identification), um."
+            "(calibration) or launch position error (identification), um.",
         ),
     ] = None,
     out: Annotated[Path, typer.Option(help="Directory for mc.json and the plots.")] = Path("mc"),

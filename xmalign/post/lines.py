@@ -100,6 +100,13 @@ def _line_data(
             f"{source}: line {line.id} run {bad.run}: target index {bad.index} is not in the"
             f" plan ({len(line.targets_mm)} targets)"
         )
+    runs = np.array([row.run for row in rows])
+    if np.any((runs < 0) | (runs > line.runs)):
+        bad = rows[int(np.argmax((runs < 0) | (runs > line.runs)))]
+        raise InputError(
+            f"{source}: line {line.id} run {bad.run} index {bad.index}: the plan has runs"
+            f" 1..{line.runs} of this line (run 0 is its drift check)"
+        )
     machine = np.array([row.machine_mm for row in rows])
     expected = line.target_points_mm()[index]
     off = np.linalg.norm(machine - expected, axis=1)
@@ -111,7 +118,7 @@ def _line_data(
         )
     return LineData(
         line=line,
-        run=np.array([row.run for row in rows]),
+        run=runs,
         sign=np.array([1.0 if row.direction == "+" else -1.0 for row in rows]),
         index=index,
         distance_mm=line.targets_mm[index],
@@ -131,8 +138,8 @@ def group_by_line(
     Raises
     ------
     InputError
-        A row names a line the plan does not have, a target index outside the
-        plan, or a commanded point off its plan target; or no row at all.
+        A row names a line the plan does not have, a run or a target index outside
+        the plan, or a commanded point off its plan target; or no row at all.
     """
     known = {line.id for line in plan.lines}
     by_line: dict[str, list[MeasurementRow]] = {line.id: [] for line in plan.lines}
