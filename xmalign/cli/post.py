@@ -261,6 +261,7 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
+    tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 
