@@ -336,6 +336,11 @@ def identify_command(
     if out is not None:
         write_pose(out, result.to_pose())
         console.print(f"pose written to {out}", markup=False)
+    else:
+        console.print(
+            "pose not written (give --out pose.json to keep it for xmalign program)",
+            markup=False,
+        )
 
 
 def register(app: typer.Typer) -> None:
