@@ -565,7 +565,9 @@ def fit_error_tables(
     return TableFit(
         tables=_tables(layout, solution, covariance, travel_mm),
         setup=setup.unpack(solution),
-        residual_rms=_residual_rms(lines, first_rows, residual / weights),
+        residual_rms=_residual_rms(
+            lines, first_rows, np.divide(residual, weights, out=np.full(n_rows, np.nan), where=kept)
+        ),
         sigma0=sigma0,
         n_observations=n_rows,
         n_parameters=n_columns,
@@ -672,5 +674,5 @@ def _residual_rms(lines: list[LineData], first_rows: list[int], residual: Vec) -
     out = {}
     for data, first_row in zip(lines, first_rows, strict=True):
         part = residual[first_row : first_row + N_CHANNELS * len(data.run)].reshape(-1, 6)
-        out[data.label] = np.sqrt(np.mean(part**2, axis=0)) * scale
+        out[data.label] = np.sqrt(np.nanmean(part**2, axis=0)) * scale  # outliers: NaN
     return out
