@@ -201,7 +201,8 @@ def _parse_row(fields: list[str], header: tuple[str, ...], path: Path, line: int
 
 
 def read_error_tables(path: str | Path) -> ErrorTableSet:
-    """Read an error-table CSV; a bad or repeated row raises InputError with its line number."""
+    """Read an error-table CSV; a bad or repeated row (with its line number), a table of one
+    position or a missing squareness row (naming it) raises InputError."""
     path = Path(path)
     reader = csv.reader(io.StringIO(read_text(path), newline=""))
     try:
@@ -229,6 +230,11 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
                 rows[row.name].append((row.position_mm, value, u95, row.range != "extrapolated"))
     except csv.Error as error:
         raise line_error(path, reader.line_num, f"not valid CSV ({error})") from error
+    for name, entries in rows.items():
+        if len(entries) < 2:
+            raise InputError(located(path, name, "a table needs at least two positions"))
+        data = np.array(sorted(entries))
+        result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2], data[:, 3] > 0)
     missing = [name for name in SQUARENESS_NAMES if name not in result.squareness]
     if missing:
         raise InputError(
@@ -239,11 +245,6 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
                 " taken as square needs them too, with value 0)",
             )
         )
-    for name, entries in rows.items():
-        if len(entries) < 2:
-            raise InputError(located(path, name, "a table needs at least two positions"))
-        data = np.array(sorted(entries))
-        result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2], data[:, 3] > 0)
     return result
 
 
