@@ -156,3 +156,28 @@ def test_no_enable_without_a_host_heartbeat_and_a_stale_one_faults(bus):
         time.sleep(0.01)
     assert node.sdo[0x603F].raw == 0xFF04
     assert unit.axes[1].is_locked()
+
+
+def test_after_a_trip_a_fault_reset_waits_for_the_host_heartbeat(bus):
+    """Reported on CANopen: fault reset and 06/07/0F/1F with no heartbeat on the bus moved
+    68 deg at 20 deg/s. The reset stays refused (in Fault) until a heartbeat frame."""
+    unit, network, node = bus
+    heartbeat = network.send_periodic(0x77F, b"\x05", 0.1)
+    time.sleep(0.15)
+    heartbeat.stop()  # the host's last heartbeat
+    deadline = time.monotonic() + 2.0
+    while node.sdo[0x6041].raw & 0x4F != 0x08:  # Fault
+        assert time.monotonic() < deadline, hex(node.sdo[0x6041].raw)
+        time.sleep(0.02)
+    node.sdo[0x607A].raw = rad_to_counts(1.2)
+    for word in (0x00, 0x80, 0x06, 0x07, 0x0F, 0x1F):
+        node.sdo[0x6040].raw = word
+    time.sleep(0.5)
+    assert node.sdo[0x6041].raw & 0x4F == 0x08 and node.sdo[0x603F].raw == 0xFF04
+    assert not unit.axes[1].is_moving() and unit.axes[1].is_locked()
+    assert node.sdo[0x6064].raw == 0
+    network.send_message(0x77F, b"\x05")  # the host is back
+    for word in (0x00, 0x80, 0x06, 0x07):
+        node.sdo[0x6040].raw = word
+    assert node.sdo[0x6041].raw & 0x6F == 0x23  # switched on
+    assert node.sdo[0x603F].raw == 0

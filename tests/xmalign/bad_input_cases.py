@@ -113,6 +113,16 @@ def append(name: str, text: str) -> Damage:
     return apply
 
 
+def each(*damages: Damage) -> Damage:
+    """All of ``damages``, in order."""
+
+    def apply(folder: Path) -> None:
+        for damage in damages:
+            damage(folder)
+
+    return apply
+
+
 def remove(name: str) -> Damage:
     return lambda folder: (folder / name).unlink()
 
@@ -238,6 +248,7 @@ def _generic_cases() -> list[Case]:
 
 M = "fyxz.yaml"
 MACHINE = COMMAND[M]
+_CNC = "  acceleration_mm_s2: 1000"
 _MACHINE_CASES = [
     ("nan-travel", replace(M, "X: [0, 2000]", "X: [0, .nan]"), "travel_mm.X.1"),
     ("inf-travel", replace(M, "X: [0, 2000]", "X: [0, .inf]"), "travel_mm.X.1"),
@@ -280,6 +291,23 @@ _MACHINE_CASES = [
     ("a-list", write(M, "- a\n- b\n"), "mapping"),
     ("tab-indent", replace(M, "  X: [0, 2000]", "\tX: [0, 2000]"), "line"),
     ("bad-date", append(M, "built: 2024-13-45\n"), M),
+    # the controller model (docs/controllers.md)
+    ("series-of-another-family", replace(M, _CNC, _CNC + "\n  series: 30i"), "cnc.series"),
+    ("reference-return-up", replace(M, _CNC, _CNC + "\n  reference_return: {X: up}"), "X"),
+    ("backlash-negative", replace(M, _CNC, _CNC + "\n  backlash_um: {Y: -3}"), "backlash_um.Y"),
+    (
+        "itnc-530",
+        each(
+            replace(M, "controller: sinumerik", "controller: heidenhain"),
+            replace(M, _CNC, _CNC + "\n  series: iTNC 530"),
+        ),
+        "iTNC 530",
+    ),
+    (
+        "reference-inside-without-return",
+        replace(M, _CNC, _CNC + "\n  reference_mm: [1000, 0, 0]"),
+        "cnc.reference_return.X",
+    ),
 ]
 
 U = "units.yaml"
