@@ -827,7 +827,7 @@ _CARELESS_USER_CASES = [
     Case(
         "post-run-outside-plan",
         _POST,
-        ("m.csv", "line Z run 7", "runs 1..2"),
+        ("m.csv: line ", ": line Z run 7", "runs 1..2"),
         measured(_row_of_z(run=7)),
     ),
     Case(
