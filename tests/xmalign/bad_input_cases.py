@@ -737,6 +737,11 @@ _CARELESS_USER_CASES = [
         ("--tool-rotation-urad", "must be positive"),
     ),
     Case(
+        "identify-distance-1e300",
+        ("identify", "--sim", "--distance-um", "1e300"),
+        ("--distance-um", "at most 10000 um"),
+    ),
+    Case(
         "mc-error-scale-nan",
         ("mc", "--error-scale", "nan", "--out", "mc"),
         ("--error-scale", "nan"),

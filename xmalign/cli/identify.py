@@ -29,7 +29,7 @@ from xmalign.formats.pose import write_pose
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
-from xmalign.machine import Machine
+from xmalign.machine import MAX_UNCERTAINTY_UM, MAX_UNCERTAINTY_URAD, Machine
 from xmalign.steps import IdentifyStepResult, design_step, identify_step
 
 
@@ -55,9 +55,13 @@ def _uncertainty(
         "collimation_rad": 1e-6,
     }
     for option, (key, value) in overrides.items():
-        if value is not None and value <= 0:
+        unit, limit = (
+            ("um", MAX_UNCERTAINTY_UM) if option.endswith("-um") else ("urad", MAX_UNCERTAINTY_URAD)
+        )
+        if value is not None and not 0 < value <= limit:
             raise InputError(
-                f"option {option} ({key}): {value:g}: the uncertainty must be positive"
+                f"option {option} ({key}): {value:g}: the uncertainty must be positive and at"
+                f" most {limit:g} {unit} (as in the machine file)"
             )
     changes = {key: value * scale[key] for key, value in overrides.values() if value is not None}
     return IdentificationUncertainty(**{**base.__dict__, **changes})
