@@ -53,8 +53,11 @@ TravelRange = Annotated[
 ]
 #: Feeds up to 500 m/min; micrometres up to 10 mm; microradians up to 0.1 rad.
 Feed_mm_min = Annotated[float, Field(gt=0, le=500_000, allow_inf_nan=False)]
-Micrometres = Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)]
-Microradians = Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)]
+#: Largest a-priori standard uncertainty of a length (10 mm) and of an angle (0.1 rad).
+MAX_UNCERTAINTY_UM = 10_000.0
+MAX_UNCERTAINTY_URAD = 100_000.0
+Micrometres = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_UM, allow_inf_nan=False)]
+Microradians = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_URAD, allow_inf_nan=False)]
 Allowance_um = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
 Allowance_urad = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
 Expansion_ppm_per_k = Annotated[float, Field(ge=-5.0, le=50.0, allow_inf_nan=False)]

@@ -222,7 +222,7 @@ class IniLine:
 def read_ini(path: Path) -> list[IniLine]:
     """The INI's lines with their sections; InputError when the file cannot be read."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read the INI file ({exc})") from exc
     section, result = "", []
@@ -427,7 +427,7 @@ def merge_config(
     for name in halfiles:
         path = Path(name) if Path(name).is_absolute() else folder / name
         try:
-            sources[name] = path.read_text(encoding="utf-8")
+            sources[name] = path.read_text(encoding="utf-8-sig")
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(f"{ini_path}: [HAL] HALFILE = {name}: cannot read it ({exc})") from exc
     table_text = render_table(
