@@ -468,6 +468,33 @@ class _WeightedSystem:
         return self.inverse @ middle @ self.inverse / np.outer(self.norms, self.norms)
 
 
+def bidirectional_axes(lines: list[LineData]) -> set[str]:
+    """The axes some line measured in both directions (they get reversal tables)."""
+    return {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
+
+
+def add_line_rows(
+    lines: list[LineData],
+    chain: Chain,
+    layout: ParameterLayout,
+    setup: SetupLayout,
+    out: Triplets,
+) -> list[int]:
+    """Add the six channel rows of every line's points (tables, squareness, setup).
+
+    Returns the first row of each line; the rows are numbered from 0.
+    """
+    sizes = [N_CHANNELS * len(d.run) for d in lines]
+    first_rows = [int(r) for r in np.cumsum([0, *sizes])[: len(lines)]]
+    for data, first_row in zip(lines, first_rows, strict=True):
+        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
+        for axis in AXES:
+            _add_axis_columns(data, first_row, axis, arms[axis], layout, out)
+        _add_squareness_columns(data, first_row, layout, out)
+    setup.add_columns(lines, first_rows, out)
+    return first_rows
+
+
 def fit_error_tables(
     lines: list[LineData],
     chain: Chain,
@@ -492,18 +519,11 @@ def fit_error_tables(
         False), with the u95 the extrapolation propagates.
     """
     knots = compensation_points(lines)
-    bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
-    layout = ParameterLayout(knots, bidirectional)
+    layout = ParameterLayout(knots, bidirectional_axes(lines))
     setup = SetupLayout(lines, layout.n_columns)
-    first_rows = list(np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines[:-1]]))
-    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     triplets = Triplets()
-    for data, first_row in zip(lines, first_rows, strict=True):
-        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
-        for axis in AXES:
-            _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
-        _add_squareness_columns(data, first_row, layout, triplets)
-    setup.add_columns(lines, first_rows, triplets)
+    first_rows = add_line_rows(lines, chain, layout, setup, triplets)
+    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
 
     n_columns = layout.n_columns + setup.n_columns
     rows, cols, vals = triplets.arrays()

@@ -1,0 +1,41 @@
+"""Point sets for a laser tracker or tracer: a regular grid plus random points (seed 000).
+
+Seed 000 measures a grid of stationary points on the edges of the working
+volume and homogeneously distributed random points inside it; the random
+points separate the errors of one axis from those of the others at positions
+the grid does not combine.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from xmalign.geometry import Vec
+
+
+def grid_and_random_points(
+    low_mm: Vec, high_mm: Vec, grid: tuple[int, int, int], n_random: int, seed: int = 0
+) -> Vec:
+    """A regular ``grid`` over the box plus ``n_random`` uniform points, rounded to 1 um.
+
+    Parameters
+    ----------
+    low_mm, high_mm : ndarray, shape (3,)
+        The box (CNC coordinates).
+    grid : (int, int, int)
+        Points along X, Y and Z (each at least 2).
+    n_random : int
+    seed : int
+        Seeds the random points (a plan must be reproducible).
+
+    Returns
+    -------
+    ndarray, shape (grid[0] * grid[1] * grid[2] + n_random, 3)
+        The grid first (X fastest... Z slowest), then the random points.
+    """
+    low, high = np.asarray(low_mm, dtype=float), np.asarray(high_mm, dtype=float)
+    axes = [np.linspace(lo, hi, n) for lo, hi, n in zip(low, high, grid, strict=True)]
+    regular = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    rng = np.random.default_rng(seed)
+    random = low + rng.random((n_random, 3)) * (high - low)
+    return np.round(np.concatenate([regular, random]), 3)
