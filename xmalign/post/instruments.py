@@ -57,7 +57,6 @@ from xmalign.post.solve import (
     K_EXPANSION,
     ParameterLayout,
     TableFit,
-    _extended,
     _inverse,
     _residual_rms,
     _tables,
@@ -75,6 +74,8 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
 #: more points would only carry more noise (tests/benchmarks/bench_instruments.py).
 TRACER_KNOT_SPACING_MM = 200.0
 TRACKER_KNOT_SPACING_MM = 250.0
+#: Spacing of the knots that continue the lines' tables where only instruments reach, mm.
+EXTENSION_SPACING_MM = 400.0
 #: Gauss-Newton stops when no pose or pivot moves more than this, mm.
 _STEP_TOLERANCE_MM = 1e-7
 _MAX_ITERATIONS = 20
@@ -86,6 +87,8 @@ _MIN_DISTANCE_MM = 1.0
 #: Tracer places needed to place a point in space when no other instrument does.
 MIN_TRACER_PLACES = 4
 _TRACKER_SETUP = 6
+#: Standard deviation of the pseudo-observations that continue a table linearly, rad.
+_CONSTRAINT_SIGMA_RAD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -253,6 +256,23 @@ def _instrument_points(trackers: list[TrackerStation], tracers: list[TracerPlace
     return np.concatenate([np.reshape(p, (-1, 3)) for p in parts])
 
 
+def _beyond_lines(knots_mm: Vec, reached_mm: Vec, spacing_mm: float) -> Vec:
+    """The lines' knots, continued out to the instruments' reach at about ``spacing_mm``.
+
+    A stretch shorter than half the spacing gets no knot (the end segment's
+    linear continuation covers it).
+    """
+    parts = [knots_mm]
+    below, above = knots_mm[0] - reached_mm.min(), reached_mm.max() - knots_mm[-1]
+    if below > spacing_mm / 2:
+        n = int(np.ceil(below / spacing_mm))
+        parts.insert(0, np.linspace(reached_mm.min(), knots_mm[0], n + 1)[:-1])
+    if above > spacing_mm / 2:
+        n = int(np.ceil(above / spacing_mm))
+        parts.append(np.linspace(knots_mm[-1], reached_mm.max(), n + 1)[1:])
+    return np.concatenate(parts).round(6)
+
+
 def instrument_knots(points_mm: Vec, spacing_mm: float) -> dict[str, Vec]:
     """Compensation points over the range the instruments measured, at about ``spacing_mm``."""
     knots = {}
@@ -284,25 +304,91 @@ def unseen_rotations(chain: Chain) -> list[str]:
 
 def _without_tables(layout: ParameterLayout, names: list[str]) -> ParameterLayout:
     """The layout with the named tables fixed at 0 (no columns), renumbered."""
-    result = copy.copy(layout)
-    result.column = {
+    columns = {
         axis: {
-            kind: np.where(np.isin(error_names(axis), names)[:, None], -1, columns)
-            for kind, columns in kinds.items()
+            kind: np.where(np.isin(error_names(axis), names)[:, None], -1, c)
+            for kind, c in kinds.items()
         }
         for axis, kinds in layout.column.items()
     }
+    return _renumbered(layout, columns)
+
+
+def _reversal_within(layout: ParameterLayout, line_knots: dict[str, Vec]) -> ParameterLayout:
+    """The layout with the half reversals fixed at 0 beyond the lines' compensation points.
+
+    Tracker points and tracer lengths have no direction of approach: the
+    reversal is measured only where the lines measured it.
+    """
+    columns = {}
+    for axis, kinds in layout.column.items():
+        columns[axis] = dict(kinds)
+        if "half" in kinds:
+            knots = layout.knots[axis]
+            outside = (knots < line_knots[axis][0] - 1e-6) | (knots > line_knots[axis][-1] + 1e-6)
+            columns[axis]["half"] = np.where(outside[None, :], -1, kinds["half"])
+    return _renumbered(layout, columns)
+
+
+def _extrapolation_block(
+    layout: ParameterLayout, line_knots: dict[str, Vec], names: list[str], n_columns: int
+) -> _Block | None:
+    """Pseudo-observations that continue the named tables linearly beyond the lines' knots.
+
+    A tracker point or a tracer length cannot see these rotations (their lever
+    arm never changes), so beyond the lines they would trade with the
+    translations; the lines-only fit extrapolates them linearly, and so does this.
+    """
+    rows = Triplets()
+    n = 0
+    for name in names:
+        axis = name[2]
+        knots, columns = (
+            layout.knots[axis],
+            layout.column[axis]["mean"][error_names(axis).index(name)],
+        )
+        first = int(np.searchsorted(knots, line_knots[axis][0] - 1e-6))
+        last = int(np.searchsorted(knots, line_knots[axis][-1] + 1e-6)) - 1
+        outward = [(j, j + 1, j + 2) for j in range(first - 1, -1, -1)]
+        outward += [(j, j - 1, j - 2) for j in range(last + 1, len(knots))]
+        for j, a, b in outward:
+            ratio = (knots[j] - knots[a]) / (knots[a] - knots[b])
+            for column, value in (
+                (columns[j], 1.0),
+                (columns[a], -1.0 - ratio),
+                (columns[b], ratio),
+            ):
+                if column >= 0:
+                    rows.add(np.array([n]), int(column), value)
+            n += 1
+    if n == 0:
+        return None
+    r, c, v = rows.arrays()
+    return _Block(
+        design=scipy.sparse.csr_matrix((v, (r, c)), shape=(n, n_columns)),
+        observed=np.zeros(n),
+        whitening=scipy.sparse.diags(np.full(n, 1.0 / _CONSTRAINT_SIGMA_RAD)).tocsr(),
+        ratio=np.zeros(n),
+    )
+
+
+def _renumbered(
+    layout: ParameterLayout, columns: dict[str, dict[str, np.ndarray]]
+) -> ParameterLayout:
+    """A copy of ``layout`` with these table columns (-1: fixed), numbered from 0 again."""
     kept = np.sort(
         np.concatenate(
-            [c[c >= 0] for kinds in result.column.values() for c in kinds.values()]
+            [c[c >= 0] for kinds in columns.values() for c in kinds.values()]
             + [layout.squareness_columns]
         )
     )
     renumber = np.full(layout.n_columns, -1)
     renumber[kept] = np.arange(len(kept))
-    for kinds in result.column.values():
-        for kind, columns in kinds.items():
-            kinds[kind] = np.where(columns >= 0, renumber[np.maximum(columns, 0)], -1)
+    result = copy.copy(layout)
+    result.column = {
+        axis: {kind: np.where(c >= 0, renumber[np.maximum(c, 0)], -1) for kind, c in kinds.items()}
+        for axis, kinds in columns.items()
+    }
     result.squareness_columns = renumber[layout.squareness_columns]
     result.n_columns = len(kept)
     return result
@@ -674,11 +760,12 @@ def fit_joint(
     reach = _instrument_points(trackers, tracers)
     undetermined: list[str] = []
     if lines:
-        knots = compensation_points(lines)
+        line_knots = compensation_points(lines)
         knots = {
-            a: _extended(k, np.concatenate([k, reach[:, AXIS_INDEX[a]]])) for a, k in knots.items()
+            a: _beyond_lines(k, reach[:, AXIS_INDEX[a]], EXTENSION_SPACING_MM)
+            for a, k in line_knots.items()
         }
-        layout = ParameterLayout(knots, bidirectional_axes(lines))
+        layout = _reversal_within(ParameterLayout(knots, bidirectional_axes(lines)), line_knots)
         arm_mm = np.asarray(smr_offset_mm, dtype=float)
     else:
         undetermined = unseen_rotations(chain)
@@ -719,12 +806,16 @@ def fit_joint(
         return f"column {c}"
 
     line_block = _line_block(lines, chain, layout, setup, channel_sigma, n_columns)
+    fixed_blocks = [line_block] if line_block is not None else []
+    if lines:
+        extrapolated = _extrapolation_block(layout, line_knots, unseen_rotations(chain), n_columns)
+        fixed_blocks += [extrapolated] if extrapolated is not None else []
     tables = np.zeros(n_columns)
     converged = False
     iterations = 0
     for iteration in range(1, _MAX_ITERATIONS + 1):
         iterations = iteration
-        blocks = [line_block] if line_block is not None else []
+        blocks = list(fixed_blocks)
         blocks += [
             s.linearise(chain, layout, tables, n_columns, tracker_uncertainty)
             for s in tracker_states
@@ -770,7 +861,7 @@ def fit_joint(
         n_parameters=n_columns,
         channel_scatter=np.asarray(channel_sigma, dtype=float),
     )
-    offset = 1 if line_block is not None else 0
+    offset = len(fixed_blocks)
     tracker_fits = [
         _tracker_fit(s, raw[offset + i], covariance) for i, s in enumerate(tracker_states)
     ]
