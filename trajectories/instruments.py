@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from trajectories.gcode.machine_time import move_time_s
 from xmalign.geometry import Vec
 
 
@@ -39,3 +40,25 @@ def grid_and_random_points(
     rng = np.random.default_rng(seed)
     random = low + rng.random((n_random, 3)) * (high - low)
     return np.round(np.concatenate([regular, random]), 3)
+
+
+#: Dwell at each point for a tracker or tracer reading (seed 000: 3 s), s.
+POINT_DWELL_S = 3.0
+
+
+def point_list_time_s(
+    points_mm: Vec,
+    start_mm: Vec,
+    feed_mm_min: float,
+    accel_mm_s2: float | None,
+    dwell_s: float = POINT_DWELL_S,
+) -> float:
+    """Machine time to visit the points in order and dwell at each, s.
+
+    Every move runs from rest to rest on a straight path at ``feed_mm_min``
+    (:func:`trajectories.gcode.machine_time.move_time_s`).
+    """
+    path = np.vstack([np.asarray(start_mm, dtype=float), np.asarray(points_mm, dtype=float)])
+    lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    moving = sum(move_time_s(float(length), feed_mm_min, accel_mm_s2) for length in lengths)
+    return moving + dwell_s * len(points_mm)

@@ -932,7 +932,7 @@ def _tracker_fit(state: _TrackerState, residual: Vec, covariance: Vec) -> Tracke
         label=s.label,
         source=s.source,
         n_points=len(s.run),
-        rotation_urad=Rotation.from_matrix(state.rotation).as_rotvec() * 1e6,
+        rotation_urad=Rotation.from_matrix(state.rotation.T).as_rotvec() * 1e6,
         rotation_u95_urad=_u95(block[:3, :3]) * 1e6,
         position_mm=origin,
         position_u95_mm=_u95(jacobian @ block @ jacobian.T),

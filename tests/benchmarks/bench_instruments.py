@@ -1,0 +1,243 @@
+"""Benchmark: laser tracker, laser tracers and the XM-60 in one fit (issue 24).
+
+On machines ``post`` has never seen (:class:`sim.machine.VirtualMachine`, seed
+003's error amplitudes, 0.5 um repeatability; seeds 0.. of both chains, FYXZ
+``examples/fyxz.yaml`` and the same machine as XFYZ, as in bench_accuracy.py):
+
+- **tracker alone**: one station on the table in the middle of the travel, 300 mm
+  below the lowest tool point, turned by (0.5, -1, 30) degrees; 250 points
+  (a 5 x 4 x 3 grid over the travel plus 190 random points, seed 000's strategy)
+  measured twice; noise half the published MPE (:mod:`sim.tracker`);
+- **tracers alone**: four places near the table's corners at two heights, 440
+  points each (the grid plus 380 random points), one run each (seed 004);
+  noise half the LaserTRACER's U (:mod:`sim.tracer`);
+- **XM-60 station alone** and **with the tracker**: the six lines of station 1
+  (:func:`bench_accuracy.station_plans`, interferometer noise and setup terms of
+  :func:`sim.synthetic.measure`) without and with the tracker's 250 x 2 points.
+
+The SMR sits 100 mm below the tool point. Figures: RMS volumetric difference
+from the truth after removing a rigid motion, 8 x 8 x 8 grid over the whole
+travel (and over the interferometer's strokes for the XM-60 rows). Without
+interferometer lines the tables are those of the SMR as the functional point
+(docs/post.md), so tracker and tracer rows compare with the truth at the SMR.
+Machine time: moves at the rapid feed from rest to rest plus 3 s per point
+(:func:`trajectories.instruments.point_list_time_s`), the XM-60 program's own
+estimate (:func:`trajectories.gcode.program.estimate_machine_time`).
+
+Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_instruments.py [--seeds 5]``.
+Targets (issue 24): tracker alone about 4 um or better; tracers alone <= 1.0 um;
+XM-60 + tracker over the travel <= 0.8 x the XM-60 alone, over the strokes at
+most 0.15 um worse than the XM-60 alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))  # bench_accuracy: the XM-60 station's plan
+
+from bench_accuracy import _strokes, station_plans  # noqa: E402
+
+from sim.interferometer import InterferometerNoise  # noqa: E402
+from sim.machine import VirtualMachine  # noqa: E402
+from sim.synthetic import SetupDisturbance, measure  # noqa: E402
+from sim.tracer import VirtualTracer, measure_tracer  # noqa: E402
+from sim.tracker import VirtualTracker, measure_tracker  # noqa: E402
+from trajectories.gcode.program import estimate_machine_time  # noqa: E402
+from trajectories.instruments import grid_and_random_points, point_list_time_s  # noqa: E402
+from xmalign.formats.instruments import TracerFile, TrackerFile  # noqa: E402
+from xmalign.machine import Machine, default_machine_path, load_machine  # noqa: E402
+from xmalign.post.compare import grid_points, remove_rigid_motion  # noqa: E402
+from xmalign.post.evaluate import Instruments, Station, post_stations  # noqa: E402
+from xmalign.rigid_body import Chain, ErrorModel, deviation  # noqa: E402
+
+CHAINS = ("FYXZ", "XFYZ")
+SMR_OFFSET_MM = (0.0, 0.0, -100.0)
+GRID = 8
+TRACKER_GRID = (5, 4, 3)
+TRACKER_RANDOM = 190
+TRACKER_RUNS = 2
+TRACER_RANDOM = 380
+TRACKER_TARGET_UM = 4.0
+TRACER_TARGET_UM = 1.0
+TRAVEL_RATIO_TARGET = 0.8
+STROKES_MARGIN_UM = 0.15
+
+
+@dataclass(frozen=True)
+class Figures:
+    chain: str
+    seed: int
+    tracker_um: float
+    tracers_um: float
+    xm60_strokes_um: float
+    xm60_travel_um: float
+    joint_strokes_um: float
+    joint_travel_um: float
+    post_s: float
+
+
+def volumetric_um(
+    machine: Machine, points_mm: np.ndarray, model: ErrorModel, truth: ErrorModel, at_smr: bool
+) -> float:
+    """RMS volumetric difference after a rigid motion; ``at_smr``: the truth at the SMR."""
+    chain = Chain.parse(machine.chain)
+    fitted, _ = deviation(chain, points_mm, np.zeros(3), model)
+    t_mm = machine.smr_offset if at_smr else np.zeros(3)
+    true, _ = deviation(chain, points_mm, t_mm, truth)
+    residual = remove_rigid_motion(points_mm, fitted - true)
+    return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1e3)
+
+
+def tracker_position_mm(machine: Machine) -> np.ndarray:
+    """On the table in the middle of the travel, 300 mm below the lowest tool point."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
+
+
+def tracer_places_mm(machine: Machine) -> list[np.ndarray]:
+    """Four places near the table's corners (10 % in), 150 and 250 mm below the travel."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    inset = 0.1 * (high - low)
+    x = (low[0] + inset[0], high[0] - inset[0])
+    y = (low[1] + inset[1], high[1] - inset[1])
+    z = (low[2] - 150.0, low[2] - 250.0)
+    return [
+        np.array([x[0], y[0], z[0]]),
+        np.array([x[1], y[0], z[1]]),
+        np.array([x[1], y[1], z[0]]),
+        np.array([x[0], y[1], z[1]]),
+    ]
+
+
+def tracker_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TrackerFile, float]:
+    """The tracker's points on the machine and their machine time, s."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    points = grid_and_random_points(low, high, TRACKER_GRID, TRACKER_RANDOM, seed)
+    tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
+    rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
+    seconds = TRACKER_RUNS * _time_s(machine, points)
+    return TrackerFile(rows, "tracker.csv"), seconds
+
+
+def tracer_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TracerFile, float]:
+    """The tracers' lengths from four places and their machine time, s."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    rows = []
+    seconds = 0.0
+    for i, pivot in enumerate(tracer_places_mm(machine)):
+        points = grid_and_random_points(low, high, TRACKER_GRID, TRACER_RANDOM, 10 * seed + i)
+        tracer = VirtualTracer(pivot, seed=10 * seed + i)
+        rows += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")
+        seconds += _time_s(machine, points)
+    return TracerFile(rows, "tracer.csv"), seconds
+
+
+def _time_s(machine: Machine, points: np.ndarray) -> float:
+    start = np.array([machine.travel_min_mm[0], machine.travel_min_mm[1], machine.travel_max_mm[2]])
+    return point_list_time_s(
+        points, start, machine.feed_mm_min.rapid, machine.cnc.acceleration_mm_s2
+    )
+
+
+def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
+    chain = Chain.parse(machine.chain)
+    truth = VirtualMachine(machine, seed=seed)
+    travel = grid_points(machine.travel_min_mm, machine.travel_max_mm, GRID)
+    trackers, tracker_s = tracker_file(machine, truth, seed)
+    tracers, tracer_s = tracer_file(machine, truth, seed)
+    tracker_only = post_stations(machine, [], instruments=Instruments(trackers=(trackers,)))
+    tracer_only = post_stations(machine, [], instruments=Instruments(tracers=(tracers,)))
+
+    rng = np.random.default_rng(1000 + seed)
+    noise = SetupDisturbance(noise=tuple(InterferometerNoise().sigmas()))
+    plan = station_plans(machine, 1)[0]
+    stations = [Station(plan, measure(plan, chain, truth, rng, setup=noise), "station1.csv")]
+    alone = post_stations(machine, stations)
+    started = time.perf_counter()
+    joint = post_stations(machine, stations, instruments=Instruments(trackers=(trackers,)))
+    post_s = time.perf_counter() - started
+    strokes = grid_points(*_strokes(plan), GRID)
+
+    def rms(result, points: np.ndarray, at_smr: bool = False) -> float:
+        return volumetric_um(machine, points, result.fit.tables.model(""), truth, at_smr)
+
+    figures = Figures(
+        chain=machine.chain,
+        seed=seed,
+        tracker_um=rms(tracker_only, travel, at_smr=True),
+        tracers_um=rms(tracer_only, travel, at_smr=True),
+        xm60_strokes_um=rms(alone, strokes),
+        xm60_travel_um=rms(alone, travel),
+        joint_strokes_um=rms(joint, strokes),
+        joint_travel_um=rms(joint, travel),
+        post_s=post_s,
+    )
+    minutes = {
+        "tracker": tracker_s / 60,
+        "tracers": tracer_s / 60,
+        "xm60": estimate_machine_time(plan, machine).total_s / 60,
+    }
+    return figures, minutes
+
+
+def run(seeds: int) -> list[Figures]:
+    reference = load_machine(default_machine_path()).model_copy(
+        update={"smr_offset_mm": list(SMR_OFFSET_MM)}
+    )
+    results = []
+    print(
+        "chain  seed  tracker_um  tracers_um  xm60 strokes/travel_um"
+        "  xm60+tracker strokes/travel_um  ratio  post_s"
+    )
+    minutes: dict[str, float] = {}
+    for chain in CHAINS:
+        machine = reference.model_copy(update={"chain": chain})
+        for seed in range(seeds):
+            f, minutes = evaluate(machine, seed)
+            results.append(f)
+            print(
+                f"{f.chain}  {f.seed:4d}  {f.tracker_um:10.2f}  {f.tracers_um:10.2f}"
+                f"  {f.xm60_strokes_um:10.2f} / {f.xm60_travel_um:5.2f}"
+                f"  {f.joint_strokes_um:18.2f} / {f.joint_travel_um:5.2f}"
+                f"  {f.joint_travel_um / f.xm60_travel_um:5.2f}  {f.post_s:6.1f}"
+            )
+    print(
+        "machine time (min): "
+        + ", ".join(f"{name} {value:.0f}" for name, value in minutes.items())
+        + " (XM-60: one station, six lines, without setting the units)"
+    )
+    _summary(results)
+    return results
+
+
+def _summary(results: list[Figures]) -> None:
+    tracker = [f.tracker_um for f in results]
+    tracers = [f.tracers_um for f in results]
+    ratio = [f.joint_travel_um / f.xm60_travel_um for f in results]
+    strokes = [f.joint_strokes_um - f.xm60_strokes_um for f in results]
+    print(
+        f"tracker alone: mean {np.mean(tracker):.2f}, worst {max(tracker):.2f} um"
+        f" (target about {TRACKER_TARGET_UM})"
+    )
+    print(
+        f"tracers alone: mean {np.mean(tracers):.2f}, worst {max(tracers):.2f} um"
+        f" (target {TRACER_TARGET_UM})"
+    )
+    print(
+        f"XM-60 + tracker over the travel: ratio to XM-60 alone mean {np.mean(ratio):.2f},"
+        f" worst {max(ratio):.2f} (target {TRAVEL_RATIO_TARGET}); over the strokes worse by at"
+        f" most {max(strokes):+.2f} um (target {STROKES_MARGIN_UM})"
+    )
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=5)
+    run(parser.parse_args().seeds)
