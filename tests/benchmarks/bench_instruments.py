@@ -20,8 +20,10 @@ from the truth after removing a rigid motion, 8 x 8 x 8 grid over the whole
 travel (and over the interferometer's strokes for the XM-60 rows). Without
 interferometer lines the tables are those of the SMR as the functional point
 (docs/post.md), so tracker and tracer rows compare with the truth at the SMR.
-Machine time: moves at the rapid feed from rest to rest plus 3 s per point
-(:func:`trajectories.instruments.point_list_time_s`), the XM-60 program's own
+Machine time: the points in nearest-neighbour order
+(:func:`trajectories.instruments.visiting_order`), moves at the rapid feed from
+rest to rest plus 3 s per point (:func:`trajectories.instruments.point_list_time_s`),
+the XM-60 program's own
 estimate (:func:`trajectories.gcode.program.estimate_machine_time`).
 
 Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_instruments.py [--seeds 5]``.
@@ -50,7 +52,11 @@ from sim.synthetic import SetupDisturbance, measure  # noqa: E402
 from sim.tracer import VirtualTracer, measure_tracer  # noqa: E402
 from sim.tracker import VirtualTracker, measure_tracker  # noqa: E402
 from trajectories.gcode.program import estimate_machine_time  # noqa: E402
-from trajectories.instruments import grid_and_random_points, point_list_time_s  # noqa: E402
+from trajectories.instruments import (  # noqa: E402
+    grid_and_random_points,
+    point_list_time_s,
+    visiting_order,
+)
 from xmalign.formats.instruments import TracerFile, TrackerFile  # noqa: E402
 from xmalign.machine import Machine, default_machine_path, load_machine  # noqa: E402
 from xmalign.post.compare import grid_points, remove_rigid_motion  # noqa: E402
@@ -119,7 +125,9 @@ def tracer_places_mm(machine: Machine) -> list[np.ndarray]:
 def tracker_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TrackerFile, float]:
     """The tracker's points on the machine and their machine time, s."""
     low, high = machine.travel_min_mm, machine.travel_max_mm
-    points = grid_and_random_points(low, high, TRACKER_GRID, TRACKER_RANDOM, seed)
+    points = visiting_order(
+        grid_and_random_points(low, high, TRACKER_GRID, TRACKER_RANDOM, seed), _start_mm(machine)
+    )
     tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
     rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
     seconds = TRACKER_RUNS * _time_s(machine, points)
@@ -132,17 +140,24 @@ def tracer_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[Tra
     rows = []
     seconds = 0.0
     for i, pivot in enumerate(tracer_places_mm(machine)):
-        points = grid_and_random_points(low, high, TRACKER_GRID, TRACER_RANDOM, 10 * seed + i)
+        points = visiting_order(
+            grid_and_random_points(low, high, TRACKER_GRID, TRACER_RANDOM, 10 * seed + i),
+            _start_mm(machine),
+        )
         tracer = VirtualTracer(pivot, seed=10 * seed + i)
         rows += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")
         seconds += _time_s(machine, points)
     return TracerFile(rows, "tracer.csv"), seconds
 
 
+def _start_mm(machine: Machine) -> np.ndarray:
+    """Where the program starts: the top of Z above the X and Y minimum (as ``program``)."""
+    return np.array([machine.travel_min_mm[0], machine.travel_min_mm[1], machine.travel_max_mm[2]])
+
+
 def _time_s(machine: Machine, points: np.ndarray) -> float:
-    start = np.array([machine.travel_min_mm[0], machine.travel_min_mm[1], machine.travel_max_mm[2]])
     return point_list_time_s(
-        points, start, machine.feed_mm_min.rapid, machine.cnc.acceleration_mm_s2
+        points, _start_mm(machine), machine.feed_mm_min.rapid, machine.cnc.acceleration_mm_s2
     )
 
 

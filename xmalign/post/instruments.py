@@ -89,6 +89,8 @@ MIN_TRACER_PLACES = 4
 _TRACKER_SETUP = 6
 #: Standard deviation of the pseudo-observations that continue a table linearly, rad.
 _CONSTRAINT_SIGMA_RAD = 1e-9
+#: An instrument's scatter this much above its model re-weights the fit.
+_FACTOR_TOLERANCE = 0.05
 
 
 @dataclass(frozen=True)
@@ -210,11 +212,15 @@ class TrackerStationFit:
     position_u95_mm: Vec
     residual_rms_um: float
     covered_mm: tuple[Vec, Vec]
+    scatter_factor: float = 1.0
 
 
 @dataclass
 class TracerPlaceFit:
-    """A tracer place's self-calibrated pivot (MCS) and constants per run, with u95 (k = 2)."""
+    """A tracer place's self-calibrated pivot (MCS) and constants per run, with u95 (k = 2).
+
+    ``scatter_factor`` as for :class:`TrackerStationFit`.
+    """
 
     label: str
     source: str
@@ -225,6 +231,7 @@ class TracerPlaceFit:
     constant_u95_mm: dict[int, float]
     residual_rms_um: float
     covered_mm: tuple[Vec, Vec]
+    scatter_factor: float = 1.0
 
 
 @dataclass
@@ -488,6 +495,7 @@ class _TrackerState:
         self, station: TrackerStation, smr_mm: Vec, arm_mm: Vec, first_column: int
     ) -> None:
         self.station = station
+        self.noise_factor = 1.0
         self.smr_mm = smr_mm
         self.arm_mm = arm_mm
         self.column = first_column
@@ -535,7 +543,7 @@ class _TrackerState:
         table_design = scipy.sparse.hstack(
             [design_dp, scipy.sparse.csr_matrix((3 * n, n_columns - layout.n_columns))]
         ).tocsr()
-        whitening = self._whitening(uncertainty, direction, fly)
+        whitening = self._whitening(uncertainty, direction, fly) / self.noise_factor
         return _Block(
             design=(table_design + pose_design).tocsr(),
             observed=(measured - nominal).ravel(),
@@ -588,6 +596,7 @@ def _inverse_sqrt(covariance: Vec) -> Vec:
 class _TracerState:
     def __init__(self, place: TracerPlace, smr_mm: Vec, arm_mm: Vec, first_column: int) -> None:
         self.place = place
+        self.noise_factor = 1.0
         self.smr_mm = smr_mm
         self.arm_mm = arm_mm
         self.column = first_column
@@ -648,7 +657,7 @@ class _TracerState:
         return _Block(
             design=(tables_part + setup_part).tocsr(),
             observed=p.length_mm - distance + np.sum(beam * dp0, axis=1),
-            whitening=scipy.sparse.diags(1.0 / sigma).tocsr(),
+            whitening=scipy.sparse.diags(1.0 / (sigma * self.noise_factor)).tocsr(),
             ratio=np.ones(n),
         )
 
@@ -810,41 +819,42 @@ def fit_joint(
     if lines:
         extrapolated = _extrapolation_block(layout, line_knots, unseen_rotations(chain), n_columns)
         fixed_blocks += [extrapolated] if extrapolated is not None else []
-    tables = np.zeros(n_columns)
-    converged = False
-    iterations = 0
-    for iteration in range(1, _MAX_ITERATIONS + 1):
-        iterations = iteration
-        blocks = list(fixed_blocks)
-        blocks += [
-            s.linearise(chain, layout, tables, n_columns, tracker_uncertainty)
-            for s in tracker_states
-        ]
-        blocks += [
-            t.linearise(chain, layout, tables, n_columns, tracer_uncertainty) for t in tracer_states
-        ]
-        solved = _solve(blocks, describe)
-        step = max(
-            [s.update(solved.solution) for s in tracker_states]
-            + [t.update(solved.solution) for t in tracer_states]
-            + [0.0]
-        )
-        table_step = float(
-            np.max(
-                np.abs(solved.solution[: layout.n_columns] - tables[: layout.n_columns]),
-                initial=0.0,
-            )
-        )
-        tables = solved.solution
-        if step < _STEP_TOLERANCE_MM and table_step < _STEP_TOLERANCE_MM:
-            converged = True
-            break
+    instruments = [*tracker_states, *tracer_states]
+
+    def iterate(tables: Vec) -> tuple[list[_Block], _Solved, int, bool]:
+        """Gauss-Newton until no pose, pivot or table value moves any more."""
+        for iteration in range(1, _MAX_ITERATIONS + 1):
+            blocks = list(fixed_blocks)
+            blocks += [
+                s.linearise(chain, layout, tables, n_columns, tracker_uncertainty)
+                for s in tracker_states
+            ]
+            blocks += [
+                t.linearise(chain, layout, tables, n_columns, tracer_uncertainty)
+                for t in tracer_states
+            ]
+            solved = _solve(blocks, describe)
+            step = max([state.update(solved.solution) for state in instruments] + [0.0])
+            table_step = float(np.max(np.abs(solved.solution - tables)[: layout.n_columns]))
+            tables = solved.solution
+            if step < _STEP_TOLERANCE_MM and table_step < _STEP_TOLERANCE_MM:
+                return blocks, solved, iteration, True
+        return blocks, solved, _MAX_ITERATIONS, False
+
+    blocks, solved, iterations, converged = iterate(np.zeros(n_columns))
+    n_rows = sum(len(b.ratio) for b in blocks)
+    sigma0 = float(
+        np.sqrt(solved.residual_weighted @ solved.residual_weighted / max(n_rows - n_columns, 1))
+    )
+    factors = _noise_factors(blocks[len(fixed_blocks) :], solved)
+    if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
+        for state, factor in zip(instruments, factors, strict=True):
+            state.noise_factor = factor
+        blocks, solved, more, converged = iterate(solved.solution)
+        iterations += more
     ratio = np.concatenate([b.ratio for b in blocks])
     middle = (solved.scaled.T @ scipy.sparse.diags(ratio) @ solved.scaled).toarray()
     covariance = solved.inverse @ middle @ solved.inverse / np.outer(solved.norms, solved.norms)
-    n_rows = len(ratio)
-    dof = max(n_rows - n_columns, 1)
-    sigma0 = float(np.sqrt(solved.residual_weighted @ solved.residual_weighted / dof))
     raw = _raw_residuals(blocks, solved.solution)
     table_set = _tables(layout, solved.solution, covariance, travel_mm)
     for name in undetermined:
@@ -912,6 +922,29 @@ def _line_block(
     )
 
 
+def _noise_factors(blocks: list[_Block], solved: _Solved) -> Vec:
+    """Per instrument block, its scatter over its uncertainty model (type A), at least 1.
+
+    Each block's weighted residuals over its redundancy (the sum of ``1 - h_ii``
+    of its rows, ``h`` the hat matrix), as the lines' channels get in
+    :func:`xmalign.post.solve.fit_error_tables`; kept at 1 or above, so the u95
+    never claims better than the instrument's own uncertainty (the machine's
+    repeatability, for one, adds to every reading).
+    """
+    leverage = np.asarray(
+        (solved.scaled @ solved.inverse * solved.scaled.toarray()).sum(axis=1)
+    ).ravel()
+    end = len(solved.residual_weighted)
+    starts = end - np.cumsum([len(b.ratio) for b in reversed(blocks)])[::-1]
+    factors = []
+    for start, block in zip(starts, blocks, strict=True):
+        rows = slice(start, start + len(block.ratio))
+        redundancy = max(float(np.sum(1.0 - leverage[rows])), 1.0)
+        squares = float(np.sum(solved.residual_weighted[rows] ** 2))
+        factors.append(max(1.0, np.sqrt(squares / redundancy)))
+    return np.array(factors)
+
+
 def _raw_residuals(blocks: list[_Block], solution: Vec) -> list[Vec]:
     return [b.observed - b.design @ solution for b in blocks]
 
@@ -938,6 +971,7 @@ def _tracker_fit(state: _TrackerState, residual: Vec, covariance: Vec) -> Tracke
         position_u95_mm=_u95(jacobian @ block @ jacobian.T),
         residual_rms_um=float(np.sqrt(np.mean(squares)) * 1e3),
         covered_mm=_covered(np.concatenate([s.machine_mm, s.to_mm[~still]])),
+        scatter_factor=state.noise_factor,
     )
 
 
@@ -955,6 +989,7 @@ def _tracer_fit(state: _TracerState, residual: Vec, covariance: Vec) -> TracerPl
         constant_u95_mm={r: float(u) for r, u in zip(state.runs, u95[3:], strict=True)},
         residual_rms_um=float(np.sqrt(np.mean(residual**2)) * 1e3),
         covered_mm=_covered(p.machine_mm),
+        scatter_factor=state.noise_factor,
     )
 
 
