@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.table import Table as RichTable
-
 from xmalign.errors import InputError
 from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
+from xmalign.geometry import Vec
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import JointFit, describe_undetermined
 
@@ -40,39 +39,38 @@ def check_inputs(
         raise InputError("post: --verify-data needs --verify-plan when no --plan is given")
 
 
-def _triple(values, digits: int = 3) -> str:
+def _triple(values: Vec, digits: int = 3) -> str:
     return ", ".join(f"{v:.{digits}f}" for v in values)
 
 
-def instruments_table(joint: JointFit) -> RichTable:
-    """Each tracker station's pose and each tracer place's pivot and constants, with u95."""
-    table = RichTable(title="Instruments (setup with U95, k = 2; residual RMS)")
-    table.add_column("instrument")
-    table.add_column("setup")
-    table.add_column("U95", justify="right")
-    table.add_column("residual um (scatter / model)", justify="right")
-    table.add_column("covered X/Y/Z mm")
+def _covered(covered_mm: tuple[Vec, Vec]) -> str:
+    spans = (f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("XYZ", *covered_mm, strict=True))
+    return "covered " + ", ".join(spans) + " mm"
+
+
+def instrument_lines(joint: JointFit) -> list[str]:
+    """One line per tracker station (pose) and tracer place (pivot, constants), with U95."""
+    lines = []
     for s in joint.trackers:
-        covered = " / ".join(f"{lo:.0f}..{hi:.0f}" for lo, hi in zip(*s.covered_mm, strict=True))
-        table.add_row(
-            f"tracker {s.label} ({s.n_points} points)",
-            f"origin {_triple(s.position_mm)} mm\nrotation {_triple(s.rotation_urad, 0)} urad",
-            f"{_triple(s.position_u95_mm)}\n{_triple(s.rotation_u95_urad, 1)}",
-            f"{s.residual_rms_um:.2f} ({s.scatter_factor:.2f})",
-            covered,
+        lines.append(
+            f"tracker {s.label} ({s.n_points} points, {s.source}): origin"
+            f" {_triple(s.position_mm)} mm (U95 {_triple(s.position_u95_mm)}), rotation"
+            f" {_triple(s.rotation_urad, 0)} urad (U95 {_triple(s.rotation_u95_urad, 1)});"
+            f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f});"
+            f" {_covered(s.covered_mm)}"
         )
     for p in joint.tracers:
-        covered = " / ".join(f"{lo:.0f}..{hi:.0f}" for lo, hi in zip(*p.covered_mm, strict=True))
-        constants = ", ".join(f"run {r}: {k:.4f}" for r, k in p.constant_mm.items())
-        u95 = ", ".join(f"{u:.4f}" for u in p.constant_u95_mm.values())
-        table.add_row(
-            f"tracer {p.label} ({p.n_lengths} lengths)",
-            f"pivot {_triple(p.pivot_mm, 4)} mm\nconstant {constants} mm",
-            f"{_triple(p.pivot_u95_mm, 4)}\n{u95}",
-            f"{p.residual_rms_um:.3f} ({p.scatter_factor:.2f})",
-            covered,
+        constants = ", ".join(
+            f"run {run} {k:.4f} (U95 {p.constant_u95_mm[run]:.4f})"
+            for run, k in p.constant_mm.items()
         )
-    return table
+        lines.append(
+            f"tracer {p.label} ({p.n_lengths} lengths, {p.source}): pivot"
+            f" {_triple(p.pivot_mm, 4)} mm (U95 {_triple(p.pivot_u95_mm, 4)}), constant"
+            f" {constants} mm; residual {p.residual_rms_um:.3f} um RMS (scatter / model"
+            f" {p.scatter_factor:.2f}); {_covered(p.covered_mm)}"
+        )
+    return lines
 
 
 def instrument_notes(joint: JointFit) -> list[str]:

@@ -22,8 +22,8 @@ from xmalign.cli.common import (
 from xmalign.cli.instruments import (
     check_inputs,
     count_readings,
+    instrument_lines,
     instrument_notes,
-    instruments_table,
     read_instruments,
 )
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
@@ -183,9 +183,8 @@ def post(
         readings = read_instruments(tracker, tracer)
         points = sum(len(station.rows) for station in stations)
         extra = count_readings(readings)
-        progress.update(
-            task, description=f"fitting {points} points" + (f", {extra}" if extra else "")
-        )
+        fitting = ([f"{points} points"] if stations else []) + ([extra] if extra else [])
+        progress.update(task, description=f"fitting {', '.join(fitting)}")
         result = post_stations(machine_, stations, instruments=readings)
         verification = None
         if verify_data is not None:
@@ -210,8 +209,7 @@ def post(
             write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
     if result.instruments is not None:
-        console.print(instruments_table(result.instruments))
-        for note in instrument_notes(result.instruments):
+        for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
             console.print(note, markup=False, soft_wrap=True)
     if verification is not None:
         console.print(_as_left(machine_, result, verification))

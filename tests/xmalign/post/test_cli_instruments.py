@@ -1,0 +1,112 @@
+"""``xmalign post --tracker/--tracer`` end to end, and what it refuses (one line, nothing written).
+
+examples/tracker.csv and examples/tracer.csv were written by the simulator
+(sim.tracker, sim.tracer) measuring the reference machine.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim.machine import VirtualMachine
+from sim.synthetic import measure, six_line_plan
+from sim.tracker import VirtualTracker, measure_tracker
+from tests.cli_helpers import assert_one_line_error, run_in_process
+from trajectories.instruments import grid_and_random_points
+from xmalign.formats.error_tables import read_error_tables
+from xmalign.formats.instruments import (
+    read_tracer_lengths,
+    write_tracer_lengths,
+    write_tracker_points,
+)
+from xmalign.formats.measurements import write_measurements
+from xmalign.formats.plan import write_plan
+from xmalign.rigid_body import Chain
+
+EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
+
+
+def test_post_with_a_tracker_alone_writes_tables_and_shows_the_station(tmp_path: Path) -> None:
+    out = tmp_path / "errors.csv"
+    result = run_in_process("post", "--tracker", str(EXAMPLES / "tracker.csv"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    tables = read_error_tables(out)
+    assert {"EXX", "EYY", "EZZ", "ECZ"} <= set(tables.tables)
+    assert np.all(np.isnan(tables.tables["ECZ"].u95))
+    assert "tracker T1 (500 points" in result.stdout
+    assert "the tables are those of the SMR" in result.stdout
+
+
+def test_post_with_tracers_alone_self_calibrates_four_places(tmp_path: Path) -> None:
+    out = tmp_path / "errors.csv"
+    result = run_in_process("post", "--tracer", str(EXAMPLES / "tracer.csv"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    for place in ("P1", "P2", "P3", "P4"):
+        assert f"tracer {place}" in result.stdout
+    assert out.exists()
+
+
+def test_post_fits_lines_and_tracker_points_together(
+    tmp_path: Path, reference_machine, reference_machine_path
+) -> None:
+    chain = Chain.parse(reference_machine.chain)
+    truth = VirtualMachine(reference_machine, seed=2)
+    plan = six_line_plan(reference_machine, 10, runs=1, bidirectional=False)
+    write_plan(tmp_path / "plan.json", plan)
+    write_measurements(tmp_path / "m.csv", measure(plan, chain, truth, np.random.default_rng(2)))
+    points = grid_and_random_points(
+        reference_machine.travel_min_mm, reference_machine.travel_max_mm, (4, 4, 3), 60, 2
+    )
+    tracker = VirtualTracker(np.array([1000.0, 750, -800]), np.array([0.0, 0, 45]), seed=2)
+    write_tracker_points(
+        tmp_path / "t.csv", measure_tracker(truth, tracker, points, 1, reference_machine.smr_offset)
+    )
+    out = tmp_path / "errors.csv"
+    result = run_in_process(
+        "post",
+        "--machine", str(reference_machine_path),
+        "--plan", str(tmp_path / "plan.json"),
+        "--data", str(tmp_path / "m.csv"),
+        "--tracker", str(tmp_path / "t.csv"),
+        "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    tables = read_error_tables(out)
+    assert np.all(np.isfinite(tables.tables["ECZ"].u95))  # the lines see every rotation
+    assert "tracker T1 (108 points" in result.stdout
+
+
+def test_a_damaged_tracker_file_is_one_line_and_nothing_is_written(tmp_path: Path) -> None:
+    bad = tmp_path / "t.csv"
+    lines = (EXAMPLES / "tracker.csv").read_text().splitlines()
+    lines[10] = lines[10].replace(",", ",x", 1)
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "errors.csv"
+    result = run_in_process("post", "--tracker", str(bad), "--out", str(out))
+    assert_one_line_error(result, str(bad), "line 11", "run")
+    assert not out.exists()
+
+
+def test_too_few_tracer_places_are_one_line_and_nothing_is_written(tmp_path: Path) -> None:
+    tracer = read_tracer_lengths(EXAMPLES / "tracer.csv")
+    three = tmp_path / "three.csv"
+    write_tracer_lengths(three, [r for r in tracer.lengths if r.station != "P4"])
+    out = tmp_path / "errors.csv"
+    result = run_in_process("post", "--tracer", str(three), "--out", str(out))
+    assert_one_line_error(result, "tracer: 3 places cannot place the points")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        ((), "post: nothing to fit"),
+        (("--verify-data", "v.csv", "--tracker", "t.csv"), "--verify-data needs --verify-plan"),
+    ],
+)
+def test_post_without_anything_to_fit_says_so(tmp_path: Path, argv, fragment: str) -> None:
+    result = run_in_process("post", "--out", str(tmp_path / "e.csv"), *argv)
+    assert_one_line_error(result, fragment)
