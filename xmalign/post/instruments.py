@@ -48,6 +48,7 @@ import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from xmalign.errors import GeometryError, InputError
+from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec, skew
 from xmalign.machine import TracerUncertainty, TrackerUncertainty
@@ -65,6 +66,7 @@ from xmalign.post.solve import (
     compensation_points,
     error_names,
     fit_error_tables,
+    rms_curvature,
     spline_basis,
 )
 from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
@@ -89,6 +91,9 @@ MIN_TRACER_PLACES = 4
 _TRACKER_SETUP = 6
 #: Standard deviation of the pseudo-observations that continue a table linearly, rad.
 _CONSTRAINT_SIGMA_RAD = 1e-9
+#: The continuation prior is never taken as better than this (mm, rad).
+_PRIOR_FLOOR_MM = 1e-5
+_PRIOR_FLOOR_RAD = 1e-8
 #: An instrument's scatter this much above its model re-weights the fit.
 _FACTOR_TOLERANCE = 0.05
 
@@ -337,45 +342,57 @@ def _reversal_within(layout: ParameterLayout, line_knots: dict[str, Vec]) -> Par
     return _renumbered(layout, columns)
 
 
-def _extrapolation_block(
-    layout: ParameterLayout, line_knots: dict[str, Vec], names: list[str], n_columns: int
+def _continuation_block(
+    layout: ParameterLayout,
+    line_knots: dict[str, Vec],
+    line_tables: ErrorTableSet,
+    unseen: list[str],
+    n_columns: int,
 ) -> _Block | None:
-    """Pseudo-observations that continue the named tables linearly beyond the lines' knots.
+    """Prior rows: beyond the lines' knots every table continues the lines' end segment.
 
-    A tracker point or a tracer length cannot see these rotations (their lever
-    arm never changes), so beyond the lines they would trade with the
-    translations; the lines-only fit extrapolates them linearly, and so does this.
+    The lines-only fit extrapolates a table linearly from its last two knots, with
+    the standard uncertainty ``kappa * d**2 / 2`` (``kappa`` the table's RMS
+    curvature over the lines' knots, ``d`` the distance from the last one;
+    docs/post.md). The same continuation, with that uncertainty, enters the joint
+    fit as a pseudo-observation of each knot beyond the lines: where the
+    instruments measure better than the extrapolation can be trusted they decide,
+    where they are noisier it does. The rotations a point cannot see
+    (:func:`unseen_rotations`) are held to the continuation outright.
     """
     rows = Triplets()
-    n = 0
-    for name in names:
-        axis = name[2]
-        knots, columns = (
-            layout.knots[axis],
-            layout.column[axis]["mean"][error_names(axis).index(name)],
-        )
-        first = int(np.searchsorted(knots, line_knots[axis][0] - 1e-6))
-        last = int(np.searchsorted(knots, line_knots[axis][-1] + 1e-6)) - 1
-        outward = [(j, j + 1, j + 2) for j in range(first - 1, -1, -1)]
-        outward += [(j, j - 1, j - 2) for j in range(last + 1, len(knots))]
-        for j, a, b in outward:
-            ratio = (knots[j] - knots[a]) / (knots[a] - knots[b])
-            for column, value in (
-                (columns[j], 1.0),
-                (columns[a], -1.0 - ratio),
-                (columns[b], ratio),
-            ):
-                if column >= 0:
-                    rows.add(np.array([n]), int(column), value)
-            n += 1
-    if n == 0:
+    sigma: list[float] = []
+    for axis in AXES:
+        knots, inner = layout.knots[axis], line_knots[axis]
+        first = int(np.searchsorted(knots, inner[0] - 1e-6))
+        last = int(np.searchsorted(knots, inner[-1] + 1e-6)) - 1
+        beyond = [(j, first, first + 1) for j in range(first)]
+        beyond += [(j, last, last - 1) for j in range(last + 1, len(knots))]
+        for error, name in enumerate(error_names(axis)):
+            table = line_tables.tables[name]
+            kappa = rms_curvature(inner, table.positions_mm, table.values) if len(inner) > 2 else 0
+            floor = _PRIOR_FLOOR_MM if error < 3 else _PRIOR_FLOOR_RAD
+            columns = layout.column[axis]["mean"][error]
+            for j, a, b in beyond:
+                ratio = (knots[j] - knots[a]) / (knots[a] - knots[b])
+                row = len(sigma)
+                for column, value in (
+                    (columns[j], 1.0),
+                    (columns[a], -1.0 - ratio),
+                    (columns[b], ratio),
+                ):
+                    if column >= 0:
+                        rows.add(np.array([row]), int(column), value)
+                spread = 0.5 * kappa * (knots[j] - knots[a]) ** 2
+                sigma.append(_CONSTRAINT_SIGMA_RAD if name in unseen else max(spread, floor))
+    if not sigma:
         return None
     r, c, v = rows.arrays()
     return _Block(
-        design=scipy.sparse.csr_matrix((v, (r, c)), shape=(n, n_columns)),
-        observed=np.zeros(n),
-        whitening=scipy.sparse.diags(np.full(n, 1.0 / _CONSTRAINT_SIGMA_RAD)).tocsr(),
-        ratio=np.zeros(n),
+        design=scipy.sparse.csr_matrix((v, (r, c)), shape=(len(sigma), n_columns)),
+        observed=np.zeros(len(sigma)),
+        whitening=scipy.sparse.diags(1.0 / np.array(sigma)).tocsr(),
+        ratio=np.array([0.0 if s == _CONSTRAINT_SIGMA_RAD else 1.0 for s in sigma]),
     )
 
 
@@ -814,11 +831,13 @@ def fit_joint(
                 return f"a constant of tracer place {t.place.label} ({t.place.source})"
         return f"column {c}"
 
-    line_block = _line_block(lines, chain, layout, setup, channel_sigma, n_columns)
+    line_block, line_tables = _line_block(lines, chain, layout, setup, channel_sigma, n_columns)
     fixed_blocks = [line_block] if line_block is not None else []
-    if lines:
-        extrapolated = _extrapolation_block(layout, line_knots, unseen_rotations(chain), n_columns)
-        fixed_blocks += [extrapolated] if extrapolated is not None else []
+    if line_tables is not None:
+        prior = _continuation_block(
+            layout, line_knots, line_tables, unseen_rotations(chain), n_columns
+        )
+        fixed_blocks += [prior] if prior is not None else []
     instruments = [*tracker_states, *tracer_states]
 
     def iterate(tables: Vec) -> tuple[list[_Block], _Solved, int, bool]:
@@ -895,31 +914,34 @@ def _line_block(
     setup: SetupLayout,
     channel_sigma: Vec,
     n_columns: int,
-) -> _Block | None:
+) -> tuple[_Block | None, ErrorTableSet | None]:
     """The lines' rows, weighted with the scatter a lines-only fit estimates (its sigma floor).
 
     The covariance is propagated with the larger of that scatter and the machine
-    file's uncertainty, as :func:`xmalign.post.solve.fit_error_tables` does.
+    file's uncertainty, as :func:`xmalign.post.solve.fit_error_tables` does. Also
+    returns the lines-only tables (None when the lines alone are undetermined).
     """
     if not lines:
-        return None
+        return None, None
     prior = np.asarray(channel_sigma, dtype=float)
     try:
-        sigma = fit_error_tables(lines, chain, prior).channel_scatter
+        alone = fit_error_tables(lines, chain, prior)
+        sigma, tables = alone.channel_scatter, alone.tables
     except (GeometryError, InputError):  # the lines need the instruments to determine them
-        sigma = prior
+        sigma, tables = prior, None
     triplets = Triplets()
     add_line_rows(lines, chain, layout, setup, triplets)
     rows, cols, vals = triplets.arrays()
     n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     design = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, n_columns))
     repeats = n_rows // N_CHANNELS
-    return _Block(
+    block = _Block(
         design=design,
         observed=np.concatenate([d.channels.ravel() for d in lines]),
         whitening=scipy.sparse.diags(np.tile(1.0 / sigma, repeats)).tocsr(),
         ratio=np.tile((np.maximum(prior, sigma) / sigma) ** 2, repeats),
     )
+    return block, tables
 
 
 def _noise_factors(blocks: list[_Block], solved: _Solved) -> Vec:

@@ -583,18 +583,23 @@ def _evaluate(
     return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
+def rms_curvature(knots_mm: Vec, positions_mm: Vec, values: Vec) -> float:
+    """RMS second difference of a table over its knots (M >= 3), value per mm squared."""
+    at_knots = np.interp(knots_mm, positions_mm, values)
+    slopes = np.diff(at_knots) / np.diff(knots_mm)
+    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
+    return float(np.sqrt(np.mean(curvature**2)))
+
+
 def _extrapolation_u(knots_mm: Vec, positions_mm: Vec, values: Vec) -> Vec:
     """Standard uncertainty of the linear continuation beyond the knots, shape (P,).
 
     The table's RMS curvature over the knots, kept up over the distance ``d``
     from the nearest knot: ``kappa * d**2 / 2`` (0 between the knots).
     """
-    at_knots = np.interp(knots_mm, positions_mm, values)
     if len(knots_mm) < 3:
         return np.zeros(len(positions_mm))
-    slopes = np.diff(at_knots) / np.diff(knots_mm)
-    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
-    kappa = float(np.sqrt(np.mean(curvature**2)))
+    kappa = rms_curvature(knots_mm, positions_mm, values)
     distance = np.maximum(knots_mm[0] - positions_mm, 0) + np.maximum(
         positions_mm - knots_mm[-1], 0
     )
