@@ -82,3 +82,38 @@ def measure_tracker(
             for i in range(len(cnc_mm))
         ]
     return points
+
+
+def measure_tracker_on_the_fly(
+    machine: VirtualMachine,
+    tracker: VirtualTracker,
+    paths_mm: list[tuple[Vec, Vec]],
+    spacing_mm: float,
+    smr_offset_mm: Vec,
+    station: str = "T1",
+    run: int = 0,
+    feed_mm_min: float = 2000.0,
+) -> list[TrackerPoint]:
+    """Tracker points taken while the machine moves along straight paths (seed 001).
+
+    The tracker samples every ``spacing_mm`` of travel (its clock, not the
+    CNC's: the rows say where each path starts and ends, not where along it the
+    sample was taken). ``time_s`` counts from the run's start at ``feed_mm_min``.
+    """
+    rows = []
+    clock_s = 0.0
+    for start, end in paths_mm:
+        start, end = np.asarray(start, float), np.asarray(end, float)
+        length = float(np.linalg.norm(end - start))
+        fractions = np.linspace(0.0, 1.0, max(2, int(length / spacing_mm) + 1))
+        cnc = start + np.outer(fractions, end - start)
+        approach = np.tile(np.sign(end - start) + (end == start), (len(cnc), 1))
+        actual, _ = machine.actual_functional_point(cnc, approach, smr_offset_mm)
+        seen = tracker.observe(actual)
+        times = clock_s + fractions * length / (feed_mm_min / 60.0)
+        rows += [
+            TrackerPoint(station, run, None, start, seen[i], end, float(times[i]))
+            for i in range(len(cnc))
+        ]
+        clock_s = float(times[-1])
+    return rows

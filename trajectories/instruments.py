@@ -80,3 +80,64 @@ def point_list_time_s(
     lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
     moving = sum(move_time_s(float(length), feed_mm_min, accel_mm_s2) for length in lengths)
     return moving + dwell_s * len(points_mm)
+
+
+def axis_paths(low_mm: Vec, high_mm: Vec, grid: tuple[int, int, int]) -> list[tuple[Vec, Vec]]:
+    """Straight paths over the whole travel along each axis, at the grid's other coordinates.
+
+    Seed 001's strategy for a tracker on the fly: every axis moves end to end at
+    each grid position of the two others, so its errors are seen across the path
+    at several lever arms, and each path's offset carries the standing axes' errors.
+    Paths alternate in direction (a serpentine), which saves the return moves.
+    """
+    low, high = np.asarray(low_mm, dtype=float), np.asarray(high_mm, dtype=float)
+    ticks = [np.linspace(lo, hi, n) for lo, hi, n in zip(low, high, grid, strict=True)]
+    paths = []
+    for axis in range(3):
+        others = [k for k in range(3) if k != axis]
+        for number, (a, b) in enumerate((a, b) for a in ticks[others[0]] for b in ticks[others[1]]):
+            start, end = np.empty(3), np.empty(3)
+            start[others], end[others] = (a, b), (a, b)
+            start[axis], end[axis] = (low[axis], high[axis])
+            if number % 2:
+                start, end = end, start
+            paths.append((np.round(start, 3), np.round(end, 3)))
+    return paths
+
+
+def paths_time_s(
+    paths_mm: list[tuple[Vec, Vec]],
+    start_mm: Vec,
+    feed_mm_min: float,
+    rapid_mm_min: float,
+    accel_mm_s2: float | None,
+) -> float:
+    """Machine time of the paths at ``feed_mm_min``, with rapid moves between them, s."""
+    here = np.asarray(start_mm, dtype=float)
+    total = 0.0
+    for start, end in paths_mm:
+        total += move_time_s(float(np.linalg.norm(start - here)), rapid_mm_min, accel_mm_s2)
+        total += move_time_s(float(np.linalg.norm(end - start)), feed_mm_min, accel_mm_s2)
+        here = end
+    return total
+
+
+def diagonal_paths(low_mm: Vec, high_mm: Vec, n: int, seed: int = 0) -> list[tuple[Vec, Vec]]:
+    """``n`` straight paths across the box, each from a random point of one face to one of
+    the opposite face (X, Y, Z faces in turn), rounded to 1 um.
+
+    A path oblique to an axis sees that axis's positioning error across it
+    (seed 001: the positioning error is inferred from diagonal paths and paths
+    perpendicular to the axis); axis-parallel paths alone see it only at the
+    coordinates where they stand.
+    """
+    low, high = np.asarray(low_mm, dtype=float), np.asarray(high_mm, dtype=float)
+    rng = np.random.default_rng(seed)
+    paths = []
+    for i in range(n):
+        axis = i % 3
+        start = low + rng.random(3) * (high - low)
+        end = low + rng.random(3) * (high - low)
+        start[axis], end[axis] = (low[axis], high[axis]) if i % 2 == 0 else (high[axis], low[axis])
+        paths.append((np.round(start, 3), np.round(end, 3)))
+    return paths

@@ -84,6 +84,8 @@ _MAX_ITERATIONS = 20
 _RANK_TOLERANCE = 1e-10
 _NULL_TOLERANCE = 1e-9
 _INVOLVED = 1e-4
+#: A path whose direction has this much of an axis is parallel to it.
+_PARALLEL = 1.0 - 1e-6
 #: A tracker point this close to the tracker carries no direction.
 _MIN_DISTANCE_MM = 1.0
 #: Tracer places needed to place a point in space when no other instrument does.
@@ -285,14 +287,53 @@ def _beyond_lines(knots_mm: Vec, reached_mm: Vec, spacing_mm: float) -> Vec:
     return np.concatenate(parts).round(6)
 
 
-def instrument_knots(points_mm: Vec, spacing_mm: float) -> dict[str, Vec]:
-    """Compensation points over the range the instruments measured, at about ``spacing_mm``."""
+def _standing_positions(trackers: list[TrackerStation], tracers: list[TracerPlace]) -> Vec:
+    """Per axis, how many distinct coordinates (1 mm) it stood at while measured, shape (3,).
+
+    A point at a standstill stands every axis; a path on the fly stands the axes
+    it does not move. An axis's positioning error is seen only where it stands,
+    or along a path oblique to it (then everywhere the path sweeps: no limit).
+    """
+    still = [s.machine_mm[~s.on_the_fly] for s in trackers] + [p.machine_mm for p in tracers]
+    points = np.concatenate([np.reshape(p, (-1, 3)) for p in still])
+    counts = np.zeros(3)
+    for k in range(3):
+        standing = [points[:, k]]
+        oblique = False
+        for s in trackers:
+            fly = s.on_the_fly
+            path = s.to_mm[fly] - s.machine_mm[fly]
+            stands = path[:, k] == 0.0
+            standing.append(s.machine_mm[fly][stands, k])
+            length = np.linalg.norm(path, axis=1)
+            oblique |= bool(np.any(~stands & (np.abs(path[:, k]) < _PARALLEL * length)))
+        count = len(np.unique(np.round(np.concatenate(standing))))
+        counts[k] = np.inf if oblique else count
+    return counts
+
+
+def instrument_knots(points_mm: Vec, spacing_mm: float, standing: Vec) -> dict[str, Vec]:
+    """Compensation points over the range the instruments measured, at about ``spacing_mm``.
+
+    Never more points on an axis than the coordinates it stood at (``standing``,
+    (3,)): paths on the fly along a regular grid put the points on the grid.
+
+    Raises
+    ------
+    GeometryError
+        An axis that did not move, or that stood at fewer than three coordinates.
+    """
     knots = {}
-    for axis in AXES:
-        low, high = points_mm[:, AXIS_INDEX[axis]].min(), points_mm[:, AXIS_INDEX[axis]].max()
+    for k, axis in enumerate(AXES):
+        low, high = points_mm[:, k].min(), points_mm[:, k].max()
         if high - low < 1.0:
             raise GeometryError(f"the instruments' points do not move the {axis} axis")
-        n = max(3, int(np.ceil((high - low) / spacing_mm)) + 1)
+        n = int(min(max(3, np.ceil((high - low) / spacing_mm) + 1), standing[k]))
+        if n < 3:
+            raise GeometryError(
+                f"the instruments saw the {axis} axis standing at {int(standing[k])}"
+                f" coordinate(s): its errors need at least 3 (measure paths at more {axis})"
+            )
         knots[axis] = np.linspace(low, high, n).round(6)
     return knots
 
@@ -507,6 +548,30 @@ def _block_diagonal(blocks: Vec) -> scipy.sparse.csr_matrix:
     )
 
 
+def _start_pairs(station: TrackerStation) -> tuple[Vec, Vec]:
+    """Commanded and measured points that roughly correspond, for the closed-form start.
+
+    Points at a standstill as they are. With fewer than three of them, each path
+    on the fly also gives its ends: the first and the last of its rows (the file's
+    order, which is the order of capture) stand at about its start and its end.
+    Gauss-Newton takes it from there.
+    """
+    still = ~station.on_the_fly
+    commanded, measured = [station.machine_mm[still]], [station.tracker_mm[still]]
+    if still.sum() < 3:
+        fly = np.flatnonzero(station.on_the_fly)
+        paths = np.concatenate([station.machine_mm[fly], station.to_mm[fly]], axis=1)
+        _, first, group = np.unique(paths, axis=0, return_index=True, return_inverse=True)
+        for g, start in enumerate(first):
+            rows = fly[np.ravel(group) == g]
+            if len(rows) >= 2:
+                commanded.append(
+                    np.stack([station.machine_mm[fly[start]], station.to_mm[fly[start]]])
+                )
+                measured.append(station.tracker_mm[[rows[0], rows[-1]]])
+    return np.concatenate(commanded), np.concatenate(measured)
+
+
 class _TrackerState:
     def __init__(
         self, station: TrackerStation, smr_mm: Vec, arm_mm: Vec, first_column: int
@@ -516,14 +581,15 @@ class _TrackerState:
         self.smr_mm = smr_mm
         self.arm_mm = arm_mm
         self.column = first_column
-        still = ~station.on_the_fly
-        nominal = station.machine_mm[still] + smr_mm
+        commanded, measured = _start_pairs(station)
+        nominal = commanded + smr_mm
         if len(nominal) < 3 or np.linalg.matrix_rank(nominal - nominal.mean(axis=0), 1e-3) < 2:
             raise GeometryError(
-                f"{station.source}: tracker station {station.label}: {int(still.sum())} points at"
-                " a standstill cannot place the tracker (at least three not on one line)"
+                f"{station.source}: tracker station {station.label}: {len(station.run)} points"
+                " cannot place the tracker (at least three not on one line, or paths on the fly"
+                " that span a plane)"
             )
-        self.rotation, self.offset = rigid_start(nominal, station.tracker_mm[still])
+        self.rotation, self.offset = rigid_start(nominal, measured)
 
     def linearise(
         self,
@@ -560,6 +626,7 @@ class _TrackerState:
         table_design = scipy.sparse.hstack(
             [design_dp, scipy.sparse.csr_matrix((3 * n, n_columns - layout.n_columns))]
         ).tocsr()
+        self.direction = direction  # the path's, in the MCS; 0 for points at a standstill
         whitening = self._whitening(uncertainty, direction, fly) / self.noise_factor
         return _Block(
             design=(table_design + pose_design).tocsr(),
@@ -798,7 +865,11 @@ def fit_joint(
         if knot_spacing_mm is None:
             knot_spacing_mm = TRACER_KNOT_SPACING_MM if tracers else TRACKER_KNOT_SPACING_MM
         layout = _without_tables(
-            ParameterLayout(instrument_knots(reach, knot_spacing_mm), set()), undetermined
+            ParameterLayout(
+                instrument_knots(reach, knot_spacing_mm, _standing_positions(trackers, tracers)),
+                set(),
+            ),
+            undetermined,
         )
         arm_mm = np.zeros(3)
     smr_mm = np.asarray(smr_offset_mm, dtype=float)
@@ -982,7 +1053,9 @@ def _tracker_fit(state: _TrackerState, residual: Vec, covariance: Vec) -> Tracke
     origin = -state.rotation.T @ state.offset  # the tracker's origin in the MCS
     jacobian = np.hstack([skew(origin), -np.eye(3)])
     still = ~s.on_the_fly
-    squares = np.sum(residual.reshape(-1, 3) ** 2, axis=1)
+    vectors = residual.reshape(-1, 3)
+    along = np.sum(vectors * state.direction, axis=1)  # 0 at a standstill
+    squares = np.sum((vectors - along[:, None] * state.direction) ** 2, axis=1)
     return TrackerStationFit(
         label=s.label,
         source=s.source,
