@@ -12,8 +12,8 @@ import pytest
 
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.tracer import VirtualTracer, measure_tracer
-from sim.tracker import VirtualTracker, measure_tracker
-from trajectories.instruments import grid_and_random_points
+from sim.tracker import VirtualTracker, measure_tracker, measure_tracker_on_the_fly
+from trajectories.instruments import axis_paths, diagonal_paths, grid_and_random_points
 from xmalign.errors import GeometryError
 from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.machine import Machine, TracerUncertainty, TrackerUncertainty, default_machine_path
@@ -190,3 +190,31 @@ def test_points_that_do_not_move_an_axis_are_refused(machine: Machine) -> None:
     rows = measure_tracker(truth, _quiet_tracker([1000, 750, -800], [0, 0, 0]), points, 1, SMR)
     with pytest.raises(GeometryError, match="do not move the Z axis"):
         _fit(machine, trackers=[TrackerFile(rows, "t.csv")])
+
+
+def test_a_tracker_only_on_the_fly_needs_no_synchronisation(machine: Machine) -> None:
+    """Seed 001: rows without index, no standstill point; only the deviation across counts."""
+    truth = _truth(machine)
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    paths = axis_paths(low, high, (5, 4, 3)) + diagonal_paths(low, high, 24, seed=1)
+    tracker = _quiet_tracker([1000, 750, -800], [0, 0, 120])
+    rows = measure_tracker_on_the_fly(truth, tracker, paths, 40.0, SMR, feed_mm_min=5000.0)
+    joint = _fit(machine, trackers=[TrackerFile(rows, "fly.csv")])
+    assert joint.converged
+    # no noise: the tables' model error over sparse paths (standstill points: < 1 um)
+    assert _residual_at_smr_um(machine, joint.fit.tables.model(""), truth) < 2.0
+    # the along-path component is not a residual: only the deviation across counts
+    assert joint.trackers[0].residual_rms_um < 1.0
+    np.testing.assert_allclose(joint.trackers[0].position_mm, [1000, 750, -800], atol=0.05)
+
+
+def test_axis_paths_alone_put_the_knots_where_the_axes_stood(machine: Machine) -> None:
+    truth = _truth(machine)
+    paths = axis_paths(machine.travel_min_mm, machine.travel_max_mm, (5, 4, 3))
+    rows = measure_tracker_on_the_fly(
+        truth, _quiet_tracker([1000, 750, -800], [0, 0, 0]), paths, 100.0, SMR
+    )
+    joint = _fit(machine, trackers=[TrackerFile(rows, "fly.csv")])
+    measured = joint.fit.tables.tables["EXX"]
+    knots = measured.positions_mm[::4]
+    np.testing.assert_allclose(knots, [0, 500, 1000, 1500, 2000])
