@@ -1,17 +1,29 @@
-"""Point sets for a laser tracker or tracer: a regular grid plus random points (seed 000).
+"""Programs for a laser tracker or tracer: points, paths on the fly, tracer places.
 
-Seed 000 measures a grid of stationary points on the edges of the working
-volume and homogeneously distributed random points inside it; the random
-points separate the errors of one axis from those of the others at positions
-the grid does not combine.
+- Seed 000 measures a grid of stationary points and homogeneously distributed
+  random points over the whole working volume; the random points separate the
+  errors of one axis from those of the others at positions the grid does not
+  combine (:func:`grid_and_random_points`).
+- Seed 001 measures on the fly along straight paths: along every axis at the
+  grid's coordinates of the others, and diagonal paths, which see the
+  positioning errors across them (:func:`axis_paths`, :func:`diagonal_paths`).
+- Seed 004 measures the same points from several tracer places around the
+  volume (:func:`tracer_places`).
+
+:func:`write_instrument_program` writes the G-code (every dialect, machine
+coordinates) and adds up its machine time as it goes.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from trajectories.gcode.machine_time import move_time_s
+from trajectories.gcode.base import Dialect
+from trajectories.gcode.machine_time import MachineTime, MachineTimer
 from xmalign.geometry import Vec
+from xmalign.machine import Machine
 
 
 def grid_and_random_points(
@@ -60,28 +72,6 @@ def visiting_order(points_mm: Vec, start_mm: Vec) -> Vec:
     return remaining[order]
 
 
-#: Dwell at each point for a tracker or tracer reading (seed 000: 3 s), s.
-POINT_DWELL_S = 3.0
-
-
-def point_list_time_s(
-    points_mm: Vec,
-    start_mm: Vec,
-    feed_mm_min: float,
-    accel_mm_s2: float | None,
-    dwell_s: float = POINT_DWELL_S,
-) -> float:
-    """Machine time to visit the points in order and dwell at each, s.
-
-    Every move runs from rest to rest on a straight path at ``feed_mm_min``
-    (:func:`trajectories.gcode.machine_time.move_time_s`).
-    """
-    path = np.vstack([np.asarray(start_mm, dtype=float), np.asarray(points_mm, dtype=float)])
-    lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    moving = sum(move_time_s(float(length), feed_mm_min, accel_mm_s2) for length in lengths)
-    return moving + dwell_s * len(points_mm)
-
-
 def axis_paths(low_mm: Vec, high_mm: Vec, grid: tuple[int, int, int]) -> list[tuple[Vec, Vec]]:
     """Straight paths over the whole travel along each axis, at the grid's other coordinates.
 
@@ -105,23 +95,6 @@ def axis_paths(low_mm: Vec, high_mm: Vec, grid: tuple[int, int, int]) -> list[tu
     return paths
 
 
-def paths_time_s(
-    paths_mm: list[tuple[Vec, Vec]],
-    start_mm: Vec,
-    feed_mm_min: float,
-    rapid_mm_min: float,
-    accel_mm_s2: float | None,
-) -> float:
-    """Machine time of the paths at ``feed_mm_min``, with rapid moves between them, s."""
-    here = np.asarray(start_mm, dtype=float)
-    total = 0.0
-    for start, end in paths_mm:
-        total += move_time_s(float(np.linalg.norm(start - here)), rapid_mm_min, accel_mm_s2)
-        total += move_time_s(float(np.linalg.norm(end - start)), feed_mm_min, accel_mm_s2)
-        here = end
-    return total
-
-
 def diagonal_paths(low_mm: Vec, high_mm: Vec, n: int, seed: int = 0) -> list[tuple[Vec, Vec]]:
     """``n`` straight paths across the box, each from a random point of one face to one of
     the opposite face (X, Y, Z faces in turn), rounded to 1 um.
@@ -141,3 +114,127 @@ def diagonal_paths(low_mm: Vec, high_mm: Vec, n: int, seed: int = 0) -> list[tup
         start[axis], end[axis] = (low[axis], high[axis]) if i % 2 == 0 else (high[axis], low[axis])
         paths.append((np.round(start, 3), np.round(end, 3)))
     return paths
+
+
+#: Dwell at each point for a tracker or tracer reading (seed 000: 3 s), s.
+POINT_DWELL_S = 3.0
+#: Seed 000's strategy: a 5 x 4 x 3 grid over the travel and 190 random points.
+TRACKER_GRID = (5, 4, 3)
+TRACKER_RANDOM = 190
+#: Per tracer place: the grid and 380 random points (about 440, seed 004's density).
+TRACER_RANDOM = 380
+#: On the fly: diagonal paths besides the axis paths, and the feed (seed 001: 2500-15000).
+FLY_DIAGONALS = 24
+FLY_FEED_MM_MIN = 5000.0
+
+
+def program_start_mm(machine: Machine) -> Vec:
+    """Where a program starts: the top of Z above the X and Y minimum (as ``program``)."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    return np.array([low[0], low[1], high[2]])
+
+
+def tracker_points(machine: Machine, seed: int = 0) -> Vec:
+    """Seed 000's points over the whole travel, in nearest-neighbour order, (250, 3)."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    points = grid_and_random_points(low, high, TRACKER_GRID, TRACKER_RANDOM, seed)
+    return visiting_order(points, program_start_mm(machine))
+
+
+def tracer_points(machine: Machine, seed: int = 0) -> Vec:
+    """The points one tracer place measures, in nearest-neighbour order, (440, 3)."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    points = grid_and_random_points(low, high, TRACKER_GRID, TRACER_RANDOM, seed)
+    return visiting_order(points, program_start_mm(machine))
+
+
+def fly_paths(machine: Machine, seed: int = 0) -> list[tuple[Vec, Vec]]:
+    """Seed 001's paths: every axis end to end at the grid's coordinates, and diagonals."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    return axis_paths(low, high, TRACKER_GRID) + diagonal_paths(low, high, FLY_DIAGONALS, seed)
+
+
+def tracer_places(machine: Machine, n: int) -> list[Vec]:
+    """``n`` tracer pivots around the volume: on the table, 10 % in from its edges.
+
+    Evenly round the rectangle of the X/Y travel (corners first), at two heights
+    150 and 250 mm below the lowest tool point in turn, so the pivots are not in
+    one plane (docs/post.md: the points' height is then determined).
+    """
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    inset = 0.1 * (high - low)
+    corners = [
+        (low[0] + inset[0], low[1] + inset[1]),
+        (high[0] - inset[0], low[1] + inset[1]),
+        (high[0] - inset[0], high[1] - inset[1]),
+        (low[0] + inset[0], high[1] - inset[1]),
+    ]
+    places = []
+    for i in range(n):
+        a = np.array(corners[i % 4])
+        b = np.array(corners[(i + 1) % 4])
+        x, y = a + (b - a) * ((i // 4) / max(1, (n + 3) // 4))
+        places.append(np.array([x, y, low[2] - (150.0 if i % 2 == 0 else 250.0)]))
+    return places
+
+
+@dataclass
+class InstrumentProgram:
+    """What a tracker or tracer measures: points at a standstill or paths on the fly."""
+
+    points_mm: Vec = field(default_factory=lambda: np.zeros((0, 3)))
+    paths_mm: list[tuple[Vec, Vec]] = field(default_factory=list)
+    dwell_s: float = POINT_DWELL_S
+    fly_feed_mm_min: float = FLY_FEED_MM_MIN
+
+
+def _axes(point_mm: Vec) -> dict[str, float]:
+    return {axis: float(v) for axis, v in zip("XYZ", point_mm, strict=True)}
+
+
+def write_instrument_program(
+    plan: InstrumentProgram, machine: Machine, dialect: Dialect, title: str
+) -> tuple[str, MachineTime]:
+    """The G-code (machine coordinates) and its machine time.
+
+    Points: a straight move at the rapid feed to each (the tracker keeps its line
+    of sight, no retract), a comment naming the point's index, a dwell. Paths: a
+    straight move at the rapid feed to the start, then the path at the feed on
+    the fly. The program starts and ends at the top of Z.
+    """
+    rapid = machine.feed_mm_min.rapid
+    timer = MachineTimer(program_start_mm(machine), machine.cnc.acceleration_mm_s2)
+    top = float(machine.travel_max_mm[2])
+    blocks = [*dialect.begin(), dialect.comment(title), dialect.retract({"Z": top})]
+    for index, point in enumerate(plan.points_mm):
+        blocks.append(dialect.comment(f"point {index}"))
+        blocks.append(dialect.feed(_axes(point), rapid))
+        timer.move(point, rapid)
+        blocks.extend(dialect.dwell(plan.dwell_s))
+        timer.dwell(plan.dwell_s)
+    for number, (start, end) in enumerate(plan.paths_mm):
+        blocks.append(dialect.comment(f"path {number}"))
+        blocks.append(dialect.feed(_axes(start), rapid))
+        timer.move(start, rapid)
+        blocks.append(dialect.feed(_axes(end), plan.fly_feed_mm_min))
+        timer.move(end, plan.fly_feed_mm_min)
+    blocks.extend(dialect.end({"Z": top}))
+    return dialect.render(blocks), timer.result()
+
+
+def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:
+    """The nominal SMR positions for a tracker's own software: ``name,x_mm,y_mm,z_mm``.
+
+    Names are the point indices (paths: ``path N start`` / ``end``); the
+    coordinates are machine coordinates of the SMR (tool point plus the SMR offset).
+    """
+    lines = ["name,x_mm,y_mm,z_mm"]
+    offset = np.asarray(smr_offset_mm, dtype=float)
+    for index, point in enumerate(plan.points_mm):
+        lines.append(f"{index}," + ",".join(f"{v:.3f}" for v in point + offset))
+    for number, (start, end) in enumerate(plan.paths_mm):
+        for end_name, point in (("start", start), ("end", end)):
+            lines.append(
+                f"path {number} {end_name}," + ",".join(f"{v:.3f}" for v in point + offset)
+            )
+    return "\n".join(lines) + "\n"

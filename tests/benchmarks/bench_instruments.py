@@ -27,11 +27,10 @@ from the truth after removing a rigid motion, 8 x 8 x 8 grid over the whole
 travel (and over the interferometer's strokes for the XM-60 rows). Without
 interferometer lines the tables are those of the SMR as the functional point
 (docs/post.md), so tracker and tracer rows compare with the truth at the SMR.
-Machine time: the points in nearest-neighbour order
-(:func:`trajectories.instruments.visiting_order`), moves at the rapid feed from
-rest to rest plus 3 s per point (:func:`trajectories.instruments.point_list_time_s`),
-the XM-60 program's own
-estimate (:func:`trajectories.gcode.program.estimate_machine_time`).
+Machine time: the G-code :func:`trajectories.instruments.write_instrument_program`
+writes (points in nearest-neighbour order, straight moves at the rapid feed, 3 s
+per point; paths at 5000 mm/min), the XM-60 program's own estimate
+(:func:`trajectories.gcode.program.estimate_machine_time`).
 
 Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_instruments.py [--seeds 5]``.
 Targets (issue 24): tracker alone about 4 um or better; tracers alone <= 1.0 um;
@@ -62,14 +61,16 @@ from sim.tracker import (  # noqa: E402
     measure_tracker,
     measure_tracker_on_the_fly,
 )
+from trajectories.gcode import make_dialect  # noqa: E402
 from trajectories.gcode.program import estimate_machine_time  # noqa: E402
 from trajectories.instruments import (  # noqa: E402
-    axis_paths,
-    diagonal_paths,
-    grid_and_random_points,
-    paths_time_s,
-    point_list_time_s,
-    visiting_order,
+    FLY_FEED_MM_MIN,
+    InstrumentProgram,
+    fly_paths,
+    tracer_places,
+    tracer_points,
+    tracker_points,
+    write_instrument_program,
 )
 from xmalign.formats.instruments import TracerFile, TrackerFile  # noqa: E402
 from xmalign.machine import Machine, default_machine_path, load_machine  # noqa: E402
@@ -80,13 +81,9 @@ from xmalign.rigid_body import Chain, ErrorModel, deviation  # noqa: E402
 CHAINS = ("FYXZ", "XFYZ")
 SMR_OFFSET_MM = (0.0, 0.0, -100.0)
 GRID = 8
-TRACKER_GRID = (5, 4, 3)
-TRACKER_RANDOM = 190
 TRACKER_RUNS = 2
-TRACER_RANDOM = 380
-FLY_DIAGONALS = 24
+TRACER_PLACES = 4
 FLY_SPACING_MM = 20.0
-FLY_FEED_MM_MIN = 5000.0
 TRACKER_TARGET_UM = 4.0
 TRACER_TARGET_UM = 1.0
 TRAVEL_RATIO_TARGET = 0.8
@@ -100,6 +97,7 @@ class Figures:
     tracker_um: float
     tracker_fly_um: float
     tracers_um: float
+    limits_um: tuple[float, float, float]
     xm60_strokes_um: float
     xm60_travel_um: float
     joint_strokes_um: float
@@ -125,87 +123,54 @@ def tracker_position_mm(machine: Machine) -> np.ndarray:
     return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
 
 
-def tracer_places_mm(machine: Machine) -> list[np.ndarray]:
-    """Four places near the table's corners (10 % in), 150 and 250 mm below the travel."""
-    low, high = machine.travel_min_mm, machine.travel_max_mm
-    inset = 0.1 * (high - low)
-    x = (low[0] + inset[0], high[0] - inset[0])
-    y = (low[1] + inset[1], high[1] - inset[1])
-    z = (low[2] - 150.0, low[2] - 250.0)
-    return [
-        np.array([x[0], y[0], z[0]]),
-        np.array([x[1], y[0], z[1]]),
-        np.array([x[1], y[1], z[0]]),
-        np.array([x[0], y[1], z[1]]),
-    ]
+def _minutes(machine: Machine, program: InstrumentProgram) -> float:
+    dialect = make_dialect("linuxcnc", machine)
+    return write_instrument_program(program, machine, dialect, "bench")[1].total_s / 60
 
 
 def tracker_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TrackerFile, float]:
-    """The tracker's points on the machine and their machine time, s."""
-    low, high = machine.travel_min_mm, machine.travel_max_mm
-    points = visiting_order(
-        grid_and_random_points(low, high, TRACKER_GRID, TRACKER_RANDOM, seed), _start_mm(machine)
-    )
+    """The tracker's points on the machine and their machine time, min."""
+    points = tracker_points(machine, seed)
     tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
     rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
-    seconds = TRACKER_RUNS * _time_s(machine, points)
-    return TrackerFile(rows, "tracker.csv"), seconds
+    return TrackerFile(rows, "tracker.csv"), TRACKER_RUNS * _minutes(
+        machine, InstrumentProgram(points_mm=points)
+    )
 
 
 def tracker_fly_file(
     machine: Machine, truth: VirtualMachine, seed: int
 ) -> tuple[TrackerFile, float]:
-    """The tracker's samples on the fly and the paths' machine time, s."""
-    low, high = machine.travel_min_mm, machine.travel_max_mm
-    paths = axis_paths(low, high, TRACKER_GRID) + diagonal_paths(low, high, FLY_DIAGONALS, seed)
+    """The tracker's samples on the fly and the paths' machine time, min."""
+    paths = fly_paths(machine, seed)
     tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
     rows = measure_tracker_on_the_fly(
         truth, tracker, paths, FLY_SPACING_MM, machine.smr_offset, feed_mm_min=FLY_FEED_MM_MIN
     )
-    seconds = paths_time_s(
-        paths,
-        _start_mm(machine),
-        FLY_FEED_MM_MIN,
-        machine.feed_mm_min.rapid,
-        machine.cnc.acceleration_mm_s2,
+    return TrackerFile(rows, "tracker-fly.csv"), _minutes(
+        machine, InstrumentProgram(paths_mm=paths)
     )
-    return TrackerFile(rows, "tracker-fly.csv"), seconds
 
 
 def tracer_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TracerFile, float]:
-    """The tracers' lengths from four places and their machine time, s."""
-    low, high = machine.travel_min_mm, machine.travel_max_mm
+    """The tracers' lengths from four places and their machine time, min."""
     rows = []
-    seconds = 0.0
-    for i, pivot in enumerate(tracer_places_mm(machine)):
-        points = visiting_order(
-            grid_and_random_points(low, high, TRACKER_GRID, TRACER_RANDOM, 10 * seed + i),
-            _start_mm(machine),
-        )
+    minutes = 0.0
+    for i, pivot in enumerate(tracer_places(machine, TRACER_PLACES)):
+        points = tracer_points(machine, 10 * seed + i)
         tracer = VirtualTracer(pivot, seed=10 * seed + i)
         rows += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")
-        seconds += _time_s(machine, points)
-    return TracerFile(rows, "tracer.csv"), seconds
-
-
-def _start_mm(machine: Machine) -> np.ndarray:
-    """Where the program starts: the top of Z above the X and Y minimum (as ``program``)."""
-    return np.array([machine.travel_min_mm[0], machine.travel_min_mm[1], machine.travel_max_mm[2]])
-
-
-def _time_s(machine: Machine, points: np.ndarray) -> float:
-    return point_list_time_s(
-        points, _start_mm(machine), machine.feed_mm_min.rapid, machine.cnc.acceleration_mm_s2
-    )
+        minutes += _minutes(machine, InstrumentProgram(points_mm=points))
+    return TracerFile(rows, "tracer.csv"), minutes
 
 
 def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
     chain = Chain.parse(machine.chain)
     truth = VirtualMachine(machine, seed=seed)
     travel = grid_points(machine.travel_min_mm, machine.travel_max_mm, GRID)
-    trackers, tracker_s = tracker_file(machine, truth, seed)
-    tracers, tracer_s = tracer_file(machine, truth, seed)
-    fly, fly_s = tracker_fly_file(machine, truth, seed)
+    trackers, tracker_min = tracker_file(machine, truth, seed)
+    tracers, tracer_min = tracer_file(machine, truth, seed)
+    fly, fly_min = tracker_fly_file(machine, truth, seed)
     tracker_only = post_stations(machine, [], instruments=Instruments(trackers=(trackers,)))
     fly_only = post_stations(machine, [], instruments=Instruments(trackers=(fly,)))
     tracer_only = post_stations(machine, [], instruments=Instruments(tracers=(tracers,)))
@@ -229,6 +194,10 @@ def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
         tracker_um=rms(tracker_only, travel, at_smr=True),
         tracker_fly_um=rms(fly_only, travel, at_smr=True),
         tracers_um=rms(tracer_only, travel, at_smr=True),
+        limits_um=tuple(
+            r.instruments.volumetric_u_um(chain, travel)
+            for r in (tracker_only, fly_only, tracer_only)
+        ),
         xm60_strokes_um=rms(alone, strokes),
         xm60_travel_um=rms(alone, travel),
         joint_strokes_um=rms(joint, strokes),
@@ -236,9 +205,9 @@ def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
         post_s=post_s,
     )
     minutes = {
-        "tracker": tracker_s / 60,
-        "tracker on the fly": fly_s / 60,
-        "tracers": tracer_s / 60,
+        "tracker": tracker_min,
+        "tracker on the fly": fly_min,
+        "tracers": tracer_min,
         "xm60": estimate_machine_time(plan, machine).total_s / 60,
     }
     return figures, minutes
@@ -266,6 +235,20 @@ def run(seeds: int) -> list[Figures]:
                 f"  {f.joint_strokes_um:18.2f} / {f.joint_travel_um:5.2f}"
                 f"  {f.joint_travel_um / f.xm60_travel_um:5.2f}  {f.post_s:6.1f}"
             )
+    limits = np.array([f.limits_um for f in results])
+    print(
+        "information limit (RMS standard uncertainty of the fitted volumetric error over the"
+        " travel, from the fit's covariance): tracker "
+        + ", ".join(
+            f"{name} {low:.2f}-{high:.2f} um"
+            for name, low, high in zip(
+                ("alone", "on the fly", "tracers"),
+                limits.min(axis=0),
+                limits.max(axis=0),
+                strict=True,
+            )
+        )
+    )
     print(
         "machine time (min): "
         + ", ".join(f"{name} {value:.0f}" for name, value in minutes.items())

@@ -22,6 +22,15 @@ from xmalign.rigid_body import (
 )
 
 
+def rigid_motion_design(points_mm: Vec) -> Vec:
+    """Columns of a rigid motion ``a + w x p`` at points (rows 3 i + c), shape (3N, 6)."""
+    centred = points_mm - points_mm.mean(axis=0)
+    return np.concatenate(
+        [np.tile(np.eye(3), (len(points_mm), 1)), np.concatenate([-skew(p) for p in centred])],
+        axis=1,
+    )
+
+
 def remove_rigid_motion(points_mm: Vec, difference_mm: Vec) -> Vec:
     """``difference`` minus its least-squares rigid motion ``a + w x p``, shape (N, 3).
 
@@ -30,11 +39,7 @@ def remove_rigid_motion(points_mm: Vec, difference_mm: Vec) -> Vec:
     points_mm : ndarray, shape (N, 3)
     difference_mm : ndarray, shape (N, 3)
     """
-    centred = points_mm - points_mm.mean(axis=0)
-    design = np.concatenate(
-        [np.tile(np.eye(3), (len(points_mm), 1)), np.concatenate([-skew(p) for p in centred])],
-        axis=1,
-    )
+    design = rigid_motion_design(points_mm)
     solution, *_ = np.linalg.lstsq(design, difference_mm.ravel(), rcond=None)
     return (difference_mm.ravel() - design @ solution).reshape(-1, 3)
 

@@ -52,6 +52,7 @@ from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec, skew
 from xmalign.machine import TracerUncertainty, TrackerUncertainty
+from xmalign.post.compare import rigid_motion_design
 from xmalign.post.lines import LineData
 from xmalign.post.setup_terms import N_CHANNELS, SetupLayout, Triplets
 from xmalign.post.solve import (
@@ -258,7 +259,25 @@ class JointFit:
     iterations: int
     converged: bool
     functional_point: str = "tool point"
-    notes: list[str] = field(default_factory=list)
+    layout: ParameterLayout | None = field(default=None, repr=False)
+    covariance: Vec | None = field(default=None, repr=False)
+
+    def volumetric_u_um(self, chain: Chain, points_mm: Vec) -> float:
+        """RMS standard uncertainty of the fitted volumetric error at points, um.
+
+        ``sqrt(mean(trace(J C J^T)))`` with ``J`` the points' sensitivity to the
+        table values, less its rigid motion (as the comparison with a truth removes
+        it, :func:`xmalign.post.compare.volumetric_rms_um`), and ``C`` their
+        covariance: what the readings' noise leaves in the tables (the information
+        limit of the measurement), not the tables' model error.
+        """
+        assert self.layout is not None and self.covariance is not None
+        n = self.layout.n_columns
+        design = point_design(chain, self.layout, points_mm, np.zeros(3)).toarray()
+        rigid = rigid_motion_design(points_mm)
+        design -= rigid @ np.linalg.lstsq(rigid, design, rcond=None)[0]
+        variance = np.sum((design @ self.covariance[:n, :n]) * design)
+        return float(np.sqrt(variance / len(points_mm)) * 1e3)
 
 
 # -- layout -----------------------------------------------------------------------
@@ -975,6 +994,8 @@ def fit_joint(
         iterations=iterations,
         converged=converged,
         functional_point="tool point" if lines else "SMR",
+        layout=layout,
+        covariance=covariance,
     )
 
 
