@@ -8,7 +8,7 @@
   grid's coordinates of the others, and diagonal paths, which see the
   positioning errors across them (:func:`axis_paths`, :func:`diagonal_paths`).
 - Seed 004 measures the same points from several tracer places around the
-  volume (:func:`tracer_places`).
+  volume (:func:`propose_tracer_places`).
 
 :func:`write_instrument_program` writes the G-code (every dialect, machine
 coordinates) and adds up its machine time as it goes.
@@ -22,8 +22,17 @@ import numpy as np
 
 from trajectories.gcode.base import Dialect
 from trajectories.gcode.machine_time import MachineTime, MachineTimer
+from xmalign.formats.instruments import (
+    TracerFile,
+    TracerLength,
+    TrackerFile,
+    TrackerPoint,
+)
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
+from xmalign.post.compare import grid_points
+from xmalign.post.instruments import fit_joint, tracer_places, tracker_stations
+from xmalign.rigid_body import Chain
 
 
 def grid_and_random_points(
@@ -154,7 +163,7 @@ def fly_paths(machine: Machine, seed: int = 0) -> list[tuple[Vec, Vec]]:
     return axis_paths(low, high, TRACKER_GRID) + diagonal_paths(low, high, FLY_DIAGONALS, seed)
 
 
-def tracer_places(machine: Machine, n: int) -> list[Vec]:
+def propose_tracer_places(machine: Machine, n: int) -> list[Vec]:
     """``n`` tracer pivots around the volume: on the table, 10 % in from its edges.
 
     Evenly round the rectangle of the X/Y travel (corners first), at two heights
@@ -238,3 +247,78 @@ def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:
                 f"path {number} {end_name}," + ",".join(f"{v:.3f}" for v in point + offset)
             )
     return "\n".join(lines) + "\n"
+
+
+def tracker_place(machine: Machine) -> Vec:
+    """Where the tracker is assumed to stand for planning: on the table in the middle of
+    the travel, 300 mm below the lowest tool point (its noise grows with the distance)."""
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
+
+
+#: Samples per mm of path for a planned tracker on the fly (one every 20 mm).
+FLY_SPACING_MM = 20.0
+
+
+def _exact_tracker_rows(
+    program: InstrumentProgram, tracker_mm: Vec, smr_mm: Vec, run: int
+) -> list[TrackerPoint]:
+    """What a tracker at ``tracker_mm`` (frame along the MCS) reads on a perfect machine."""
+    rows = [
+        TrackerPoint("T1", run, index, point, point + smr_mm - tracker_mm)
+        for index, point in enumerate(program.points_mm)
+    ]
+    for start, end in program.paths_mm:
+        count = max(2, int(np.linalg.norm(end - start) / FLY_SPACING_MM) + 1)
+        for fraction in np.linspace(0.0, 1.0, count):
+            point = start + fraction * (end - start)
+            rows.append(TrackerPoint("T1", run, None, start, point + smr_mm - tracker_mm, end))
+    return rows
+
+
+def information_limit_um(
+    machine: Machine,
+    programs: list[InstrumentProgram],
+    tracker_mm: Vec | None = None,
+    pivots_mm: list[Vec] | None = None,
+    runs: int = 1,
+) -> float:
+    """How well a plan determines the volumetric error over the whole travel, um (k = 1).
+
+    Fits the exact readings a perfect machine would give (a tracker at
+    ``tracker_mm`` with its frame along the MCS measuring every program, or the
+    tracer at ``pivots_mm[i]`` measuring ``programs[i]``; ``runs`` times each)
+    and returns the RMS standard uncertainty that the fit's covariance gives the
+    volumetric error over an 8 x 8 x 8 grid of the travel, rigid motion removed
+    (:meth:`xmalign.post.instruments.JointFit.volumetric_u_um`): the noise of
+    the machine file's uncertainty models, propagated; not the tables' model error.
+
+    Raises
+    ------
+    GeometryError
+        The plan cannot determine the errors or a setup (the fit's message).
+    """
+    smr = machine.smr_offset
+    trackers = []
+    if tracker_mm is not None:
+        rows = [
+            row
+            for run in range(runs)
+            for program in programs
+            for row in _exact_tracker_rows(program, np.asarray(tracker_mm, float), smr, run)
+        ]
+        trackers = tracker_stations([TrackerFile(rows, "plan")])
+    lengths = [
+        TracerLength(f"P{i + 1}", run, index, point, float(np.linalg.norm(point + smr - pivot)))
+        for i, pivot in enumerate(pivots_mm or [])
+        for run in range(runs)
+        for index, point in enumerate(programs[i].points_mm)
+    ]
+    tracers = tracer_places([TracerFile(lengths, "plan")]) if lengths else []
+    chain = Chain.parse(machine.chain)
+    joint = fit_joint(
+        [], trackers, tracers, chain, np.ones(6), smr, machine.tracker, machine.tracer,
+        (machine.travel_min_mm, machine.travel_max_mm),
+    )  # fmt: skip
+    grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
+    return joint.volumetric_u_um(chain, grid)

@@ -67,7 +67,7 @@ from trajectories.instruments import (  # noqa: E402
     FLY_FEED_MM_MIN,
     InstrumentProgram,
     fly_paths,
-    tracer_places,
+    propose_tracer_places,
     tracer_points,
     tracker_points,
     write_instrument_program,
@@ -156,7 +156,7 @@ def tracer_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[Tra
     """The tracers' lengths from four places and their machine time, min."""
     rows = []
     minutes = 0.0
-    for i, pivot in enumerate(tracer_places(machine, TRACER_PLACES)):
+    for i, pivot in enumerate(propose_tracer_places(machine, TRACER_PLACES)):
         points = tracer_points(machine, 10 * seed + i)
         tracer = VirtualTracer(pivot, seed=10 * seed + i)
         rows += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")

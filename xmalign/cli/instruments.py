@@ -1,14 +1,31 @@
-"""``xmalign post --tracker/--tracer``: reading the files and printing each instrument's setup."""
+"""``xmalign post --tracker/--tracer`` and ``xmalign program --instrument``."""
 
 from __future__ import annotations
 
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
+from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.instruments import (
+    InstrumentProgram,
+    fly_paths,
+    information_limit_um,
+    point_list_csv,
+    propose_tracer_places,
+    tracer_points,
+    tracker_place,
+    tracker_points,
+    write_instrument_program,
+)
+from xmalign.cli.common import error_console, refuse_overwriting
 from xmalign.errors import InputError
+from xmalign.formats.common import atomic_write_text
 from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
 from xmalign.geometry import Vec
+from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import JointFit, describe_undetermined
+from xmalign.post.instruments import MIN_TRACER_PLACES, JointFit, describe_undetermined
 
 
 def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
@@ -84,3 +101,94 @@ def instrument_notes(joint: JointFit) -> list[str]:
             " setups and the points"
         )
     return notes
+
+
+INSTRUMENTS = ("tracker", "tracer")
+
+
+@dataclass(frozen=True)
+class InstrumentRequest:
+    """``xmalign program --instrument ...``: what to plan and where to write it."""
+
+    instrument: str
+    on_the_fly: bool
+    places: int
+    out: Path | None
+    points_out: Path | None
+    dialect: str | None
+
+
+def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
+    """One line for an instrument option that does not fit the others."""
+    if instrument is None:
+        if on_the_fly or places is not None:
+            option = "--on-the-fly" if on_the_fly else "--places"
+            raise InputError(f"{option} needs --instrument tracker or tracer")
+        return
+    if instrument not in INSTRUMENTS:
+        raise InputError(f"--instrument '{instrument}' is not known (known: tracker, tracer)")
+    if instrument == "tracer" and on_the_fly:
+        raise InputError("--on-the-fly is for --instrument tracker (a tracer measures lengths)")
+    if instrument == "tracker" and places is not None:
+        raise InputError("--places is for --instrument tracer")
+    if places is not None and not MIN_TRACER_PLACES <= places <= 12:
+        raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
+
+
+def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
+    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration.
+
+    Writes the G-code (stdout or ``out``), the point list for the instrument's own
+    software (``points_out``), and tells on stderr where the instrument stands,
+    the machine time and how well the plan determines the errors.
+    """
+    refuse_overwriting({}, {"--out": request.out, "--points-out": request.points_out})
+    dialect_name = resolve_dialect(machine, request.dialect)
+    name = request.out.stem if request.out is not None else "XMALIGN"
+    dialect = make_dialect(dialect_name, machine, name)
+    if request.instrument == "tracker":
+        program = (
+            InstrumentProgram(paths_mm=fly_paths(machine))
+            if request.on_the_fly
+            else InstrumentProgram(points_mm=tracker_points(machine))
+        )
+        runs = 1 if request.on_the_fly else 2
+        where = tracker_place(machine)
+        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
+        what = (
+            f"{len(program.paths_mm)} paths on the fly"
+            if request.on_the_fly
+            else (f"{len(program.points_mm)} points, run it twice (runs 0 and 1)")
+        )
+        notes = [
+            f"tracker: {what}; stand it on the table near {_triple(where, 0)} mm (MCS),"
+            " the SMR at the machine file's smr_offset_mm"
+        ]
+        minutes = runs
+    else:
+        places = propose_tracer_places(machine, request.places)
+        program = InstrumentProgram(points_mm=tracer_points(machine))
+        limit = information_limit_um(machine, [program] * len(places), pivots_mm=places)
+        notes = [
+            f"tracer place P{i + 1}: pivot near {_triple(p, 0)} mm (MCS); run the program once"
+            for i, p in enumerate(places)
+        ]
+        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(places)} places")
+        minutes = len(places)
+    text, time = write_instrument_program(
+        program, machine, dialect, f"xmalign {request.instrument}"
+    )
+    notes.append(
+        f"machine time: {time.total_s / 60:.1f} min per run, {minutes * time.total_s / 60:.1f} min"
+        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
+        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
+        " travel; the machine's repeatability and the tables' model error come on top)"
+    )
+    for note in notes:
+        error_console.print(note, highlight=False, markup=False, soft_wrap=True)
+    if request.points_out is not None:
+        atomic_write_text(request.points_out, point_list_csv(program, machine.smr_offset))
+    if request.out is not None:
+        atomic_write_text(request.out, text)
+    else:
+        sys.stdout.write(text)

@@ -814,9 +814,15 @@ def _undetermined(normal: Vec, describe) -> GeometryError:
     if null.shape[1] == 0:
         null = vectors[:, :1]
     involved = np.flatnonzero(np.sum(null**2, axis=1) > _INVOLVED)
-    names = list(dict.fromkeys(describe(int(c)) for c in involved))
+    names = list(dict.fromkeys(describe(int(c), knot=False) for c in involved))
+    tables = [name for name in names if not name.startswith(("the ", "a "))]
+    setups = [name for name in names if name.startswith(("the ", "a "))]
+    what = ", ".join(tables or setups)
+    if tables and setups:
+        what += f" (they trade with {', '.join(setups)})"
     return GeometryError(
-        f"the data cannot determine {', '.join(names)}; measure more points or places"
+        f"the data cannot determine {what}; measure more points, or from more places"
+        " (tracer pivots not on one line)"
     )
 
 
@@ -905,9 +911,9 @@ def fit_joint(
         column += state.n_columns
     n_columns = column
 
-    def describe(c: int) -> str:
+    def describe(c: int, knot: bool = True) -> str:
         if c < layout.n_columns:
-            return layout.describe(c)
+            return layout.describe(c) if knot else str(layout.table_name(c))
         line = setup.line_of(c)
         if line is not None:
             return f"the setup terms of line {line}"

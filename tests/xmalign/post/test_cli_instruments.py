@@ -110,3 +110,52 @@ def test_too_few_tracer_places_are_one_line_and_nothing_is_written(tmp_path: Pat
 def test_post_without_anything_to_fit_says_so(tmp_path: Path, argv, fragment: str) -> None:
     result = run_in_process("post", "--out", str(tmp_path / "e.csv"), *argv)
     assert_one_line_error(result, fragment)
+
+
+@pytest.mark.parametrize("dialect", ["iso", "sinumerik", "heidenhain", "linuxcnc"])
+def test_program_for_a_tracker_writes_every_point_and_the_point_list(
+    tmp_path: Path, dialect: str
+) -> None:
+    out, points = tmp_path / "t.nc", tmp_path / "points.csv"
+    result = run_in_process(
+        "program", "--instrument", "tracker", "--dialect", dialect,
+        "--out", str(out), "--points-out", str(points),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    text = out.read_text()
+    assert "point 249" in text and "point 250" not in text
+    rows = points.read_text().splitlines()
+    assert rows[0] == "name,x_mm,y_mm,z_mm" and rows[1].startswith("0,") and len(rows) == 251
+    assert "machine time:" in result.stderr and "run it twice" in result.stderr
+
+
+def test_program_for_tracers_proposes_places_and_says_how_good(tmp_path: Path) -> None:
+    result = run_in_process(
+        "program", "--instrument", "tracer", "--places", "5", "--out", str(tmp_path / "p.mpf")
+    )
+    assert result.returncode == 0, result.stderr
+    assert "tracer place P5" in result.stderr
+    assert "the volumetric error over the whole travel to about" in result.stderr
+
+
+def test_program_on_the_fly_writes_paths(tmp_path: Path) -> None:
+    out = tmp_path / "fly.ngc"
+    result = run_in_process(
+        "program", "--instrument", "tracker", "--on-the-fly", "--dialect", "linuxcnc",
+        "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "(path 70)" in out.read_text() and "F5000.0" in out.read_text()
+
+
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        (("--places", "4"), "--places needs --instrument"),
+        (("--instrument", "laser"), "--instrument 'laser' is not known"),
+        (("--instrument", "tracer", "--on-the-fly"), "--on-the-fly is for --instrument tracker"),
+        (("--instrument", "tracer", "--places", "3"), "--places 3: give 4 to 12"),
+    ],
+)
+def test_program_instrument_options_that_do_not_fit(argv, fragment: str) -> None:
+    assert_one_line_error(run_in_process("program", *argv), fragment)
