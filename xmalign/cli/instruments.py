@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import typer
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
@@ -18,10 +22,19 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
-from xmalign.cli.common import error_console, refuse_overwriting
+from xmalign.cli.common import error_console, machine_or_default, refuse_overwriting
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
-from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
+from xmalign.formats.instruments import (
+    read_tracer_lengths,
+    read_tracker_points,
+    write_tracker_points,
+)
+from xmalign.formats.spatial_analyzer import (
+    read_point_list,
+    read_spatial_analyzer,
+    tracker_points_from_export,
+)
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
@@ -192,3 +205,52 @@ def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
         atomic_write_text(request.out, text)
     else:
         sys.stdout.write(text)
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes (the provenance of what was converted)."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def import_points(
+    spatial_analyzer: Annotated[
+        Path,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
+        ),
+    ],
+    points: Annotated[
+        Path,
+        typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
+    ],
+    out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
+    machine: Annotated[
+        Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
+    ] = None,
+) -> None:
+    """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
+
+    Target names are the point indices of the point list; the export's groups
+    are the runs, in the order they first appear.
+    """
+    refuse_overwriting(
+        {"--spatial-analyzer": spatial_analyzer, "--points": points, "--machine": machine},
+        {"--out": out},
+    )
+    machine_model = machine_or_default(machine)
+    exported = read_spatial_analyzer(spatial_analyzer)
+    rows = tracker_points_from_export(
+        exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
+    )
+    inputs = {str(path): file_sha256(path) for path in (spatial_analyzer, points)}
+    write_tracker_points(out, rows, inputs)
+    runs = len({row.run for row in rows})
+    error_console.print(
+        f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
+    )
+
+
+def register(app: typer.Typer) -> None:
+    app.command(name="import")(import_points)

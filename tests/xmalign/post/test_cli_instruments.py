@@ -19,6 +19,7 @@ from trajectories.instruments import grid_and_random_points
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.instruments import (
     read_tracer_lengths,
+    read_tracker_points,
     write_tracer_lengths,
     write_tracker_points,
 )
@@ -159,3 +160,66 @@ def test_program_on_the_fly_writes_paths(tmp_path: Path) -> None:
 )
 def test_program_instrument_options_that_do_not_fit(argv, fragment: str) -> None:
     assert_one_line_error(run_in_process("program", *argv), fragment)
+
+
+def _point_list(tmp_path: Path) -> Path:
+    points = tmp_path / "points.csv"
+    result = run_in_process(
+        "program", "--instrument", "tracker", "--points-out", str(points),
+        "--out", str(tmp_path / "t.mpf"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    return points
+
+
+def test_import_of_a_spatial_analyzer_export_gives_the_tracker_points(tmp_path: Path) -> None:
+    """examples/spatial-analyzer.txt holds the readings of examples/tracker.csv."""
+    out = tmp_path / "tracker.csv"
+    result = run_in_process(
+        "import", "--spatial-analyzer", str(EXAMPLES / "spatial-analyzer.txt"),
+        "--points", str(_point_list(tmp_path)), "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    imported = read_tracker_points(out).points
+    expected = read_tracker_points(EXAMPLES / "tracker.csv").points
+    assert [(p.run, p.index) for p in imported] == [(p.run, p.index) for p in expected]
+    np.testing.assert_array_equal(
+        [p.tracker_mm for p in imported], [p.tracker_mm for p in expected]
+    )
+    np.testing.assert_allclose([p.machine_mm for p in imported], [p.machine_mm for p in expected])
+
+
+def test_import_reads_commas_and_header_lines(tmp_path: Path) -> None:
+    export = tmp_path / "sa.csv"
+    export.write_text("// header\n// Collection,Group,Target,X,Y,Z\nA,g1,0,1,2,3\nA,g2,0,1,2,4\n")
+    out = tmp_path / "t.csv"
+    result = run_in_process(
+        "import", "--spatial-analyzer", str(export), "--points", str(_point_list(tmp_path)),
+        "--out", str(out),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert [(p.run, p.index) for p in read_tracker_points(out).points] == [(0, 0), (1, 0)]
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("A g 0 1 2\n", "line 1: 5 fields"),
+        ("// x\nA g 0 1 2 abc\n", "line 2: '1 2 abc' is not X Y Z"),
+        ("A g 9999 1 2 3\n", "line 1: target '9999' is not in the point list"),
+        ("A g 0 1 2 3\nA g 0 1 2 3\n", "line 2: target '0' twice in group 'g'"),
+        ("// only a header\n", "no points"),
+    ],
+)
+def test_a_damaged_export_is_one_line_and_nothing_is_written(
+    tmp_path: Path, text: str, fragment: str
+) -> None:
+    export = tmp_path / "sa.txt"
+    export.write_text(text)
+    out = tmp_path / "t.csv"
+    result = run_in_process(
+        "import", "--spatial-analyzer", str(export), "--points", str(_point_list(tmp_path)),
+        "--out", str(out),
+    )  # fmt: skip
+    assert_one_line_error(result, str(export), fragment)
+    assert not out.exists()
