@@ -39,7 +39,7 @@ the foot of the perpendicular from the measured point to the path.
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -363,7 +363,7 @@ def unseen_rotations(chain: Chain) -> list[str]:
     For an axis whose lever arm is moved by no other axis, all three; by one
     other axis J, the rotation about J.
     """
-    names = []
+    names: list[str] = []
     for axis in AXES:
         moving = [other for other in chain.lever_arm_axes(axis) if other != axis]
         rotations = error_names(axis)[3:]
@@ -478,7 +478,9 @@ def _renumbered(
     return result
 
 
-def point_design(chain: Chain, layout: ParameterLayout, machine_mm: Vec, t_mm: Vec):
+def point_design(
+    chain: Chain, layout: ParameterLayout, machine_mm: Vec, t_mm: Vec
+) -> scipy.sparse.csr_matrix:
     """d(dp)/d(table values) at points: sparse, shape (3N, n_table_columns).
 
     Row ``3 i + c`` is component ``c`` (MCS) of the functional point's deviation at
@@ -505,8 +507,10 @@ def point_design(chain: Chain, layout: ParameterLayout, machine_mm: Vec, t_mm: V
         dp = squareness_deviation(machine_mm, np.eye(3)[s])
         for c in range(3):
             out.add(rows + c, int(column), dp[:, c])
-    r, c, v = out.arrays()
-    return scipy.sparse.csr_matrix((v, (r, c)), shape=(3 * n, layout.n_columns))
+    rows_all, cols_all, vals_all = out.arrays()
+    return scipy.sparse.csr_matrix(
+        (vals_all, (rows_all, cols_all)), shape=(3 * n, layout.n_columns)
+    )
 
 
 # -- starts -----------------------------------------------------------------------
@@ -557,14 +561,6 @@ class _Block:
     observed: Vec
     whitening: scipy.sparse.csr_matrix
     ratio: Vec  # (propagated / weighting variance) per whitened row
-
-
-def _block_diagonal(blocks: Vec) -> scipy.sparse.csr_matrix:
-    return (
-        scipy.sparse.block_diag(list(blocks), format="csr")
-        if len(blocks)
-        else (scipy.sparse.csr_matrix((0, 0)))
-    )
 
 
 def _start_pairs(station: TrackerStation) -> tuple[Vec, Vec]:
@@ -650,7 +646,7 @@ class _TrackerState:
         return _Block(
             design=(table_design + pose_design).tocsr(),
             observed=(measured - nominal).ravel(),
-            whitening=whitening,
+            whitening=scipy.sparse.csr_matrix(whitening),
             ratio=np.ones(whitening.shape[0]),
         )
 
@@ -679,7 +675,7 @@ class _TrackerState:
                 blocks.append(_inverse_sqrt(covariance) @ basis)
             else:
                 blocks.append(_inverse_sqrt(covariance))
-        return scipy.sparse.block_diag(blocks, format="csr")
+        return scipy.sparse.csr_matrix(scipy.sparse.block_diag(blocks, format="csr"))
 
     def update(self, increment: Vec) -> float:
         rotation, shift = (
@@ -780,7 +776,7 @@ class _Solved:
     residual_weighted: Vec
 
 
-def _solve(blocks: list[_Block], describe) -> _Solved:
+def _solve(blocks: list[_Block], describe: Callable[..., str]) -> _Solved:
     design = scipy.sparse.vstack([b.whitening @ b.design for b in blocks]).tocsr()
     observed = np.concatenate([b.whitening @ b.observed for b in blocks])
     norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
@@ -807,7 +803,7 @@ def _solve(blocks: list[_Block], describe) -> _Solved:
     )
 
 
-def _undetermined(normal: Vec, describe) -> GeometryError:
+def _undetermined(normal: Vec, describe: Callable[..., str]) -> GeometryError:
     """Names every table and instrument setup with a component in the null space."""
     values, vectors = np.linalg.eigh(normal)
     null = vectors[:, values <= _NULL_TOLERANCE * values[-1]]
@@ -934,7 +930,7 @@ def fit_joint(
             layout, line_knots, line_tables, unseen_rotations(chain), n_columns
         )
         fixed_blocks += [prior] if prior is not None else []
-    instruments = [*tracker_states, *tracer_states]
+    instruments: list[_TrackerState | _TracerState] = [*tracker_states, *tracer_states]
 
     def iterate(tables: Vec) -> tuple[list[_Block], _Solved, int, bool]:
         """Gauss-Newton until no pose, pivot or table value moves any more."""
@@ -963,8 +959,8 @@ def fit_joint(
     )
     factors = _noise_factors(blocks[len(fixed_blocks) :], solved)
     if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
-        for state, factor in zip(instruments, factors, strict=True):
-            state.noise_factor = factor
+        for instrument, factor in zip(instruments, factors, strict=True):
+            instrument.noise_factor = factor
         blocks, solved, more, converged = iterate(solved.solution)
         iterations += more
     ratio = np.concatenate([b.ratio for b in blocks])
