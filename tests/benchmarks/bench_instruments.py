@@ -69,14 +69,15 @@ from trajectories.instruments import (  # noqa: E402
     fly_paths,
     propose_tracer_places,
     tracer_points,
+    tracker_place,
     tracker_points,
     write_instrument_program,
 )
 from xmalign.formats.instruments import TracerFile, TrackerFile  # noqa: E402
 from xmalign.machine import Machine, default_machine_path, load_machine  # noqa: E402
-from xmalign.post.compare import grid_points, remove_rigid_motion  # noqa: E402
+from xmalign.post.compare import grid_points, volumetric_rms_um  # noqa: E402
 from xmalign.post.evaluate import Instruments, Station, post_stations  # noqa: E402
-from xmalign.rigid_body import Chain, ErrorModel, deviation  # noqa: E402
+from xmalign.rigid_body import Chain  # noqa: E402
 
 CHAINS = ("FYXZ", "XFYZ")
 SMR_OFFSET_MM = (0.0, 0.0, -100.0)
@@ -105,24 +106,6 @@ class Figures:
     post_s: float
 
 
-def volumetric_um(
-    machine: Machine, points_mm: np.ndarray, model: ErrorModel, truth: ErrorModel, at_smr: bool
-) -> float:
-    """RMS volumetric difference after a rigid motion; ``at_smr``: the truth at the SMR."""
-    chain = Chain.parse(machine.chain)
-    fitted, _ = deviation(chain, points_mm, np.zeros(3), model)
-    t_mm = machine.smr_offset if at_smr else np.zeros(3)
-    true, _ = deviation(chain, points_mm, t_mm, truth)
-    residual = remove_rigid_motion(points_mm, fitted - true)
-    return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1e3)
-
-
-def tracker_position_mm(machine: Machine) -> np.ndarray:
-    """On the table in the middle of the travel, 300 mm below the lowest tool point."""
-    low, high = machine.travel_min_mm, machine.travel_max_mm
-    return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
-
-
 def _minutes(machine: Machine, program: InstrumentProgram) -> float:
     dialect = make_dialect("linuxcnc", machine)
     return write_instrument_program(program, machine, dialect, "bench")[1].total_s / 60
@@ -131,7 +114,7 @@ def _minutes(machine: Machine, program: InstrumentProgram) -> float:
 def tracker_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TrackerFile, float]:
     """The tracker's points on the machine and their machine time, min."""
     points = tracker_points(machine, seed)
-    tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
+    tracker = VirtualTracker(tracker_place(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
     rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
     return TrackerFile(rows, "tracker.csv"), TRACKER_RUNS * _minutes(
         machine, InstrumentProgram(points_mm=points)
@@ -143,7 +126,7 @@ def tracker_fly_file(
 ) -> tuple[TrackerFile, float]:
     """The tracker's samples on the fly and the paths' machine time, min."""
     paths = fly_paths(machine, seed)
-    tracker = VirtualTracker(tracker_position_mm(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
+    tracker = VirtualTracker(tracker_place(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
     rows = measure_tracker_on_the_fly(
         truth, tracker, paths, FLY_SPACING_MM, machine.smr_offset, feed_mm_min=FLY_FEED_MM_MIN
     )
@@ -186,7 +169,9 @@ def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
     strokes = grid_points(*_strokes(plan), GRID)
 
     def rms(result, points: np.ndarray, at_smr: bool = False) -> float:
-        return volumetric_um(machine, points, result.fit.tables.model(""), truth, at_smr)
+        model = result.fit.tables.model("")
+        offset = machine.smr_offset if at_smr else None
+        return volumetric_rms_um(chain, points, model, truth, offset)
 
     figures = Figures(
         chain=machine.chain,

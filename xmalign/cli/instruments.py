@@ -22,7 +22,7 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
-from xmalign.cli.common import error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.instruments import (
@@ -254,3 +254,33 @@ def import_points(
 
 def register(app: typer.Typer) -> None:
     app.command(name="import")(import_points)
+
+
+def instrument_dry_run(
+    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+) -> None:
+    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
+    from sim.instrument_dry_run import simulate_instruments
+
+    with error_console.status(f"dry run, {instrument}"):
+        report = simulate_instruments(machine, out, instrument, seed, dialect)
+    assert report.result.instruments is not None
+    for line in instrument_lines(report.result.instruments):
+        error_console.print(line, highlight=False, markup=False, soft_wrap=True)
+    lines = [
+        f"machine time: {instrument} {report.instrument_min:.0f} min"
+        + (
+            f", XM-60 station {report.xm60_min:.0f} min" if report.xm60_after_um is not None else ""
+        ),
+        f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
+        f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"
+        f" {report.volumetric_after_um:.2f} um"
+        + (
+            f" (the XM-60 station alone: {report.xm60_after_um:.2f} um)"
+            if report.xm60_after_um is not None
+            else ""
+        ),
+        f"files in {out}/: " + ", ".join(path.name for path in report.files.values()),
+    ]
+    for line in lines:
+        console.print(line, highlight=False, markup=False, soft_wrap=True)

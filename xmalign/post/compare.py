@@ -51,14 +51,21 @@ def grid_points(low_mm: Vec, high_mm: Vec, n: int = 6) -> Vec:
 
 
 def volumetric_rms_um(
-    chain: Chain, points_mm: Vec, model: ErrorModel, reference: ErrorModel
+    chain: Chain,
+    points_mm: Vec,
+    model: ErrorModel,
+    reference: ErrorModel,
+    reference_offset_mm: Vec | None = None,
 ) -> float:
     """RMS length of the volumetric difference of two models after removing a rigid motion, um.
 
-    Both are evaluated for the tool point (``t = 0``).
+    Both are evaluated for the tool point (``t = 0``), or the reference at
+    ``reference_offset_mm`` (tables fitted for another functional point, such as
+    an SMR's, compared with the truth there).
     """
     dp_model, _ = deviation(chain, points_mm, np.zeros(3), model)
-    dp_reference, _ = deviation(chain, points_mm, np.zeros(3), reference)
+    offset = np.zeros(3) if reference_offset_mm is None else reference_offset_mm
+    dp_reference, _ = deviation(chain, points_mm, offset, reference)
     residual = remove_rigid_motion(points_mm, dp_model - dp_reference)
     return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1e3)
 

@@ -223,3 +223,28 @@ def test_a_damaged_export_is_one_line_and_nothing_is_written(
     )  # fmt: skip
     assert_one_line_error(result, str(export), fragment)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("instrument", ["tracker", "tracer"])
+def test_dry_run_of_an_instrument_runs_the_chain_against_the_truth(
+    tmp_path: Path, instrument: str
+) -> None:
+    out = tmp_path / "dry"
+    result = run_in_process("dry-run", "--instrument", instrument, "--out", str(out), "--seed", "3")
+    assert result.returncode == 0, result.stderr
+    assert "volumetric error over the whole travel" in result.stdout
+    after = float(result.stdout.split(" after ")[1].split(" um")[0])
+    assert after < (5.0 if instrument == "tracker" else 1.0)
+    assert (out / f"{instrument}.csv").exists() and (out / "errors-instruments.csv").exists()
+    again = run_in_process("dry-run", "--instrument", instrument, "--out", str(out))
+    assert_one_line_error(again, "already holds")
+
+
+def test_dry_run_of_an_xm60_station_with_a_tracker(tmp_path: Path) -> None:
+    out = tmp_path / "dry"
+    result = run_in_process("dry-run", "--instrument", "xm60+tracker", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    after = float(result.stdout.split(" after ")[1].split(" um")[0])
+    alone = float(result.stdout.split("station alone: ")[1].split(" um")[0])
+    assert after < 0.8 * alone
+    assert (out / "measurements.csv").exists() and (out / "tracker.csv").exists()
