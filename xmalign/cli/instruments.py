@@ -38,7 +38,7 @@ from xmalign.formats.spatial_analyzer import (
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import MIN_TRACER_PLACES, JointFit, describe_undetermined
+from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
 
 
 def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
@@ -71,49 +71,6 @@ def check_inputs(
 
 def _triple(values: Vec, digits: int = 3) -> str:
     return ", ".join(f"{v:.{digits}f}" for v in values)
-
-
-def _covered(covered_mm: tuple[Vec, Vec]) -> str:
-    spans = (f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("XYZ", *covered_mm, strict=True))
-    return "covered " + ", ".join(spans) + " mm"
-
-
-def instrument_lines(joint: JointFit) -> list[str]:
-    """One line per tracker station (pose) and tracer place (pivot, constants), with U95."""
-    lines = []
-    for s in joint.trackers:
-        lines.append(
-            f"tracker {s.label} ({s.n_points} points, {s.source}): origin"
-            f" {_triple(s.position_mm)} mm (U95 {_triple(s.position_u95_mm)}), rotation"
-            f" {_triple(s.rotation_urad, 0)} urad (U95 {_triple(s.rotation_u95_urad, 1)});"
-            f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f});"
-            f" {_covered(s.covered_mm)}"
-        )
-    for p in joint.tracers:
-        constants = ", ".join(
-            f"run {run} {k:.4f} (U95 {p.constant_u95_mm[run]:.4f})"
-            for run, k in p.constant_mm.items()
-        )
-        lines.append(
-            f"tracer {p.label} ({p.n_lengths} lengths, {p.source}): pivot"
-            f" {_triple(p.pivot_mm, 4)} mm (U95 {_triple(p.pivot_u95_mm, 4)}), constant"
-            f" {constants} mm; residual {p.residual_rms_um:.3f} um RMS (scatter / model"
-            f" {p.scatter_factor:.2f}); {_covered(p.covered_mm)}"
-        )
-    return lines
-
-
-def instrument_notes(joint: JointFit) -> list[str]:
-    """What the user should know about the joint fit (one line each)."""
-    notes = []
-    if joint.undetermined:
-        notes.append(describe_undetermined(joint.undetermined))
-    if not joint.converged:
-        notes.append(
-            f"the fit did not settle in {joint.iterations} iterations; check the instruments'"
-            " setups and the points"
-        )
-    return notes
 
 
 INSTRUMENTS = ("tracker", "tracer")

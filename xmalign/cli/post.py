@@ -19,13 +19,7 @@ from xmalign.cli.common import (
     output_folder,
     refuse_overwriting,
 )
-from xmalign.cli.instruments import (
-    check_inputs,
-    count_readings,
-    instrument_lines,
-    instrument_notes,
-    read_instruments,
-)
+from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files, read_text
@@ -34,6 +28,7 @@ from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, loa
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import comp_step
 

@@ -1118,3 +1118,50 @@ def describe_undetermined(names: Iterable[str]) -> str:
         f"{listed}: a point cannot see these rotations (no lever arm changes); written as 0"
         " without u95, the tables are those of the SMR as the functional point"
     )
+
+
+def _triple(values: Vec, digits: int = 3) -> str:
+    return ", ".join(f"{v:.{digits}f}" for v in values)
+
+
+def _covered_text(covered_mm: tuple[Vec, Vec]) -> str:
+    spans = (f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("XYZ", *covered_mm, strict=True))
+    return "covered " + ", ".join(spans) + " mm"
+
+
+def instrument_lines(joint: JointFit) -> list[str]:
+    """One line per tracker station (pose) and tracer place (pivot, constants), with U95."""
+    lines = []
+    for s in joint.trackers:
+        lines.append(
+            f"tracker {s.label} ({s.n_points} points, {s.source}): origin"
+            f" {_triple(s.position_mm)} mm (U95 {_triple(s.position_u95_mm)}), rotation"
+            f" {_triple(s.rotation_urad, 0)} urad (U95 {_triple(s.rotation_u95_urad, 1)});"
+            f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f});"
+            f" {_covered_text(s.covered_mm)}"
+        )
+    for p in joint.tracers:
+        constants = ", ".join(
+            f"run {run} {k:.4f} (U95 {p.constant_u95_mm[run]:.4f})"
+            for run, k in p.constant_mm.items()
+        )
+        lines.append(
+            f"tracer {p.label} ({p.n_lengths} lengths, {p.source}): pivot"
+            f" {_triple(p.pivot_mm, 4)} mm (U95 {_triple(p.pivot_u95_mm, 4)}), constant"
+            f" {constants} mm; residual {p.residual_rms_um:.3f} um RMS (scatter / model"
+            f" {p.scatter_factor:.2f}); {_covered_text(p.covered_mm)}"
+        )
+    return lines
+
+
+def instrument_notes(joint: JointFit) -> list[str]:
+    """What the user should know about the joint fit (one line each)."""
+    notes = []
+    if joint.undetermined:
+        notes.append(describe_undetermined(joint.undetermined))
+    if not joint.converged:
+        notes.append(
+            f"the fit did not settle in {joint.iterations} iterations; check the instruments'"
+            " setups and the points"
+        )
+    return notes

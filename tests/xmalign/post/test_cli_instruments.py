@@ -42,11 +42,14 @@ def test_post_with_a_tracker_alone_writes_tables_and_shows_the_station(tmp_path:
 
 
 def test_post_with_tracers_alone_self_calibrates_four_places(tmp_path: Path) -> None:
-    out = tmp_path / "errors.csv"
-    result = run_in_process("post", "--tracer", str(EXAMPLES / "tracer.csv"), "--out", str(out))
+    out, report = tmp_path / "errors.csv", tmp_path / "report.html"
+    result = run_in_process(
+        "post", "--tracer", str(EXAMPLES / "tracer.csv"), "--out", str(out), "--report", str(report)
+    )
     assert result.returncode == 0, result.stderr
     for place in ("P1", "P2", "P3", "P4"):
         assert f"tracer {place}" in result.stdout
+        assert f"tracer {place} (" in report.read_text()
     assert out.exists()
 
 
