@@ -123,6 +123,7 @@ TRACER_GOOD = (
         (TRACKER_GOOD + "T1,0,3,0,0\n", "line 5: 5 fields"),
         (TRACKER_GOOD + "T1,0,3,2e5,0,0,0,0,0\n", "line 5: x_mm/y_mm/z_mm"),
         (TRACKER_GOOD.split("T1")[0], "no readings"),
+        (TRACKER_GOOD.rstrip("\n"), "line 4: the last row has no line end"),
     ],
 )
 def test_damaged_tracker_file_names_file_and_line(tmp_path: Path, text: str, fragment: str) -> None:

@@ -164,6 +164,10 @@ def _parse(
 ) -> None:
     """Rows of a CSV with a format line, comments and a header; checks every line."""
     lines = text.splitlines()
+    if lines and text and not text.endswith(("\n", "\r")) and not lines[-1].startswith("#"):
+        raise line_error(
+            source, len(lines), "the last row has no line end: the file was cut off while written"
+        )
     if not lines or lines[0].strip() != preamble:
         first = lines[0].strip()[:40] if lines else "an empty file"
         raise line_error(source, 1, f"expected '{preamble}', found '{first}'")

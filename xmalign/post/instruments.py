@@ -331,7 +331,9 @@ def _standing_positions(trackers: list[TrackerStation], tracers: list[TracerPlac
     return counts
 
 
-def instrument_knots(points_mm: Vec, spacing_mm: float, standing: Vec) -> dict[str, Vec]:
+def instrument_knots(
+    points_mm: Vec, spacing_mm: float, standing: Vec, sources: str = "the instruments"
+) -> dict[str, Vec]:
     """Compensation points over the range the instruments measured, at about ``spacing_mm``.
 
     Never more points on an axis than the coordinates it stood at (``standing``,
@@ -346,12 +348,12 @@ def instrument_knots(points_mm: Vec, spacing_mm: float, standing: Vec) -> dict[s
     for k, axis in enumerate(AXES):
         low, high = points_mm[:, k].min(), points_mm[:, k].max()
         if high - low < 1.0:
-            raise GeometryError(f"the instruments' points do not move the {axis} axis")
+            raise GeometryError(f"{sources}: the points do not move the {axis} axis")
         n = int(min(max(3, np.ceil((high - low) / spacing_mm) + 1), standing[k]))
         if n < 3:
             raise GeometryError(
-                f"the instruments saw the {axis} axis standing at {int(standing[k])}"
-                f" coordinate(s): its errors need at least 3 (measure paths at more {axis})"
+                f"{sources}: the {axis} axis stood at {int(standing[k])} coordinate(s) only;"
+                f" its errors need at least 3 (measure more points, or paths at more {axis})"
             )
         knots[axis] = np.linspace(low, high, n).round(6)
     return knots
@@ -866,10 +868,11 @@ def fit_joint(
     """
     if not trackers and not tracers:
         raise InputError("fit_joint needs tracker points or tracer lengths")
+    sources = ", ".join(dict.fromkeys([s.source for s in trackers] + [p.source for p in tracers]))
     if not lines and not trackers and len(tracers) < MIN_TRACER_PLACES:
         raise GeometryError(
-            f"tracer: {len(tracers)} place{'s' if len(tracers) != 1 else ''} cannot place the"
-            f" points in space; measure from at least {MIN_TRACER_PLACES} places"
+            f"{sources}: {len(tracers)} tracer place{'s' if len(tracers) != 1 else ''} cannot"
+            f" place the points in space; measure from at least {MIN_TRACER_PLACES} places"
         )
     reach = _instrument_points(trackers, tracers)
     undetermined: list[str] = []
@@ -887,7 +890,9 @@ def fit_joint(
             knot_spacing_mm = TRACER_KNOT_SPACING_MM if tracers else TRACKER_KNOT_SPACING_MM
         layout = _without_tables(
             ParameterLayout(
-                instrument_knots(reach, knot_spacing_mm, _standing_positions(trackers, tracers)),
+                instrument_knots(
+                    reach, knot_spacing_mm, _standing_positions(trackers, tracers), sources
+                ),
                 set(),
             ),
             undetermined,

@@ -100,7 +100,7 @@ def test_too_few_tracer_places_are_one_line_and_nothing_is_written(tmp_path: Pat
     write_tracer_lengths(three, [r for r in tracer.lengths if r.station != "P4"])
     out = tmp_path / "errors.csv"
     result = run_in_process("post", "--tracer", str(three), "--out", str(out))
-    assert_one_line_error(result, "tracer: 3 places cannot place the points")
+    assert_one_line_error(result, "3 tracer places cannot place the points")
     assert not out.exists()
 
 
