@@ -874,98 +874,43 @@ def fit_joint(
             f"{sources}: {len(tracers)} tracer place{'s' if len(tracers) != 1 else ''} cannot"
             f" place the points in space; measure from at least {MIN_TRACER_PLACES} places"
         )
-    reach = _instrument_points(trackers, tracers)
-    undetermined: list[str] = []
-    if lines:
-        line_knots = compensation_points(lines)
-        knots = {
-            a: _beyond_lines(k, reach[:, AXIS_INDEX[a]], EXTENSION_SPACING_MM)
-            for a, k in line_knots.items()
-        }
-        layout = _reversal_within(ParameterLayout(knots, bidirectional_axes(lines)), line_knots)
-        arm_mm = np.asarray(smr_offset_mm, dtype=float)
-    else:
-        undetermined = unseen_rotations(chain)
-        if knot_spacing_mm is None:
-            knot_spacing_mm = TRACER_KNOT_SPACING_MM if tracers else TRACKER_KNOT_SPACING_MM
-        layout = _without_tables(
-            ParameterLayout(
-                instrument_knots(
-                    reach, knot_spacing_mm, _standing_positions(trackers, tracers), sources
-                ),
-                set(),
-            ),
-            undetermined,
-        )
-        arm_mm = np.zeros(3)
+    layout, line_knots, undetermined = _joint_layout(
+        lines, trackers, tracers, chain, knot_spacing_mm, sources
+    )
     smr_mm = np.asarray(smr_offset_mm, dtype=float)
+    # without lines the tables are the SMR's: its offset is no lever arm (module docstring)
+    arm_mm = smr_mm if lines else np.zeros(3)
     setup = SetupLayout(lines, layout.n_columns)
-    column = layout.n_columns + setup.n_columns
-    tracker_states = []
-    for station in trackers:
-        tracker_states.append(_TrackerState(station, smr_mm, arm_mm, column))
-        column += _TRACKER_SETUP
-    tracer_states = []
-    for place in tracers:
-        state = _TracerState(place, smr_mm, arm_mm, column)
-        tracer_states.append(state)
-        column += state.n_columns
-    n_columns = column
-
-    def describe(c: int, knot: bool = True) -> str:
-        if c < layout.n_columns:
-            return layout.describe(c) if knot else str(layout.table_name(c))
-        line = setup.line_of(c)
-        if line is not None:
-            return f"the setup terms of line {line}"
-        for s in tracker_states:
-            if 0 <= c - s.column < _TRACKER_SETUP:
-                return f"the pose of tracker station {s.station.label} ({s.station.source})"
-        for t in tracer_states:
-            if 0 <= c - t.column < 3:
-                return f"the pivot of tracer place {t.place.label} ({t.place.source})"
-            if 0 <= c - t.column < t.n_columns:
-                return f"a constant of tracer place {t.place.label} ({t.place.source})"
-        return f"column {c}"
-
-    line_block, line_tables = _line_block(lines, chain, layout, setup, channel_sigma, n_columns)
+    states = _States(trackers, tracers, smr_mm, arm_mm, layout.n_columns + setup.n_columns)
+    describe = _describer(layout, setup, states)
+    line_block, line_tables, line_sigma = _line_block(
+        lines, chain, layout, setup, channel_sigma, states.n_columns
+    )
     fixed_blocks = [line_block] if line_block is not None else []
     if line_tables is not None:
         prior = _continuation_block(
-            layout, line_knots, line_tables, unseen_rotations(chain), n_columns
+            layout, line_knots, line_tables, unseen_rotations(chain), states.n_columns
         )
         fixed_blocks += [prior] if prior is not None else []
-    instruments: list[_TrackerState | _TracerState] = [*tracker_states, *tracer_states]
+    models = (tracker_uncertainty, tracer_uncertainty)
 
     def iterate(tables: Vec) -> tuple[list[_Block], _Solved, int, bool]:
         """Gauss-Newton until no pose, pivot or table value moves any more."""
         for iteration in range(1, _MAX_ITERATIONS + 1):
-            blocks = list(fixed_blocks)
-            blocks += [
-                s.linearise(chain, layout, tables, n_columns, tracker_uncertainty)
-                for s in tracker_states
-            ]
-            blocks += [
-                t.linearise(chain, layout, tables, n_columns, tracer_uncertainty)
-                for t in tracer_states
-            ]
+            blocks = fixed_blocks + states.linearise(chain, layout, tables, models)
             solved = _solve(blocks, describe)
-            step = max([state.update(solved.solution) for state in instruments] + [0.0])
+            step = states.update(solved.solution)
             table_step = float(np.max(np.abs(solved.solution - tables)[: layout.n_columns]))
             tables = solved.solution
             if step < _STEP_TOLERANCE_MM and table_step < _STEP_TOLERANCE_MM:
                 return blocks, solved, iteration, True
         return blocks, solved, _MAX_ITERATIONS, False
 
-    blocks, solved, iterations, converged = iterate(np.zeros(n_columns))
-    n_rows = sum(len(b.ratio) for b in blocks)
-    sigma0 = float(
-        np.sqrt(solved.residual_weighted @ solved.residual_weighted / max(n_rows - n_columns, 1))
-    )
+    blocks, solved, iterations, converged = iterate(np.zeros(states.n_columns))
+    sigma0 = _sigma0(solved, states.n_columns)
     factors = _noise_factors(blocks[len(fixed_blocks) :], solved)
     if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
-        for instrument, factor in zip(instruments, factors, strict=True):
-            instrument.noise_factor = factor
+        states.set_noise_factors(factors)
         blocks, solved, more, converged = iterate(solved.solution)
         iterations += more
     ratio = np.concatenate([b.ratio for b in blocks])
@@ -974,29 +919,33 @@ def fit_joint(
     raw = _raw_residuals(blocks, solved.solution)
     table_set = _tables(layout, solved.solution, covariance, travel_mm)
     for name in undetermined:
-        table = table_set.tables[name]
-        table.u95[:] = np.nan
-    line_residual = raw[0] if line_block is not None else np.zeros(0)
-    line_first_rows = [int(r) for r in np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines])]
+        table_set.tables[name].u95[:] = np.nan
+    sizes = [N_CHANNELS * len(d.run) for d in lines]
     fit = TableFit(
         tables=table_set,
         setup=setup.unpack(solved.solution),
-        residual_rms=_residual_rms(lines, line_first_rows[: len(lines)], line_residual),
+        residual_rms=_residual_rms(
+            lines,
+            [int(r) for r in np.cumsum([0, *sizes])[: len(lines)]],
+            raw[0] if line_block is not None else np.zeros(0),
+        ),
         sigma0=sigma0,
-        n_observations=n_rows,
-        n_parameters=n_columns,
-        channel_scatter=np.asarray(channel_sigma, dtype=float),
+        n_observations=len(ratio),
+        n_parameters=states.n_columns,
+        channel_scatter=line_sigma,
     )
-    offset = len(fixed_blocks)
-    tracker_fits = [
-        _tracker_fit(s, raw[offset + i], covariance) for i, s in enumerate(tracker_states)
-    ]
-    offset += len(tracker_states)
-    tracer_fits = [_tracer_fit(t, raw[offset + i], covariance) for i, t in enumerate(tracer_states)]
+    instrument_raw = raw[len(fixed_blocks) :]
+    n_trackers = len(states.trackers)
     return JointFit(
         fit=fit,
-        trackers=tracker_fits,
-        tracers=tracer_fits,
+        trackers=[
+            _tracker_fit(s, r, covariance)
+            for s, r in zip(states.trackers, instrument_raw, strict=False)
+        ],
+        tracers=[
+            _tracer_fit(t, r, covariance)
+            for t, r in zip(states.tracers, instrument_raw[n_trackers:], strict=True)
+        ],
         undetermined=undetermined,
         iterations=iterations,
         converged=converged,
@@ -1006,6 +955,113 @@ def fit_joint(
     )
 
 
+def _joint_layout(
+    lines: list[LineData],
+    trackers: list[TrackerStation],
+    tracers: list[TracerPlace],
+    chain: Chain,
+    knot_spacing_mm: float | None,
+    sources: str,
+) -> tuple[ParameterLayout, dict[str, Vec], list[str]]:
+    """The table columns, the lines' own knots and the tables no reading can see.
+
+    With lines: their compensation points continued to the instruments' reach,
+    the reversal only where the lines measured it. Without: points spread over
+    the instruments' range, and the rotations a point cannot see left out.
+    """
+    reach = _instrument_points(trackers, tracers)
+    if lines:
+        line_knots = compensation_points(lines)
+        knots = {
+            a: _beyond_lines(k, reach[:, AXIS_INDEX[a]], EXTENSION_SPACING_MM)
+            for a, k in line_knots.items()
+        }
+        layout = ParameterLayout(knots, bidirectional_axes(lines))
+        return _reversal_within(layout, line_knots), line_knots, []
+    undetermined = unseen_rotations(chain)
+    if knot_spacing_mm is None:
+        knot_spacing_mm = TRACER_KNOT_SPACING_MM if tracers else TRACKER_KNOT_SPACING_MM
+    standing = _standing_positions(trackers, tracers)
+    knots = instrument_knots(reach, knot_spacing_mm, standing, sources)
+    return _without_tables(ParameterLayout(knots, set()), undetermined), knots, undetermined
+
+
+class _States:
+    """The tracker stations and tracer places being fitted, their columns after ``first``."""
+
+    def __init__(
+        self,
+        trackers: list[TrackerStation],
+        tracers: list[TracerPlace],
+        smr_mm: Vec,
+        arm_mm: Vec,
+        first: int,
+    ) -> None:
+        column = first
+        self.trackers: list[_TrackerState] = []
+        for station in trackers:
+            self.trackers.append(_TrackerState(station, smr_mm, arm_mm, column))
+            column += _TRACKER_SETUP
+        self.tracers: list[_TracerState] = []
+        for place in tracers:
+            self.tracers.append(_TracerState(place, smr_mm, arm_mm, column))
+            column += self.tracers[-1].n_columns
+        self.n_columns = column
+
+    def linearise(
+        self,
+        chain: Chain,
+        layout: ParameterLayout,
+        tables: Vec,
+        models: tuple[TrackerUncertainty, TracerUncertainty],
+    ) -> list[_Block]:
+        """Each instrument's rows about the current tables, poses and pivots."""
+        blocks = [
+            s.linearise(chain, layout, tables, self.n_columns, models[0]) for s in self.trackers
+        ]
+        return blocks + [
+            t.linearise(chain, layout, tables, self.n_columns, models[1]) for t in self.tracers
+        ]
+
+    def update(self, solution: Vec) -> float:
+        """Apply a solution's increments; the largest move of a pose or pivot, mm."""
+        moves = [s.update(solution) for s in self.trackers]
+        return max(moves + [t.update(solution) for t in self.tracers] + [0.0])
+
+    def set_noise_factors(self, factors: Vec) -> None:
+        states: list[_TrackerState | _TracerState] = [*self.trackers, *self.tracers]
+        for state, factor in zip(states, factors, strict=True):
+            state.noise_factor = float(factor)
+
+
+def _describer(layout: ParameterLayout, setup: SetupLayout, states: _States) -> Callable[..., str]:
+    """A person's name for a column of the joint system (``knot``: with the table's knot)."""
+
+    def describe(c: int, knot: bool = True) -> str:
+        if c < layout.n_columns:
+            return layout.describe(c) if knot else str(layout.table_name(c))
+        line = setup.line_of(c)
+        if line is not None:
+            return f"the setup terms of line {line}"
+        for s in states.trackers:
+            if 0 <= c - s.column < _TRACKER_SETUP:
+                return f"the pose of tracker station {s.station.label} ({s.station.source})"
+        for t in states.tracers:
+            if 0 <= c - t.column < 3:
+                return f"the pivot of tracer place {t.place.label} ({t.place.source})"
+            if 0 <= c - t.column < t.n_columns:
+                return f"a constant of tracer place {t.place.label} ({t.place.source})"
+        return f"column {c}"
+
+    return describe
+
+
+def _sigma0(solved: _Solved, n_columns: int) -> float:
+    """Square root of the a-posteriori variance factor of a solved system."""
+    squares = float(solved.residual_weighted @ solved.residual_weighted)
+    return float(np.sqrt(squares / max(len(solved.residual_weighted) - n_columns, 1)))
+
+
 def _line_block(
     lines: list[LineData],
     chain: Chain,
@@ -1013,16 +1069,17 @@ def _line_block(
     setup: SetupLayout,
     channel_sigma: Vec,
     n_columns: int,
-) -> tuple[_Block | None, ErrorTableSet | None]:
+) -> tuple[_Block | None, ErrorTableSet | None, Vec]:
     """The lines' rows, weighted with the scatter a lines-only fit estimates (its sigma floor).
 
     The covariance is propagated with the larger of that scatter and the machine
     file's uncertainty, as :func:`xmalign.post.solve.fit_error_tables` does. Also
-    returns the lines-only tables (None when the lines alone are undetermined).
+    returns the lines-only tables (None when the lines alone are undetermined) and
+    the channels' standard deviations the rows are weighted with (mm / rad).
     """
-    if not lines:
-        return None, None
     prior = np.asarray(channel_sigma, dtype=float)
+    if not lines:
+        return None, None, prior
     try:
         alone = fit_error_tables(lines, chain, prior)
         sigma, tables = alone.channel_scatter, alone.tables
@@ -1040,7 +1097,7 @@ def _line_block(
         whitening=scipy.sparse.diags(np.tile(1.0 / sigma, repeats)).tocsr(),
         ratio=np.tile((np.maximum(prior, sigma) / sigma) ** 2, repeats),
     )
-    return block, tables
+    return block, tables, sigma
 
 
 def _noise_factors(blocks: list[_Block], solved: _Solved) -> Vec:
