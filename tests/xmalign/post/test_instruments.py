@@ -218,3 +218,19 @@ def test_axis_paths_alone_put_the_knots_where_the_axes_stood(machine: Machine) -
     measured = joint.fit.tables.tables["EXX"]
     knots = measured.positions_mm[::4]
     np.testing.assert_allclose(knots, [0, 500, 1000, 1500, 2000])
+
+
+def test_the_propagated_uncertainty_matches_the_scatter_of_the_result(machine: Machine) -> None:
+    """GUM check: on a smooth machine (no model error) the residual over the travel is what
+    the covariance predicts (the information limit), within the spread of a few seeds."""
+    chain = Chain.parse(machine.chain)
+    grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 6)
+    ratios = []
+    for seed in range(3):
+        truth = VirtualMachine(machine, ErrorAmplitudes(scale=0.05, repeatability_um=0.0), seed)
+        tracker = VirtualTracker(np.array([1000.0, 750, -800]), np.array([0.0, 0, 30]), seed=seed)
+        rows = measure_tracker(truth, tracker, _points(machine, 200, seed), 2, SMR)
+        joint = _fit(machine, trackers=[TrackerFile(rows, "t.csv")])
+        actual = _residual_at_smr_um(machine, joint.fit.tables.model(""), truth)
+        ratios.append(actual / joint.volumetric_u_um(chain, grid))
+    assert 0.6 < np.mean(ratios) < 1.4, ratios
