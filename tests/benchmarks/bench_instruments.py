@@ -19,8 +19,12 @@ On machines ``post`` has never seen (:class:`sim.machine.VirtualMachine`, seed
   points each (the grid plus 380 random points), one run each (seed 004);
   noise half the LaserTRACER's U (:mod:`sim.tracer`);
 - **XM-60 station alone** and **with the tracker**: the six lines of station 1
-  (:func:`bench_accuracy.station_plans`, interferometer noise and setup terms of
-  :func:`sim.synthetic.measure`) without and with the tracker's 250 x 2 points.
+  (:func:`sim.instrument_study.station_plan`, the plan of bench_accuracy.py's
+  station 1; interferometer noise and setup terms of :func:`sim.synthetic.measure`)
+  without and with the tracker's 250 x 2 points.
+
+The measurements are :mod:`sim.instrument_study`'s (also ``xmalign mc --mode
+instruments``).
 
 The SMR sits 100 mm below the tool point. Figures: RMS volumetric difference
 from the truth after removing a rigid motion, 8 x 8 x 8 grid over the whole
@@ -48,43 +52,27 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))  # bench_accuracy: the XM-60 station's plan
+sys.path.insert(0, str(Path(__file__).parent))  # bench_accuracy: the strokes' box
 
-from bench_accuracy import _strokes, station_plans  # noqa: E402
+from bench_accuracy import _strokes  # noqa: E402
 
-from sim.interferometer import InterferometerNoise  # noqa: E402
+from sim.instrument_study import (  # noqa: E402
+    station_plan,
+    tracer_file,
+    tracker_file,
+    tracker_fly_file,
+    xm60_station,
+)
 from sim.machine import VirtualMachine  # noqa: E402
-from sim.synthetic import SetupDisturbance, measure  # noqa: E402
-from sim.tracer import VirtualTracer, measure_tracer  # noqa: E402
-from sim.tracker import (  # noqa: E402
-    VirtualTracker,
-    measure_tracker,
-    measure_tracker_on_the_fly,
-)
-from trajectories.gcode import make_dialect  # noqa: E402
 from trajectories.gcode.program import estimate_machine_time  # noqa: E402
-from trajectories.instruments import (  # noqa: E402
-    FLY_FEED_MM_MIN,
-    InstrumentProgram,
-    fly_paths,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
-    write_instrument_program,
-)
-from xmalign.formats.instruments import TracerFile, TrackerFile  # noqa: E402
 from xmalign.machine import Machine, default_machine_path, load_machine  # noqa: E402
 from xmalign.post.compare import grid_points, volumetric_rms_um  # noqa: E402
-from xmalign.post.evaluate import Instruments, Station, post_stations  # noqa: E402
+from xmalign.post.evaluate import Instruments, post_stations  # noqa: E402
 from xmalign.rigid_body import Chain  # noqa: E402
 
 CHAINS = ("FYXZ", "XFYZ")
 SMR_OFFSET_MM = (0.0, 0.0, -100.0)
 GRID = 8
-TRACKER_RUNS = 2
-TRACER_PLACES = 4
-FLY_SPACING_MM = 20.0
 TRACKER_TARGET_UM = 4.0
 TRACER_TARGET_UM = 1.0
 TRAVEL_RATIO_TARGET = 0.8
@@ -106,47 +94,6 @@ class Figures:
     post_s: float
 
 
-def _minutes(machine: Machine, program: InstrumentProgram) -> float:
-    dialect = make_dialect("linuxcnc", machine)
-    return write_instrument_program(program, machine, dialect, "bench")[1].total_s / 60
-
-
-def tracker_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TrackerFile, float]:
-    """The tracker's points on the machine and their machine time, min."""
-    points = tracker_points(machine, seed)
-    tracker = VirtualTracker(tracker_place(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
-    rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
-    return TrackerFile(rows, "tracker.csv"), TRACKER_RUNS * _minutes(
-        machine, InstrumentProgram(points_mm=points)
-    )
-
-
-def tracker_fly_file(
-    machine: Machine, truth: VirtualMachine, seed: int
-) -> tuple[TrackerFile, float]:
-    """The tracker's samples on the fly and the paths' machine time, min."""
-    paths = fly_paths(machine, seed)
-    tracker = VirtualTracker(tracker_place(machine), np.array([0.5, -1.0, 30.0]), seed=seed)
-    rows = measure_tracker_on_the_fly(
-        truth, tracker, paths, FLY_SPACING_MM, machine.smr_offset, feed_mm_min=FLY_FEED_MM_MIN
-    )
-    return TrackerFile(rows, "tracker-fly.csv"), _minutes(
-        machine, InstrumentProgram(paths_mm=paths)
-    )
-
-
-def tracer_file(machine: Machine, truth: VirtualMachine, seed: int) -> tuple[TracerFile, float]:
-    """The tracers' lengths from four places and their machine time, min."""
-    rows = []
-    minutes = 0.0
-    for i, pivot in enumerate(propose_tracer_places(machine, TRACER_PLACES)):
-        points = tracer_points(machine, 10 * seed + i)
-        tracer = VirtualTracer(pivot, seed=10 * seed + i)
-        rows += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")
-        minutes += _minutes(machine, InstrumentProgram(points_mm=points))
-    return TracerFile(rows, "tracer.csv"), minutes
-
-
 def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
     chain = Chain.parse(machine.chain)
     truth = VirtualMachine(machine, seed=seed)
@@ -158,10 +105,8 @@ def evaluate(machine: Machine, seed: int) -> tuple[Figures, dict[str, float]]:
     fly_only = post_stations(machine, [], instruments=Instruments(trackers=(fly,)))
     tracer_only = post_stations(machine, [], instruments=Instruments(tracers=(tracers,)))
 
-    rng = np.random.default_rng(1000 + seed)
-    noise = SetupDisturbance(noise=tuple(InterferometerNoise().sigmas()))
-    plan = station_plans(machine, 1)[0]
-    stations = [Station(plan, measure(plan, chain, truth, rng, setup=noise), "station1.csv")]
+    plan = station_plan(machine)
+    stations = [xm60_station(machine, truth, seed, plan)]
     alone = post_stations(machine, stations)
     started = time.perf_counter()
     joint = post_stations(machine, stations, instruments=Instruments(trackers=(trackers,)))

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+from rich.table import Table as RichTable
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
@@ -22,7 +24,13 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
-from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    console,
+    error_console,
+    machine_or_default,
+    output_folder,
+    refuse_overwriting,
+)
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.instruments import (
@@ -39,6 +47,9 @@ from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
+
+if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
+    from sim.machine import ErrorAmplitudes
 
 
 def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
@@ -241,3 +252,37 @@ def instrument_dry_run(
     ]
     for line in lines:
         console.print(line, highlight=False, markup=False, soft_wrap=True)
+
+
+def compare_instruments_command(
+    machine: Machine, trials: int, seed: int, amplitudes: ErrorAmplitudes, out: Path
+) -> None:
+    """``xmalign mc --mode instruments``: every instrument on the same random machines."""
+    from sim.instrument_study import compare_instruments
+
+    path = out / "mc-instruments.json"
+    refuse_overwriting({}, {"--out": path})
+    output_folder(out, "--out")
+    with error_console.status(f"{trials} machines, every instrument"):
+        results = compare_instruments(machine, trials, seed, amplitudes)
+    document = {
+        "format": "xmalign-mc-instruments/1",
+        "machine": machine.name,
+        "trials": trials,
+        "seed": seed,
+        "strategies": [
+            {"name": r.name, "residual_um": r.residual_um, "machine_time_min": r.minutes}
+            for r in results
+        ],
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(document, indent=2) + "\n")
+    table = RichTable(title="Residual over the whole travel (um RMS) and machine time")
+    for column in ("strategy", "mean", "std", "95 %", "min"):
+        table.add_column(column, justify="left" if column == "strategy" else "right")
+    for r in results:
+        table.add_row(
+            r.name, f"{r.mean_um:.2f}", f"{r.std_um:.2f}", f"{r.p95_um:.2f}", f"{r.minutes:.0f}"
+        )
+    console.print(table)
+    console.print(f"wrote {path}", highlight=False)

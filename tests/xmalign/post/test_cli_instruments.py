@@ -6,6 +6,7 @@ examples/tracker.csv and examples/tracer.csv were written by the simulator
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -251,3 +252,16 @@ def test_dry_run_of_an_xm60_station_with_a_tracker(tmp_path: Path) -> None:
     alone = float(result.stdout.split("station alone: ")[1].split(" um")[0])
     assert after < 0.8 * alone
     assert (out / "measurements.csv").exists() and (out / "tracker.csv").exists()
+
+
+def test_mc_compares_the_instruments_on_the_same_machines(tmp_path: Path) -> None:
+    out = tmp_path / "mc"
+    result = run_in_process("mc", "--mode", "instruments", "--trials", "1", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    document = json.loads((out / "mc-instruments.json").read_text())
+    names = [s["name"] for s in document["strategies"]]
+    assert names == ["tracker", "tracker on the fly", "tracers", "xm60", "xm60+tracker"]
+    residual = {s["name"]: s["residual_um"][0] for s in document["strategies"]}
+    assert residual["tracers"] < residual["tracker"]
+    assert residual["xm60+tracker"] < residual["xm60"]
+    assert "xm60+tracker" in result.stdout
