@@ -7,6 +7,8 @@ error model.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -234,3 +236,32 @@ def test_the_propagated_uncertainty_matches_the_scatter_of_the_result(machine: M
         actual = _residual_at_smr_um(machine, joint.fit.tables.model(""), truth)
         ratios.append(actual / joint.volumetric_u_um(chain, grid))
     assert 0.6 < np.mean(ratios) < 1.4, ratios
+
+
+def test_a_rows_own_uncertainty_weights_it(machine: Machine) -> None:
+    """A point 5 mm off with its own u of 10 mm counts for nothing; without it, it spoils."""
+    truth = _truth(machine)
+    rows = measure_tracker(
+        truth, _quiet_tracker([1000, 750, -800], [0, 0, 0]), _points(machine, 100), 1, SMR
+    )
+    bad = rows[7]
+    moved = replace(bad, tracker_mm=bad.tracker_mm + 5.0)
+    flagged = replace(moved, u_radial_um=1e4, u_transverse_um=1e4)
+    results = {}
+    for name, row in (("flagged", flagged), ("unflagged", moved)):
+        points = rows[:7] + [row] + rows[8:]
+        model = _fit(machine, trackers=[TrackerFile(points, "t.csv")]).fit.tables.model("")
+        results[name] = _residual_at_smr_um(machine, model, truth)
+    assert results["flagged"] < 1.0 < results["unflagged"]
+
+
+def test_two_files_with_the_same_station_name_are_two_stations(machine: Machine) -> None:
+    truth = _truth(machine)
+    files = []
+    for i, place in enumerate(([1000, 750, -800], [300, 200, -700])):
+        tracker = _quiet_tracker(place, [0, 0, 20 * i])
+        rows = measure_tracker(truth, tracker, _points(machine, 60, seed=i), 1, SMR)
+        files.append(TrackerFile(rows, f"day{i}.csv"))
+    joint = _fit(machine, trackers=files)
+    assert [s.label for s in joint.trackers] == ["T1@day0.csv", "T1@day1.csv"]
+    np.testing.assert_allclose(joint.trackers[1].position_mm, [300, 200, -700], atol=0.05)
