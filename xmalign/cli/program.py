@@ -17,7 +17,13 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from trajectories.stations import propose_second_station
-from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    check_positions,
+    console,
+    error_console,
+    machine_or_default,
+    refuse_overwriting,
+)
 from xmalign.cli.instruments import (
     InstrumentRequest,
     check_instrument_options,
@@ -207,6 +213,7 @@ def plan_identify(
     ] = None,
 ) -> None:
     """Propose machine positions for identification that minimise the pose uncertainty."""
+    check_positions(count, "--count")
     refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
     with error_console.status("optimising the identification positions"):

@@ -34,7 +34,7 @@ from xmalign.formats.common import (
     read_text,
 )
 from xmalign.geometry import Vec
-from xmalign.rigid_body import MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
+from xmalign.rigid_body import AXES, MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
 
 HEADER = ("name", "position_mm", "value", "unit", "u95")
 RANGE_COLUMN = "range"
@@ -103,6 +103,30 @@ class ErrorTableSet:
             if candidate in self.tables:
                 return self.tables[candidate]
         raise InputError(f"{self.source}: no table {name} (run xmalign post on all six lines)")
+
+    def check_within_travel(self, travel_min_mm: Vec, travel_max_mm: Vec, machine: str) -> None:
+        """Refuse a table whose positions all lie outside its axis' travel (tables of
+        another machine, or positions in another unit): nothing of it could be applied.
+
+        Raises
+        ------
+        InputError
+            Naming the file, the table, its axis and both ranges.
+        """
+        for name, table in self.tables.items():
+            axis = name.rstrip("+-")[-1]
+            low, high = travel_min_mm[AXES.index(axis)], travel_max_mm[AXES.index(axis)]
+            first, last = table.positions_mm.min(), table.positions_mm.max()
+            if last < low or first > high:
+                raise InputError(
+                    located(
+                        self.source,
+                        name,
+                        f"positions {first:g}..{last:g} mm lie outside the {axis} travel"
+                        f" {low:g}..{high:g} mm of machine '{machine}' (tables of another"
+                        " machine?)",
+                    )
+                )
 
     def model(self, direction: str = "") -> ErrorTables:
         """The interpolating error model of one direction (``""``, ``"+"`` or ``"-"``).
@@ -177,7 +201,8 @@ def _parse_row(fields: list[str], header: tuple[str, ...], path: Path, line: int
 
 
 def read_error_tables(path: str | Path) -> ErrorTableSet:
-    """Read an error-table CSV; a bad or repeated row raises InputError with its line number."""
+    """Read an error-table CSV; a bad or repeated row (with its line number), a table of one
+    position or a missing squareness row (naming it) raises InputError."""
     path = Path(path)
     reader = csv.reader(io.StringIO(read_text(path), newline=""))
     try:
@@ -210,6 +235,16 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
             raise InputError(located(path, name, "a table needs at least two positions"))
         data = np.array(sorted(entries))
         result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2], data[:, 3] > 0)
+    missing = [name for name in SQUARENESS_NAMES if name not in result.squareness]
+    if missing:
+        raise InputError(
+            located(
+                path,
+                "squareness",
+                f"no row for {', '.join(missing)}; xmalign post writes all three (a machine"
+                " taken as square needs them too, with value 0)",
+            )
+        )
     return result
 
 

@@ -883,13 +883,13 @@ def fit_joint(
     setup = SetupLayout(lines, layout.n_columns)
     states = _States(trackers, tracers, smr_mm, arm_mm, layout.n_columns + setup.n_columns)
     describe = _describer(layout, setup, states)
-    line_block, line_tables, line_sigma = _line_block(
+    line_block, alone, line_sigma = _line_block(
         lines, chain, layout, setup, channel_sigma, states.n_columns
     )
     fixed_blocks = [line_block] if line_block is not None else []
-    if line_tables is not None:
+    if alone is not None:
         prior = _continuation_block(
-            layout, line_knots, line_tables, unseen_rotations(chain), states.n_columns
+            layout, line_knots, alone.tables, unseen_rotations(chain), states.n_columns
         )
         fixed_blocks += [prior] if prior is not None else []
     models = (tracker_uncertainty, tracer_uncertainty)
@@ -927,12 +927,13 @@ def fit_joint(
         residual_rms=_residual_rms(
             lines,
             [int(r) for r in np.cumsum([0, *sizes])[: len(lines)]],
-            raw[0] if line_block is not None else np.zeros(0),
+            _line_residual(line_block, raw),
         ),
         sigma0=sigma0,
         n_observations=len(ratio),
         n_parameters=states.n_columns,
         channel_scatter=line_sigma,
+        outliers=alone.outliers if alone is not None else [],
     )
     instrument_raw = raw[len(fixed_blocks) :]
     n_trackers = len(states.trackers)
@@ -1069,35 +1070,47 @@ def _line_block(
     setup: SetupLayout,
     channel_sigma: Vec,
     n_columns: int,
-) -> tuple[_Block | None, ErrorTableSet | None, Vec]:
+) -> tuple[_Block | None, TableFit | None, Vec]:
     """The lines' rows, weighted with the scatter a lines-only fit estimates (its sigma floor).
 
     The covariance is propagated with the larger of that scatter and the machine
-    file's uncertainty, as :func:`xmalign.post.solve.fit_error_tables` does. Also
-    returns the lines-only tables (None when the lines alone are undetermined) and
+    file's uncertainty, as :func:`xmalign.post.solve.fit_error_tables` does; the
+    readings that fit left out as gross outliers get no weight here either. Also
+    returns the lines-only fit (None when the lines alone are undetermined) and
     the channels' standard deviations the rows are weighted with (mm / rad).
     """
     prior = np.asarray(channel_sigma, dtype=float)
     if not lines:
         return None, None, prior
+    alone: TableFit | None
     try:
         alone = fit_error_tables(lines, chain, prior)
-        sigma, tables = alone.channel_scatter, alone.tables
+        sigma = alone.channel_scatter
     except (GeometryError, InputError):  # the lines need the instruments to determine them
-        sigma, tables = prior, None
+        alone, sigma = None, prior
     triplets = Triplets()
-    add_line_rows(lines, chain, layout, setup, triplets)
+    first_rows = add_line_rows(lines, chain, layout, setup, triplets)
     rows, cols, vals = triplets.arrays()
     n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     design = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, n_columns))
     repeats = n_rows // N_CHANNELS
+    weights = np.tile(1.0 / sigma, repeats)
+    for outlier in alone.outliers if alone is not None else []:
+        weights[first_rows[outlier.line] + N_CHANNELS * outlier.point + outlier.channel] = 0.0
     block = _Block(
         design=design,
         observed=np.concatenate([d.channels.ravel() for d in lines]),
-        whitening=scipy.sparse.diags(np.tile(1.0 / sigma, repeats)).tocsr(),
+        whitening=scipy.sparse.diags(weights).tocsr(),
         ratio=np.tile((np.maximum(prior, sigma) / sigma) ** 2, repeats),
     )
-    return block, tables, sigma
+    return block, alone, sigma
+
+
+def _line_residual(line_block: _Block | None, raw: list[Vec]) -> Vec:
+    """The lines' residuals (mm / rad), NaN for the readings left out as outliers."""
+    if line_block is None:
+        return np.zeros(0)
+    return np.where(line_block.whitening.diagonal() > 0, raw[0], np.nan)
 
 
 def _noise_factors(blocks: list[_Block], solved: _Solved) -> Vec:
