@@ -33,6 +33,7 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
+from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
@@ -441,11 +442,18 @@ def dry_run_command(
             " Modbus TCP, a serial pty and a position file (docs/simulator.md).",
         ),
     ] = False,
+    instrument: Annotated[
+        str,
+        typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
+    ] = "xm60",
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
     check_seed(seed)
+    if instrument != "xm60":
+        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        return
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
