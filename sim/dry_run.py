@@ -446,7 +446,9 @@ def simulate_calibration(
     started = clock.now()
     csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
-    with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
+    with open_run_output(
+        csv_path, plan, resume=False, environment=monitor, sim_seed=options.seed
+    ) as output:
         output.on_saved = on_point or (lambda saved: None)
         run = measure(output)
     run_s = clock.now() - started

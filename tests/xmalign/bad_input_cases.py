@@ -552,13 +552,13 @@ _CLI_CASES = [
     # writing fails: the old output stays as it was
     Case(
         "comp-read-only",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
     Case(
         "identify-out-read-only",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
@@ -570,13 +570,13 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case(
         "comp-full-disk",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "disk full"),
         patch=full_disk,
     ),  # noqa: E501
     Case(
         "identify-full-disk",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "disk full"),
         patch=full_disk,
     ),  # noqa: E501

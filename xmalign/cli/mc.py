@@ -18,15 +18,15 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
+    check_output_folder,
     check_seed,
     console,
     error_console,
     machine_or_default,
     output_folder,
-    refuse_overwriting,
 )
 from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_text, refuse_overwriting
 
 if TYPE_CHECKING:
     from sim.mc import StrategyResult, StudySettings
@@ -234,8 +234,8 @@ def mc(
         raise InputError(f"--workers {workers}: must be 0 (every core) or more")
     check_seed(seed)
     written_names = ("mc.json", "histograms.png", "envelopes.png", "volumetric.png")
+    check_output_folder(out, "--out")
     refuse_overwriting({"--machine": machine}, {"--out": [out / name for name in written_names]})
-    output_folder(out, "--out")
     settings = StudySettings(
         mode=mode,
         max_trials=trials,
@@ -261,7 +261,7 @@ def mc(
         )
         progress.update(task, total=sum(r.trials for r in results))
     # the results first: nothing after this may lose minutes of trials
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
     console.print(_table(results, tolerance_um, mode))
     written = [

@@ -17,9 +17,14 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from trajectories.stations import propose_second_station
-from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import ForceOption, console, error_console, machine_or_default
 from xmalign.errors import GeometryError, InputError
-from xmalign.formats.common import atomic_write_text, write_json
+from xmalign.formats.common import (
+    atomic_write_text,
+    refuse_overwriting,
+    refuse_replacing,
+    write_json,
+)
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
 from xmalign.machine import Machine
@@ -80,6 +85,7 @@ def program(
         str | None,
         typer.Option(help="Comma-separated lines to plan, e.g. Z,YZ,XZ (default: all six)."),
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
 
@@ -89,6 +95,7 @@ def program(
     refuse_overwriting(
         {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
     )
+    refuse_replacing({"--plan-out": plan_out, "--out": out}, force)
     if not pose.exists():
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import signal
 import sys
@@ -21,6 +22,7 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.formats.common import located, read_text, refuse_overwriting
 from xmalign.machine import Machine
 
 if TYPE_CHECKING:
@@ -36,6 +38,40 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     if not port.isdigit() or not 0 <= int(port) <= 65535 or (":" in text and not host):
         raise InputError(f"--modbus '{text}': expected PORT or HOST:PORT, e.g. 5020")
     return host or default_host, int(port)
+
+
+def _check_multicast_group(channel: str, interface: str) -> None:
+    """udp_multicast's channel is a multicast group, given as an address (not a host name)."""
+    if interface != "udp_multicast":
+        return
+    try:
+        group = ipaddress.ip_address(channel)
+    except ValueError:
+        group = None
+    if group is None or not group.is_multicast:
+        what = "not an IP address" if group is None else "not a multicast address"
+        raise InputError(
+            f"--canopen '{channel}': {what}; --can-interface udp_multicast needs a multicast"
+            " group, e.g. 239.74.163.2 or ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
+        )
+
+
+def _check_position_file(path: Path) -> None:
+    """An existing ``--position-file`` must be one: anything else would be overwritten."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    from firmware_iface.machine_position import parse_position
+
+    first = read_text(path).partition("\n")[0]
+    if parse_position(first) is None:
+        raise InputError(
+            located(
+                path,
+                "--position-file",
+                "holds something other than a machine position ('x y z'); the simulated"
+                " CNC would overwrite it: give a new file name",
+            )
+        )
 
 
 @sim_app.command()
@@ -121,6 +157,15 @@ def serve(
             " --interferometer-pty, --station-pty and/or --position-file"
         )
     check_seed(seed)
+    refuse_overwriting(
+        {"--machine": machine, "--program": program},
+        {"--position-file": position_file},
+        {"--log-file": log_file},
+    )
+    if position_file is not None:
+        _check_position_file(position_file)
+    if canopen is not None:
+        _check_multicast_group(canopen, can_interface)
     if can_hop_limit < 0:
         raise InputError(f"--can-hop-limit {can_hop_limit}: expected 0 or more")
     address = _host_port(modbus, host) if modbus is not None else None
