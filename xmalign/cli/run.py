@@ -422,10 +422,12 @@ def dry_run_command(
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
+    from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
     _check_shop(shop)
     machine_model = machine_or_default(machine)
+    resolve_dialect(machine_model, dialect)  # a bad --dialect before any folder is made
     check_dry_run_folder(out)
     options = DryRunOptions(
         seed=seed,

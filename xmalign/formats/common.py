@@ -401,7 +401,7 @@ def refuse_overwriting(
         for out_option, out_paths in group.items():
             for out_path in _each(out_paths):
                 refuse_special(out_path, out_option, is_appended)
-                _refuse_same(out_option, out_path, inputs, written)
+                _refuse_same(out_option, out_path, inputs, written, is_appended)
                 written.append((out_option, out_path))
 
 
@@ -410,14 +410,16 @@ def _refuse_same(
     out_path: Path,
     inputs: Mapping[str, PathsOf],
     written: list[tuple[str, Path]],
+    appended: bool,
 ) -> None:
+    harm = "written into" if appended else "replaced"
     for in_option, in_paths in inputs.items():
         if any(same_file(out_path, in_path) for in_path in _each(in_paths)):
             raise InputError(
                 located(
                     out_path,
                     out_option,
-                    f"is also the {in_option} file; it would be replaced (write to another file)",
+                    f"is also the {in_option} file; it would be {harm} (write to another file)",
                 )
             )
     for other_option, other in written:
@@ -454,6 +456,9 @@ def refuse_replacing(outputs: Mapping[str, PathsOf], force: bool) -> None:
 def _write_temporary(path: Path, data: bytes) -> Path:
     """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
     refuse_special(path, "cannot write")
+    folder = next((p for p in path.parents if p.exists()), None)
+    if folder is not None and not folder.is_dir():
+        raise OutputError(located(path, "cannot write", f"{folder} is a file, not a folder"))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
