@@ -157,7 +157,7 @@ def test_a_second_run_on_a_file_in_use_is_refused(short_plan: Path, tmp_path: Pa
 
 
 def test_the_lock_lasts_the_whole_run_and_ends_with_it(tmp_path: Path) -> None:
-    path = tmp_path / "m.csv"
+    path = tmp_path / "new folder" / "m.csv"
     first = RunLock(path)
     with pytest.raises(InputError, match="in use by another run"):
         RunLock(path)

@@ -142,8 +142,9 @@ def main() -> None:
         _say(f"error: {error}")
         sys.exit(2)
     except OSError as error:
-        where = error.filename if error.filename is not None else "file"
-        _say(f"error: {where}: {os_problem(error)}")
+        # no file behind it (a name lookup, a socket): no "file:" that names nothing
+        where = f"{error.filename}: " if error.filename is not None else ""
+        _say(f"error: {where}{os_problem(error)}")
         sys.exit(2)
     except UnicodeDecodeError as error:  # a reader that did not go through read_text
         _say(f"error: an input file is not UTF-8 text (byte 0x{error.object[error.start]:02x})")

@@ -445,12 +445,14 @@ class RunLock:
     Two runs appending to one file (two ``run --resume`` at once) would record
     points twice; the second is refused while the first holds the lock. The
     lock is ``fcntl.flock`` on the file itself: it ends with the process, even
-    a killed one. Opening it creates a missing file (empty: it counts as new).
+    a killed one. Opening it creates a missing file and its folders (an empty
+    file counts as new).
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fd: int | None = os.open(self.path, os.O_RDONLY | os.O_CREAT, 0o666)
         except OSError as error:
             raise _write_error(self.path, error) from error
