@@ -10,10 +10,12 @@ temporary folder (root only), never the real /dev/null.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import stat
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -297,3 +299,66 @@ def test_comp_force_replaces_and_without_it_nothing_is_written(tmp_path: Path) -
     )
     assert forced.returncode == 0, forced.stderr
     assert "$AA_ENC_COMP" in (tmp_path / "comp" / "AX_EEC.INI").read_text()
+
+
+# -- a real full disk and a real read-only folder (root: a small tmpfs mounted for the test) --
+
+
+@contextlib.contextmanager
+def tmpfs(folder: Path, size: str, *options: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` mounted on ``folder`` (skips where mounting is not allowed)."""
+    folder.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", ",".join([f"size={size}", *options]), "tmpfs", folder],
+        capture_output=True,
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode().strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "--lazy", folder], check=True)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
+def test_a_run_on_a_disk_that_fills_up_keeps_every_saved_point(
+    short_plan: Path, tmp_path: Path
+) -> None:
+    """The kernel's own ENOSPC: a 16 KiB tmpfs, 12 KiB of it taken, room for one page."""
+    with tmpfs(tmp_path / "small", "16k") as small:
+        (small / "filler").write_bytes(bytes(10_000))
+        out = small / "m.csv"
+        plan = read_plan(short_plan)
+        plan.lines[0].runs = 5  # more rows than a 4 KiB page holds
+        write_plan(short_plan, plan)
+        result = _run(short_plan, out)
+        kept = load_measurements(out, torn_ok=True)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == (
+        f"xmalign: error: {out}: cannot write (disk full); {len(kept.rows)} points kept in {out}"
+    )
+    assert len(kept.rows) > 0
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
+def test_a_read_only_folder_keeps_the_old_file_as_root(tmp_path: Path) -> None:
+    """tests/xmalign/test_bad_input.py's read-only folder, for root: a read-only mount."""
+    prepare(tmp_path)
+    with tmpfs(tmp_path / "locked", "64k") as locked:
+        (locked / "pose.json").write_bytes((ROOT / "examples" / "pose.json").read_bytes())
+        subprocess.run(["mount", "-o", "remount,ro", locked], check=True)
+        result = run_in_process(
+            "identify",
+            "--input",
+            str(tmp_path / "session.json"),
+            "--out",
+            str(locked / "pose.json"),
+            "--force",
+        )
+        kept = (locked / "pose.json").read_bytes()
+        left = sorted(p.name for p in locked.iterdir())
+    assert result.returncode == 2
+    assert result.stderr.strip() == (
+        f"xmalign: error: {locked / 'pose.json'}: cannot write: read-only file system"
+    )
+    assert kept == (ROOT / "examples" / "pose.json").read_bytes() and left == ["pose.json"]
