@@ -200,6 +200,13 @@ def test_a_disk_full_during_a_run_names_the_file_and_the_points_kept(
     assert len(load_measurements(out).rows) == points
 
 
+def test_the_measurement_writer_never_opens_a_fifo(tmp_path: Path) -> None:
+    """Opening a FIFO for writing blocks until something reads it: refused first."""
+    os.mkfifo(tmp_path / "ff")
+    with pytest.raises(OutputError, match="ff: cannot write: is a FIFO"):
+        write_measurements(tmp_path / "ff", [])
+
+
 def test_a_measurement_writer_records_the_seed(tmp_path: Path) -> None:
     with MeasurementWriter.create(tmp_path / "m.csv", "ab" * 32, sim_seed=7):
         pass

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from xmalign.errors import FormatError, InputError
-from xmalign.formats.common import os_problem, sync_folder
+from xmalign.formats.common import os_problem, refuse_special, sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
@@ -511,6 +511,7 @@ class MeasurementWriter:
         )
         if path.is_dir():
             raise InputError(f"{path}: is a folder; give a file name for the measurements")
+        refuse_special(path, "cannot write")  # a FIFO would block, a device lose the rows
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT
