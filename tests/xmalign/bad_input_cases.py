@@ -117,6 +117,16 @@ def append(name: str, text: str) -> Damage:
     return apply
 
 
+def each(*damages: Damage) -> Damage:
+    """All of ``damages``, in order."""
+
+    def apply(folder: Path) -> None:
+        for damage in damages:
+            damage(folder)
+
+    return apply
+
+
 def remove(name: str) -> Damage:
     return lambda folder: (folder / name).unlink()
 
@@ -242,6 +252,7 @@ def _generic_cases() -> list[Case]:
 
 M = "fyxz.yaml"
 MACHINE = COMMAND[M]
+_CNC = "  acceleration_mm_s2: 1000"
 _MACHINE_CASES = [
     ("nan-travel", replace(M, "X: [0, 2000]", "X: [0, .nan]"), "travel_mm.X.1"),
     ("inf-travel", replace(M, "X: [0, 2000]", "X: [0, .inf]"), "travel_mm.X.1"),
@@ -284,6 +295,23 @@ _MACHINE_CASES = [
     ("a-list", write(M, "- a\n- b\n"), "mapping"),
     ("tab-indent", replace(M, "  X: [0, 2000]", "\tX: [0, 2000]"), "line"),
     ("bad-date", append(M, "built: 2024-13-45\n"), M),
+    # the controller model (docs/controllers.md)
+    ("series-of-another-family", replace(M, _CNC, _CNC + "\n  series: 30i"), "cnc.series"),
+    ("reference-return-up", replace(M, _CNC, _CNC + "\n  reference_return: {X: up}"), "X"),
+    ("backlash-negative", replace(M, _CNC, _CNC + "\n  backlash_um: {Y: -3}"), "backlash_um.Y"),
+    (
+        "itnc-530",
+        each(
+            replace(M, "controller: sinumerik", "controller: heidenhain"),
+            replace(M, _CNC, _CNC + "\n  series: iTNC 530"),
+        ),
+        "iTNC 530",
+    ),
+    (
+        "reference-inside-without-return",
+        replace(M, _CNC, _CNC + "\n  reference_mm: [1000, 0, 0]"),
+        "cnc.reference_return.X",
+    ),
 ]
 
 U = "units.yaml"
@@ -546,6 +574,16 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
+    Case(
+        "serve-can-interface-unknown",
+        ("sim", "serve", "--canopen", "x", "--can-interface", "nosuchbus"),
+        ("--can-interface nosuchbus", "no CAN interface", "udp_local"),
+    ),
+    Case(
+        "serve-canopen-not-a-group",
+        ("sim", "serve", "--canopen", "999.999.1.1"),
+        ("--canopen 999.999.1.1", "not an IPv4 multicast group"),
+    ),
     # command-line mistakes: one line too, not click's box
     Case("usage-seed-text", ("dry-run", "--seed", "abc"), ("dry-run", "--seed", "--help")),
     Case("usage-missing-value", ("post", "--plan"), ("--plan", "requires an argument")),
@@ -851,16 +889,7 @@ _FILES_CASES = [
         lambda folder: shutil.copy(folder / L, folder / "plan2.json"),
     ),
     Case("run-out-a-pose-file", (*RUN, "--out", P), (P, "--out", "launch-pose file")),
-    Case(
-        "serve-canopen-not-an-address",
-        ("sim", "serve", "--canopen", "999.999.1.1"),
-        ("--canopen", "999.999.1.1", "not an IP address"),
-    ),
-    Case(
-        "serve-canopen-not-multicast",
-        ("sim", "serve", "--canopen", "10.0.0.1"),
-        ("--canopen", "10.0.0.1", "not a multicast"),
-    ),
+    # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
 ]
 
 CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _FILES_CASES

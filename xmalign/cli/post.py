@@ -21,7 +21,7 @@ from xmalign.cli.common import (
     output_folder,
 )
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
-from xmalign.errors import InputError
+from xmalign.errors import InputError, MachineKeyError
 from xmalign.formats.common import (
     PathsOf,
     atomic_write_files,
@@ -32,7 +32,7 @@ from xmalign.formats.common import (
 from xmalign.formats.error_tables import error_tables_to_csv, read_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
-from xmalign.machine import Machine
+from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import comp_step
@@ -268,16 +268,19 @@ def comp(
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
-    result = comp_step(
-        machine_,
-        tables,
-        out,
-        name,
-        more_files=None
-        if ini is None
-        else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-        check_outputs=partial(_check_outputs, inputs, force=force),
-    )
+    try:
+        result = comp_step(
+            machine_,
+            tables,
+            out,
+            name,
+            more_files=None
+            if ini is None
+            else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
+            check_outputs=partial(_check_outputs, inputs, force=force),
+        )
+    except MachineKeyError as error:
+        raise error.in_file(str(machine or default_machine_path())) from error
     fit = result.fit
     console.print(
         f"{name}: wrote {', '.join(sorted(result.files))} in {out}\n"
@@ -292,6 +295,8 @@ def comp(
             f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
             highlight=False,
         )
+    for line in result.loading.lines():
+        console.print(line, highlight=False)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"

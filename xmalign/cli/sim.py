@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ipaddress
 import math
 import signal
 import sys
@@ -40,22 +39,6 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     return host or default_host, int(port)
 
 
-def _check_multicast_group(channel: str, interface: str) -> None:
-    """udp_multicast's channel is a multicast group, given as an address (not a host name)."""
-    if interface != "udp_multicast":
-        return
-    try:
-        group = ipaddress.ip_address(channel)
-    except ValueError:
-        group = None
-    if group is None or not group.is_multicast:
-        what = "not an IP address" if group is None else "not a multicast address"
-        raise InputError(
-            f"--canopen '{channel}': {what}; --can-interface udp_multicast needs a multicast"
-            " group, e.g. 239.74.163.2 or ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
-        )
-
-
 def _check_position_file(path: Path) -> None:
     """An existing ``--position-file`` must be one: anything else would be overwritten."""
     if not path.is_file() or path.stat().st_size == 0:
@@ -72,6 +55,22 @@ def _check_position_file(path: Path) -> None:
                 " CNC would overwrite it: give a new file name",
             )
         )
+
+
+def _check_can_options(channel: str, interface: str, hop_limit: int) -> None:
+    from firmware_iface.can_bus import UDP_LOCAL, check_interface, multicast_group
+
+    try:
+        check_interface(interface)
+    except ValueError as error:
+        raise InputError(f"--can-interface {interface}: {error}") from error
+    if interface == UDP_LOCAL:
+        try:
+            multicast_group(channel)
+        except ValueError as error:
+            raise InputError(f"--canopen {channel}: {error}") from error
+    if not 0 <= hop_limit <= 255:
+        raise InputError(f"--can-hop-limit {hop_limit}: expected 0 to 255")
 
 
 @sim_app.command()
@@ -99,16 +98,24 @@ def serve(
     canopen: Annotated[
         str | None,
         typer.Option(
-            help="Serve every axis of both units as CiA 402 nodes on this python-can "
-            "channel (a multicast group for udp_multicast, a name for virtual)."
+            help="Serve every axis of both units as CiA 402 nodes on this CAN channel (an"
+            " IPv4 multicast group such as 239.74.163.2 for udp_local)."
         ),
     ] = None,
     can_interface: Annotated[
-        str, typer.Option(help="python-can interface of --canopen.")
-    ] = "udp_multicast",
+        str,
+        typer.Option(
+            help="CAN interface of --canopen: udp_local (the simulated bus between processes)"
+            " or a python-can interface (socketcan, virtual, ...)."
+        ),
+    ] = "udp_local",
+    can_host: Annotated[
+        str,
+        typer.Option(help="udp_local: address of the network interface the bus runs on."),
+    ] = "127.0.0.1",
     can_hop_limit: Annotated[
         int,
-        typer.Option(help="udp_multicast TTL / hop limit; 0 keeps the bus on this computer."),
+        typer.Option(help="udp_local TTL / hop limit; 0 keeps the bus on this computer."),
     ] = 0,
     interferometer_pty: Annotated[
         bool, typer.Option(help="Serve the interferometer on a new pty (path printed).")
@@ -165,9 +172,7 @@ def serve(
     if position_file is not None:
         _check_position_file(position_file)
     if canopen is not None:
-        _check_multicast_group(canopen, can_interface)
-    if can_hop_limit < 0:
-        raise InputError(f"--can-hop-limit {can_hop_limit}: expected 0 or more")
+        _check_can_options(canopen, can_interface, can_hop_limit)
     address = _host_port(modbus, host) if modbus is not None else None
     receiver_address = _host_port(modbus_receiver, host) if modbus_receiver is not None else None
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
@@ -219,12 +224,16 @@ def serve(
             from sim.servers.canopen_node import CanopenUnitServer
 
             nodes = CanopenUnitServer(
-                [world.launch, world.receiver], canopen, can_interface, hop_limit=can_hop_limit
+                [world.launch, world.receiver],
+                canopen,
+                can_interface,
+                hop_limit=can_hop_limit,
+                host=can_host,
             )
-            nodes.start()
             servers.callback(nodes.stop)
+            nodes.start()
             console.print(
-                f"canopen nodes {nodes.node_ids} on {can_interface} channel {canopen}",
+                f"canopen nodes {nodes.node_ids} on {nodes.bus_info}",
                 highlight=False,
             )
         if interferometer_pty:
