@@ -12,9 +12,10 @@ CiA 402 axes and simulated units.
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from xmalign.errors import DeviceError, XmalignError
@@ -71,8 +72,18 @@ def like(interrupt: KeyboardInterrupt, message: str) -> KeyboardInterrupt:
     return KeyboardInterrupt(message)
 
 
-def _raise_stop_signal(signum: int, frame: object) -> None:
-    raise StopSignal(signum)
+def _stop_handler(owner_pid: int) -> Callable[[int, object], None]:
+    """Raise StopSignal in the process that installed it; a forked worker (``mc``'s
+    process pool) that inherited it ends as the signal's default would end it."""
+
+    def handler(signum: int, frame: object) -> None:
+        if os.getpid() != owner_pid:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise StopSignal(signum)
+
+    return handler
 
 
 @contextmanager
@@ -85,7 +96,8 @@ def stop_signals_as_interrupts() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {signum: signal.signal(signum, _raise_stop_signal) for signum in STOP_SIGNALS}
+    stop = _stop_handler(os.getpid())
+    previous = {signum: signal.signal(signum, stop) for signum in STOP_SIGNALS}
     try:
         yield
     finally:

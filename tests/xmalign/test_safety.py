@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 
 import numpy as np
@@ -169,3 +170,23 @@ def test_sigterm_becomes_one_line_naming_it() -> None:
     error = interrupted(caught.value)
     assert isinstance(error, StopSignal) and error.signum == signal.SIGHUP
     assert str(error) == "stopped by SIGHUP; all axes were stopped and locked"
+
+
+def test_a_forked_worker_ends_on_sigterm_as_by_default() -> None:
+    """``mc``'s process pool forks workers that inherit the handler: a SIGTERM ends a worker
+    as it would without xmalign (no StopSignal, no traceback in a worker)."""
+    ready, tell = os.pipe()
+    with stop_signals_as_interrupts():
+        child = os.fork()
+        if child == 0:  # pragma: no cover - the worker; a StopSignal here exits with 3
+            try:
+                os.write(tell, b"r")
+                signal.pause()
+            finally:
+                os._exit(3)
+        os.read(ready, 1)  # the worker runs Python code: the signal is not lost in the fork
+        os.kill(child, signal.SIGTERM)
+        _, status = os.waitpid(child, 0)
+    os.close(ready)
+    os.close(tell)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM
