@@ -409,7 +409,6 @@ def simulate_calibration(
     options = options or DryRunOptions()
     stage = on_stage or (lambda name: None)
     check_dry_run_folder(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
     station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
     clock = setup.world.clock
@@ -420,6 +419,8 @@ def simulate_calibration(
     if positions is None:
         design = design_step(machine, options.identification_positions)
         positions, design_warnings = design.machine_mm, list(design.warnings)
+    # only now, with the options found good, is the folder made
+    workdir.mkdir(parents=True, exist_ok=True)
     result = identify_virtually(
         setup, machine, positions, workdir / "session.json", options.method, options.seed
     )
@@ -446,7 +447,9 @@ def simulate_calibration(
     started = clock.now()
     csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
-    with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
+    with open_run_output(
+        csv_path, plan, resume=False, environment=monitor, sim_seed=options.seed
+    ) as output:
         output.on_saved = on_point or (lambda saved: None)
         run = measure(output)
     run_s = clock.now() - started

@@ -45,7 +45,7 @@ from xmalign.environment import (
     linear_budget_um,
 )
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_bytes
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.error_tables import Table as ErrorTable
 from xmalign.geometry import Vec
@@ -682,18 +682,16 @@ def _pages(items: list[tuple[str, Figure]]) -> Iterator[Figure]:
         yield figure
 
 
-def write_pdf(
-    path: str | Path,
+def pdf_bytes(
     machine: Machine,
     result: PostResult,
     controller: str,
     info: RecordInfo | None = None,
-) -> None:
-    """Write the report as an A4 PDF (tables first, then one figure per page)."""
+) -> bytes:
+    """The report as an A4 PDF (tables first, then one figure per page)."""
     info = info or RecordInfo()
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    with PdfPages(partial) as pdf:
+    buffer = io.BytesIO()
+    with PdfPages(buffer) as pdf:
         page = _Page(pdf)
         page.write(f"Calibration of {machine.name}", 14, "bold")
         for table in report_tables(machine, result, info, controller):
@@ -702,7 +700,20 @@ def write_pdf(
         page.finish()
         for figure in _pages(report_figures(machine, result, info, controller)):
             pdf.savefig(figure)
-    partial.replace(path)
+    return buffer.getvalue()
+
+
+def report_bytes(
+    path: str | Path,
+    machine: Machine,
+    result: PostResult,
+    controller: str,
+    info: RecordInfo | None = None,
+) -> bytes:
+    """The report for ``path``: a PDF when it ends in ``.pdf``, else HTML (PNGs embedded)."""
+    if Path(path).suffix.lower() == ".pdf":
+        return pdf_bytes(machine, result, controller, info)
+    return render_report(machine, result, controller, info).encode("utf-8")
 
 
 def write_report(
@@ -712,13 +723,10 @@ def write_report(
     controller: str,
     info: RecordInfo | None = None,
 ) -> None:
-    """Write the report: a PDF when ``path`` ends in ``.pdf``, HTML (PNGs embedded) when
-    it ends in ``.html`` or ``.htm``; another name is refused (:func:`check_report_name`)."""
+    """Write the report (:func:`report_bytes`) atomically; a name that does not end in
+    ``.html``, ``.htm`` or ``.pdf`` is refused (:func:`check_report_name`)."""
     check_report_name(path)
-    if Path(path).suffix.lower() == ".pdf":
-        write_pdf(path, machine, result, controller, info)
-    else:
-        atomic_write_text(path, render_report(machine, result, controller, info))
+    atomic_write_bytes(path, report_bytes(path, machine, result, controller, info))
 
 
 #: The report's file name endings and what each writes.

@@ -17,7 +17,10 @@ import errno
 import hashlib
 import io
 import json
+import os
 import shutil
+import socket
+import stat
 import sys
 import traceback
 from collections.abc import Callable
@@ -97,6 +100,7 @@ class Outcome:
 def write(name: str, content: str | bytes) -> Damage:
     def apply(folder: Path) -> None:
         path = folder / name
+        path.parent.mkdir(exist_ok=True)
         path.unlink(missing_ok=True)
         if isinstance(content, bytes):
             path.write_bytes(content)
@@ -645,13 +649,13 @@ _CLI_CASES = [
     # writing fails: the old output stays as it was
     Case(
         "comp-read-only",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
     Case(
         "identify-out-read-only",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
@@ -663,13 +667,13 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case(
         "comp-full-disk",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "disk full"),
         patch=full_disk,
     ),  # noqa: E501
     Case(
         "identify-full-disk",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "disk full"),
         patch=full_disk,
     ),  # noqa: E501
@@ -732,6 +736,31 @@ def measured(change: Callable[[list], list] | None = None) -> Damage:
         rows = measure(plan, Chain.parse(machine.chain), truth, np.random.default_rng(9))
         (folder / "m.csv").unlink()
         write_measurements(folder / "m.csv", change(rows) if change else rows)
+
+    return apply
+
+
+# -- outputs that would destroy something (issue 22, "Data damaged" and "Messages") ------
+#
+# Device nodes, FIFOs and sockets are made in the case's folder, never the real /dev/null.
+# Each case also keeps the node what it was (tests/xmalign/test_outputs.py checks that).
+
+
+def node(name: str, kind: str) -> Damage:
+    """A FIFO, a socket, or (root only) a character device like /dev/null or /dev/full."""
+
+    def apply(folder: Path) -> None:
+        path = folder / name
+        path.parent.mkdir(exist_ok=True)
+        path.unlink(missing_ok=True)
+        if kind == "fifo":
+            os.mkfifo(path)
+        elif kind == "socket":
+            with socket.socket(socket.AF_UNIX) as server:
+                server.bind(str(path))
+        else:
+            device = {"null": os.makedev(1, 3), "full": os.makedev(1, 7)}[kind]
+            os.mknod(path, 0o666 | stat.S_IFCHR, device)
 
     return apply
 
@@ -954,7 +983,215 @@ _CARELESS_USER_CASES = [
     ),
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES
+def recorded_with_seed(seed: int) -> Damage:
+    """m.csv as a simulated run with ``--seed SEED`` leaves it (no point yet)."""
+    return write("m.csv", f"# xmalign measurements sim_seed={seed}\n" + MEASUREMENTS_HEADER)
+
+
+AS_ROOT = os.geteuid() == 0
+RUN = ("run", "--sim", "--in-process", "--plan", L)
+_DEVICE_CASES = [
+    Case(
+        "identify-out-dev-null",
+        (*SESSION[:3], "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "identify-out-dev-full",
+        (*SESSION[:3], "--out", "full"),
+        ("full", "--out", "character device"),
+        node("full", "full"),
+    ),
+    Case(
+        "program-plan-out-dev-null",
+        (*POSE, "--plan-out", "nul"),
+        ("nul", "--plan-out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "run-out-dev-null",
+        (*RUN, "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "post-out-dev-null",
+        (*PLAN[:5], "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "comp-out-a-device-in-the-folder",
+        (*ERRORS, "--force"),
+        ("NC_CEC.INI", "character device"),
+        node("comp/NC_CEC.INI", "null"),
+    ),
+]
+_FILES_CASES = [
+    *(_DEVICE_CASES if AS_ROOT else []),
+    # FIFOs and sockets: refused at once (a FIFO would block until something reads it)
+    Case(
+        "identify-out-fifo",
+        (*SESSION[:3], "--out", "ff"),
+        ("ff", "--out", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "identify-out-socket",
+        (*SESSION[:3], "--out", "so"),
+        ("so", "--out", "socket"),
+        node("so", "socket"),
+    ),
+    Case(
+        "program-out-fifo", (*POSE[:3], "--out", "ff"), ("ff", "--out", "FIFO"), node("ff", "fifo")
+    ),
+    Case("run-out-fifo", (*RUN, "--out", "ff"), ("ff", "--out", "FIFO"), node("ff", "fifo")),
+    Case(
+        "run-log-file-fifo",
+        (*RUN, "--out", "new.csv", "--log-file", "ff"),
+        ("ff", "--log-file", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "post-report-fifo",
+        (*PLAN, "--report", "ff"),
+        ("ff", "--report", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "comp-out-a-fifo-in-the-folder",
+        (*ERRORS, "--force"),
+        ("NC_CEC.INI", "FIFO"),
+        node("comp/NC_CEC.INI", "fifo"),
+    ),
+    Case(
+        "mc-out-a-fifo-in-the-folder",
+        ("mc", "--out", "comp"),
+        ("mc.json", "--out", "FIFO"),
+        node("comp/mc.json", "fifo"),
+    ),
+    Case(
+        "serve-position-file-fifo",
+        ("sim", "serve", "--position-file", "ff", "--program", "run.mpf"),
+        ("ff", "--position-file", "FIFO"),
+        both(node("ff", "fifo"), write("run.mpf", "G0 X0\n")),
+    ),
+    # an output that is an input or another output, --log-file included, in every command
+    Case(
+        "run-log-file-is-the-plan",
+        (*RUN, "--out", "new.csv", "--log-file", L),
+        (L, "--log-file", "--plan", "written into"),
+    ),
+    Case(
+        "run-log-file-is-the-out",
+        (*RUN, "--out", "m.csv", "--log-file", "m.csv"),
+        ("m.csv", "--log-file", "--out"),
+    ),
+    Case(
+        "run-log-file-is-the-machine",
+        (*RUN, "--out", "new.csv", "--machine", M, "--log-file", M),
+        (M, "--log-file", "--machine"),
+    ),
+    Case(
+        "run-out-is-the-program",
+        (*RUN, "--out", "run.mpf", "--program", "run.mpf"),
+        ("run.mpf", "--out", "--program"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case(
+        "run-out-a-link-to-the-plan",
+        (*RUN, "--out", "link.csv"),
+        ("link.csv", "--out", "--plan"),
+        lambda folder: (folder / "link.csv").symlink_to(L),
+    ),
+    Case(
+        "align-log-file-is-the-config",
+        ("align", "--live", "--config", U, "--log-file", U),
+        (U, "--log-file", "--config"),
+    ),
+    Case(
+        "identify-log-file-is-the-out",
+        (*SESSION[:3], "--out", "p.json", "--log-file", "p.json"),
+        ("p.json", "--log-file", "--out"),
+    ),
+    Case(
+        "serve-log-file-is-the-machine",
+        ("sim", "serve", "--modbus", "127.0.0.1:0", "--machine", M, "--log-file", M),
+        (M, "--log-file", "--machine"),
+    ),
+    Case(
+        "serve-position-file-is-the-program",
+        ("sim", "serve", "--position-file", "run.mpf", "--program", "run.mpf"),
+        ("run.mpf", "--position-file", "--program"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case(
+        "serve-position-file-is-a-plan",
+        ("sim", "serve", "--position-file", L, "--program", "run.mpf"),
+        (L, "--position-file", "machine position"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    # files a later step or the user relies on: replaced only with --force
+    Case("comp-replaces-the-users-table", ERRORS, ("NC_CEC.INI", "--out", "--force")),
+    Case(
+        "comp-replaces-ax-eec",
+        (*ERRORS[:3], "--out", "user"),
+        ("AX_EEC.INI", "--force"),
+        write("user/AX_EEC.INI", "; the user's own table\n"),
+    ),
+    Case(
+        "comp-replaces-joints-ini",
+        (*ERRORS[:3], "--out", "user", "--controller", "linuxcnc"),
+        ("joints.ini", "--force"),
+        write("user/joints.ini", "[JOINT_0]\n"),
+    ),
+    Case("program-replaces-the-plan", (*POSE, "--plan-out", L), (L, "--plan-out", "--force")),
+    Case(
+        "program-replaces-the-program",
+        (*POSE[:3], "--out", "run.mpf"),
+        ("run.mpf", "--out", "--force"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case("identify-replaces-the-pose", (*SESSION[:3], "--out", P), (P, "--out", "--force")),
+    Case(
+        "identify-sim-replaces-the-session",
+        ("identify", "--sim", "--session-out", S),
+        (S, "--session-out", "--force"),
+    ),
+    # a line id the measurement CSV cannot hold
+    Case(
+        "run-plan-id-comma",
+        (*RUN, "--out", "new.csv"),
+        (L, "lines.0.id", "','"),
+        edit_json(L, _line("id", "X,Y")),
+    ),
+    Case(
+        "run-plan-id-newline",
+        (*RUN, "--out", "new.csv"),
+        (L, "lines.1.id", "'\\n'"),
+        edit_json(L, _line("id", "Y\nZ", 1)),
+    ),
+    Case("post-plan-id-hash", PLAN, (L, "lines.0.id", "'#'"), edit_json(L, _line("id", "#X"))),
+    Case("post-plan-id-space", PLAN, (L, "lines.0.id", "' '"), edit_json(L, _line("id", "X 1"))),
+    # messages that say what is wrong
+    Case(
+        "run-resume-with-another-seed",
+        (*RUN, "--out", "m.csv", "--resume", "--seed", "2"),
+        ("--seed 2", "m.csv", "--seed 1"),
+        recorded_with_seed(1),
+    ),
+    Case(
+        "run-out-a-plan-file",
+        (*RUN, "--out", "plan2.json"),
+        ("plan2.json", "--out", "plan file", "not a measurement CSV"),
+        lambda folder: shutil.copy(folder / L, folder / "plan2.json"),
+    ),
+    Case("run-out-a-pose-file", (*RUN, "--out", P), (P, "--out", "launch-pose file")),
+    # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
+]
+
+CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES + _FILES_CASES
 
 
 # -- running a case -----------------------------------------------------------------------

@@ -5,7 +5,9 @@ Each command lives in its own module with a ``register(app)`` function. Any
 problem), becomes one line on stderr and exit code 2; Ctrl-C becomes one line
 and exit code 130. A command that wants to say more on Ctrl-C (e.g. how many
 points were kept) raises ``KeyboardInterrupt("stopped: ...")``: that message
-is printed instead of the generic one.
+is printed instead of the generic one. SIGTERM and SIGHUP stop a command as
+Ctrl-C does (:func:`xmalign.safety.stop_signals_as_interrupts`): the same line,
+naming the signal, and exit code 128 + the signal's number (143, 129).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from xmalign.cli import sim as sim_command
 from xmalign.cli.common import keep_library_logs_off_the_terminal
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import os_problem
+from xmalign.safety import StopSignal, stop_signals_as_interrupts
 
 
 def _is_usage_error(error: Exception) -> bool:
@@ -163,15 +166,22 @@ def _say(line: str) -> None:
 
 def _stopped(interrupt: KeyboardInterrupt | None) -> None:
     message = str(interrupt.args[0]) if interrupt is not None and interrupt.args else ""
-    _say(message or "stopped by Ctrl-C")
-    sys.exit(EXIT_INTERRUPTED)
+    if not isinstance(interrupt, StopSignal):
+        _say(message or "stopped by Ctrl-C")
+        sys.exit(EXIT_INTERRUPTED)
+    if not message:
+        _say(f"stopped by {interrupt.name}")
+    else:
+        _say(message if interrupt.name in message else f"{interrupt.name}: {message}")
+    sys.exit(128 + interrupt.signum)
 
 
 def main() -> None:
     """Console-script entry point."""
     keep_library_logs_off_the_terminal()
     try:
-        app()
+        with stop_signals_as_interrupts():
+            app()
     except SystemExit as stop:
         if stop.code == EXIT_INTERRUPTED:
             _stopped(_interrupt_of(stop))
@@ -182,8 +192,9 @@ def main() -> None:
         _say(f"error: {error}")
         sys.exit(2)
     except OSError as error:
-        where = error.filename if error.filename is not None else "file"
-        _say(f"error: {where}: {os_problem(error)}")
+        # no file behind it (a name lookup, a socket): no "file:" that names nothing
+        where = f"{error.filename}: " if error.filename is not None else ""
+        _say(f"error: {where}{os_problem(error)}")
         sys.exit(2)
     except UnicodeDecodeError as error:  # a reader that did not go through read_text
         _say(f"error: an input file is not UTF-8 text (byte 0x{error.object[error.start]:02x})")

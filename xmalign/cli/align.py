@@ -38,6 +38,7 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError, OutOfRangeError, XmalignError
+from xmalign.formats.common import refuse_overwriting
 from xmalign.machine import Machine
 from xmalign.roles import WallClock
 from xmalign.safety import interrupted, units_locked_on_exit
@@ -171,6 +172,9 @@ def register(app: typer.Typer) -> None:
         if sim == live:
             raise InputError("choose one of --sim and --live")
         check_seed(seed)
+        refuse_overwriting(
+            {"--config": config, "--machine": machine_file}, {}, {"--log-file": log_file}
+        )
         machine = machine_or_default(machine_file)
         settings = FineAlignmentSettings(timeout_s=timeout_s)
         log_handler = start_log_file(log_file)

@@ -15,16 +15,17 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from xmalign.cli.common import (
+    ForceOption,
     LogFileOption,
     check_positions,
     check_seed,
     console,
     machine_or_default,
-    refuse_overwriting,
     start_log_file,
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.formats.common import refuse_overwriting, refuse_replacing
 from xmalign.formats.pose import write_pose
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
@@ -278,6 +279,7 @@ def identify_command(
         float | None, typer.Option(help="Beam collimation (direction) uncertainty, µrad (k=1).")
     ] = None,
     log_file: LogFileOption = None,
+    force: ForceOption = False,
 ) -> None:
     """Identify the launch unit's pose (position and azimuth) from aligned units."""
     if method not in METHODS:
@@ -291,8 +293,10 @@ def identify_command(
         check_positions(alignments, "--alignments")
     refuse_overwriting(
         {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
-        {"--out": out, "--session-out": session_out, "--log-file": log_file},
+        {"--out": out, "--session-out": session_out},
+        {"--log-file": log_file},
     )
+    refuse_replacing({"--out": out, "--session-out": session_out}, force)
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,

@@ -24,15 +24,9 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
-from xmalign.cli.common import (
-    console,
-    error_console,
-    machine_or_default,
-    output_folder,
-    refuse_overwriting,
-)
+from xmalign.cli.common import console, error_console, machine_or_default, output_folder
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_text, refuse_overwriting
 from xmalign.formats.instruments import (
     read_tracer_lengths,
     read_tracker_points,

@@ -18,16 +18,16 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
+    check_output_folder,
     check_seed,
     console,
     error_console,
     machine_or_default,
     output_folder,
-    refuse_overwriting,
 )
 from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
-from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text
+from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text, refuse_overwriting
 
 if TYPE_CHECKING:
     from sim.mc import StrategyResult, StudySettings
@@ -254,6 +254,7 @@ def mc(
         compare_instruments_command(machine_or_default(machine), trials, seed, amplitudes, out)
         return
     written_names = ("mc.json", "histograms.png", "envelopes.png", "volumetric.png")
+    check_output_folder(out, "--out")
     refuse_overwriting({"--machine": machine}, {"--out": [out / name for name in written_names]})
     settings = StudySettings(
         mode=mode,
@@ -282,7 +283,7 @@ def mc(
         progress.update(task, total=sum(r.trials for r in results))
     _refuse_if_every_trial_failed(results)
     # the results first: nothing after this may lose minutes of trials
-    out.mkdir(parents=True, exist_ok=True)
+    output_folder(out, "--out")
     atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
     console.print(_table(results, tolerance_um, mode))
     written = [

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 from typing import Annotated
@@ -12,19 +13,25 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
+    ForceOption,
     console,
     error_console,
     machine_for_plan,
     machine_or_default,
     output_folder,
-    refuse_overwriting,
-    same_file,
 )
 from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError, MachineKeyError
-from xmalign.formats.common import atomic_write_files, read_text
-from xmalign.formats.error_tables import read_error_tables, write_error_tables
+from xmalign.formats.common import (
+    PathsOf,
+    atomic_write_files,
+    read_text,
+    refuse_overwriting,
+    refuse_replacing,
+    same_file,
+)
+from xmalign.formats.error_tables import error_tables_to_csv, read_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.machine import Machine, default_machine_path
@@ -200,11 +207,11 @@ def post(
             verification = _post_verification(
                 verify_plan or plan[0], verify_data, machine, applied.mean
             )
-        write_error_tables(out, result.fit.tables)
+        files = {out: error_tables_to_csv(result.fit.tables).encode("utf-8")}
         if report is not None:
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
-            from xmalign.report import RecordInfo, write_report
+            from xmalign.report import RecordInfo, report_bytes
 
             info = RecordInfo.of_compensation(
                 result.compensation,
@@ -213,7 +220,9 @@ def post(
                 vdi3441=vdi3441,
                 verification=verification,
             )
-            write_report(report, machine_, result, machine_.controller, info)
+            files[report] = report_bytes(report, machine_, result, machine_.controller, info)
+        # the tables and the report together, or neither (a failed report leaves no tables)
+        atomic_write_files(files)
     console.print(_summary(result))
     if result.instruments is not None:
         for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
@@ -282,6 +291,7 @@ def comp(
             help="LinuxCNC: the machine's INI; writes a merged copy (linuxcnc-volumetric: needed)."
         ),
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Fit the controller's compensation model over the whole travel and write its tables."""
     machine_ = machine_or_default(machine)
@@ -292,7 +302,7 @@ def comp(
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 
         files, done = volumetric_files(tables, machine_, ini, out)
-        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
+        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini}, force)
         console.print(done, highlight=False)
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
@@ -306,7 +316,7 @@ def comp(
             more_files=None
             if ini is None
             else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-            check_outputs=lambda paths: refuse_overwriting(inputs, {"--out": paths}),
+            check_outputs=partial(_check_outputs, inputs, force=force),
         )
     except MachineKeyError as error:
         raise error.in_file(str(machine or default_machine_path())) from error
@@ -340,10 +350,18 @@ def comp(
         )
 
 
-def _write_outputs(out: Path, files: dict[str, str], inputs: dict[str, Path | None]) -> None:
+def _check_outputs(inputs: Mapping[str, PathsOf], paths: list[Path], force: bool) -> None:
+    """A controller's files never replace an input, nor (without --force) a file in --out."""
+    refuse_overwriting(inputs, {"--out": paths})
+    refuse_replacing({"--out": paths}, force)
+
+
+def _write_outputs(
+    out: Path, files: dict[str, str], inputs: Mapping[str, PathsOf], force: bool
+) -> None:
     """All of a controller\x27s files into ``out``, or none; never over one of the inputs."""
     output_folder(out, "--out")
-    refuse_overwriting(inputs, {"--out": [out / name for name in files]})
+    _check_outputs(inputs, [out / name for name in files], force)
     atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
 
 

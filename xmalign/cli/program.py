@@ -18,11 +18,11 @@ from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from trajectories.stations import propose_second_station
 from xmalign.cli.common import (
+    ForceOption,
     check_positions,
     console,
     error_console,
     machine_or_default,
-    refuse_overwriting,
 )
 from xmalign.cli.instruments import (
     InstrumentRequest,
@@ -30,7 +30,12 @@ from xmalign.cli.instruments import (
     program_instrument,
 )
 from xmalign.errors import GeometryError, InputError
-from xmalign.formats.common import atomic_write_text, write_json
+from xmalign.formats.common import (
+    atomic_write_text,
+    refuse_overwriting,
+    refuse_replacing,
+    write_json,
+)
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
 from xmalign.machine import Machine
@@ -103,6 +108,7 @@ def program(
         Path | None,
         typer.Option(help="With --instrument: the point list for the instrument's software."),
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
 
@@ -114,12 +120,14 @@ def program(
     """
     check_instrument_options(instrument, on_the_fly, places)
     if instrument is not None:
+        refuse_replacing({"--out": out, "--points-out": points_out}, force)
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request)
         return
     refuse_overwriting(
         {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
     )
+    refuse_replacing({"--plan-out": plan_out, "--out": out}, force)
     if not pose.exists():
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"

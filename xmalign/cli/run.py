@@ -36,9 +36,11 @@ from xmalign.cli.common import (
 from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
+from xmalign.formats.common import refuse_overwriting
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
+from xmalign.safety import like
 
 if TYPE_CHECKING:
     from sim.dry_run import DryRunOptions
@@ -76,13 +78,16 @@ def _point_count(plan: Plan) -> int:
     return sum(len(list(capture_sequence(line))) for line in plan.lines)
 
 
-def _stopped(out: Path, also: str = "") -> KeyboardInterrupt:
-    """Ctrl-C: one line saying what is kept and how to go on (printed by the CLI, exit 130)."""
+def _stopped(interrupt: KeyboardInterrupt, out: Path, also: str = "") -> KeyboardInterrupt:
+    """Ctrl-C (SIGTERM, SIGHUP): one line saying what is kept and how to go on.
+
+    Printed by the CLI, exit 130 (128 + the signal's number).
+    """
     try:
         saved = len(load_measurements(out, torn_ok=True).rows)
     except XmalignError:
         saved = 0
-    return KeyboardInterrupt(f"stopped: {saved} points kept in {out}; go on with --resume{also}")
+    return like(interrupt, f"stopped: {saved} points kept in {out}; go on with --resume{also}")
 
 
 def _kept(error: XmalignError, output: RunOutput) -> XmalignError:
@@ -289,6 +294,11 @@ def run_command(
     if in_process and not sim:
         raise InputError("--in-process is for --sim (a live run always uses the hardware)")
     check_seed(seed)
+    refuse_overwriting(
+        {"--plan": plan, "--machine": machine, "--config": config, "--program": program},
+        {"--out": out},
+        {"--log-file": log_file},
+    )
     check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
@@ -300,12 +310,14 @@ def run_command(
             _measurement(
                 machine_model, plan_model, sim, config, seed, program, dialect, shop, in_process
             ) as measurement,
-            open_run_output(out, plan_model, resume, limits, measurement.environment) as output,
+            open_run_output(
+                out, plan_model, resume, limits, measurement.environment, seed if sim else None
+            ) as output,
         ):
             try:
                 measurement.measure(output)
-            except KeyboardInterrupt:
-                raise _stopped(out) from None
+            except KeyboardInterrupt as interrupt:
+                raise _stopped(interrupt, out) from None
     finally:
         stop_log_file(log_handler)
 
@@ -387,6 +399,7 @@ def _results_table(report: object) -> Table:
 
 
 def _dry_run_stopped(
+    interrupt: KeyboardInterrupt,
     out: Path,
     stage: str,
     seed: int,
@@ -397,12 +410,13 @@ def _dry_run_stopped(
 ) -> KeyboardInterrupt:
     """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
     if stage != "run":
-        return KeyboardInterrupt(f"stopped during {stage}: the files so far are in {out}/")
+        return like(interrupt, f"stopped during {stage}: the files so far are in {out}/")
     options = f" --machine {machine}" if machine else ""
     options += f" --dialect {dialect}" if dialect else ""
     options += f" --shop {shop}"
     options += " --in-process" if in_process else ""
     return _stopped(
+        interrupt,
         out / "measurements.csv",
         f" (xmalign run --sim --seed {seed}{options} --plan {out / 'plan.json'}"
         f" --out {out / 'measurements.csv'} --resume)",
@@ -449,6 +463,7 @@ def dry_run_command(
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
+    from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
     if instrument != "xm60":
@@ -457,6 +472,7 @@ def dry_run_command(
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
+    resolve_dialect(machine_model, dialect)  # a bad --dialect before any folder is made
     check_dry_run_folder(out)
     options = DryRunOptions(
         seed=seed,
@@ -487,9 +503,11 @@ def dry_run_command(
 
         try:
             report = simulate_calibration(machine_model, out, options, on_stage, on_point)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as interrupt:
             stage = started[-1] if started else "start"
-            raise _dry_run_stopped(out, stage, seed, machine, dialect, shop, in_process) from None
+            raise _dry_run_stopped(
+                interrupt, out, stage, seed, machine, dialect, shop, in_process
+            ) from None
         progress.update(task, completed=stages, description="dry run: done")
     console.print(_results_table(report))
     design = [f"identification design: {warning}" for warning in report.design_warnings]

@@ -21,6 +21,7 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.formats.common import located, read_text, refuse_overwriting
 from xmalign.machine import Machine
 
 if TYPE_CHECKING:
@@ -36,6 +37,24 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     if not port.isdigit() or not 0 <= int(port) <= 65535 or (":" in text and not host):
         raise InputError(f"--modbus '{text}': expected PORT or HOST:PORT, e.g. 5020")
     return host or default_host, int(port)
+
+
+def _check_position_file(path: Path) -> None:
+    """An existing ``--position-file`` must be one: anything else would be overwritten."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    from firmware_iface.machine_position import parse_position
+
+    first = read_text(path).partition("\n")[0]
+    if parse_position(first) is None:
+        raise InputError(
+            located(
+                path,
+                "--position-file",
+                "holds something other than a machine position ('x y z'); the simulated"
+                " CNC would overwrite it: give a new file name",
+            )
+        )
 
 
 def _check_can_options(channel: str, interface: str, hop_limit: int) -> None:
@@ -166,6 +185,13 @@ def serve(
             " --interferometer-pty, --station-pty and/or --position-file"
         )
     check_seed(seed)
+    refuse_overwriting(
+        {"--machine": machine, "--program": program},
+        {"--position-file": position_file},
+        {"--log-file": log_file},
+    )
+    if position_file is not None:
+        _check_position_file(position_file)
     if canopen is not None:
         _check_can_options(canopen, can_interface, can_hop_limit)
     address = _host_port(modbus, host) if modbus is not None else None

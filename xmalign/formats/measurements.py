@@ -7,7 +7,8 @@ docs/measurement-files.md):
 
 - a first comment line ``# xmalign measurements plan_sha256=<hex>``, the
   identity of the plan the points were measured for (``--resume`` refuses a
-  file from another plan);
+  file from another plan), followed by ``sim_seed=<n>`` for a run on the
+  virtual machine (``--resume`` refuses another ``--seed``);
 - a ``segment`` column: 0 for a line's first setup, 1, 2, ... for the rows
   measured after the units had to be re-aligned on a resume (``post`` fits
   each segment with its own setup terms);
@@ -20,6 +21,8 @@ Lines starting with ``#`` are comments for every reader of the file.
 from __future__ import annotations
 
 import csv
+import errno
+import fcntl
 import hashlib
 import io
 import json
@@ -29,12 +32,11 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from xmalign.errors import FormatError, InputError
-from xmalign.formats.common import sync_folder
+from xmalign.formats.common import os_problem, refuse_special, sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
@@ -71,6 +73,7 @@ MAX_COORDINATE_MM = 100_000.0
 #: A recorded point farther than this from its plan target belongs to another plan, mm.
 POINT_TOLERANCE_MM = 0.01
 PLAN_KEY = "plan_sha256"
+SEED_KEY = "sim_seed"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
 
@@ -184,6 +187,8 @@ class MeasurementFile:
     plan_sha256: str | None = None
     setups: list[LineSetup] = field(default_factory=list)
     torn: TornRow | None = None
+    #: The ``--seed`` of a run on the virtual machine (None: a live run, or not recorded).
+    sim_seed: int | None = None
 
     @property
     def environment_columns(self) -> tuple[str, ...]:
@@ -255,8 +260,15 @@ class _Reader:
                 key, _, value = item.partition("=")
                 if key == PLAN_KEY:
                     self.file.plan_sha256 = value
+                elif key == SEED_KEY:
+                    self.file.sim_seed = self._seed(value, number)
         elif text.startswith(SETUP_TAG + " "):
             self.file.setups.append(self._setup(text, number))
+
+    def _seed(self, value: str, number: int) -> int:
+        if not value.isdigit():
+            raise InputError(f"{self.where(number)}: {SEED_KEY} '{value}' is not a seed")
+        return int(value)
 
     def _setup(self, text: str, number: int) -> LineSetup:
         items = dict(item.partition("=")[::2] for item in text[len(SETUP_TAG) :].split())
@@ -427,21 +439,57 @@ def read_measurements(
 
 
 def _write_error(path: Path, error: OSError) -> InputError:
-    return InputError(f"{path}: cannot write ({error.strerror})")
+    return InputError(f"{path}: cannot write ({os_problem(error)})")
+
+
+class RunLock:
+    """An exclusive lock on a measurement file for the whole of one run.
+
+    Two runs appending to one file (two ``run --resume`` at once) would record
+    points twice; the second is refused while the first holds the lock. The
+    lock is ``fcntl.flock`` on the file itself: it ends with the process, even
+    a killed one. Opening it creates a missing file and its folders (an empty
+    file counts as new).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd: int | None = os.open(self.path, os.O_RDONLY | os.O_CREAT, 0o666)
+        except OSError as error:
+            raise _write_error(self.path, error) from error
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            self.release()
+            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise _write_error(self.path, error) from error
+            raise InputError(
+                f"{self.path}: in use by another run (another xmalign run is writing it);"
+                " wait until it ends, or give another --out"
+            ) from error
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class MeasurementWriter:
     """Appends rows and setup comments to a measurement CSV, syncing each one to disk.
 
     Use :meth:`create` for a new file and :meth:`resume` to go on with one.
-    ``saved`` counts the rows in the file.
+    ``saved`` counts the rows in the file. Writes are unbuffered (``os.write``):
+    after a failed write (disk full) nothing is left pending, and the file ends
+    in at most one row cut short, which ``--resume`` drops.
     """
 
-    def __init__(self, path: Path, handle: TextIO, columns: tuple[str, ...], saved: int) -> None:
+    def __init__(self, path: Path, fd: int, columns: tuple[str, ...], saved: int) -> None:
         self.path = path
         self.columns = columns
         self.saved = saved
-        self._handle = handle
+        self._fd: int | None = fd
 
     @classmethod
     def create(
@@ -449,11 +497,13 @@ class MeasurementWriter:
         path: str | Path,
         plan_sha256: str | None = None,
         environment_columns: tuple[str, ...] = (),
+        sim_seed: int | None = None,
     ) -> MeasurementWriter:
         """Start a new file (an existing empty file counts as new, nothing else does).
 
         ``environment_columns`` (names of :data:`ENVIRONMENT_LIMITS`) are written
-        after the channels, with the flags column, when the run samples the environment.
+        after the channels, with the flags column, when the run samples the environment;
+        ``sim_seed`` is the virtual machine's seed of a simulated run.
         """
         path = Path(path)
         unknown = [name for name in environment_columns if name not in ENVIRONMENT_LIMITS]
@@ -464,17 +514,19 @@ class MeasurementWriter:
         )
         if path.is_dir():
             raise InputError(f"{path}: is a folder; give a file name for the measurements")
+        refuse_special(path, "cannot write")  # a FIFO would block, a device lose the rows
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT
-            empty = path.exists() and path.stat().st_size == 0
+            empty = path.is_file() and path.stat().st_size == 0
             fd = os.open(path, flags | (0 if empty else os.O_EXCL), 0o666)
         except FileExistsError as error:
             raise InputError(f"{path}: already exists; measurements are never replaced") from error
         except OSError as error:
             raise _write_error(path, error) from error
-        writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), columns, 0)
+        writer = cls(path, fd, columns, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
+        preamble += f" {SEED_KEY}={sim_seed}" if sim_seed is not None else ""
         writer._put(preamble + "\n" + ",".join(columns) + "\n")
         sync_folder(path.parent)
         return writer
@@ -484,19 +536,27 @@ class MeasurementWriter:
         """Go on appending to a file read with ``torn_ok``; a torn last row is cut off first."""
         path = recorded.path
         try:
-            handle = path.open("a", newline="", encoding="utf-8")
-            if recorded.torn is not None:
-                handle.truncate(recorded.torn.offset)
-                os.fsync(handle.fileno())
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         except OSError as error:
             raise _write_error(path, error) from error
-        return cls(path, handle, recorded.columns, len(recorded.rows))
+        writer = cls(path, fd, recorded.columns, len(recorded.rows))
+        if recorded.torn is not None:
+            try:
+                os.ftruncate(fd, recorded.torn.offset)
+                os.fsync(fd)
+            except OSError as error:
+                writer.close()
+                raise _write_error(path, error) from error
+        return writer
 
     def _put(self, text: str) -> None:
+        if self._fd is None:
+            raise InputError(f"{self.path}: closed; measurements can no longer be written")
+        data = memoryview(text.encode("utf-8"))
         try:
-            self._handle.write(text)
-            self._handle.flush()
-            os.fsync(self._handle.fileno())
+            while data:
+                data = data[os.write(self._fd, data) :]
+            os.fsync(self._fd)
         except OSError as error:
             raise _write_error(self.path, error) from error
         for line in text.splitlines():
@@ -517,7 +577,9 @@ class MeasurementWriter:
         self._put(setup.comment() + "\n")
 
     def close(self) -> None:
-        self._handle.close()
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
     def __enter__(self) -> MeasurementWriter:
         return self

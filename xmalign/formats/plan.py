@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -10,12 +11,14 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from xmalign.errors import OutputError
 from xmalign.formats.common import (
     Angle_deg,
     FileModel,
     Finite,
     Length_mm,
     Vector3_mm,
+    located,
     read_json,
     validate,
     write_json,
@@ -28,6 +31,24 @@ FRAME_TOLERANCE = 1e-6
 #: How far the targets may reach beyond the line's end (rounding), mm.
 TARGET_TOLERANCE_MM = 1e-3
 _V3 = Vector3_mm
+#: A line id: letters, digits and ``_ . + -`` (it is a field of every measurement row and
+#: a word of the CSV's setup comments: a comma, a quote, a space or a newline would break them).
+LINE_ID = re.compile(r"[\w.+-]+")
+
+
+def line_id_problem(line_id: str) -> str | None:
+    """What makes ``line_id`` unusable as a line id, or None."""
+    if not line_id:
+        return "a line id must not be empty"
+    if LINE_ID.fullmatch(line_id) is None or not line_id.isprintable():
+        bad = next(c for c in line_id if LINE_ID.fullmatch(c) is None or not c.isprintable())
+        return (
+            f"line id {line_id!r} holds {bad!r}; a line id is letters, digits and _ . + -"
+            " (it is a field of every measurement row)"
+        )
+    return None
+
+
 _KNOWN_LINE_KEYS = {
     "id",
     "start_mm",
@@ -69,6 +90,14 @@ class _LineModel(FileModel):
     runs: Annotated[int, Field(ge=1, le=5)] = 1
     bidirectional: bool = False
     dwell_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = 0.0
+
+    @field_validator("id")
+    @classmethod
+    def _usable_id(cls, line_id: str) -> str:
+        problem = line_id_problem(line_id)
+        if problem is not None:
+            raise ValueError(problem)
+        return line_id
 
     @field_validator("targets_mm")
     @classmethod
@@ -207,4 +236,9 @@ def plan_to_dict(plan: Plan) -> dict:
 
 
 def write_plan(path: str | Path, plan: Plan) -> None:
+    """Write a plan; a line id the reader would refuse (:func:`line_id_problem`) is refused."""
+    for number, line in enumerate(plan.lines):
+        problem = line_id_problem(line.id)
+        if problem is not None:
+            raise OutputError(located(path, f"key 'lines.{number}.id'", problem))
     write_json(path, plan_to_dict(plan))
