@@ -983,6 +983,7 @@ _CARELESS_USER_CASES = [
     ),
 ]
 
+
 def recorded_with_seed(seed: int) -> Damage:
     """m.csv as a simulated run with ``--seed SEED`` leaves it (no point yet)."""
     return write("m.csv", f"# xmalign measurements sim_seed={seed}\n" + MEASUREMENTS_HEADER)
