@@ -151,3 +151,25 @@ def test_sim_serve_bad_option_is_one_line():
 )
 def test_sim_serve_bad_can_options_are_one_line(options, fragments):
     assert_one_line_error(run_cli("sim", "serve", *options), *fragments)
+
+
+def test_a_server_thread_that_dies_stops_serve_with_one_line():
+    """A device thread ended by an error (the interferometer's, say) must not leave
+    ``sim serve`` saying "serving": the watch sets the stop and names the thread."""
+    import threading
+
+    from xmalign.cli.sim import stop_when_a_thread_dies
+
+    stopped = threading.Event()
+    before = threading.excepthook
+    with stop_when_a_thread_dies(stopped) as died:
+
+        def fail() -> None:
+            raise ValueError("cannot convert float NaN to integer")
+
+        thread = threading.Thread(target=fail, name="xm-commands")
+        thread.start()
+        thread.join()
+    assert stopped.is_set()
+    assert died == ["xm-commands: ValueError: cannot convert float NaN to integer"]
+    assert threading.excepthook is before

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import signal
 import sys
 import threading
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -20,7 +22,7 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
-from xmalign.errors import InputError
+from xmalign.errors import DeviceError, InputError
 from xmalign.formats.common import located, read_text, refuse_overwriting
 from xmalign.machine import Machine
 
@@ -28,6 +30,7 @@ if TYPE_CHECKING:
     from sim.servers.served_cnc import ServedCnc
     from sim.world import World
 
+log = logging.getLogger(__name__)
 sim_app = typer.Typer(help="The simulator: virtual machine, positioning units, interferometer.")
 
 
@@ -210,6 +213,7 @@ def serve(
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     with ExitStack() as servers:
         servers.callback(stop_log_file, log_handler)
+        died = servers.enter_context(stop_when_a_thread_dies(stopped))
         from sim.servers.modbus import ControllingHost
 
         controlling_host = ControllingHost()  # one per unit, whichever server it writes on
@@ -283,7 +287,33 @@ def serve(
         console.print("serving; Ctrl-C to stop", highlight=False)
         while not stopped.wait(0.2):
             pass
+    if died:
+        raise DeviceError(f"sim serve stopped: {died[0]}")
     console.print("stopped")
+
+
+@contextmanager
+def stop_when_a_thread_dies(stopped: threading.Event) -> Iterator[list[str]]:
+    """While inside, an exception that ends any thread (a server's) sets ``stopped``.
+
+    Yields the list of what ended them (thread name and error), so that ``serve``
+    stops with one line instead of saying "serving" with a device gone. The
+    traceback goes to the log.
+    """
+    died: list[str] = []
+    previous = threading.excepthook
+
+    def thread_died(args: threading.ExceptHookArgs) -> None:
+        name = args.thread.name if args.thread is not None else "a thread"
+        died.append(f"{name}: {args.exc_type.__name__}: {args.exc_value}")
+        log.error("sim serve: thread %s died", name, exc_info=args.exc_value)
+        stopped.set()
+
+    threading.excepthook = thread_died
+    try:
+        yield died
+    finally:
+        threading.excepthook = previous
 
 
 def _served_cnc(
