@@ -1,4 +1,4 @@
-"""Modbus driver of the positioning-unit firmware interface (REGISTERS.md).
+"""Modbus driver of the positioning-unit firmware interface (docs/registers.md).
 
 The driver (:class:`ModbusUnit`, :class:`ModbusAxis`) talks to a
 :class:`RegisterTransport`: anything that reads and writes holding registers.
@@ -43,7 +43,7 @@ from xmalign.roles import Clock, WallClock
 ILLEGAL_DATA_VALUE = 3
 #: Modbus exception code "server device busy": another host controls the unit.
 SERVER_DEVICE_BUSY = 6
-#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+#: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 _UINT16 = 1 << 16
 _UINT32 = 1 << 32

@@ -302,7 +302,7 @@ class SimUnit:
         rng = np.random.default_rng(seed)
         offsets = np.resize(np.asarray(self.imperfections.zero_offsets_rad, dtype=float), 3)
         if kind == "launch":
-            offsets[0] = 0.0  # c1 is absorbed in gamma (CONVENTIONS.md)
+            offsets[0] = 0.0  # c1 is absorbed in gamma (docs/conventions.md)
         self.axes = tuple(
             SimAxis(
                 name,

@@ -21,7 +21,7 @@ which ``post`` fits with its own setup terms.
 
 The interferometer reports in its own frame, the launch head's (``u`` from the
 launch unit towards the receiver), with the raw displacement since its datum;
-the rows are written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
+the rows are written in the line frame of docs/conventions.md, with ``linear_um`` the actual
 minus the commanded displacement from the run's first point (where the datum
 is set).
 """
@@ -133,7 +133,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
     """Axes of the interferometer's frame (the launch head's) for a line, rows u, v, w, (3, 3).
 
     Taken from the receiver's commanded angles: aligned, its optical axis is
-    ``-u`` and its "up" is the launch head's ``w`` (CONVENTIONS.md, roll 0).
+    ``-u`` and its "up" is the launch head's ``w`` (docs/conventions.md, roll 0).
     For any line that is not vertical this is the line frame of the beam.
     """
     phi3, phi4 = line.receiver_rad[:2]
@@ -143,7 +143,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
 
 
 def line_channels(reading: InterferometerReading, head2line: Vec, commanded_mm: float) -> Vec:
-    """Six channels of CONVENTIONS.md in the line frame from a head-frame reading, (6,).
+    """Six channels of docs/conventions.md in the line frame from a head-frame reading, (6,).
 
     ``head2line`` (3, 3) turns head-frame components into line-frame ones; the
     straightness is a vector across the beam and the angles a rotation vector,

@@ -1,4 +1,4 @@
-"""The machine description (YAML) of FORMATS.md, validated with pydantic.
+"""The machine description (YAML) of docs/formats.md, validated with pydantic.
 
 Besides the keys of the spec, two optional sections are xmalign's own
 (documented in docs/conventions-notes.md): ``uncertainty`` (the a-priori

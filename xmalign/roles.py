@@ -30,7 +30,7 @@ CHANNELS = (
 
 @dataclass(frozen=True)
 class InterferometerReading:
-    """One six-channel reading at the receiver cp, in the line frame (CONVENTIONS.md).
+    """One six-channel reading at the receiver cp, in the line frame (docs/conventions.md).
 
     ``channels`` holds the six values in the order of :data:`CHANNELS`
     (um and urad); ``beam_ok`` is False when any channel is out of range.
@@ -119,7 +119,7 @@ class Interferometer(Protocol):
 
     ``read`` gives the raw channels: ``linear_um`` is the displacement along the
     beam since the last :meth:`zero` (actual, not an error: the run step
-    subtracts the commanded displacement), the other five as in CONVENTIONS.md
+    subtracts the commanded displacement), the other five as in docs/conventions.md
     in the frame of the beam (``u`` along the beam from the launch unit).
     """
 

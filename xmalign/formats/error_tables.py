@@ -1,10 +1,10 @@
-"""Error-table CSV of FORMATS.md: ``name,position_mm,value,unit,u95[,range]``.
+"""Error-table CSV of docs/formats.md: ``name,position_mm,value,unit,u95[,range]``.
 
 Values are um (translations) or urad (rotations, squareness) in the file and
 mm / rad in :class:`ErrorTableSet`. Directional tables carry ``+`` or ``-``
 after the name. The optional last column ``range`` says ``measured`` or
 ``extrapolated`` (beyond the measured stroke); files without it (written
-before it existed) are read as all measured (docs/error-tables.md).
+before it existed) are read as all measured (docs/post.md, "The range column").
 """
 
 from __future__ import annotations

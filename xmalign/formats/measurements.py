@@ -1,8 +1,8 @@
-"""Measurement CSV of FORMATS.md (output of ``run``, input of ``post``).
+"""Measurement CSV of docs/formats.md (output of ``run``, input of ``post``).
 
 Rows are appended, flushed and synced one at a time, so an interrupted run
 loses nothing; the reader names the line of any row it cannot use. Besides the
-columns of FORMATS.md a file written by ``xmalign run`` carries (see
+columns of docs/formats.md a file written by ``xmalign run`` carries (see
 docs/measurement-files.md):
 
 - a first comment line ``# xmalign measurements plan_sha256=<hex>``, the
@@ -53,7 +53,7 @@ HEADER = (
     *CHANNELS,
 )
 SEGMENT_COLUMN = "segment"
-#: Optional environment columns of FORMATS.md with the range a workshop can have.
+#: Optional environment columns of docs/formats.md with the range a workshop can have.
 ENVIRONMENT_LIMITS = {
     "air_temp_c": (-20.0, 60.0),
     "air_pressure_hpa": (500.0, 1200.0),

@@ -1,4 +1,4 @@
-"""Measurement plan (``xmalign.plan/1``) of FORMATS.md."""
+"""Measurement plan (``xmalign.plan/1``) of docs/formats.md."""
 
 from __future__ import annotations
 

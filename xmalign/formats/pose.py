@@ -1,4 +1,4 @@
-"""Launch-unit pose (``xmalign.launch-pose/1``) of FORMATS.md."""
+"""Launch-unit pose (``xmalign.launch-pose/1``) of docs/formats.md."""
 
 from __future__ import annotations
 

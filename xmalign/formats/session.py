@@ -1,4 +1,4 @@
-"""Identification session (``xmalign.identify-session/1``) of FORMATS.md."""
+"""Identification session (``xmalign.identify-session/1``) of docs/formats.md."""
 
 from __future__ import annotations
 
