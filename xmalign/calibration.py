@@ -229,6 +229,11 @@ class CalibrationRun:
     environment: EnvironmentMonitor | None = None
     #: Target (mm along the line) where the interferometer's datum counts from.
     _datum_mm: float = field(default=0.0, init=False, repr=False)
+    #: The clock when the run started: rows record their time from here (``time_s``).
+    _started_s: float = field(default=0.0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._started_s = self.clock.now()
 
     def line_is_done(self, line: PlanLine) -> bool:
         return all(point.key in self.done for point in capture_sequence(line))
@@ -381,6 +386,7 @@ class CalibrationRun:
             segment=self.setups[line.id].segment if line.id in self.setups else 0,
             environment=sample.values if sample else {},
             environment_flags=sample.flag_text if sample else "",
+            time_s=self.clock.now() - self._started_s,
         )
         self.record(row)
         self.done.add(point.key)
@@ -763,7 +769,8 @@ def open_run_output(
     if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        writer = MeasurementWriter.create(path, plan_sha256(plan), columns)
+        inputs = [plan.source] if plan.source is not None else []
+        writer = MeasurementWriter.create(path, plan_sha256(plan), columns, inputs)
         return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
     _check_environment_columns(path, recorded.environment_columns, environment)

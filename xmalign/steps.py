@@ -35,6 +35,7 @@ from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import write_pose
+from xmalign.formats.provenance import sources
 from xmalign.formats.session import Session
 from xmalign.identification_routine import (
     PoseGuess,
@@ -150,24 +151,26 @@ def program_step(
     dialect: str | None = None,
     pose_path: Path | None = None,
     line_ids: tuple[str, ...] | None = None,
+    machine_path: Path | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
     The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
     (the same plan identity). ``program_path`` None: the suffix of the dialect
-    next to the plan as ``run<suffix>``.
+    next to the plan as ``run<suffix>``. The plan records the SHA-256 of the pose
+    file and of ``machine_path`` (the machine file, when there is one).
     """
     pose = result.to_pose()
     files: dict[str, Path] = {}
     if pose_path is not None:
-        write_pose(pose_path, pose)
+        write_pose(pose_path, pose, sources(machine=machine_path))
         files["pose"] = pose_path
     measurement = (
         plan_measurement(machine, pose)
         if line_ids is None
         else plan_measurement(machine, pose, line_ids)
     )
-    write_plan(plan_path, measurement.plan)
+    write_plan(plan_path, measurement.plan, sources(pose=pose_path, machine=machine_path))
     plan = read_plan(plan_path)
     dialect_name = resolve_dialect(machine, dialect)
     program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
@@ -251,12 +254,22 @@ class PostStepResult:
 
 
 def post_step(
-    machine: Machine, plan: Plan, measurements_path: Path, errors_path: Path
+    machine: Machine,
+    plan: Plan,
+    measurements_path: Path,
+    errors_path: Path,
+    machine_path: Path | None = None,
 ) -> PostStepResult:
-    """Fit the 21 errors to one station's measurement file and write the error tables."""
+    """Fit the 21 errors to one station's measurement file and write the error tables.
+
+    The tables name ``machine`` and the SHA-256 of the measurements, the plan
+    file (when ``plan`` was read from one) and ``machine_path``.
+    """
     rows = read_measurements(measurements_path)
     post = post_process(machine, plan, rows, measurements_path.name)
-    write_error_tables(errors_path, post.fit.tables)
+    inputs = sources(measurements=measurements_path, machine=machine_path)
+    inputs[1:1] = [plan.source] if plan.source is not None else []
+    write_error_tables(errors_path, post.fit.tables, inputs, machine)
     return PostStepResult(post, errors_path)
 
 

@@ -25,6 +25,7 @@ from xmalign.cli.common import (
 )
 from xmalign.errors import InputError
 from xmalign.formats.pose import write_pose
+from xmalign.formats.provenance import sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
@@ -327,7 +328,8 @@ def identify_command(
         result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
-        write_pose(out, result.to_pose())
+        session_used = input or (session_path if sim else session_file)
+        write_pose(out, result.to_pose(), sources(session=session_used, machine=machine))
         console.print(f"pose written to {out}", markup=False)
 
 

@@ -27,6 +27,8 @@ from xmalign.cli.common import (
 )
 from xmalign.errors import InputError, TransportError
 from xmalign.formats.common import atomic_write_text
+from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.studies import study_document
 
 if TYPE_CHECKING:
     from sim.mc import StrategyResult, StudySettings
@@ -136,10 +138,12 @@ def _plot(draw: Callable[[], Path | None], name: str) -> Path | None:
 
 
 def _results_json(
-    results: Sequence[StrategyResult], settings: StudySettings, machine_name: str
+    results: Sequence[StrategyResult],
+    settings: StudySettings,
+    machine_name: str,
+    inputs: Sequence[FileSource] = (),
 ) -> str:
-    document = {
-        "format": "xmalign-mc/1",
+    body = {
         "machine": machine_name,
         "mode": settings.mode,
         "digits": settings.digits,
@@ -172,7 +176,7 @@ def _results_json(
             for r in results
         ],
     }
-    return json.dumps(document, indent=2) + "\n"
+    return json.dumps(study_document(body, inputs), indent=2) + "\n"
 
 
 def mc(
@@ -262,7 +266,8 @@ def mc(
         progress.update(task, total=sum(r.trials for r in results))
     # the results first: nothing after this may lose minutes of trials
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
+    document = _results_json(results, settings, chosen_machine.name, sources(machine=machine))
+    atomic_write_text(out / "mc.json", document)
     console.print(_table(results, tolerance_um, mode))
     written = [
         out / "mc.json",

@@ -25,6 +25,7 @@ from xmalign.formats.common import atomic_write_files, read_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
+from xmalign.formats.provenance import FileSource, sources
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
@@ -165,7 +166,7 @@ def post(
             verification = _post_verification(
                 verify_plan or plan[0], verify_data, machine, applied.mean
             )
-        write_error_tables(out, result.fit.tables)
+        write_error_tables(out, result.fit.tables, _inputs(plan, data, machine), machine_)
         if report is not None:
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
@@ -197,6 +198,12 @@ def post(
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )
+
+
+def _inputs(plans: list[Path], data: list[Path], machine: Path | None) -> list[FileSource]:
+    """The files error tables are made from: each station's measurements and plan, the machine."""
+    stations = [sources(measurements=d, plan=p) for p, d in zip(plans, data, strict=True)]
+    return [source for pair in stations for source in pair] + sources(machine=machine)
 
 
 def _post_verification(
@@ -249,6 +256,8 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
+    for warning in tables.check_machine(machine_):
+        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 

@@ -236,7 +236,7 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
         The file cannot be read, is not JSON (with line and column), repeats a
         key or holds a non-finite number.
     FormatError
-        The format name or version is not ``expected_format``.
+        Not the format of ``expected_format`` or a newer version of it.
     """
     path = Path(path)
     text = read_text(path)
@@ -259,9 +259,13 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
     return data
 
 
-def check_format(found: object, expected_format: str, source: str) -> None:
-    """Refuse a missing, foreign or newer ``format`` value with a clear message."""
-    name, _, version = expected_format.partition("/")
+def check_format(found: object, expected_format: str, source: str) -> int:
+    """The version of a ``format`` value; refuse a missing, foreign or newer one.
+
+    ``expected_format`` is ``name/N``: versions 1 to N are read (each reader
+    migrates the older ones), a newer one is refused with one line naming the file.
+    """
+    name, _, newest = expected_format.partition("/")
     if found is None:
         raise FormatError(
             located(source, "key 'format'", f"missing (expected '{expected_format}')")
@@ -269,15 +273,19 @@ def check_format(found: object, expected_format: str, source: str) -> None:
     found_name, _, found_version = str(found).partition("/")
     if found_name != name:
         raise FormatError(located(source, "key 'format'", f"'{found}' is not a {name} file"))
-    if found_version != version:
+    if not found_version.isdigit() or int(found_version) < 1:
+        raise FormatError(
+            located(source, "key 'format'", f"'{found}': the version is not a whole number")
+        )
+    if int(found_version) > int(newest):
         raise FormatError(
             located(
                 source,
                 "key 'format'",
-                f"version '{found_version}' of {name} is not supported"
-                f" (this xmalign reads version {version})",
+                f"written by a newer xmalign: format {found}, this one reads up to /{newest}",
             )
         )
+    return int(found_version)
 
 
 def _new_file_mode() -> int:

@@ -14,6 +14,13 @@ docs/measurement-files.md):
 - one ``# setup`` comment line per alignment of a line, with the locked unit
   angles (a resume keeps the setup when the units still stand there).
 
+Version 2 (:data:`MEASUREMENTS_FORMAT`) adds, after that first line, the
+history preamble of :mod:`xmalign.formats.provenance` (format, software,
+``created_utc``, the plan file's SHA-256), a ``time_s`` column (seconds on the
+run's clock since the run, or its resumption, started: each start writes a
+``# run started_utc=...`` line) and nothing else; version 1 files (no
+``# format:`` line, no ``time_s``) are read as they are.
+
 Lines starting with ``#`` are comments for every reader of the file.
 """
 
@@ -36,6 +43,13 @@ import numpy as np
 from xmalign.errors import FormatError, InputError
 from xmalign.formats.common import sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
+from xmalign.formats.provenance import (
+    FileSource,
+    Provenance,
+    csv_preamble,
+    now_utc,
+    read_csv_preamble,
+)
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
 
@@ -52,7 +66,12 @@ HEADER = (
     "z_mm",
     *CHANNELS,
 )
+MEASUREMENTS_FORMAT = "xmalign.measurements/2"
+#: What a file without a ``# format:`` line is (written before files carried history).
+FIRST_FORMAT = "xmalign.measurements/1"
 SEGMENT_COLUMN = "segment"
+#: Seconds on the run's clock since the run (or its resumption) started.
+TIME_COLUMN = "time_s"
 #: Optional environment columns of docs/formats.md with the range a workshop can have.
 ENVIRONMENT_LIMITS = {
     "air_temp_c": (-20.0, 60.0),
@@ -63,9 +82,9 @@ ENVIRONMENT_LIMITS = {
 #: xmalign's own: which environment values of the row were held at their last good
 #: reading, and why (empty when all were fresh); written with the environment columns.
 FLAGS_COLUMN = "environment_flags"
-OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
+OPTIONAL_COLUMNS = (SEGMENT_COLUMN, TIME_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
 #: What ``xmalign run`` writes.
-WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN)
+WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN, TIME_COLUMN)
 #: The largest travel a machine can have, mm (commanded points and targets).
 MAX_COORDINATE_MM = 100_000.0
 #: A recorded point farther than this from its plan target belongs to another plan, mm.
@@ -73,6 +92,7 @@ POINT_TOLERANCE_MM = 0.01
 PLAN_KEY = "plan_sha256"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
+RUN_START_TAG = "# run started_utc="
 
 
 @dataclass(frozen=True)
@@ -100,7 +120,8 @@ class MeasurementRow:
 
     ``segment`` numbers the line's setup (0 unless the units were re-aligned on
     a resume); ``environment`` holds the optional environment columns present and
-    ``environment_flags`` says which of them were held at their last good value.
+    ``environment_flags`` says which of them were held at their last good value;
+    ``time_s`` when the point was captured, s since the run started (None: not recorded).
     """
 
     line: str
@@ -113,6 +134,7 @@ class MeasurementRow:
     segment: int = 0
     environment: Mapping[str, float] = field(default_factory=dict)
     environment_flags: str = ""
+    time_s: float | None = None
 
     def key(self) -> tuple[str, int, str, int]:
         """What identifies a point of a plan (for resuming)."""
@@ -136,6 +158,7 @@ class MeasurementRow:
             )
         )
         values[SEGMENT_COLUMN] = str(self.segment)
+        values[TIME_COLUMN] = "" if self.time_s is None else f"{self.time_s:.3f}"
         values.update({name: repr(float(v)) for name, v in self.environment.items()})
         values[FLAGS_COLUMN] = self.environment_flags
         missing = [name for name in columns if name not in values]
@@ -182,6 +205,7 @@ class MeasurementFile:
     plan_sha256: str | None = None
     setups: list[LineSetup] = field(default_factory=list)
     torn: TornRow | None = None
+    history: Provenance | None = None
 
     @property
     def environment_columns(self) -> tuple[str, ...]:
@@ -242,6 +266,7 @@ class _Reader:
         self.limits = limits
         self.file = MeasurementFile(path, [], columns=())
         self.seen: dict[tuple[str, int, str, int], int] = {}
+        self.preamble: list[str] = []
 
     def where(self, number: int) -> str:
         return f"{self.path}: line {number}"
@@ -254,6 +279,8 @@ class _Reader:
                     self.file.plan_sha256 = value
         elif text.startswith(SETUP_TAG + " "):
             self.file.setups.append(self._setup(text, number))
+        if not self.file.columns:
+            self.preamble.append(text)
 
     def _setup(self, text: str, number: int) -> LineSetup:
         items = dict(item.partition("=")[::2] for item in text[len(SETUP_TAG) :].split())
@@ -284,6 +311,9 @@ class _Reader:
                 f"{self.where(number)}: {what}; the header must be {','.join(HEADER)}"
                 f" (optionally followed by {', '.join(OPTIONAL_COLUMNS)})"
             )
+        self.file.history = read_csv_preamble(
+            self.preamble, MEASUREMENTS_FORMAT, str(self.path), FIRST_FORMAT
+        )
         self.file.columns = columns
 
     def row(self, fields: list[str], number: int) -> MeasurementRow:
@@ -357,6 +387,7 @@ def _parse_row(values: Mapping[str, str], where: str) -> MeasurementRow:
             name: _number(values, name, where) for name in ENVIRONMENT_LIMITS if name in values
         },
         environment_flags=values.get(FLAGS_COLUMN, ""),
+        time_s=_number(values, TIME_COLUMN, where) if values.get(TIME_COLUMN) else None,
     )
 
 
@@ -446,11 +477,13 @@ class MeasurementWriter:
         path: str | Path,
         plan_sha256: str | None = None,
         environment_columns: tuple[str, ...] = (),
+        inputs: Iterable[FileSource] = (),
     ) -> MeasurementWriter:
         """Start a new file (an existing empty file counts as new, nothing else does).
 
         ``environment_columns`` (names of :data:`ENVIRONMENT_LIMITS`) are written
-        after the channels, with the flags column, when the run samples the environment.
+        after the channels, with the flags column, when the run samples the environment;
+        ``inputs`` (the plan file) go into the history preamble.
         """
         path = Path(path)
         unknown = [name for name in environment_columns if name not in ENVIRONMENT_LIMITS]
@@ -472,7 +505,9 @@ class MeasurementWriter:
             raise _write_error(path, error) from error
         writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), columns, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
-        writer._put(preamble + "\n" + ",".join(columns) + "\n")
+        history = csv_preamble(MEASUREMENTS_FORMAT, inputs)
+        writer._put(preamble + "\n" + history + ",".join(columns) + "\n")
+        writer.note_start()
         sync_folder(path.parent)
         return writer
 
@@ -487,7 +522,9 @@ class MeasurementWriter:
                 os.fsync(handle.fileno())
         except OSError as error:
             raise _write_error(path, error) from error
-        return cls(path, handle, recorded.columns, len(recorded.rows))
+        writer = cls(path, handle, recorded.columns, len(recorded.rows))
+        writer.note_start()
+        return writer
 
     def _put(self, text: str) -> None:
         try:
@@ -508,6 +545,10 @@ class MeasurementWriter:
             )
         self._put(_csv_line(row.fields(self.columns)))
         self.saved += 1
+
+    def note_start(self) -> None:
+        """Mark where a run (or its resumption) starts: ``time_s`` counts from here."""
+        self._put(f"{RUN_START_TAG}{now_utc()}\n")
 
     def note_setup(self, setup: LineSetup) -> None:
         """Record a line's alignment (the locked unit angles) before its rows."""
@@ -530,7 +571,10 @@ def _csv_line(fields: list[str]) -> str:
 
 
 def write_measurements(
-    path: str | Path, rows: Iterable[MeasurementRow], plan_sha256: str | None = None
+    path: str | Path,
+    rows: Iterable[MeasurementRow],
+    plan_sha256: str | None = None,
+    inputs: Iterable[FileSource] = (),
 ) -> None:
     """Write a new measurement CSV (refused where a non-empty file exists).
 
@@ -539,7 +583,7 @@ def write_measurements(
     rows = list(rows)
     present = rows[0].environment if rows else {}
     columns = tuple(name for name in ENVIRONMENT_LIMITS if name in present)
-    with MeasurementWriter.create(path, plan_sha256, columns) as writer:
+    with MeasurementWriter.create(path, plan_sha256, columns, inputs) as writer:
         for row in rows:
             writer.append(row)
 
