@@ -26,6 +26,7 @@ from xmalign.formats.common import (
     Distance_mm,
     StrictFileModel,
     Vector3_mm,
+    format_problem,
     located,
     read_yaml,
     validate,
@@ -35,6 +36,8 @@ from xmalign.geometry import Vec
 AxisName = Literal["X", "Y", "Z"]
 AXES: tuple[AxisName, AxisName, AxisName] = ("X", "Y", "Z")
 CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
+#: The machine file's format; ``format:`` is optional (absent: version 1).
+MACHINE_FORMAT = "xmalign.machine/1"
 
 Vector3 = Vector3_mm
 TravelRange = Annotated[
@@ -191,8 +194,12 @@ class Cnc(_Strict):
 
 
 class Machine(_Strict):
-    """A machine tool as xmalign sees it; lengths mm, angles as named."""
+    """A machine tool as xmalign sees it; lengths mm, angles as named.
 
+    ``format`` (optional, :data:`MACHINE_FORMAT`): a file without it is version 1.
+    """
+
+    format: str | None = None
     name: str
     serial: str | None = None
     chain: str
@@ -228,6 +235,14 @@ class Machine(_Strict):
         )
         text = json.dumps(geometry, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    @field_validator("format")
+    @classmethod
+    def _known_format(cls, found: str | None) -> str | None:
+        problem = None if found is None else format_problem(found, MACHINE_FORMAT)
+        if problem is not None:
+            raise ValueError(problem)
+        return found
 
     @field_validator("chain")
     @classmethod

@@ -256,14 +256,14 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
-    for warning in tables.check_machine(machine_):
-        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+    machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 
         files, done = volumetric_files(tables, machine_, ini, out)
         _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
         console.print(done, highlight=False)
+        _warn(machine_notes)
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
@@ -291,6 +291,7 @@ def comp(
             f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
             highlight=False,
         )
+    _warn(machine_notes)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
@@ -303,6 +304,11 @@ def comp(
             f" ({fit.after_um:.2f} of {fit.before_um:.2f} um left)",
             highlight=False,
         )
+
+
+def _warn(warnings: list[str]) -> None:
+    for warning in warnings:
+        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
 
 
 def _write_outputs(out: Path, files: dict[str, str], inputs: dict[str, Path | None]) -> None:
