@@ -34,7 +34,7 @@ from xmalign.errors import (
     OutOfRangeError,
     TransportError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
 
@@ -220,7 +220,7 @@ class CanopenAxis:
         self._write(CONTROLWORD, ENABLE_OPERATION)
 
 
-class CanopenUnit(AxisGroup):
+class CanopenUnit(AxisGroup, ClosesOnExit):
     """A positioning unit made of CiA 402 axis nodes; implements ``PositioningUnit``.
 
     Parameters

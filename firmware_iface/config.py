@@ -65,7 +65,14 @@ from xmalign.formats.common import (
     validate,
 )
 from xmalign.machine import Machine
-from xmalign.roles import Clock, EnvironmentSource, Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import (
+    Clock,
+    ClosesOnExit,
+    EnvironmentSource,
+    Interferometer,
+    MachineMover,
+    PositioningUnit,
+)
 
 UNITS_FORMAT = "xmalign.units/1"
 
@@ -176,8 +183,9 @@ def load_units_config(path: str | Path) -> UnitsConfig:
 
 
 @dataclass
-class LiveDevices:
-    """The devices a ``units.yaml`` names, opened; :meth:`close` releases them."""
+class LiveDevices(ClosesOnExit):
+    """The devices a ``units.yaml`` names, opened; :meth:`close` (or the end of a
+    ``with`` block) releases them."""
 
     launch: PositioningUnit
     receiver: PositioningUnit

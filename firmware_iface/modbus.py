@@ -37,7 +37,7 @@ from xmalign.errors import (
     TransportError,
     XmalignError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
@@ -77,7 +77,7 @@ def decode(register: Register, words: Sequence[int]) -> int:
     return raw
 
 
-class ModbusTransport:
+class ModbusTransport(ClosesOnExit):
     """A pymodbus client with reconnect and retries; errors name ``device_name``.
 
     Parameters
@@ -281,7 +281,7 @@ class ModbusAxis:
         self.unit.write(self.number, "control", int(bits))
 
 
-class ModbusUnit(AxisGroup):
+class ModbusUnit(AxisGroup, ClosesOnExit):
     """A positioning unit behind a register transport; implements ``PositioningUnit``.
 
     Parameters

@@ -331,10 +331,12 @@ def measure_served(
 
     for unit in (setup.world.launch, setup.world.receiver):
         unit.keep_heartbeat(False)  # the in-process host of the identification is gone
-    with serve_world(setup.world, machine, program, dialect, setup.cnc) as served:
-        devices = open_devices(
+    with (
+        serve_world(setup.world, machine, program, dialect, setup.cnc) as served,
+        open_devices(
             served.config, machine, ask=_no_operator, tell=lambda text: None, clock=served.clock
-        )
+        ) as devices,
+    ):
         following = following_drive(devices.mover, served.operator, machine, FOLLOW_POLL_S)
 
         def drive(run: CalibrationRun) -> None:
@@ -343,13 +345,10 @@ def measure_served(
                 served.run_to_stop_at(pre_position_mm(first, machine.measurement.overrun_mm))
             following(run)
 
-        try:
-            roles = RunStepDevices(
-                devices.launch, devices.receiver, devices.interferometer, served.clock
-            )
-            return run_step(plan, roles, output, drive)
-        finally:
-            devices.close()
+        roles = RunStepDevices(
+            devices.launch, devices.receiver, devices.interferometer, served.clock
+        )
+        return run_step(plan, roles, output, drive)
 
 
 def _no_operator(prompt: str) -> str:

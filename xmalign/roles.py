@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -211,3 +211,17 @@ def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading
         channels=channels,
         beam_ok=all(r.beam_ok for r in readings),
     )
+
+
+class ClosesOnExit:
+    """Mixin: an object holding a connection or a file is a context manager that
+    calls its ``close()`` on exit (``with open_devices(...) as devices:``)."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

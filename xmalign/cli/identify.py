@@ -188,8 +188,7 @@ def _live_identification(
     config = load_units_config(config_path)
     design = design_step(machine, alignments)
     _print_design_warnings(design.warnings)
-    live = open_devices(config, machine)
-    try:
+    with open_devices(config, machine) as live:
         clock = WallClock()
         devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
         jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
@@ -205,8 +204,6 @@ def _live_identification(
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
             )
-    finally:
-        live.close()
 
 
 def _print_design_warnings(warnings: list[str]) -> None:

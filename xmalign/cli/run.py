@@ -194,12 +194,10 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
     )
-    try:
+    with devices:
         yield Measurement(
             lambda output: _measure(output, plan, lambda: capture(output)), environment
         )
-    finally:
-        devices.close()
 
 
 def _tell_operator(message: str) -> None:
