@@ -44,7 +44,7 @@ from xmalign.environment import (
     StationCompensation,
     linear_budget_um,
 )
-from xmalign.formats.common import atomic_write_text
+from xmalign.formats.common import atomic_write_bytes, atomic_write_text
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.error_tables import Table as ErrorTable
 from xmalign.geometry import Vec
@@ -678,9 +678,8 @@ def write_pdf(
 ) -> None:
     """Write the report as an A4 PDF (tables first, then one figure per page)."""
     info = info or RecordInfo()
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    with PdfPages(partial) as pdf:
+    buffer = io.BytesIO()
+    with PdfPages(buffer) as pdf:
         page = _Page(pdf)
         page.write(f"Calibration of {machine.name}", 14, "bold")
         for table in report_tables(machine, result, info, controller):
@@ -689,7 +688,7 @@ def write_pdf(
         page.finish()
         for figure in _pages(report_figures(machine, result, info, controller)):
             pdf.savefig(figure)
-    partial.replace(path)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def write_report(
