@@ -44,11 +44,12 @@ from xmalign.identify import IdentificationResult, IdentificationUncertainty
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
+from xmalign.post.evaluate import PostResult, post_process
 from xmalign.rigid_body import Chain, ErrorTables, RemainingErrors
 from xmalign.steps import (
     PROGRAM_SUFFIX,
     RunStepDevices,
+    as_left_step,
     comp_step,
     design_step,
     following_drive,
@@ -500,11 +501,7 @@ def simulate_calibration(
         verification = workdir / "verification.csv"
         with open_run_output(verification, plan, resume=False, environment=monitor) as output:
             measure(output)
-        left = post_stations(
-            machine,
-            [Station(plan, read_measurements(verification), verification.name)],
-            applied,
-        )
+        left = as_left_step(machine, plan, verification, applied)
         remaining = RemainingErrors(truth, applied)
         as_left = AsLeft(
             left,

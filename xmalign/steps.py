@@ -32,7 +32,12 @@ from xmalign.calibration import (
 from xmalign.comp import Compensation, compensate
 from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
-from xmalign.formats.measurements import read_measurements
+from xmalign.formats.measurements import (
+    ChannelLimits,
+    check_recorded_plan,
+    load_measurements,
+    read_measurements,
+)
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import write_pose
 from xmalign.formats.provenance import sources
@@ -45,7 +50,8 @@ from xmalign.identification_routine import (
 )
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
-from xmalign.post.evaluate import PostResult, post_process
+from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
+from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
     Interferometer,
@@ -271,6 +277,25 @@ def post_step(
     inputs[1:1] = [plan.source] if plan.source is not None else []
     write_error_tables(errors_path, post.fit.tables, inputs, machine)
     return PostStepResult(post, errors_path)
+
+
+def as_left_step(
+    machine: Machine, plan: Plan, verification_path: Path, applied: ErrorTables
+) -> PostResult:
+    """As found / as left: the verification run, measured with the controller's tables
+    ``applied`` loaded, posted on its own.
+
+    The file must have been recorded for ``plan``. The result's ``fit`` is the
+    machine's own geometry again (as found, measured through the compensation) and
+    :meth:`~xmalign.post.evaluate.PostResult.tool_point_errors` what the
+    compensation leaves (as left). ``xmalign post --verify-data`` and the dry run's
+    ``--verify`` call this one function.
+    """
+    limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
+    recorded = load_measurements(verification_path, limits)
+    check_recorded_plan(recorded, plan, check_points=False)
+    station = Station(plan, recorded.rows, str(verification_path))
+    return post_stations(machine, [station], applied)
 
 
 def comp_step(

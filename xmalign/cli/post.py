@@ -29,7 +29,7 @@ from xmalign.formats.provenance import FileSource, sources
 from xmalign.machine import Machine
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
-from xmalign.steps import comp_step
+from xmalign.steps import as_left_step, comp_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -210,8 +210,8 @@ def _post_verification(
     plan: Path, data: Path, machine: Path | None, applied: ErrorTables
 ) -> PostResult:
     """The verification run posted on its own, with the tables ``applied`` during it."""
-    machine_, stations = _stations([plan], [data], machine)
-    return post_stations(machine_, stations, applied)
+    plan_ = read_plan(plan)
+    return as_left_step(machine_for_plan(machine, plan_, plan), plan_, data, applied)
 
 
 def _as_left(machine: Machine, result: PostResult, verification: PostResult) -> RichTable:
