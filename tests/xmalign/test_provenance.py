@@ -195,3 +195,33 @@ def test_tables_name_the_machine_they_were_measured_on(tmp_path, reference_machi
     assert again.check_machine(reference_machine) == []
     renamed = reference_machine.model_copy(update={"name": "another name"})
     assert "not 'another name'" in again.check_machine(renamed)[0]
+
+
+def test_each_command_records_what_it_read(tmp_path):
+    """identify --input, program and plan-identify: each file names its inputs' SHA-256."""
+    session = ROOT / "examples" / "session.json"
+    machine = ROOT / "examples" / "fyxz.yaml"
+    pose = tmp_path / "pose.json"
+    done = run_cli(
+        "identify", "--input", str(session), "--machine", str(machine), "--out", str(pose)
+    )
+    assert done.returncode == 0, done.stderr
+    written = json.loads(pose.read_text())
+    assert written["software"].startswith("xmalign ") and written["created_utc"].endswith("Z")
+    assert {(i["role"], i["sha256"]) for i in written["inputs"]} == {
+        ("session", hashlib.sha256(session.read_bytes()).hexdigest()),
+        ("machine", hashlib.sha256(machine.read_bytes()).hexdigest()),
+    }
+    plan = tmp_path / "plan.json"
+    done = run_cli("program", "--pose", str(pose), "--plan-out", str(plan), "--out",
+                   str(tmp_path / "run.mpf"))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    history = read_plan(plan).history
+    assert history is not None and history.input("pose") == FileSource.of("pose", pose)
+    design = tmp_path / "design.json"
+    done = run_cli("plan-identify", "--machine", str(machine), "--out", str(design))
+    assert done.returncode == 0, done.stderr
+    read = read_design(design)
+    assert read.history is not None and read.history.input("machine") == FileSource.of(
+        "machine", machine
+    )
