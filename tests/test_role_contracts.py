@@ -106,14 +106,13 @@ def _operator_with_source(machine: Machine, tmp_path: Path) -> Iterator[Position
     yield Position(OperatorPrompt(machine, ask, tell, source=source), START_MM)
 
 
-POSITIONS: list[Callable[[Machine, Path], Iterator[Position]]] = [
-    _fixed,
-    _file,
+MOVERS: list[Callable[[Machine, Path], Iterator[Position]]] = [
     _cnc,
     _checked,
     _operator_typing,
     _operator_with_source,
 ]
+POSITIONS = [_fixed, _file, *MOVERS]
 
 
 @pytest.fixture(params=POSITIONS, ids=lambda f: f.__name__.lstrip("_"))
@@ -133,25 +132,26 @@ def test_a_position_source_reports_the_tool_point(position: Position) -> None:
     assert role.is_standstill()  # nothing was commanded: it stands
 
 
-def _movers(position: Position) -> MachineMover:
-    if not isinstance(position.role, MachineMover):
-        pytest.skip("a position source only")
-    return position.role
+@pytest.fixture(params=MOVERS, ids=lambda f: f.__name__.lstrip("_"))
+def moving(request, reference_machine, tmp_path) -> Iterator[Position]:
+    yield from request.param(reference_machine, tmp_path)
 
 
-def test_a_mover_stands_at_the_target_when_the_move_returns(position: Position) -> None:
-    mover = _movers(position)
+def test_a_mover_stands_at_the_target_when_the_move_returns(moving: Position) -> None:
+    mover = moving.role
+    assert isinstance(mover, MachineMover)
     for target in ([1500.0, 700.0, -300.0], [10.0, 1400.0, -20.0]):
         mover.move_to(np.array(target), 2000.0)
         assert mover.is_standstill()
         np.testing.assert_allclose(mover.position_mm(), target, atol=0.05)
 
 
-def test_a_mover_refuses_a_target_outside_the_travel(position: Position) -> None:
-    mover = _movers(position)
+def test_a_mover_refuses_a_target_outside_the_travel(moving: Position) -> None:
+    mover = moving.role
+    assert isinstance(mover, MachineMover)
     with pytest.raises(OutOfRangeError, match=r"outside .*travel"):
         mover.move_to(np.array([2500.0, 700.0, -300.0]), 2000.0)
-    np.testing.assert_allclose(mover.position_mm(), position.start_mm, atol=1e-9)
+    np.testing.assert_allclose(mover.position_mm(), moving.start_mm, atol=1e-9)
 
 
 def _fixed_environment(tmp_path: Path) -> Iterator[EnvironmentSource]:
