@@ -12,7 +12,9 @@
       channel: can0
       bitrate: 500000              # default 500000
       node_ids: [3, 4, 5]          # default: the axis numbers a3, a4, a5
-      # hop_limit: 0               # udp_multicast only: TTL, default 0 (this computer only)
+      # interface: udp_local       # the simulated bus of `xmalign sim serve --canopen GROUP`
+      # host: 127.0.0.1            # udp_local only: the interface it runs on (default loopback)
+      # hop_limit: 0               # udp_local, udp_multicast: TTL, default 0 (this computer only)
     interferometer:
       port: /dev/ttyUSB0           # or a pyserial URL (socket://host:port)
       baudrate: 115200             # default 115200
@@ -43,10 +45,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-import can
 import canopen
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from firmware_iface.can_bus import (
+    LOOPBACK,
+    UDP_LOCAL,
+    check_interface,
+    multicast_group,
+    open_can_bus,
+)
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
@@ -56,7 +64,7 @@ from firmware_iface.weather_station import (
     open_environment,
     resolve_environment,
 )
-from xmalign.errors import InputError, TransportError
+from xmalign.errors import InputError
 from xmalign.formats.common import (
     StrictFileModel,
     check_format,
@@ -100,8 +108,21 @@ class CanopenUnitConfig(_Strict):
     channel: str
     bitrate: Annotated[int, Field(gt=0)] = 500000
     node_ids: list[Annotated[int, Field(ge=1, le=127)]] | None = None
-    #: udp_multicast only: TTL of the frames; 0 keeps the bus on this computer.
+    #: udp_local only: IPv4 address of the network interface the bus runs on.
+    host: str = LOOPBACK
+    #: udp_local and udp_multicast: TTL of the frames; 0 keeps the bus on this computer.
     hop_limit: Annotated[int, Field(ge=0, le=255)] = 0
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, interface: str) -> str:
+        check_interface(interface)
+        return interface
+
+    @field_validator("channel")
+    @classmethod
+    def _group_of_udp_local(cls, channel: str, info: ValidationInfo) -> str:
+        return multicast_group(channel) if info.data.get("interface") == UDP_LOCAL else channel
 
 
 UnitConfig = Annotated[
@@ -212,21 +233,15 @@ def _open_unit(
     if isinstance(config, CanopenUnitConfig):
         key = (config.interface, config.channel)
         if key not in networks:
-            network = canopen.Network()
-            try:
-                options = (
-                    {"hop_limit": config.hop_limit} if config.interface == "udp_multicast" else {}
-                )
-                network.connect(
-                    interface=config.interface,
-                    channel=config.channel,
-                    bitrate=config.bitrate,
-                    **options,
-                )
-            except (can.CanError, OSError, ValueError) as error:
-                raise TransportError(
-                    f"cannot open the CAN bus {config.channel} ({config.interface}): {error}"
-                ) from error
+            bus = open_can_bus(
+                config.interface,
+                config.channel,
+                bitrate=config.bitrate,
+                host=config.host,
+                hop_limit=config.hop_limit,
+            )
+            network = canopen.Network(bus)
+            network.connect()
             networks[key] = network
             closers.append(network.disconnect)
         unit = CanopenUnit(networks[key], kind, config.node_ids, f"{name} on {config.channel}")

@@ -38,12 +38,17 @@ from sim.dry_run import (
 )
 from sim.identification import SessionImperfections, simulate_session, spread_positions
 from sim.machine import ErrorAmplitudes
-from trajectories.identification_design import MIN_POSITIONS
+from trajectories.identification_design import MIN_POSITIONS, count_problem
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.geometry import Vec, wrap_angle
-from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
+from xmalign.identify import (
+    METHODS,
+    IdentificationResult,
+    IdentificationUncertainty,
+    identify,
+)
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.montecarlo import AdaptiveStudy
 from xmalign.post.compare import grid_points, remove_rigid_motion
@@ -119,13 +124,21 @@ def _placed(machine: Machine, placement: str) -> Vec:
     return np.array([2 * centre[0] - guess[0], 2 * centre[1] - guess[1], guess[2]])
 
 
-def _positive_int(low: int) -> Callable[[str], object]:
+def _positive_int(low: int) -> Callable[[str], int]:
     def parse(text: str) -> int:
         if not text.isdigit() or int(text) < low:
             raise ValueError(f"expected a whole number >= {low}")
         return int(text)
 
     return parse
+
+
+def _alignments(text: str) -> int:
+    count = _positive_int(MIN_POSITIONS)(text)
+    problem = count_problem(count)
+    if problem is not None:
+        raise ValueError(problem)
+    return count
 
 
 def _spacing(text: str) -> float:
@@ -158,7 +171,7 @@ VARIATIONS: dict[str, Variation] = {
     "identification": Variation(
         "identification", _one_of(IDENTIFICATIONS), lambda m: IDENTIFICATIONS
     ),
-    "alignments": Variation("alignments", _positive_int(MIN_POSITIONS), lambda m: (4, 6, 10)),
+    "alignments": Variation("alignments", _alignments, lambda m: (4, 6, 10)),
     "targets": Variation(
         "target_spacing_mm",
         _spacing,
@@ -435,6 +448,8 @@ class StudySettings:
             raise InputError("--batch and --trials must be at least 2 (a batch needs a spread)")
         if self.digits < 1:
             raise InputError(f"--digits {self.digits}: must be at least 1")
+        if self.method not in METHODS:
+            raise InputError(f"--method '{self.method}': choose {', '.join(METHODS)}")
 
 
 def run_study(

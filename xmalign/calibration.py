@@ -613,6 +613,27 @@ def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: 
         )
 
 
+#: A programmed stop farther than this from its plan line's axis is for another line, mm.
+STOP_OFF_LINE_MM = 1.0
+
+
+def check_program_stop(line: PlanLine, position_mm: Vec) -> None:
+    """Refuse a programmed stop that is not on the plan's next line (a program for other
+    lines): setting the units for a line the machine is not on would only lose the beam.
+
+    ``xmalign program`` stops each line at its pre-position, on the line's axis.
+    """
+    offset = np.asarray(position_mm, dtype=float) - line.start_mm
+    u = line.frame[0]
+    off_mm = float(np.linalg.norm(offset - (offset @ u) * u))
+    if off_mm > STOP_OFF_LINE_MM:
+        raise InputError(
+            f"the program stops at {np.round(position_mm, 3).tolist()} mm, {off_mm:.0f} mm off"
+            f" the plan's line {line.id}: program and plan do not match (a program for other"
+            " lines?)"
+        )
+
+
 class ProgramEvent(Protocol):
     """What a controller running the program reports (the simulated CNC's events)."""
 
@@ -642,6 +663,7 @@ def capture_program(
             line = next(lines, None)
             if line is None:
                 raise InputError("the program stops for more lines than the plan has")
+            check_program_stop(line, event.position_mm)
             if not run.line_is_done(line):
                 run.prepare_line(line)
             points = capture_sequence(line)

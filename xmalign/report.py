@@ -44,6 +44,7 @@ from xmalign.environment import (
     StationCompensation,
     linear_budget_um,
 )
+from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_bytes, atomic_write_text
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.error_tables import Table as ErrorTable
@@ -698,8 +699,23 @@ def write_report(
     controller: str,
     info: RecordInfo | None = None,
 ) -> None:
-    """Write the report: a PDF when ``path`` ends in ``.pdf``, else HTML (PNGs embedded)."""
+    """Write the report: a PDF when ``path`` ends in ``.pdf``, HTML (PNGs embedded) when
+    it ends in ``.html`` or ``.htm``; another name is refused (:func:`check_report_name`)."""
+    check_report_name(path)
     if Path(path).suffix.lower() == ".pdf":
         write_pdf(path, machine, result, controller, info)
     else:
         atomic_write_text(path, render_report(machine, result, controller, info))
+
+
+#: The report's file name endings and what each writes.
+REPORT_KINDS = {".html": "HTML", ".htm": "HTML", ".pdf": "PDF"}
+
+
+def check_report_name(path: str | Path) -> None:
+    """Refuse a report name whose ending is not one of :data:`REPORT_KINDS` (a ``.docx``
+    would get HTML under a name that promises another format)."""
+    suffix = Path(path).suffix
+    if suffix.lower() not in REPORT_KINDS:
+        found = f"'{suffix}'" if suffix else "no file name ending"
+        raise InputError(f"{path}: {found}: a report is written as .html or .pdf")

@@ -144,6 +144,14 @@ def test_example_units_config_loads() -> None:
             "launch: {transport: modbus-tcp, host: x, speed: 3}",
             "key 'launch.modbus-tcp.speed': not a known key",
         ),
+        (
+            "launch: {transport: canopen, interface: udp_local, channel: 999.999.1.1}",
+            "key 'launch.canopen.channel': '999.999.1.1' is not an IPv4 multicast group",
+        ),
+        (
+            "launch: {transport: canopen, interface: nosuchbus, channel: can0}",
+            "key 'launch.canopen.interface': no CAN interface 'nosuchbus'",
+        ),
     ],
 )
 def test_bad_units_config_names_file_and_key(tmp_path, body: str, fragment: str) -> None:  # noqa: ANN001

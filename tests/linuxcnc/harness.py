@@ -14,8 +14,8 @@ Usage::
     run.value("at")["joint.0.pos-cmd"]
 
 Actions (run in order by ``display.py``; the first that fails ends the list):
-``estop_reset``, ``machine_on``, ``home``, ``mdi`` (``gcode``; waits until idle
-and in position), ``pins`` (``names``: ``hal.get_value`` of each),
+``estop_reset``, ``machine_on``, ``home``, ``estop``, ``unhome`` (all joints), ``mdi``
+(``gcode``; waits until idle and in position), ``pins`` (``names``: ``hal.get_value`` of each),
 ``setp`` (``name``, ``value``), ``sleep`` (``seconds``), ``run`` (``program``:
 runs it to the end, resuming after every M0; ``watch``: pins whose largest
 absolute value is returned; ``feed_override``: set before the start;
@@ -107,6 +107,14 @@ class SimMachine:
     #: Y, < 5e-7 mm/s, during a Z move); they flip LinuxCNC's ``backlash-corr`` too, but
     #: its ``backlash-filt`` (what reaches the motor) stayed at the physical direction's value.
     direction_latches: bool = False
+    #: each joint's drive is a ``scale`` (gain 1) at the start of the servo thread, so its
+    #: feedback in a period is the command of the period before, as with a real drive
+    #: whose position is read at the start of the period (``hm2.read``,
+    #: ``stepgen.capture-position``); False: the command is netted straight to the
+    #: feedback, which anything after the motion controller reads in the same period.
+    #: With ``drive_lag`` a ``minmax`` per joint (``drive-range-N.min``/``max``) tracks
+    #: every command the drive was sent since the start.
+    drive_lag: bool = False
 
     @property
     def joints(self) -> int:
@@ -202,16 +210,18 @@ def _hal_text(machine: SimMachine) -> str:
         "# xmalign test harness: trivkins sim, each joint's command looped back as feedback",
         "loadrt [KINS]KINEMATICS",
         "loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS",
+        *(_lagging_drives(machine.joints) if machine.drive_lag else []),
         "addf motion-command-handler servo-thread",
         "addf motion-controller servo-thread",
         "net estop-loop iocontrol.0.user-enable-out iocontrol.0.emc-enable-in",
         "net tool-prep-loop iocontrol.0.tool-prepare iocontrol.0.tool-prepared",
         "net tool-change-loop iocontrol.0.tool-change iocontrol.0.tool-changed",
     ]
-    lines += [
-        f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
-        for joint in range(machine.joints)
-    ]
+    if not machine.drive_lag:
+        lines += [
+            f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
+            for joint in range(machine.joints)
+        ]
     if machine.direction_latches:
         lines.append(f"loadrt comp count={machine.joints}")
         for joint in range(machine.joints):
@@ -221,6 +231,23 @@ def _hal_text(machine: SimMachine) -> str:
                 f"setp comp.{joint}.hyst {2 * MOVE_THRESHOLD_MM_S}",
             ]
     return "\n".join(lines) + "\n"
+
+
+def _lagging_drives(joints: int) -> list[str]:
+    """Drives answering a period late, and a record of their commands (see drive_lag)."""
+    drives = ",".join(f"drive-{j}" for j in range(joints))
+    ranges = ",".join(f"drive-range-{j}" for j in range(joints))
+    lines = [f"loadrt scale names={drives}", f"loadrt minmax names={ranges}"]
+    for j in range(joints):
+        lines += [
+            f"addf drive-{j} servo-thread",
+            f"addf drive-range-{j} servo-thread",
+            f"setp drive-{j}.gain 1",
+            f"setp drive-{j}.offset 0",
+            f"net j{j}cmd joint.{j}.motor-pos-cmd => drive-{j}.in drive-range-{j}.in",
+            f"net j{j}fb drive-{j}.out => joint.{j}.motor-pos-fb",
+        ]
+    return lines
 
 
 def write_sim_config(folder: Path, machine: SimMachine | None = None) -> Path:

@@ -113,6 +113,16 @@ def append(name: str, text: str) -> Damage:
     return apply
 
 
+def each(*damages: Damage) -> Damage:
+    """All of ``damages``, in order."""
+
+    def apply(folder: Path) -> None:
+        for damage in damages:
+            damage(folder)
+
+    return apply
+
+
 def remove(name: str) -> Damage:
     return lambda folder: (folder / name).unlink()
 
@@ -238,6 +248,7 @@ def _generic_cases() -> list[Case]:
 
 M = "fyxz.yaml"
 MACHINE = COMMAND[M]
+_CNC = "  acceleration_mm_s2: 1000"
 _MACHINE_CASES = [
     ("nan-travel", replace(M, "X: [0, 2000]", "X: [0, .nan]"), "travel_mm.X.1"),
     ("inf-travel", replace(M, "X: [0, 2000]", "X: [0, .inf]"), "travel_mm.X.1"),
@@ -280,6 +291,23 @@ _MACHINE_CASES = [
     ("a-list", write(M, "- a\n- b\n"), "mapping"),
     ("tab-indent", replace(M, "  X: [0, 2000]", "\tX: [0, 2000]"), "line"),
     ("bad-date", append(M, "built: 2024-13-45\n"), M),
+    # the controller model (docs/controllers.md)
+    ("series-of-another-family", replace(M, _CNC, _CNC + "\n  series: 30i"), "cnc.series"),
+    ("reference-return-up", replace(M, _CNC, _CNC + "\n  reference_return: {X: up}"), "X"),
+    ("backlash-negative", replace(M, _CNC, _CNC + "\n  backlash_um: {Y: -3}"), "backlash_um.Y"),
+    (
+        "itnc-530",
+        each(
+            replace(M, "controller: sinumerik", "controller: heidenhain"),
+            replace(M, _CNC, _CNC + "\n  series: iTNC 530"),
+        ),
+        "iTNC 530",
+    ),
+    (
+        "reference-inside-without-return",
+        replace(M, _CNC, _CNC + "\n  reference_mm: [1000, 0, 0]"),
+        "cnc.reference_return.X",
+    ),
 ]
 
 U = "units.yaml"
@@ -542,6 +570,16 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
+    Case(
+        "serve-can-interface-unknown",
+        ("sim", "serve", "--canopen", "x", "--can-interface", "nosuchbus"),
+        ("--can-interface nosuchbus", "no CAN interface", "udp_local"),
+    ),
+    Case(
+        "serve-canopen-not-a-group",
+        ("sim", "serve", "--canopen", "999.999.1.1"),
+        ("--canopen 999.999.1.1", "not an IPv4 multicast group"),
+    ),
     # command-line mistakes: one line too, not click's box
     Case("usage-seed-text", ("dry-run", "--seed", "abc"), ("dry-run", "--seed", "--help")),
     Case("usage-missing-value", ("post", "--plan"), ("--plan", "requires an argument")),
@@ -616,7 +654,252 @@ _CLI_CASES = [
     ),  # noqa: E501
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES
+
+# -- issue 22, careless user: tracebacks, hangs and silent acceptances --------------------
+
+
+def measured(change: Callable[[list], list] | None = None) -> Damage:
+    """m.csv holding a synthetic measurement of plan.json (reference machine), changed."""
+
+    def apply(folder: Path) -> None:
+        import numpy as np
+
+        from sim.machine import VirtualMachine
+        from sim.synthetic import measure
+        from xmalign.formats.measurements import write_measurements
+        from xmalign.formats.plan import read_plan
+        from xmalign.machine import default_machine_path, load_machine
+        from xmalign.rigid_body import Chain
+
+        machine = load_machine(default_machine_path())
+        plan = read_plan(folder / L)
+        truth = VirtualMachine(machine, seed=4)
+        rows = measure(plan, Chain.parse(machine.chain), truth, np.random.default_rng(9))
+        (folder / "m.csv").unlink()
+        write_measurements(folder / "m.csv", change(rows) if change else rows)
+
+    return apply
+
+
+def _row_of_z(**changes: Any) -> Callable[[list], list]:
+    """Change one row of line Z (run 2, forward, index 3)."""
+    from dataclasses import replace as changed
+
+    def change(rows: list) -> list:
+        return [changed(r, **changes) if r.key() == ("Z", 2, "+", 3) else r for r in rows]
+
+    return change
+
+
+def _dead_z(rows: list) -> list:
+    from dataclasses import replace as changed
+
+    return [changed(r, channels=0.0 * r.channels) if r.line == "Z" else r for r in rows]
+
+
+def _x_tables_moved(folder: Path) -> None:
+    """The X tables' positions 50 m further: tables of another machine."""
+    path = folder / E
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    moved = [
+        line.replace(f",{line.split(',')[1]},", f",{float(line.split(',')[1]) + 50000:.3f},", 1)
+        if line[2:3] == "X" and line.split(",")[1]
+        else line
+        for line in lines
+    ]
+    path.write_text("".join(moved), encoding="utf-8")
+
+
+def every_trial_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every Monte Carlo trial fails (as with an absurd option the checks let through)."""
+    import sim.mc
+    from xmalign.montecarlo import AdaptiveStudy
+
+    def run_study(machine: Any, chosen: Any, settings: Any, *rest: Any) -> list:
+        failure = "GeometryError: no feasible plan"
+        return [
+            sim.mc.StrategyResult(s, AdaptiveStudy(), trials=2, failures=[failure] * 2)
+            for s in chosen
+        ]
+
+    monkeypatch.setattr(sim.mc, "run_study", run_study)
+
+
+_POST = ("post", "--plan", L, "--data", "m.csv", "--out", "e-new.csv")
+_SQUARENESS_ROWS = (
+    "EC0Y,,3.6878,urad,1.2626\nEA0Z,,-3.6786,urad,2.4545\nEB0Z,,-27.4713,urad,1.9945\n"
+)
+_CARELESS_USER_CASES = [
+    # tracebacks: NaN or infinity in a number option (one check for every option)
+    Case(
+        "identify-encoder-nan",
+        ("identify", "--sim", "--encoder-urad", "nan"),
+        ("--encoder-urad", "not a finite number"),
+    ),
+    Case(
+        "identify-distance-inf",
+        ("identify", "--sim", "--distance-um", "inf"),
+        ("--distance-um", "not a finite number"),
+    ),
+    Case(
+        "identify-uncertainty-zero",
+        ("identify", "--sim", "--tool-rotation-urad", "0"),
+        ("--tool-rotation-urad", "must be positive"),
+    ),
+    Case(
+        "identify-distance-1e300",
+        ("identify", "--sim", "--distance-um", "1e300"),
+        ("--distance-um", "at most 10000 um"),
+    ),
+    Case(
+        "mc-error-scale-nan",
+        ("mc", "--error-scale", "nan", "--out", "mc"),
+        ("--error-scale", "nan"),
+    ),
+    Case(
+        "serve-gamma-nan",
+        ("sim", "serve", "--gamma-deg", "nan", "--interferometer-pty"),
+        ("--gamma-deg", "nan"),
+    ),
+    Case(
+        "post-index-beyond-targets",
+        _POST,
+        ("m.csv", "line Z run 2", "target index 99"),
+        measured(_row_of_z(index=99)),
+    ),
+    # hangs: an impossible distance, absurd counts (the limit and why)
+    Case(
+        "align-distance-inf",
+        ("align", "--sim", "--distance-mm", "inf", "--timeout", "2"),
+        ("--distance-mm", "inf"),
+    ),
+    Case(
+        "align-distance-1um", ("align", "--sim", "--distance-mm", "0.001"), ("--distance-mm", "20")
+    ),
+    Case("align-timeout-negative", ("align", "--sim", "--timeout", "-1"), ("--timeout",)),
+    Case(
+        "identify-alignments-100000",
+        ("identify", "--sim", "--alignments", "100000"),
+        ("--alignments", "at most 50", "uncertainty"),
+    ),
+    Case(
+        "plan-identify-count-1000", ("plan-identify", "--count", "1000"), ("--count", "at most 50")
+    ),
+    Case(
+        "dry-run-positions-999",
+        ("dry-run", "--identification-positions", "999", "--out", "dr"),
+        ("--identification-positions", "at most 50"),
+    ),
+    Case(
+        "mc-vary-alignments-100",
+        ("mc", "--vary", "alignments=4:100", "--out", "mc"),
+        ("alignments", "'100'", "at most 50"),
+    ),
+    # silent: yes/no values read as 1.0 where a number is expected
+    Case(
+        "pose-gamma-true",
+        POSE,
+        (P, "gamma_deg", "yes/no"),
+        edit_json(P, sets("gamma_deg", value=True)),
+    ),
+    Case(
+        "machine-spindle-yes",
+        MACHINE,
+        (M, "spindle_angle_deg", "yes/no"),
+        replace(M, "spindle_angle_deg: 0", "spindle_angle_deg: yes"),
+    ),
+    Case(
+        "session-spindle-true",
+        SESSION,
+        (S, "spindle_angle_deg", "yes/no"),
+        edit_json(S, sets("spindle_angle_deg", value=True)),
+    ),
+    Case(
+        "session-position-false",
+        SESSION,
+        (S, "alignments.0.machine_mm.1", "yes/no"),
+        edit_json(S, sets("alignments", 0, "machine_mm", 1, value=False)),
+    ),
+    Case(
+        "plan-spindle-true",
+        PLAN,
+        (L, "spindle_angle_deg", "yes/no"),
+        edit_json(L, sets("spindle_angle_deg", value=True)),
+    ),
+    Case(
+        "units-timeout-yes",
+        UNITS,
+        (U, "timeouts.io_s", "yes/no"),
+        replace(U, "io_s: 1.0", "io_s: yes"),
+    ),
+    # silent: post's data
+    Case(
+        "post-dead-instrument",
+        _POST,
+        ("m.csv", "line Z", "read exactly 0", "dead"),
+        measured(_dead_z),
+    ),
+    Case(
+        "post-run-outside-plan",
+        _POST,
+        ("m.csv: line ", ": line Z run 7", "runs 1..2"),
+        measured(_row_of_z(run=7)),
+    ),
+    Case(
+        "post-same-pair-twice",
+        (
+            "post",
+            "--plan",
+            L,
+            "--data",
+            "m.csv",
+            "--plan",
+            L,
+            "--data",
+            "m.csv",
+            "--out",
+            "e-new.csv",
+        ),
+        ("m.csv", "station 1", "station 2", "twice"),
+        measured(),
+    ),
+    Case(
+        "post-report-docx", (*_POST, "--report", "r.docx"), ("r.docx", "'.docx'", ".html or .pdf")
+    ),
+    Case(
+        "post-report-no-extension",
+        (*_POST, "--report", "record"),
+        ("record", "no file name ending"),
+    ),
+    # silent: error tables
+    Case("comp-no-squareness", ERRORS, (E, "EC0Y, EA0Z, EB0Z"), replace(E, _SQUARENESS_ROWS, "")),
+    Case(
+        "comp-tables-outside-travel",
+        ERRORS,
+        (E, "EXX", "X travel", "50255.6", "0..2000"),
+        _x_tables_moved,
+    ),
+    # silent: mc
+    Case("mc-unknown-method", ("mc", "--method", "nope", "--out", "mc"), ("--method", "'nope'")),
+    Case(
+        "mc-squareness-inf",
+        ("mc", "--squareness-urad", "inf", "--out", "mc"),
+        ("--squareness-urad", "inf"),
+    ),
+    Case(
+        "mc-squareness-1e9",
+        ("mc", "--squareness-urad", "1e9", "--out", "mc"),
+        ("--squareness-urad",),
+    ),
+    Case(
+        "mc-every-trial-fails",
+        ("mc", "--trials", "2", "--batch", "2", "--out", "mc"),
+        ("every trial failed", "GeometryError"),
+        patch=every_trial_fails,
+    ),
+]
+
+CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES
 
 
 # -- running a case -----------------------------------------------------------------------

@@ -55,5 +55,6 @@ def test_live_and_uncertainty_options_are_checked_first(tmp_path):
     )
     assert_one_line_error(
         run_cli("identify", "--sim", "--encoder-urad", "-1"),
-        "encoder_rad: the uncertainty must be positive",
+        "--encoder-urad",
+        "the uncertainty must be positive",
     )

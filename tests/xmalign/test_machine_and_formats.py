@@ -173,7 +173,7 @@ def test_error_tables_round_trip(tmp_path):
             "EXX": Table(np.array([0.0, 100, 200]), np.array([0.0, 1e-3, 2e-3]), np.full(3, 1e-4)),
             "EBY+": Table(np.array([0.0, 100]), np.array([0.0, 5e-6]), np.array([np.nan, 1e-6])),
         },
-        squareness={"EC0Y": (12.5e-6, 1.1e-6)},
+        squareness={"EC0Y": (12.5e-6, 1.1e-6), "EA0Z": (0.0, 1e-6), "EB0Z": (-3e-6, 1e-6)},
     )
     path = tmp_path / "errors.csv"
     write_error_tables(path, tables)

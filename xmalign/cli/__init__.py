@@ -10,8 +10,10 @@ is printed instead of the generic one.
 
 from __future__ import annotations
 
+import math
 import sys
-from typing import Annotated, Any
+from collections.abc import Callable
+from typing import Annotated, Any, get_args
 
 import typer
 from typer.core import TyperGroup
@@ -34,10 +36,56 @@ def _is_usage_error(error: Exception) -> bool:
     return "UsageError" in names and "NoArgsIsHelpError" not in names
 
 
+def _number(value: object) -> float | None:
+    """A command-line value as a float (a text as typed, or a default), else None."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+
+
+def _not_finite(value: object) -> float | None:
+    """The first NaN or infinity in an option's value (one, or several), else None."""
+    values = value if isinstance(value, list | tuple) else (value,)
+    numbers = (_number(v) for v in values)
+    return next((v for v in numbers if v is not None and not math.isfinite(v)), None)
+
+
+def _takes_floats(param: Any) -> bool:
+    annotation = getattr(getattr(param, "type_descriptor", None), "annotation", None)
+    return annotation is float or float in get_args(annotation)
+
+
+def _finite_numbers_only(command: Any) -> None:
+    """Every number option of ``command`` and its subcommands refuses NaN and infinity.
+
+    One check for all options, before their own conversion and range (click's
+    ranges let NaN through): a NaN would pass every ``value < 0`` test and end as
+    a traceback, or a hang, deep in the maths.
+    """
+    for subcommand in getattr(command, "commands", {}).values():
+        _finite_numbers_only(subcommand)
+    for param in command.params:
+        if _takes_floats(param) and not getattr(param, "finite_only", False):
+            param.process_value = _finite_first(param.opts[0], param.process_value)
+            param.finite_only = True
+
+
+def _finite_first(option: str, process: Callable[..., Any]) -> Callable[..., Any]:
+    def checked(ctx: Any, value: Any) -> Any:
+        bad = _not_finite(value)
+        if bad is not None:
+            raise InputError(f"option {option}: {bad} is not a finite number")
+        return process(ctx, value)
+
+    return checked
+
+
 class _OneLineUsageErrors(TyperGroup):
     """A command-line mistake (unknown option, bad value) as one line, like a bad file."""
 
     def invoke(self, ctx: Any) -> Any:
+        _finite_numbers_only(self)
         try:
             return super().invoke(ctx)
         except Exception as error:

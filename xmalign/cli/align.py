@@ -19,6 +19,7 @@ import typer
 from rich.table import Table
 
 from xmalign.alignment import (
+    DISTANCE_LIMITS_MM,
     AlignmentDevices,
     AlignmentStep,
     FineAlignmentResult,
@@ -155,10 +156,15 @@ def register(app: typer.Typer) -> None:
         distance_mm: Annotated[
             float | None,
             typer.Option(
-                help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000)."
+                min=DISTANCE_LIMITS_MM[0],
+                max=DISTANCE_LIMITS_MM[1],
+                help="First guess of the cp-to-cp distance, mm (--sim: the true one,"
+                " --live: 1000).",
             ),
         ] = None,
-        timeout_s: Annotated[float, typer.Option("--timeout", help="Give up after, s.")] = 5.0,
+        timeout_s: Annotated[
+            float, typer.Option("--timeout", min=0, help="Give up after, s.")
+        ] = 5.0,
         log_file: LogFileOption = None,
     ) -> None:
         """Fine-align the launch and receiver units on the interferometer channels."""

@@ -114,6 +114,16 @@ def output_folder(path: Path, option: str) -> Path:
     return path
 
 
+def check_positions(count: int, option: str) -> int:
+    """A number of identification positions the design can serve (limit and why)."""
+    from trajectories.identification_design import count_problem
+
+    problem = count_problem(count)
+    if problem is not None:
+        raise InputError(f"option {option}: {problem}")
+    return count
+
+
 def check_seed(seed: int, option: str = "--seed") -> int:
     """A seed of the random generators must be 0 or more (numpy's rule)."""
     if seed < 0:

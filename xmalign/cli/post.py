@@ -18,15 +18,16 @@ from xmalign.cli.common import (
     machine_or_default,
     output_folder,
     refuse_overwriting,
+    same_file,
 )
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
-from xmalign.errors import InputError
+from xmalign.errors import InputError, MachineKeyError
 from xmalign.formats.common import atomic_write_files, read_text
 from xmalign.formats.error_tables import read_error_tables, write_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
 from xmalign.formats.provenance import FileSource, sources
-from xmalign.machine import Machine
+from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import as_left_step, comp_step
@@ -74,6 +75,13 @@ def _stations(
             f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
             " launch-unit station, in the same order"
         )
+    for later, path in enumerate(data[1:], start=1):
+        first = next(k for k, other in enumerate(data) if same_file(path, other))
+        if first < later:
+            raise InputError(
+                f"{path}: --data is given for station {first + 1} and again for station"
+                f" {later + 1}; its points would count twice (give each station's data once)"
+            )
     read = [(read_plan(plan_path), plan_path) for plan_path in plans]
     machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
     limits = ChannelLimits.of_ranges(**machine_.interferometer.ranges())
@@ -152,6 +160,10 @@ def post(
         },
         {"--out": out, "--report": report},
     )
+    if report is not None:
+        from xmalign.report import check_report_name
+
+        check_report_name(report)
     instruments = _instrument_serials(units) if units is not None else {}
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
@@ -194,7 +206,7 @@ def post(
             soft_wrap=True,
         )
     for warning in result.warnings:
-        console.print(f"[yellow]warning:[/yellow] {warning}")
+        console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )
@@ -256,6 +268,7 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
+    tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
     machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
@@ -267,16 +280,19 @@ def comp(
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
-    result = comp_step(
-        machine_,
-        tables,
-        out,
-        name,
-        more_files=None
-        if ini is None
-        else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-        check_outputs=lambda paths: refuse_overwriting(inputs, {"--out": paths}),
-    )
+    try:
+        result = comp_step(
+            machine_,
+            tables,
+            out,
+            name,
+            more_files=None
+            if ini is None
+            else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
+            check_outputs=lambda paths: refuse_overwriting(inputs, {"--out": paths}),
+        )
+    except MachineKeyError as error:
+        raise error.in_file(str(machine or default_machine_path())) from error
     fit = result.fit
     console.print(
         f"{name}: wrote {', '.join(sorted(result.files))} in {out}\n"
@@ -291,6 +307,8 @@ def comp(
             f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
             highlight=False,
         )
+    for line in result.loading.lines():
+        console.print(line, highlight=False)
     _warn(machine_notes)
     if not fit.converged:
         error_console.print(

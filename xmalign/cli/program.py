@@ -17,7 +17,13 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from trajectories.stations import propose_second_station
-from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    check_positions,
+    console,
+    error_console,
+    machine_or_default,
+    refuse_overwriting,
+)
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.plan import write_plan
@@ -182,6 +188,7 @@ def plan_identify(
     ] = None,
 ) -> None:
     """Propose machine positions for identification that minimise the pose uncertainty."""
+    check_positions(count, "--count")
     refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
     with error_console.status("optimising the identification positions"):

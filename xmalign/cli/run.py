@@ -23,6 +23,7 @@ from xmalign.calibration import (
 )
 from xmalign.cli.common import (
     LogFileOption,
+    check_positions,
     check_seed,
     console,
     error_console,
@@ -40,13 +41,12 @@ from xmalign.machine import Machine
 if TYPE_CHECKING:
     from sim.dry_run import DryRunOptions
 
-ShopOption = Annotated[
-    str,
-    typer.Option(
-        help="With --sim: the virtual shop's air and machine temperature: 'drifting'"
-        " (air 22 -> 25 °C, machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
-    ),
-]
+_SHOP_HELP = (
+    "the virtual shop's air and machine temperature: 'drifting' (air 22 -> 25 °C,"
+    " machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
+)
+ShopOption = Annotated[str, typer.Option(help=f"With --sim: {_SHOP_HELP}")]
+DryRunShopOption = Annotated[str, typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:])]
 InProcessOption = Annotated[
     bool,
     typer.Option(
@@ -386,7 +386,7 @@ def dry_run_command(
             min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
         ),
     ] = 1,
-    shop: ShopOption = "drifting",
+    shop: DryRunShopOption = "drifting",
     verify: Annotated[
         bool,
         typer.Option(
@@ -408,6 +408,7 @@ def dry_run_command(
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
     check_seed(seed)
+    check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
     check_dry_run_folder(out)

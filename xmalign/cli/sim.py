@@ -38,6 +38,22 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     return host or default_host, int(port)
 
 
+def _check_can_options(channel: str, interface: str, hop_limit: int) -> None:
+    from firmware_iface.can_bus import UDP_LOCAL, check_interface, multicast_group
+
+    try:
+        check_interface(interface)
+    except ValueError as error:
+        raise InputError(f"--can-interface {interface}: {error}") from error
+    if interface == UDP_LOCAL:
+        try:
+            multicast_group(channel)
+        except ValueError as error:
+            raise InputError(f"--canopen {channel}: {error}") from error
+    if not 0 <= hop_limit <= 255:
+        raise InputError(f"--can-hop-limit {hop_limit}: expected 0 to 255")
+
+
 @sim_app.command()
 def serve(
     unit: Annotated[
@@ -63,16 +79,24 @@ def serve(
     canopen: Annotated[
         str | None,
         typer.Option(
-            help="Serve every axis of both units as CiA 402 nodes on this python-can "
-            "channel (a multicast group for udp_multicast, a name for virtual)."
+            help="Serve every axis of both units as CiA 402 nodes on this CAN channel (an"
+            " IPv4 multicast group such as 239.74.163.2 for udp_local)."
         ),
     ] = None,
     can_interface: Annotated[
-        str, typer.Option(help="python-can interface of --canopen.")
-    ] = "udp_multicast",
+        str,
+        typer.Option(
+            help="CAN interface of --canopen: udp_local (the simulated bus between processes)"
+            " or a python-can interface (socketcan, virtual, ...)."
+        ),
+    ] = "udp_local",
+    can_host: Annotated[
+        str,
+        typer.Option(help="udp_local: address of the network interface the bus runs on."),
+    ] = "127.0.0.1",
     can_hop_limit: Annotated[
         int,
-        typer.Option(help="udp_multicast TTL / hop limit; 0 keeps the bus on this computer."),
+        typer.Option(help="udp_local TTL / hop limit; 0 keeps the bus on this computer."),
     ] = 0,
     interferometer_pty: Annotated[
         bool, typer.Option(help="Serve the interferometer on a new pty (path printed).")
@@ -121,8 +145,8 @@ def serve(
             " --interferometer-pty, --station-pty and/or --position-file"
         )
     check_seed(seed)
-    if can_hop_limit < 0:
-        raise InputError(f"--can-hop-limit {can_hop_limit}: expected 0 or more")
+    if canopen is not None:
+        _check_can_options(canopen, can_interface, can_hop_limit)
     address = _host_port(modbus, host) if modbus is not None else None
     receiver_address = _host_port(modbus_receiver, host) if modbus_receiver is not None else None
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
@@ -174,12 +198,16 @@ def serve(
             from sim.servers.canopen_node import CanopenUnitServer
 
             nodes = CanopenUnitServer(
-                [world.launch, world.receiver], canopen, can_interface, hop_limit=can_hop_limit
+                [world.launch, world.receiver],
+                canopen,
+                can_interface,
+                hop_limit=can_hop_limit,
+                host=can_host,
             )
-            nodes.start()
             servers.callback(nodes.stop)
+            nodes.start()
             console.print(
-                f"canopen nodes {nodes.node_ids} on {can_interface} channel {canopen}",
+                f"canopen nodes {nodes.node_ids} on {nodes.bus_info}",
                 highlight=False,
             )
         if interferometer_pty:

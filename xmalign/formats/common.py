@@ -24,10 +24,11 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -161,13 +162,44 @@ def describe_validation_error(error: ValidationError, source: str) -> str:
     return located(source, f"key '{key}'", describe_problem(first))
 
 
+def _yes_no_read_as_number(value: object, raw: object, key: str) -> str | None:
+    """The key of the first ``true``/``false`` in ``raw`` that validated into a number."""
+    if isinstance(raw, bool):
+        return None if isinstance(value, bool) else key
+    pairs: Iterable[tuple[object, object, object]] = ()
+    if isinstance(value, BaseModel) and isinstance(raw, dict):
+        pairs = (
+            (field.alias or name, getattr(value, name), raw.get(field.alias or name))
+            for name, field in type(value).model_fields.items()
+        )
+    elif isinstance(value, dict) and isinstance(raw, dict):
+        pairs = ((name, value.get(name), item) for name, item in raw.items())
+    elif isinstance(raw, list) and isinstance(value, list | tuple | np.ndarray):
+        pairs = ((index, *pair) for index, pair in enumerate(zip(value, raw, strict=False)))
+    for name, item, raw_item in pairs:
+        found = _yes_no_read_as_number(item, raw_item, f"{key}.{name}" if key else str(name))
+        if found is not None:
+            return found
+    return None
+
+
 def validate(model: type[M], data: object, source: str, context: dict | None = None) -> M:
-    """``model.model_validate(data)`` with an InputError naming ``source`` and the key."""
+    """``model.model_validate(data)`` with an InputError naming ``source`` and the key.
+
+    A yes/no value (JSON ``true``, YAML ``yes``) where a number is expected is refused:
+    pydantic would read it as 1.0.
+    """
     check_finite(data, source)
     try:
-        return model.model_validate(data, context=context)
+        validated = model.model_validate(data, context=context)
     except ValidationError as error:
         raise InputError(describe_validation_error(error, source)) from error
+    key = _yes_no_read_as_number(validated, data, "")
+    if key is not None:
+        raise key_error(
+            source, key, "a yes/no value (true/false, yes/no) where a number is expected"
+        )
+    return validated
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

@@ -49,7 +49,7 @@ from xmalign.formats.provenance import (
     read_csv_preamble,
 )
 from xmalign.geometry import Vec
-from xmalign.rigid_body import MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
+from xmalign.rigid_body import AXES, MOTION_NAMES, SQUARENESS_NAMES, ErrorTables
 
 ERROR_TABLES_FORMAT = "xmalign.error-tables/2"
 #: What a file without a preamble is: the CSV as written before files carried history.
@@ -193,6 +193,30 @@ class ErrorTableSet:
                 return self.tables[candidate]
         raise InputError(f"{self.source}: no table {name} (run xmalign post on all six lines)")
 
+    def check_within_travel(self, travel_min_mm: Vec, travel_max_mm: Vec, machine: str) -> None:
+        """Refuse a table whose positions all lie outside its axis' travel (tables of
+        another machine, or positions in another unit): nothing of it could be applied.
+
+        Raises
+        ------
+        InputError
+            Naming the file, the table, its axis and both ranges.
+        """
+        for name, table in self.tables.items():
+            axis = name.rstrip("+-")[-1]
+            low, high = travel_min_mm[AXES.index(axis)], travel_max_mm[AXES.index(axis)]
+            first, last = table.positions_mm.min(), table.positions_mm.max()
+            if last < low or first > high:
+                raise InputError(
+                    located(
+                        self.source,
+                        name,
+                        f"positions {first:g}..{last:g} mm lie outside the {axis} travel"
+                        f" {low:g}..{high:g} mm of machine '{machine}' (tables of another"
+                        " machine?)",
+                    )
+                )
+
     def model(self, direction: str = "") -> ErrorTables:
         """The interpolating error model of one direction (``""``, ``"+"`` or ``"-"``).
 
@@ -286,8 +310,9 @@ def _machine_of(history: Provenance, path: Path) -> MachineIdentity | None:
 
 
 def read_error_tables(path: str | Path) -> ErrorTableSet:
-    """Read an error-table CSV (version 1 or 2); a bad or repeated row raises InputError
-    with its line number, a newer version FormatError."""
+    """Read an error-table CSV (version 1 or 2); a bad or repeated row (with its line
+    number), a table of one position or a missing squareness row (naming it) raises
+    InputError, a newer version FormatError."""
     path = Path(path)
     comments, body = _split_preamble(read_text(path))
     history = read_csv_preamble(comments, ERROR_TABLES_FORMAT, str(path), FIRST_FORMAT)
@@ -330,6 +355,16 @@ def read_error_tables(path: str | Path) -> ErrorTableSet:
             raise InputError(located(path, name, "a table needs at least two positions"))
         data = np.array(sorted(entries))
         result.tables[name] = Table(data[:, 0], data[:, 1], data[:, 2], data[:, 3] > 0)
+    missing = [name for name in SQUARENESS_NAMES if name not in result.squareness]
+    if missing:
+        raise InputError(
+            located(
+                path,
+                "squareness",
+                f"no row for {', '.join(missing)}; xmalign post writes all three (a machine"
+                " taken as square needs them too, with value 0)",
+            )
+        )
     return result
 
 

@@ -34,7 +34,7 @@ import logging
 import math
 import os
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
@@ -135,6 +135,8 @@ class MeasurementRow:
     environment: Mapping[str, float] = field(default_factory=dict)
     environment_flags: str = ""
     time_s: float | None = None
+    #: Line of the file the row was read from (0: not read from a file), for messages.
+    file_line: int = field(default=0, compare=False)
 
     def key(self) -> tuple[str, int, str, int]:
         """What identifies a point of a plan (for resuming)."""
@@ -249,8 +251,9 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _decode(data: bytes, path: Path) -> str:
+    """UTF-8 text; a byte-order mark at the start (spreadsheet programs write one) is dropped."""
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as error:
         line = data[: error.start].count(b"\n") + 1
         raise InputError(
@@ -322,7 +325,7 @@ class _Reader:
         if len(fields) != len(columns):
             raise InputError(f"{where}: expected {len(columns)} fields, found {len(fields)}")
         values = dict(zip(columns, (f.strip() for f in fields), strict=True))
-        row = _parse_row(values, where)
+        row = replace(_parse_row(values, where), file_line=number)
         _check_magnitudes(row, self.limits, where)
         first = self.seen.setdefault(row.key(), number)
         if first != number:

@@ -7,15 +7,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from xmalign.environment import StationCompensation, compensate_station
+from xmalign.errors import InputError
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
-from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
+from xmalign.post.lines import CHANNEL_TO_SI, UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
 from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, RemainingErrors, deviation
+from xmalign.roles import CHANNELS
 
 
 @dataclass
@@ -31,7 +33,8 @@ class PostResult:
     lines : list of LineData
         The measurement, grouped by line (mm / rad).
     warnings : list of str
-        What the user should know about the data (e.g. a re-zeroed linear datum).
+        What the user should know about the data (e.g. a re-zeroed linear datum, a
+        reading left out as a gross outlier: ``fit.outliers``).
     compensation : list of StationCompensation
         Per station, how its readings were compensated for the air, the dead
         path and the material, and the drift of each line.
@@ -98,6 +101,9 @@ def post_stations(
     tilts times lever arms, which leaves no rigid-body chain to fit; the ISO
     230-2 figures stay those of the readings (as left).
     """
+    for index, station in enumerate(stations):  # the rows as read: checked before any use
+        for data in group_by_line(station.plan, station.rows, station.source, index):
+            refuse_dead_channels(data, station.source)
     compensation = [compensate(machine, station) for station in stations]
     lines = [
         data
@@ -109,6 +115,7 @@ def post_stations(
             index,
         )
     ]
+    sources = [station.source for station in stations]
     chain = Chain.parse(machine.chain)
     fitted = lines
     if applied is not None:
@@ -131,10 +138,49 @@ def post_stations(
         fit=fit,
         positioning=positioning,
         lines=lines,
-        warnings=datum_warnings(lines) + drift,
+        warnings=datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
         compensation=compensation,
         applied=applied,
     )
+
+
+def refuse_dead_channels(data: LineData, source: str) -> None:
+    """Refuse a line whose channel reads exactly zero at every point.
+
+    No working channel does (its noise alone moves the last digit): a dead or
+    unplugged instrument, or a channel its software left out. Its zeros would
+    enter the fit as a perfect machine; measure the line again.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the line and the dead channels.
+    """
+    dead = [
+        name for name, column in zip(CHANNELS, data.channels.T, strict=True) if not column.any()
+    ]
+    if dead and len(data.run) > 1:
+        raise InputError(
+            f"{source}: line {data.line.id}: {', '.join(dead)} read exactly 0 at all"
+            f" {len(data.run)} points (a dead or unplugged instrument channel); measure the line"
+            " again"
+        )
+
+
+def outlier_warnings(fit: TableFit, lines: list[LineData], sources: list[str]) -> list[str]:
+    """One warning per reading the fit left out as a gross outlier, naming the point."""
+    warnings = []
+    for outlier in fit.outliers:
+        data = lines[outlier.line]
+        k = outlier.point
+        reading = data.channels[k, outlier.channel] / CHANNEL_TO_SI[outlier.channel]
+        warnings.append(
+            f"{sources[data.station]}: line {data.line.id} run {data.run[k]} direction"
+            f" {'+' if data.sign[k] > 0 else '-'} index {data.index[k]}:"
+            f" {CHANNELS[outlier.channel]} {reading:g} is {outlier.sigmas:.0f} standard"
+            " deviations off the fit, a gross outlier: left out of the fit"
+        )
+    return warnings
 
 
 def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: Vec) -> LineData:

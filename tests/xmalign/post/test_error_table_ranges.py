@@ -64,7 +64,10 @@ def test_the_range_column_round_trips(short_lines, tmp_path):
 
 def test_a_file_without_the_range_column_is_all_measured(tmp_path):
     path = tmp_path / "old.csv"
-    path.write_text("name,position_mm,value,unit,u95\nEXX,0,0,um,0\nEXX,100,2.5,um,0.4\n")
+    squareness = "EC0Y,,0,urad,1\nEA0Z,,0,urad,1\nEB0Z,,0,urad,1\n"
+    path.write_text(
+        "name,position_mm,value,unit,u95\nEXX,0,0,um,0\nEXX,100,2.5,um,0.4\n" + squareness
+    )
     assert read_error_tables(path).tables["EXX"].measured_mask().all()
 
 
