@@ -725,6 +725,11 @@ class SimPositioningUnit:
         for axis in self._axes:
             axis.lock()
 
+    def reset_faults(self) -> None:
+        """Reset every axis's fault (as the drivers' ``reset_faults``); the axes stay locked."""
+        for axis in self._axes:
+            axis.reset_fault()
+
     def stop_heartbeat(self) -> None:
         """Stop the background heartbeat; the calls still beat."""
         self.unit.keep_heartbeat(False)
