@@ -21,11 +21,16 @@
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it) or file
+      source: prompt               # prompt (operator types it), file, linuxcncrsh or mtconnect
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
+      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
+      #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # mtconnect: {url: http://192.168.10.30:5000, device: VMC}
+      #                            (source: mtconnect; read-only, the operator runs it)
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
+      machine_s: 600.0             # the machine reaching its next stop (linuxcncrsh)
     environment:                   # optional; see docs/environment.md
       source: serial               # fixed, file, serial, modbus-tcp or modbus-rtu
       port: /dev/ttyUSB1
@@ -57,8 +62,16 @@ from firmware_iface.can_bus import (
 )
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
+from firmware_iface.linuxcncrsh import (
+    DEFAULT_CONNECT_PASSWORD,
+    DEFAULT_ENABLE_PASSWORD,
+    DEFAULT_PORT,
+    LinuxCnc,
+    open_linuxcnc,
+)
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
+from firmware_iface.mtconnect import MTConnectAgent
 from firmware_iface.weather_station import (
     EnvironmentConfig,
     open_environment,
@@ -79,6 +92,7 @@ from xmalign.roles import (
     EnvironmentSource,
     Interferometer,
     MachineMover,
+    MachinePositionSource,
     PositioningUnit,
 )
 
@@ -143,20 +157,64 @@ class InterferometerConfig(_Strict):
         return self
 
 
+class LinuxcncrshConfig(_Strict):
+    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md)."""
+
+    host: str
+    port: Annotated[int, Field(ge=1, le=65535)] = DEFAULT_PORT
+    connect_password: str = DEFAULT_CONNECT_PASSWORD
+    enable_password: str = DEFAULT_ENABLE_PASSWORD
+    #: Where xmalign writes its program (a folder the LinuxCNC computer reads).
+    program: Path
+    #: The same file as LinuxCNC opens it (default: ``program``).
+    program_on_cnc: str | None = None
+    joints: Annotated[int, Field(ge=1, le=9)] = 3
+    #: Actual within this of commanded counts as standing still, mm.
+    in_position_mm: Annotated[float, Field(gt=0, le=1)] = 0.002
+    #: Largest distance from the plan's point at which a point is captured, mm.
+    tolerance_mm: Annotated[float, Field(gt=0, le=1)] = 0.005
+
+    @property
+    def cnc_program_path(self) -> str:
+        """The program as LinuxCNC opens it (absolute: LinuxCNC starts from its INI's folder)."""
+        return self.program_on_cnc or str(self.program.resolve())
+
+
+class MTConnectConfig(_Strict):
+    """An MTConnect agent xmalign reads the position from (read-only; docs/hardware.md)."""
+
+    url: str
+    #: The device's name in the agent (default: its first device).
+    device: str | None = None
+
+
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file"] = "prompt"
+    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect"] = "prompt"
     file: Path | None = None
+    linuxcncrsh: LinuxcncrshConfig | None = None
+    mtconnect: MTConnectConfig | None = None
 
     @model_validator(mode="after")
-    def _file_given(self) -> MachinePositionConfig:
+    def _source_given(self) -> MachinePositionConfig:
         if (self.source == "file") != (self.file is not None):
             raise ValueError("'file' is required with source: file, and only then")
+        if (self.source == "linuxcncrsh") != (self.linuxcncrsh is not None):
+            raise ValueError("'linuxcncrsh' is required with source: linuxcncrsh, and only then")
+        if (self.source == "mtconnect") != (self.mtconnect is not None):
+            raise ValueError("'mtconnect' is required with source: mtconnect, and only then")
         return self
+
+    @property
+    def follows_the_machine(self) -> bool:
+        """The operator runs the program; xmalign follows the machine's position."""
+        return self.source in ("file", "mtconnect")
 
 
 class Timeouts(_Strict):
     io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
     move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    #: The machine reaching its next stop while xmalign runs the program, s.
+    machine_s: Annotated[float, Field(gt=0, le=86400)] = 600.0
 
 
 class UnitsConfig(_Strict):
@@ -185,10 +243,22 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
             "interferometer": config.interferometer.model_copy(
                 update={"replay": _resolve(config.interferometer.replay, base_dir)}
             ),
-            "machine_position": config.machine_position.model_copy(
-                update={"file": _resolve(config.machine_position.file, base_dir)}
-            ),
+            "machine_position": _resolve_machine_position(config.machine_position, base_dir),
             "environment": resolve_environment(config.environment, base_dir),
+        }
+    )
+
+
+def _resolve_machine_position(
+    config: MachinePositionConfig, base_dir: Path
+) -> MachinePositionConfig:
+    rsh = config.linuxcncrsh
+    return config.model_copy(
+        update={
+            "file": _resolve(config.file, base_dir),
+            "linuxcncrsh": None
+            if rsh is None
+            else rsh.model_copy(update={"program": base_dir / rsh.program}),
         }
     )
 
@@ -214,6 +284,8 @@ class LiveDevices(ClosesOnExit):
     mover: MachineMover
     closers: list[Callable[[], None]] = field(default_factory=list)
     environment: EnvironmentSource | None = None
+    #: The controller xmalign runs the program on (``source: linuxcncrsh``).
+    controller: LinuxCnc | None = None
 
     def close(self) -> None:
         """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
@@ -298,12 +370,40 @@ def open_devices(
             if config.environment is None
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
+        controller = _open_controller(config, closers)
+        position = controller or _position_source(config)
     except BaseException:
         for close in reversed(closers):
             close()
         raise
+    mover = OperatorPrompt(machine, ask, tell, position)
+    return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
+
+
+def _position_source(config: UnitsConfig) -> MachinePositionSource | None:
+    """Where an operator-run machine's position is read: a file, an MTConnect agent."""
     source = config.machine_position
-    mover = OperatorPrompt(
-        machine, ask, tell, FilePositions(source.file) if source.file is not None else None
+    if source.file is not None:
+        return FilePositions(source.file)
+    if source.mtconnect is not None:
+        agent = source.mtconnect
+        return MTConnectAgent(agent.url, config.timeouts.io_s, agent.device)
+    return None
+
+
+def _open_controller(config: UnitsConfig, closers: list[Callable[[], None]]) -> LinuxCnc | None:
+    """The LinuxCNC of ``source: linuxcncrsh``, connected and enabled for control."""
+    rsh = config.machine_position.linuxcncrsh
+    if rsh is None:
+        return None
+    cnc = open_linuxcnc(
+        rsh.host,
+        rsh.port,
+        config.timeouts.io_s,
+        rsh.connect_password,
+        rsh.enable_password,
+        rsh.joints,
+        rsh.in_position_mm,
     )
-    return LiveDevices(launch, receiver, interferometer, mover, closers, environment)
+    closers.append(cnc.close)
+    return cnc

@@ -39,7 +39,14 @@ import numpy as np
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_beam, fine_align
 from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
-from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
+from xmalign.errors import (
+    BeamLostError,
+    DeviceError,
+    DeviceTimeoutError,
+    InputError,
+    TransportError,
+    XmalignError,
+)
 from xmalign.formats.measurements import (
     NOMINAL_LIMITS,
     ChannelLimits,
@@ -61,6 +68,7 @@ from xmalign.roles import (
     MachineMover,
     MachinePositionSource,
     PositioningUnit,
+    ProgramControl,
 )
 
 #: Fine alignment at a line start turns only the receiver (see FineAlignmentSettings).
@@ -188,6 +196,10 @@ class RunStatistics:
     #: Points not captured because the machine had gone on while the beam was searched
     #: (``--resume`` captures them).
     missed: list[tuple[str, int, str, int]] = field(default_factory=list)
+    #: xmalign ran the program (:func:`control_program`): from its start to its end, s,
+    #: and the part of it the machine waited at the programmed stops while the units were set.
+    program_s: float | None = None
+    stopped_s: float = 0.0
 
 
 @dataclass
@@ -229,6 +241,9 @@ class CalibrationRun:
     environment: EnvironmentMonitor | None = None
     #: Target (mm along the line) where the interferometer's datum counts from.
     _datum_mm: float = field(default=0.0, init=False, repr=False)
+    #: The beam was lost since the last capture (seen while the machine moved): the
+    #: interferometer lost its count, so the next capture goes as after a beam lost there.
+    count_lost: bool = field(default=False, init=False)
     #: The clock when the run started: rows record their time from here (``time_s``).
     _started_s: float = field(default=0.0, init=False, repr=False)
 
@@ -259,6 +274,7 @@ class CalibrationRun:
 
         A line that has rows but must be aligned again continues in a new segment.
         """
+        self.count_lost = False  # the line starts with its own datum
         recorded = self.setups.get(line.id)
         if recorded is not None and self._stands_at(recorded):
             self.launch.lock()
@@ -365,7 +381,7 @@ class CalibrationRun:
             self.statistics.skipped += 1
             return None
         reading = self._settled_average(started, dwell_s)
-        if not reading.beam_ok:
+        if not reading.beam_ok or self.count_lost:
             recaptured = self._recapture(point, dwell_s, still_there)
             if recaptured is None:
                 self.statistics.missed.append(point.key)
@@ -424,6 +440,7 @@ class CalibrationRun:
             self.launch.lock()
             self.receiver.lock()
             self.statistics.alignment_s += self.clock.now() - started
+        self.count_lost = False
         segment = self.last_segment.get(line.id, 0) + 1
         self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
         self.statistics.recovered.append(
@@ -440,6 +457,10 @@ class CalibrationRun:
         if not reading.beam_ok:
             raise BeamLostError(_beam_message(point, reading))
         return reading
+
+    def wait_for_beam(self, until_s: float) -> bool:
+        """Read until ``until_s``: True as soon as the beam is back (the units do not move)."""
+        return self._beam_returns(until_s)
 
     def _beam_returns(self, until_s: float) -> bool:
         """Read at the locked angles until ``until_s``: True when the beam is back by itself."""
@@ -556,6 +577,177 @@ def follow_machine(
             )
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
+
+
+@dataclass
+class ControlledProgram:
+    """xmalign's program on a controller xmalign starts, holds and resumes.
+
+    ``tolerance_mm``: a point is captured only with the machine at rest within
+    this distance of the plan's point. ``timeout_s``: the longest the machine
+    may take to its next stop.
+    """
+
+    controller: ProgramControl
+    path: str
+    overrun_mm: float
+    tolerance_mm: float = 0.005
+    timeout_s: float = 600.0
+    poll_s: float = 0.05
+
+
+def control_program(
+    run: CalibrationRun, program: ControlledProgram, tell: Callable[[str], None]
+) -> None:
+    """Run the program on the controller and capture every point, no one at the machine.
+
+    The program is the one ``xmalign program`` writes for ``run.plan`` with a
+    programmed stop at each point instead of the dwell. xmalign starts it (a
+    program of an earlier run still open is aborted first), sets the units at
+    each line's first stop, and resumes it at every stop once the point is
+    captured (at once for points already recorded). A point is captured only
+    when the program stands at a stop and the machine at rest within
+    ``tolerance_mm`` of the plan's point; a stop anywhere else, or a program
+    that ends early, stops the run with one line (program and plan do not
+    match). While the machine moves between points the beam is watched: lost,
+    the feed is held until it comes back (at most ``BEAM_WAIT_S``), and the
+    next point is captured as after a beam lost there. On a fault the program
+    is aborted; on a lost connection or Ctrl-C the feed is held where the
+    controller still answers.
+    """
+    controller = program.controller
+    controller.check_ready()
+    _start_fresh(controller, program.path, tell)
+    started = run.clock.now()
+    try:
+        for line in run.plan.lines:
+            _control_line(run, program, line, tell)
+        _wait_for(run, _program_ended(controller), "end the program", program.timeout_s, 0.1)
+    except (TransportError, KeyboardInterrupt) as error:
+        note = _try(controller.hold, "the feed is held on the controller")
+        raise _noted(error, note) from error
+    except XmalignError as error:
+        note = _try(controller.stop_program, "the program was stopped on the controller")
+        raise _noted(error, note) from error
+    run.statistics.program_s = run.clock.now() - started
+
+
+def _start_fresh(controller: ProgramControl, path: str, tell: Callable[[str], None]) -> None:
+    """Start the program; one of an earlier run still open is aborted first."""
+    state = controller.program_state()
+    if state != "idle":
+        loaded = controller.loaded_program()
+        if loaded != path:
+            raise DeviceError(
+                f"the controller is {state} with another program ({loaded}); stop it first"
+            )
+        controller.stop_program()
+        tell(f"the program was {state} from an earlier run: aborted, started again from the top")
+    controller.start_program(path)
+
+
+def _control_line(
+    run: CalibrationRun, program: ControlledProgram, line: PlanLine, tell: Callable[[str], None]
+) -> None:
+    """Units set at the line's first stop; capture at each point's stop; resume each time."""
+    pre_mm = pre_position_mm(line, program.overrun_mm)
+    # on the way to a line the units are not yet set for it: the beam is not watched
+    _wait_program(run, program, pre_mm, f"the pre-position of line {line.id}", None)
+    stopped = run.clock.now()
+    if not run.line_is_done(line):
+        run.prepare_line(line)
+    _resume(run, program, pre_mm)
+    run.statistics.stopped_s += run.clock.now() - stopped
+    for point in capture_sequence(line):
+        _wait_program(run, program, point.point_mm, _where(point), tell)
+        run.capture(point, line.dwell_s, lambda p: True)  # the program waits at the stop
+        _resume(run, program, point.point_mm)
+
+
+def _resume(run: CalibrationRun, program: ControlledProgram, stop_mm: Vec) -> None:
+    """Resume, and wait until the controller shows it (running, or gone from the stop): a
+    stale 'paused' must not count as the next stop."""
+    controller = program.controller
+    controller.resume()
+
+    def going() -> bool:
+        moved = float(np.linalg.norm(controller.position_mm() - stop_mm))
+        return controller.program_state() != "paused" or moved > program.tolerance_mm
+
+    _wait_for(run, going, "go on after the stop", program.timeout_s, 0.01)
+
+
+def _wait_program(
+    run: CalibrationRun,
+    program: ControlledProgram,
+    target_mm: Vec,
+    what: str,
+    tell: Callable[[str], None] | None,
+) -> None:
+    """Until the program stands at a stop with the machine at rest at ``target_mm``.
+
+    DeviceError when the program ends first, or stands at a stop with the
+    machine at rest anywhere else: program and plan do not match. With
+    ``tell``, while the program runs, a lost beam holds the feed
+    (:func:`_hold_for_beam`).
+    """
+    controller = program.controller
+
+    def there() -> bool:
+        state = controller.program_state()
+        if state == "idle":
+            raise DeviceError(f"the program ended before {what}: program and plan do not match")
+        if state == "running":
+            if tell is not None and not run.interferometer.read().beam_ok:
+                _hold_for_beam(run, controller, what, tell)
+            return False
+        if not controller.is_standstill():
+            return False
+        position = controller.position_mm()
+        miss = float(np.linalg.norm(position - target_mm))
+        if miss > program.tolerance_mm:
+            raise DeviceError(
+                f"the program stopped with the machine at {np.round(position, 4).tolist()} mm,"
+                f" {miss:.4f} mm from {what} {np.round(target_mm, 4).tolist()} mm (tolerance"
+                f" {program.tolerance_mm} mm): program and plan do not match"
+            )
+        return True
+
+    _wait_for(run, there, f"stop at {what}", program.timeout_s, program.poll_s)
+
+
+def _hold_for_beam(
+    run: CalibrationRun, controller: ProgramControl, what: str, tell: Callable[[str], None]
+) -> None:
+    """The beam is lost while the machine moves: hold the feed until it is back (at most
+    ``BEAM_WAIT_S``), resume; the next capture counts the beam as lost there."""
+    controller.hold()
+    held = run.clock.now()
+    back = run.wait_for_beam(held + BEAM_WAIT_S)
+    run.count_lost = True
+    tell(
+        f"beam lost on the way to {what}: feed held {run.clock.now() - held:.1f} s,"
+        f" {'beam back' if back else 'beam still lost (searched for at the point)'}; resumed"
+    )
+    controller.resume()
+
+
+def _program_ended(controller: ProgramControl) -> Callable[[], bool]:
+    return lambda: controller.program_state() == "idle"
+
+
+def _try(action: Callable[[], None], done: str) -> str:
+    """Do ``action`` after a failure; what happened, for the error line."""
+    try:
+        action()
+    except XmalignError as error:
+        return f"the controller could not be reached to stop the program ({error})"
+    return done
+
+
+def _noted(error: BaseException, note: str) -> BaseException:
+    """The same error with ``note`` added to its one line."""
+    return type(error)(f"{error}; {note}")
 
 
 def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:

@@ -135,6 +135,49 @@ class Uncertainty(_Strict):
     channel_roll_urad: Microradians = 2.5
 
 
+#: Uncertainty model ``[a_um, b_um_per_m]``: a + b per metre of distance (k = 1).
+DistanceModel_um = Annotated[
+    list[Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]],
+    Field(min_length=2, max_length=2),
+]
+
+
+class TrackerUncertainty(_Strict):
+    """Standard uncertainty (k = 1) of one laser-tracker point, along and across the beam.
+
+    Defaults: half the maximum permissible errors a tracker maker publishes
+    (distance 10 um + 0.3 um/m, transverse 15 um + 6 um/m; docs/formats.md).
+    """
+
+    radial_um: DistanceModel_um = [5.0, 0.15]
+    transverse_um: DistanceModel_um = [7.5, 3.0]
+
+    def radial_sigma_mm(self, distance_mm: Vec) -> Vec:
+        """Standard uncertainty along the beam at distances (N,), mm."""
+        return _affine_mm(self.radial_um, distance_mm)
+
+    def transverse_sigma_mm(self, distance_mm: Vec) -> Vec:
+        """Standard uncertainty across the beam at distances (N,), mm."""
+        return _affine_mm(self.transverse_um, distance_mm)
+
+
+class TracerUncertainty(_Strict):
+    """Standard uncertainty (k = 1) of one laser-tracer length (default 0.1 um + 0.15 um/m)."""
+
+    length_um: DistanceModel_um = [0.1, 0.15]
+
+    def length_sigma_mm(self, length_mm: Vec) -> Vec:
+        """Standard uncertainty of lengths (N,), mm."""
+        return _affine_mm(self.length_um, length_mm)
+
+
+def _affine_mm(model_um: list[float], distance_mm: Vec) -> Vec:
+    a, b = model_um
+    sigma = (a + b * np.abs(np.asarray(distance_mm, dtype=float)) / 1000.0) * 1e-3
+    # a model of 0 + 0 would give infinite weights; 1 nm is below any instrument
+    return np.maximum(sigma, 1e-6)
+
+
 class Measurement(_Strict):
     """How ``xmalign program`` lays out the measuring lines."""
 
@@ -238,6 +281,9 @@ class Machine(_Strict):
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
     cnc: Cnc = Cnc()
+    smr_offset_mm: Vector3 = [0.0, 0.0, 0.0]
+    tracker: TrackerUncertainty = TrackerUncertainty()
+    tracer: TracerUncertainty = TracerUncertainty()
 
     @property
     def transit_feed_mm_min(self) -> float:
@@ -336,6 +382,11 @@ class Machine(_Strict):
     @property
     def spindle_angle_rad(self) -> float:
         return math.radians(self.spindle_angle_deg)
+
+    @property
+    def smr_offset(self) -> Vec:
+        """SMR centre from the CNC tool point, spindle frame, mm, shape (3,)."""
+        return np.asarray(self.smr_offset_mm, dtype=float)
 
     @property
     def receiver_offset(self) -> Vec:

@@ -52,6 +52,7 @@ from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, measured_box_mm, tool_point_squareness_rad
 from xmalign.post.evaluate import PostResult
+from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.post.iso230_2 import ISO_230_2_RUNS, VdiFigures, runs_note, vdi3441_figures
 from xmalign.post.lines import UM_PER_MM
 from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows
@@ -392,6 +393,17 @@ def compensation_table(machine: Machine, result: PostResult, controller: str) ->
     return Table("Compensation predicted", ["", "um"], rows, note)
 
 
+def instruments_table(result: PostResult) -> list[Table]:
+    """Each tracker station's and tracer place's setup with U95 and residual (if any)."""
+    joint = result.instruments
+    if joint is None:
+        return []
+    rows = [[line] for line in instrument_lines(joint) + instrument_notes(joint)]
+    return [
+        Table("Laser tracker and tracer: setup (U95, k = 2) and residuals", ["instrument"], rows)
+    ]
+
+
 def report_tables(
     machine: Machine, result: PostResult, info: RecordInfo, controller: str | None = None
 ) -> list[Table]:
@@ -404,8 +416,8 @@ def report_tables(
     ]
     if info.vdi3441:
         tables.append(vdi_table(result))
+    tables += [squareness_table(result), *instruments_table(result)]
     tables += [
-        squareness_table(result),
         ranges_table(result),
         budget_table(machine, result, info),
     ]

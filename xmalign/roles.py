@@ -154,6 +154,47 @@ class MachineMover(MachinePositionSource, Protocol):
         ...
 
 
+#: A controller's program: not running, running, or stopped mid-program (M0 or feed hold).
+ProgramState = Literal["idle", "running", "paused"]
+
+
+@runtime_checkable
+class ProgramControl(MachinePositionSource, Protocol):
+    """A controller that runs xmalign's program and lets xmalign start, hold and resume it.
+
+    Only program control: xmalign never writes an axis position through it,
+    the controller's own limits and interlocks stay in force. Each method
+    returns once the controller has taken the command (DeviceError when it
+    refuses one).
+    """
+
+    def program_state(self) -> ProgramState: ...
+
+    def check_ready(self) -> None:
+        """Raise DriveFaultError unless the machine is on, homed and free of faults."""
+        ...
+
+    def loaded_program(self) -> str | None:
+        """The path of the program the controller has open, None if none."""
+        ...
+
+    def start_program(self, path: str) -> None:
+        """Open ``path`` (as the controller sees it) and run it from its first block."""
+        ...
+
+    def hold(self) -> None:
+        """Feed hold: the machine stops on its path; :meth:`resume` goes on."""
+        ...
+
+    def resume(self) -> None:
+        """Go on after a programmed stop (M0) or a feed hold."""
+        ...
+
+    def stop_program(self) -> None:
+        """Abort the program (the machine stops; a new start begins at the top)."""
+        ...
+
+
 @dataclass(frozen=True)
 class EnvironmentReading:
     """One reading of a weather station (XC-80 class): NaN where a sensor gave nothing.

@@ -6,7 +6,7 @@ study call these functions with real devices or the simulator's behind the
 same roles (:mod:`xmalign.roles`). Only what differs between a controller
 running the program and an operator stepping the machine is given by the
 caller: the *drive* of :func:`run_step` (:func:`program_drive`,
-:func:`stepping_drive`, :func:`following_drive`).
+:func:`stepping_drive`, :func:`following_drive`, :func:`controlled_drive`).
 """
 
 from __future__ import annotations
@@ -23,9 +23,11 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import (
     CalibrationRun,
+    ControlledProgram,
     ProgramEvent,
     RunOutput,
     capture_program,
+    control_program,
     follow_machine,
     step_through,
 )
@@ -58,6 +60,7 @@ from xmalign.roles import (
     MachineMover,
     MachinePositionSource,
     PositioningUnit,
+    ProgramControl,
 )
 from xmalign.safety import units_locked_on_exit
 
@@ -220,6 +223,34 @@ def following_drive(
     return lambda run: follow_machine(
         run, position, run.plan.lines, tell, machine.measurement.overrun_mm, poll_s=poll_s
     )
+
+
+def controlled_drive(
+    controller: ProgramControl,
+    program_path: str,
+    tell: Callable[[str], None],
+    machine: Machine,
+    tolerance_mm: float,
+    timeout_s: float,
+) -> Drive:
+    """Capture while xmalign runs its program on the controller (start, hold, resume): the
+    program at ``program_path`` as the controller opens it (:func:`write_controller_program`
+    wrote it); a point only with the machine at rest within ``tolerance_mm`` of the plan's."""
+    program = ControlledProgram(
+        controller, program_path, machine.measurement.overrun_mm, tolerance_mm, timeout_s
+    )
+    return lambda run: control_program(run, program, tell)
+
+
+def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: Path) -> str:
+    """Write the plan's program for a controller xmalign runs it on: a programmed stop at
+    each point instead of the dwell (xmalign resumes it once the point is captured);
+    readable by all (the controller may run as another user); replaced on every run (it
+    is made from the plan)."""
+    program = write_program(plan, machine, make_dialect(dialect, machine, "run", True))
+    atomic_write_files({path: program.encode("utf-8")})
+    path.chmod(0o644)
+    return program
 
 
 @dataclass

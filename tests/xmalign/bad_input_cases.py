@@ -29,7 +29,17 @@ from typing import Any
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-EXAMPLES = ("fyxz.yaml", "units.yaml", "session.json", "pose.json", "plan.json", "errors.csv")
+EXAMPLES = (
+    "fyxz.yaml",
+    "units.yaml",
+    "session.json",
+    "pose.json",
+    "plan.json",
+    "errors.csv",
+    "tracker.csv",
+    "tracer.csv",
+    "spatial-analyzer.txt",
+)
 MEASUREMENTS_HEADER = (
     "line,run,direction,index,target_mm,x_mm,y_mm,z_mm,linear_um,straightness_v_um,"
     "straightness_w_um,angle_u_urad,angle_v_urad,angle_w_urad\n"
@@ -43,6 +53,17 @@ COMMAND = {
     "pose.json": ("program", "--pose", "pose.json", "--out", "run.mpf"),
     "plan.json": ("post", "--plan", "plan.json", "--data", "m.csv", "--out", "errors-new.csv"),
     "errors.csv": ("comp", "--errors", "errors.csv", "--out", "comp"),
+    "tracker.csv": ("post", "--tracker", "tracker.csv", "--out", "errors-new.csv"),
+    "tracer.csv": ("post", "--tracer", "tracer.csv", "--out", "errors-new.csv"),
+    "spatial-analyzer.txt": (
+        "import",
+        "--spatial-analyzer",
+        "spatial-analyzer.txt",
+        "--points",
+        "points.csv",
+        "--out",
+        "tracker-new.csv",
+    ),
 }
 
 Damage = Callable[[Path], None]
@@ -465,6 +486,38 @@ _ERROR_CASES = [
 ]
 
 
+T, R = "tracker.csv", "tracer.csv"
+TRACKER, TRACER = COMMAND[T], COMMAND[R]
+_TRACKER_CASES = [
+    ("wrong-format", replace(T, "tracker-points/1", "tracker-points/2"), "line 1"),
+    ("nan-point", replace(T, "\nT1,0,0,0.0,", "\nT1,0,0,nan,"), "not a finite number"),
+    ("no-index-no-path", replace(T, "\nT1,0,0,", "\nT1,0,,"), "on the fly"),
+    ("repeated", replace(T, "\nT1,1,0,", "\nT1,0,0,"), "repeats the reading"),
+    ("missing-column", replace(T, ",tz_mm", ""), "lacks column tz_mm"),
+    (
+        "two-points",
+        write(
+            T,
+            "# xmalign tracker-points/1\nstation,run,index,x_mm,y_mm,z_mm,"
+            "tx_mm,ty_mm,tz_mm\nT1,0,0,0,0,0,1,2,3\nT1,0,1,9,0,0,10,2,3\n",
+        ),
+        "X axis stood at 2",
+    ),
+]
+_TRACER_CASES = [
+    ("wrong-format", replace(R, "tracer-lengths/1", "tracer-length/1"), "line 1"),
+    ("bad-guess", replace(R, "guess_mm=", "guess_mm=x"), "guess_mm"),
+    ("inf-length", replace(R, "\nP1,0,0,0.0,", "\nP1,0,0,inf,"), "not a finite number"),
+    ("three-places", lambda folder: _keep_tracer_places(folder / R, 3), "3 tracer places"),
+]
+
+
+def _keep_tracer_places(path: Path, places: int) -> None:
+    keep = tuple(f"P{i + 1}," for i in range(places))
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    path.write_text("".join(x for x in lines if not x.startswith("P") or x.startswith(keep)))
+
+
 def _kind_cases() -> list[Case]:
     cases = []
     for prefix, argv, table in (
@@ -474,6 +527,8 @@ def _kind_cases() -> list[Case]:
         (P, POSE, _POSE_CASES),
         (L, PLAN, _PLAN_CASES),
         (E, ERRORS, _ERROR_CASES),
+        (T, TRACKER, _TRACKER_CASES),
+        (R, TRACER, _TRACER_CASES),
     ):
         for name, damage, fragment in table:
             cases.append(Case(f"{prefix}-{name}", argv, (prefix, fragment), damage))
@@ -913,6 +968,16 @@ def prepare(folder: Path) -> None:
     (folder / "comp").mkdir()
     (folder / "comp" / "NC_CEC.INI").write_text("old table\n", encoding="utf-8")
     (folder / "pose-old.json").write_text("{}\n", encoding="utf-8")
+    (folder / "points.csv").write_text(_point_list(), encoding="utf-8")
+
+
+def _point_list() -> str:
+    """The point list ``program --instrument tracker --points-out`` writes (import reads it)."""
+    from trajectories.instruments import InstrumentProgram, point_list_csv, tracker_points
+    from xmalign.machine import default_machine_path, load_machine
+
+    machine = load_machine(default_machine_path())
+    return point_list_csv(InstrumentProgram(points_mm=tracker_points(machine)), machine.smr_offset)
 
 
 def hashes(folder: Path) -> dict[str, str]:

@@ -20,6 +20,7 @@ from typer.core import TyperGroup
 
 from xmalign import __version__
 from xmalign.cli import align, identify
+from xmalign.cli import instruments as instruments_command
 from xmalign.cli import mc as mc_command
 from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
@@ -136,6 +137,7 @@ for command_module in (
     align,
     sim_command,
     mc_command,
+    instruments_command,
 ):
     command_module.register(app)
 

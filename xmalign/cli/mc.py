@@ -25,6 +25,7 @@ from xmalign.cli.common import (
     output_folder,
     refuse_overwriting,
 )
+from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
 from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text
 from xmalign.formats.provenance import FileSource, sources
@@ -205,8 +206,9 @@ def mc(
     mode: Annotated[
         str,
         typer.Option(
-            help="calibration (the whole dry run, ~1 s a trial) or identification "
-            "(identification and line planning only, ~10 ms)."
+            help="calibration (the whole dry run, ~1 s a trial), identification "
+            "(identification and line planning only, ~10 ms) or instruments (laser tracker,"
+            " tracers and XM-60 compared on the same machines, ~10 s a trial)."
         ),
     ] = "calibration",
     batch: Annotated[int, typer.Option(help="Trials per batch of the adaptive procedure.")] = 20,
@@ -251,6 +253,10 @@ def mc(
     from sim.mc_plots import plot_envelopes, plot_histograms, plot_volumetric_map
 
     check_seed(seed)
+    if mode == "instruments":
+        amplitudes = ErrorAmplitudes(scale=error_scale, squareness_urad=squareness_urad)
+        compare_instruments_command(machine_or_default(machine), trials, seed, amplitudes, out)
+        return
     written_names = ("mc.json", "histograms.png", "envelopes.png", "volumetric.png")
     refuse_overwriting({"--machine": machine}, {"--out": [out / name for name in written_names]})
     settings = StudySettings(

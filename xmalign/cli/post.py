@@ -20,6 +20,7 @@ from xmalign.cli.common import (
     refuse_overwriting,
     same_file,
 )
+from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError, MachineKeyError
 from xmalign.formats.common import atomic_write_files, read_text
@@ -29,6 +30,7 @@ from xmalign.formats.plan import read_plan
 from xmalign.formats.provenance import FileSource, sources
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import as_left_step, comp_step
 
@@ -83,6 +85,8 @@ def _stations(
                 f" {later + 1}; its points would count twice (give each station's data once)"
             )
     read = [(read_plan(plan_path), plan_path) for plan_path in plans]
+    if not read:
+        return machine_or_default(machine), []
     machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
     limits = ChannelLimits.of_ranges(**machine_.interferometer.ranges())
     stations = []
@@ -94,15 +98,23 @@ def _stations(
 
 
 def post(
-    plan: Annotated[
-        list[Path],
-        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
-    ],
-    data: Annotated[
-        list[Path],
-        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
-    ],
     out: Annotated[Path, typer.Option(help="Error-table CSV to write.")],
+    plan: Annotated[
+        list[Path] | None,
+        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
+    ] = None,
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
+    ] = None,
+    tracker: Annotated[
+        list[Path] | None,
+        typer.Option(help="Laser-tracker points (tracker-points/1 CSV); repeatable."),
+    ] = None,
+    tracer: Annotated[
+        list[Path] | None,
+        typer.Option(help="Laser-tracer lengths (tracer-lengths/1 CSV); repeatable."),
+    ] = None,
     machine: MachineOption = None,
     report: Annotated[
         Path | None, typer.Option(help="Also write the calibration record here (.html or .pdf).")
@@ -145,7 +157,13 @@ def post(
 
     With --verify-data, the measurement made after loading the compensation is
     posted on its own and compared with the calibration (as found / as left).
+
+    --tracker and --tracer files (each repeatable) join the same fit, with or
+    without lines: every tracker station brings its pose, every tracer place its
+    pivot and constants, each reading weighted with its instrument's uncertainty.
     """
+    plan, data, tracker, tracer = plan or [], data or [], tracker or [], tracer or []
+    check_inputs(plan, tracker, tracer, verify_data is not None and verify_plan is None)
     if verify_data is None and (verify_plan or verify_controller):
         option = "--verify-plan" if verify_plan else "--verify-controller"
         raise InputError(f"{option} needs --verify-data (the verification measurement)")
@@ -157,6 +175,8 @@ def post(
             "--units": units,
             "--verify-plan": verify_plan,
             "--verify-data": verify_data,
+            "--tracker": tracker,
+            "--tracer": tracer,
         },
         {"--out": out, "--report": report},
     )
@@ -168,9 +188,12 @@ def post(
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = _stations(plan, data, machine)
+        readings = read_instruments(tracker, tracer)
         points = sum(len(station.rows) for station in stations)
-        progress.update(task, description=f"fitting {points} points")
-        result = post_stations(machine_, stations)
+        extra = count_readings(readings)
+        fitting = ([f"{points} points"] if stations else []) + ([extra] if extra else [])
+        progress.update(task, description=f"fitting {', '.join(fitting)}")
+        result = post_stations(machine_, stations, instruments=readings)
         verification = None
         if verify_data is not None:
             progress.update(task, description="fitting the verification run")
@@ -193,6 +216,9 @@ def post(
             )
             write_report(report, machine_, result, machine_.controller, info)
     console.print(_summary(result))
+    if result.instruments is not None:
+        for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
+            console.print(note, markup=False, soft_wrap=True)
     if verification is not None:
         console.print(_as_left(machine_, result, verification))
     for note in dict.fromkeys(result.notes):

@@ -24,6 +24,11 @@ from xmalign.cli.common import (
     machine_or_default,
     refuse_overwriting,
 )
+from xmalign.cli.instruments import (
+    InstrumentRequest,
+    check_instrument_options,
+    program_instrument,
+)
 from xmalign.errors import GeometryError, InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.plan import write_plan
@@ -86,12 +91,32 @@ def program(
         str | None,
         typer.Option(help="Comma-separated lines to plan, e.g. Z,YZ,XZ (default: all six)."),
     ] = None,
+    instrument: Annotated[
+        str | None,
+        typer.Option(help="Plan for a laser 'tracker' or 'tracer' instead (no --pose needed)."),
+    ] = None,
+    on_the_fly: Annotated[
+        bool, typer.Option("--on-the-fly", help="Tracker: paths on the fly, not points.")
+    ] = False,
+    places: Annotated[int | None, typer.Option(help="Tracer: how many places (default 4).")] = None,
+    points_out: Annotated[
+        Path | None,
+        typer.Option(help="With --instrument: the point list for the instrument's software."),
+    ] = None,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
 
     With all six lines it also proposes a second launch-unit station whose lines
     complete the strokes (docs/post.md); plan that station with --lines.
+
+    With --instrument tracker (--on-the-fly) or tracer (--places N): the points
+    or paths of a laser-tracker or laser-tracer calibration over the whole travel.
     """
+    check_instrument_options(instrument, on_the_fly, places)
+    if instrument is not None:
+        request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
+        program_instrument(machine_or_default(machine), request)
+        return
     refuse_overwriting(
         {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
     )

@@ -17,6 +17,7 @@ from rich.table import Table
 from xmalign.calibration import (
     CalibrationRun,
     RunOutput,
+    RunStatistics,
     capture_sequence,
     check_run_output,
     open_run_output,
@@ -32,6 +33,7 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
+from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.measurements import ChannelLimits, load_measurements
@@ -175,21 +177,41 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     """Check the hardware configuration, open the devices; the live measurement."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.roles import WallClock
-    from xmalign.steps import RunStepDevices, following_drive, run_step, stepping_drive
+    from xmalign.steps import (
+        RunStepDevices,
+        controlled_drive,
+        following_drive,
+        run_step,
+        stepping_drive,
+        write_controller_program,
+    )
 
     config = load_units_config(config_path)
     devices = open_devices(config, machine)
+    rsh = config.machine_position.linuxcncrsh
 
     def capture(output: RunOutput) -> CalibrationRun:
-        drive = (
-            following_drive(devices.mover, _tell_operator, machine)
-            if config.machine_position.source == "file"
-            else stepping_drive(devices.mover, machine)
-        )
+        if devices.controller is not None and rsh is not None:
+            write_controller_program(plan, machine, "linuxcnc", rsh.program)
+            drive = controlled_drive(
+                devices.controller,
+                rsh.cnc_program_path,
+                _tell_operator,
+                machine,
+                rsh.tolerance_mm,
+                config.timeouts.machine_s,
+            )
+        elif config.machine_position.follows_the_machine:
+            drive = following_drive(devices.mover, _tell_operator, machine)
+        else:
+            drive = stepping_drive(devices.mover, machine)
         roles = RunStepDevices(
             devices.launch, devices.receiver, devices.interferometer, WallClock()
         )
-        return run_step(plan, roles, output, drive)
+        run = run_step(plan, roles, output, drive)
+        if run.statistics.program_s is not None:
+            _tell_machine_time(plan, machine, run.statistics)
+        return run
 
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
@@ -198,6 +220,21 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
         yield Measurement(
             lambda output: _measure(output, plan, lambda: capture(output)), environment
         )
+
+
+def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) -> None:
+    """The program's time on the machine against the G-code's own estimate."""
+    from trajectories.gcode.program import estimate_machine_time
+
+    assert statistics.program_s is not None
+    estimate = estimate_machine_time(plan, machine).total_s
+    console.print(
+        f"machine time {statistics.program_s - statistics.stopped_s:.1f} s without the"
+        f" {statistics.stopped_s:.1f} s at the stops for the units (G-code estimate"
+        f" {estimate:.1f} s); program {statistics.program_s:.1f} s from start to end",
+        markup=False,
+        soft_wrap=True,
+    )
 
 
 def _tell_operator(message: str) -> None:
@@ -403,11 +440,18 @@ def dry_run_command(
             " Modbus TCP, a serial pty and a position file (docs/simulator.md).",
         ),
     ] = False,
+    instrument: Annotated[
+        str,
+        typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
+    ] = "xm60",
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
 
     check_seed(seed)
+    if instrument != "xm60":
+        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        return
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)

@@ -127,6 +127,21 @@ def serve(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect of --program (default: controller's).")
     ] = None,
+    linuxcncrsh: Annotated[
+        str | None,
+        typer.Option(
+            help="Serve a simulated CNC as LinuxCNC's remote shell linuxcncrsh on PORT (or"
+            " HOST:PORT): units.yaml machine_position source: linuxcncrsh runs its program."
+        ),
+    ] = None,
+    follow_position_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="A file another CNC keeps its tool point in (last line 'x y z', mm; e.g. a"
+            " real LinuxCNC's actual position): the virtual machine carries the receiver"
+            " there. A line 'block-beam SECONDS' on standard input then interrupts the beam."
+        ),
+    ] = None,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -138,6 +153,12 @@ def serve(
         raise InputError("--modbus-receiver serves the receiver: --unit must be launch")
     if (position_file is None) != (program is None):
         raise InputError("--position-file and --program go together")
+    cncs = [follow_position_file, position_file, linuxcncrsh]
+    if sum(option is not None for option in cncs) > 1:
+        raise InputError(
+            "give one of --position-file, --follow-position-file and --linuxcncrsh:"
+            " the machine has one CNC"
+        )
     nothing = modbus is None and modbus_receiver is None and not rtu and canopen is None
     if nothing and not interferometer_pty and not station_pty and position_file is None:
         raise InputError(
@@ -222,6 +243,12 @@ def serve(
 
             port = serve_station(world, servers)
             console.print(f"weather station on {port}", highlight=False)
+        if linuxcncrsh is not None:
+            where = _serve_linuxcncrsh(world, machine_model, _host_port(linuxcncrsh, host), servers)
+            console.print(f"linuxcncrsh on {where}", highlight=False)
+        if follow_position_file is not None:
+            _follow_position_file(world, follow_position_file, servers)
+            console.print(f"machine follows {follow_position_file}", highlight=False)
         if served_cnc is not None:
             served_cnc.start()
             servers.callback(served_cnc.stop)
@@ -252,6 +279,42 @@ def _served_cnc(
         position_file,
         tell,
     )
+
+
+def _serve_linuxcncrsh(
+    world: World, machine: Machine, address: tuple[str, int], servers: ExitStack
+) -> str:
+    """A simulated CNC moving the world's machine, commanded over linuxcncrsh's protocol."""
+    from sim.cnc import SimulatedCnc
+    from sim.servers.linuxcncrsh import LinuxcncrshServer
+
+    cnc = SimulatedCnc(machine, world.clock)
+    world.interferometer.position = cnc
+    server = LinuxcncrshServer(cnc, machine, *address)
+    server.start()
+    servers.callback(server.stop)
+    return server.where
+
+
+def _follow_position_file(world: World, path: Path, servers: ExitStack) -> None:
+    """The world's receiver carried where the file says the CNC stands; 'block-beam S'
+    lines on standard input interrupt the beam for S seconds."""
+    from firmware_iface.machine_position import FilePositions
+    from sim.servers.followed_machine import FollowedMachine
+
+    followed = FollowedMachine(FilePositions(path))
+    world.interferometer.position = followed
+    followed.start()
+    servers.callback(followed.stop)
+
+    def read() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if len(words) == 2 and words[0] == "block-beam":
+                world.interferometer.interrupt(float(words[1]))
+                console.print(f"beam blocked for {words[1]} s", highlight=False)
+
+    threading.Thread(target=read, name="beam-commands", daemon=True).start()
 
 
 def _press_cycle_start_on_enter(served_cnc: ServedCnc) -> None:

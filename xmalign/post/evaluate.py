@@ -8,11 +8,13 @@ import numpy as np
 
 from xmalign.environment import StationCompensation, compensate_station
 from xmalign.errors import InputError
+from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
-from xmalign.geometry import Vec
+from xmalign.geometry import Vec, rot_z
 from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
+from xmalign.post.instruments import JointFit, fit_joint, tracer_places, tracker_stations
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import CHANNEL_TO_SI, UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
@@ -42,6 +44,9 @@ class PostResult:
         The compensation the controller applied during the measurement (a
         verification run): ``fit`` is then the machine's own geometry and
         :meth:`tool_point_errors` what remains with the compensation.
+    instruments : JointFit, optional
+        With tracker points or tracer lengths: the joint fit (its ``fit`` is ``fit``),
+        with each station's and place's setup and residuals.
     """
 
     fit: TableFit
@@ -50,6 +55,7 @@ class PostResult:
     warnings: list[str] = field(default_factory=list)
     compensation: list[StationCompensation] = field(default_factory=list)
     applied: ErrorTables | None = None
+    instruments: JointFit | None = None
 
     def tool_point_errors(self, direction: str = "") -> ErrorModel:
         """The errors the machine shows with its controller's compensation (if any) in."""
@@ -78,6 +84,14 @@ def channel_sigma(machine: Machine) -> Vec:
 
 
 @dataclass(frozen=True)
+class Instruments:
+    """Tracker-point and tracer-length files for the same fit as the lines."""
+
+    trackers: tuple[TrackerFile, ...] = ()
+    tracers: tuple[TracerFile, ...] = ()
+
+
+@dataclass(frozen=True)
 class Station:
     """The measurement from one launch-unit station: its plan, rows and file name."""
 
@@ -87,7 +101,10 @@ class Station:
 
 
 def post_stations(
-    machine: Machine, stations: list[Station], applied: ErrorTables | None = None
+    machine: Machine,
+    stations: list[Station],
+    applied: ErrorTables | None = None,
+    instruments: Instruments | None = None,
 ) -> PostResult:
     """Fit one set of error tables to the measurements of one or more stations.
 
@@ -100,6 +117,9 @@ def post_stations(
     readings before the fit: a volumetric compensation moves the tool point by
     tilts times lever arms, which leaves no rigid-body chain to fit; the ISO
     230-2 figures stay those of the readings (as left).
+
+    ``instruments``: tracker points and tracer lengths fitted together with the
+    lines (:func:`xmalign.post.instruments.fit_joint`); ``stations`` may then be empty.
     """
     for index, station in enumerate(stations):  # the rows as read: checked before any use
         for data in group_by_line(station.plan, station.rows, station.source, index):
@@ -120,12 +140,28 @@ def post_stations(
     fitted = lines
     if applied is not None:
         fitted = [_without(data, chain, applied, machine.cnc.tool_offset) for data in lines]
-    fit = fit_error_tables(
-        fitted,
-        chain,
-        channel_sigma(machine),
-        (machine.travel_min_mm, machine.travel_max_mm),
-    )
+    travel = (machine.travel_min_mm, machine.travel_max_mm)
+    joint = None
+    if instruments is not None and (instruments.trackers or instruments.tracers):
+        if applied is not None:
+            raise InputError(
+                "--applied (a verification run) takes interferometer lines only, not tracker"
+                " points or tracer lengths"
+            )
+        joint = fit_joint(
+            fitted,
+            tracker_stations(list(instruments.trackers)),
+            tracer_places(list(instruments.tracers)),
+            chain,
+            channel_sigma(machine),
+            rot_z(machine.spindle_angle_rad) @ machine.smr_offset,
+            machine.tracker,
+            machine.tracer,
+            travel,
+        )
+        fit = joint.fit
+    else:
+        fit = fit_error_tables(fitted, chain, channel_sigma(machine), travel)
     positioning = [
         positioning_figures(
             data.label, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
@@ -141,6 +177,7 @@ def post_stations(
         warnings=datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
         compensation=compensation,
         applied=applied,
+        instruments=joint,
     )
 
 

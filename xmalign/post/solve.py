@@ -495,6 +495,33 @@ class _WeightedSystem:
         return self.inverse @ middle @ self.inverse / np.outer(self.norms, self.norms)
 
 
+def bidirectional_axes(lines: list[LineData]) -> set[str]:
+    """The axes some line measured in both directions (they get reversal tables)."""
+    return {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
+
+
+def add_line_rows(
+    lines: list[LineData],
+    chain: Chain,
+    layout: ParameterLayout,
+    setup: SetupLayout,
+    out: Triplets,
+) -> list[int]:
+    """Add the six channel rows of every line's points (tables, squareness, setup).
+
+    Returns the first row of each line; the rows are numbered from 0.
+    """
+    sizes = [N_CHANNELS * len(d.run) for d in lines]
+    first_rows = [int(r) for r in np.cumsum([0, *sizes])[: len(lines)]]
+    for data, first_row in zip(lines, first_rows, strict=True):
+        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
+        for axis in AXES:
+            _add_axis_columns(data, first_row, axis, arms[axis], layout, out)
+        _add_squareness_columns(data, first_row, layout, out)
+    setup.add_columns(lines, first_rows, out)
+    return first_rows
+
+
 def fit_error_tables(
     lines: list[LineData],
     chain: Chain,
@@ -519,18 +546,11 @@ def fit_error_tables(
         False), with the u95 the extrapolation propagates.
     """
     knots = compensation_points(lines)
-    bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
-    layout = ParameterLayout(knots, bidirectional)
+    layout = ParameterLayout(knots, bidirectional_axes(lines))
     setup = SetupLayout(lines, layout.n_columns)
-    first_rows = list(np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines[:-1]]))
-    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     triplets = Triplets()
-    for data, first_row in zip(lines, first_rows, strict=True):
-        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
-        for axis in AXES:
-            _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
-        _add_squareness_columns(data, first_row, layout, triplets)
-    setup.add_columns(lines, first_rows, triplets)
+    first_rows = add_line_rows(lines, chain, layout, setup, triplets)
+    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
 
     n_columns = layout.n_columns + setup.n_columns
     rows, cols, vals = triplets.arrays()
@@ -618,18 +638,23 @@ def _evaluate(
     return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
+def rms_curvature(knots_mm: Vec, positions_mm: Vec, values: Vec) -> float:
+    """RMS second difference of a table over its knots (M >= 3), value per mm squared."""
+    at_knots = np.interp(knots_mm, positions_mm, values)
+    slopes = np.diff(at_knots) / np.diff(knots_mm)
+    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
+    return float(np.sqrt(np.mean(curvature**2)))
+
+
 def _extrapolation_u(knots_mm: Vec, positions_mm: Vec, values: Vec) -> Vec:
     """Standard uncertainty of the linear continuation beyond the knots, shape (P,).
 
     The table's RMS curvature over the knots, kept up over the distance ``d``
     from the nearest knot: ``kappa * d**2 / 2`` (0 between the knots).
     """
-    at_knots = np.interp(knots_mm, positions_mm, values)
     if len(knots_mm) < 3:
         return np.zeros(len(positions_mm))
-    slopes = np.diff(at_knots) / np.diff(knots_mm)
-    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
-    kappa = float(np.sqrt(np.mean(curvature**2)))
+    kappa = rms_curvature(knots_mm, positions_mm, values)
     distance = np.maximum(knots_mm[0] - positions_mm, 0) + np.maximum(
         positions_mm - knots_mm[-1], 0
     )
