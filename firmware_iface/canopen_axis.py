@@ -36,7 +36,7 @@ from xmalign.errors import (
     OutOfRangeError,
     TransportError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
 
@@ -60,7 +60,7 @@ ABORT_VALUE_RANGE = 0x06090030
 FAULT_CODE_BASE = 0xFF00
 #: The host's heartbeat: node 127, state operational, every 100 ms (the nodes allow 500 ms).
 HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S = 0x77F, b"\x05", 0.1
-#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+#: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 
 T = TypeVar("T")
@@ -76,7 +76,7 @@ class CanopenAxis:
     node : canopen.RemoteNode
         The node, added to a connected network with the EDS.
     name : str
-        Axis name of CONVENTIONS.md (``a1`` .. ``a5``).
+        Axis name of docs/conventions.md (``a1`` .. ``a5``).
     device_name : str
         Unit name for messages, e.g. ``"launch unit on can0"``.
     clock : Clock
@@ -249,7 +249,7 @@ class CanopenAxis:
         self._write(CONTROLWORD, ENABLE_OPERATION)
 
 
-class CanopenUnit(AxisGroup):
+class CanopenUnit(AxisGroup, ClosesOnExit):
     """A positioning unit made of CiA 402 axis nodes; implements ``PositioningUnit``.
 
     Parameters

@@ -88,6 +88,7 @@ from xmalign.formats.common import (
 from xmalign.machine import Machine
 from xmalign.roles import (
     Clock,
+    ClosesOnExit,
     EnvironmentSource,
     Interferometer,
     MachineMover,
@@ -273,8 +274,9 @@ def load_units_config(path: str | Path) -> UnitsConfig:
 
 
 @dataclass
-class LiveDevices:
-    """The devices a ``units.yaml`` names, opened; :meth:`close` releases them."""
+class LiveDevices(ClosesOnExit):
+    """The devices a ``units.yaml`` names, opened; :meth:`close` (or the end of a
+    ``with`` block) releases them."""
 
     launch: PositioningUnit
     receiver: PositioningUnit

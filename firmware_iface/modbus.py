@@ -1,4 +1,4 @@
-"""Modbus driver of the positioning-unit firmware interface (REGISTERS.md).
+"""Modbus driver of the positioning-unit firmware interface (docs/registers.md).
 
 The driver (:class:`ModbusUnit`, :class:`ModbusAxis`) talks to a
 :class:`RegisterTransport`: anything that reads and writes holding registers.
@@ -37,7 +37,7 @@ from xmalign.errors import (
     TransportError,
     XmalignError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
@@ -47,7 +47,7 @@ SERVER_DEVICE_BUSY = 6
 ILLEGAL_DATA_ADDRESS = 2
 #: Modbus exception code "gateway target device failed to respond": no unit with that id.
 GATEWAY_TARGET_FAILED = 11
-#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+#: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 _UINT16 = 1 << 16
 _UINT32 = 1 << 32
@@ -81,7 +81,7 @@ def decode(register: Register, words: Sequence[int]) -> int:
     return raw
 
 
-class ModbusTransport:
+class ModbusTransport(ClosesOnExit):
     """A pymodbus client with reconnect and retries; errors name ``device_name``.
 
     Parameters
@@ -298,7 +298,7 @@ class ModbusAxis:
         self.unit.write(self.number, "control", int(bits))
 
 
-class ModbusUnit(AxisGroup):
+class ModbusUnit(AxisGroup, ClosesOnExit):
     """A positioning unit behind a register transport; implements ``PositioningUnit``.
 
     Parameters

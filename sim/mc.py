@@ -33,9 +33,8 @@ import numpy as np
 from sim.dry_run import (
     DryRunOptions,
     measured_strokes,
-    placement_scatter_mm,
+    placement,
     simulate_calibration,
-    virtual_setup,
 )
 from sim.identification import SessionImperfections, simulate_session, spread_positions
 from sim.machine import ErrorAmplitudes
@@ -59,6 +58,8 @@ from xmalign.steps import design_step
 MODES = ("identification", "calibration")
 #: Points along a line at which the predicted beam envelope is kept (fractions 0..1).
 ENVELOPE_SAMPLES = 21
+#: The random stream of an identification trial's session, apart from the placement's.
+SESSION_STREAM = 1
 #: Named launch-unit placements: the machine file's guess, its x and y moved to the centre
 #: of the travel, or mirrored through the centre (the opposite corner), same height.
 PLACEMENTS = ("guess", "centre", "opposite")
@@ -300,18 +301,12 @@ def _plan_outcome(plan: MeasurementPlan, strategy_index: int) -> TrialOutcome:
     return outcome
 
 
-def _launch_truth(machine: Machine, rng: np.random.Generator) -> tuple[Vec, float]:
-    """Where the unit really stands: as :func:`sim.dry_run.virtual_setup` scatters it."""
-    return _launch_guess_mm(machine) + placement_scatter_mm(rng), float(
-        rng.uniform(-math.pi, math.pi)
-    )
-
-
 def identification_trial(spec: TrialSpec) -> TrialOutcome:
     """Identification only: closed-form session, identify, plan the lines."""
     machine = spec.machine
-    rng = np.random.default_rng(spec.seed)
-    position_mm, gamma_rad = _launch_truth(machine, rng)
+    truth = placement(machine, spec.seed)  # where the dry run of this seed places the unit
+    position_mm, gamma_rad = truth.launch2mcs_mm, truth.gamma_rad
+    rng = np.random.default_rng([spec.seed, SESSION_STREAM])
     imperfections = SessionImperfections.realistic(rng)
     session = simulate_session(
         spec.identification_mm,
@@ -354,8 +349,7 @@ def calibration_trial(spec: TrialSpec) -> TrialOutcome:
     with tempfile.TemporaryDirectory(prefix="xmalign-mc-") as workdir:
         report = simulate_calibration(machine, Path(workdir), options)
         tables = read_error_tables(report.files["errors"]).model()
-    # the same seed rebuilds the same virtual machine: the truth behind the report
-    truth = virtual_setup(machine, spec.seed, spec.amplitudes).world.machine
+    truth = report.truth  # the virtual machine the dry run measured
     grid = grid_points(*measured_strokes(report.plan))
     residual = residual_map_um(Chain.parse(machine.chain), grid, truth, tables)
     outcome = _plan_outcome(report.plan, spec.strategy_index)

@@ -38,7 +38,7 @@ from firmware_iface.register_map import (
     Status,
     load_register_map,
 )
-from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
+from firmware_iface.unit import HEARTBEAT_FAULT, axis_fault
 from sim import motion
 from sim.clock import SimClock
 from sim.imperfections import UnitImperfections
@@ -48,7 +48,7 @@ from xmalign.errors import (
     OutOfRangeError,
 )
 from xmalign.geometry import Vec, rot_x, rot_y, rot_z
-from xmalign.roles import Clock
+from xmalign.roles import Clock, move_axes
 
 log = logging.getLogger(__name__)
 
@@ -324,7 +324,7 @@ class SimUnit:
         rng = np.random.default_rng(seed)
         offsets = np.resize(np.asarray(self.imperfections.zero_offsets_rad, dtype=float), 3)
         if kind == "launch":
-            offsets[0] = 0.0  # c1 is absorbed in gamma (CONVENTIONS.md)
+            offsets[0] = 0.0  # c1 is absorbed in gamma (docs/conventions.md)
         self.axes = tuple(
             SimAxis(
                 name,
@@ -689,11 +689,14 @@ class _SimRotaryAxis:
             raise axis_fault(label, self._axis.fault_code)
 
 
-class SimPositioningUnit(AxisGroup):
+class SimPositioningUnit:
     """In-process ``PositioningUnit`` on a :class:`SimUnit` (reported angles, rad).
 
-    It plays the host: it changes the unit's heartbeat from every call (at most
-    every half heartbeat period of the unit's clock) and, like the drivers opened
+    It implements the role on its own, not through the drivers' ``AxisGroup``, so
+    the unit contract suite (tests/firmware_iface/test_unit_contract.py) compares
+    two implementations and catches a bug they would share. It plays the host: it
+    changes the unit's heartbeat from every call (at most every half heartbeat
+    period of the unit's clock) and, like the drivers opened
     from a ``units.yaml``, keeps a background heartbeat until :meth:`stop_heartbeat`
     (a host that stalls or closes). Opening it clears a heartbeat fault left from
     power-on, as the drivers do when they connect.
@@ -709,7 +712,23 @@ class SimPositioningUnit(AxisGroup):
         self._axes = tuple(_SimRotaryAxis(self, n) for n in range(1, len(unit.axes) + 1))
         self.beat()
         self.unit.keep_heartbeat(True)
-        self.clear_heartbeat_faults()
+        for axis in self._axes:  # a heartbeat fault left from power-on; the axes stay locked
+            if axis.fault_code() == HEARTBEAT_FAULT:
+                axis.reset_fault()
+
+    @property
+    def axes(self) -> tuple[_SimRotaryAxis, ...]:
+        return self._axes
+
+    def lock(self) -> None:
+        """Stop every axis and apply the brakes."""
+        for axis in self._axes:
+            axis.lock()
+
+    def reset_faults(self) -> None:
+        """Reset every axis's fault (as the drivers' ``reset_faults``); the axes stay locked."""
+        for axis in self._axes:
+            axis.reset_fault()
 
     def stop_heartbeat(self) -> None:
         """Stop the background heartbeat; the calls still beat."""
@@ -737,4 +756,4 @@ class SimPositioningUnit(AxisGroup):
         if targets.shape == (len(self._axes),):
             for axis, target in zip(self._axes, targets, strict=True):
                 axis._axis.check_target(float(target))
-        super().move_to(targets, timeout_s)
+        move_axes(self._axes, targets, timeout_s, self.device_name, self.clock)

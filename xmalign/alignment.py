@@ -541,7 +541,7 @@ _JOG_PATTERN = re.compile(r"^\s*a([1-5])\s+([+-]?\d+(?:\.\d*)?|[+-]?\.\d+)\s*$",
 
 @dataclass(frozen=True)
 class JogCommand:
-    """Move axis ``axis`` (1..5, CONVENTIONS.md numbering) by ``step_rad``."""
+    """Move axis ``axis`` (1..5, docs/conventions.md numbering) by ``step_rad``."""
 
     axis: int
     step_rad: float

@@ -21,7 +21,7 @@ which ``post`` fits with its own setup terms.
 
 The interferometer reports in its own frame, the launch head's (``u`` from the
 launch unit towards the receiver), with the raw displacement since its datum;
-the rows are written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
+the rows are written in the line frame of docs/conventions.md, with ``linear_um`` the actual
 minus the commanded displacement from the run's first point (where the datum
 is set).
 """
@@ -144,7 +144,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
     """Axes of the interferometer's frame (the launch head's) for a line, rows u, v, w, (3, 3).
 
     Taken from the receiver's commanded angles: aligned, its optical axis is
-    ``-u`` and its "up" is the launch head's ``w`` (CONVENTIONS.md, roll 0).
+    ``-u`` and its "up" is the launch head's ``w`` (docs/conventions.md, roll 0).
     For any line that is not vertical this is the line frame of the beam.
     """
     phi3, phi4 = line.receiver_rad[:2]
@@ -154,7 +154,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
 
 
 def line_channels(reading: InterferometerReading, head2line: Vec, commanded_mm: float) -> Vec:
-    """Six channels of CONVENTIONS.md in the line frame from a head-frame reading, (6,).
+    """Six channels of docs/conventions.md in the line frame from a head-frame reading, (6,).
 
     ``head2line`` (3, 3) turns head-frame components into line-frame ones; the
     straightness is a vector across the beam and the angles a rotation vector,
@@ -247,6 +247,11 @@ class CalibrationRun:
     #: The beam was lost since the last capture (seen while the machine moved): the
     #: interferometer lost its count, so the next capture goes as after a beam lost there.
     count_lost: bool = field(default=False, init=False)
+    #: The clock when the run started: rows record their time from here (``time_s``).
+    _started_s: float = field(default=0.0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._started_s = self.clock.now()
 
     def line_is_done(self, line: PlanLine) -> bool:
         return all(point.key in self.done for point in capture_sequence(line))
@@ -400,6 +405,7 @@ class CalibrationRun:
             segment=self.setups[line.id].segment if line.id in self.setups else 0,
             environment=sample.values if sample else {},
             environment_flags=sample.flag_text if sample else "",
+            time_s=self.clock.now() - self._started_s,
         )
         self.record(row)
         self.done.add(point.key)
@@ -1037,7 +1043,10 @@ def _open_locked(
     if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        writer = MeasurementWriter.create(path, plan_sha256(plan), columns, sim_seed)
+        inputs = [plan.source] if plan.source is not None else []
+        writer = MeasurementWriter.create(
+            path, plan_sha256(plan), columns, sim_seed=sim_seed, inputs=inputs
+        )
         return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
     _check_seed(path, recorded.sim_seed, sim_seed)

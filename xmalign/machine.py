@@ -1,4 +1,4 @@
-"""The machine description (YAML) of FORMATS.md, validated with pydantic.
+"""The machine description (YAML) of docs/formats.md, validated with pydantic.
 
 Besides the keys of the spec, two optional sections are xmalign's own
 (documented in docs/conventions-notes.md): ``uncertainty`` (the a-priori
@@ -26,6 +26,7 @@ from xmalign.formats.common import (
     Distance_mm,
     StrictFileModel,
     Vector3_mm,
+    format_problem,
     located,
     read_yaml,
     validate,
@@ -35,6 +36,8 @@ from xmalign.geometry import Vec
 AxisName = Literal["X", "Y", "Z"]
 AXES: tuple[AxisName, AxisName, AxisName] = ("X", "Y", "Z")
 CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
+#: The machine file's format; ``format:`` is optional (absent: version 1).
+MACHINE_FORMAT = "xmalign.machine/1"
 #: The series of each controller family xmalign knows (``cnc.series``); the first is the
 #: default, said in every file the writer makes (docs/controllers.md).
 SERIES: dict[str, tuple[str, ...]] = {
@@ -258,8 +261,12 @@ class Cnc(_Strict):
 
 
 class Machine(_Strict):
-    """A machine tool as xmalign sees it; lengths mm, angles as named."""
+    """A machine tool as xmalign sees it; lengths mm, angles as named.
 
+    ``format`` (optional, :data:`MACHINE_FORMAT`): a file without it is version 1.
+    """
+
+    format: str | None = None
     name: str
     serial: str | None = None
     chain: str
@@ -332,6 +339,14 @@ class Machine(_Strict):
         )
         text = json.dumps(geometry, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    @field_validator("format")
+    @classmethod
+    def _known_format(cls, found: str | None) -> str | None:
+        problem = None if found is None else format_problem(found, MACHINE_FORMAT)
+        if problem is not None:
+            raise ValueError(problem)
+        return found
 
     @field_validator("chain")
     @classmethod

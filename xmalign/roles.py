@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -30,7 +30,7 @@ CHANNELS = (
 
 @dataclass(frozen=True)
 class InterferometerReading:
-    """One six-channel reading at the receiver cp, in the line frame (CONVENTIONS.md).
+    """One six-channel reading at the receiver cp, in the line frame (docs/conventions.md).
 
     ``channels`` holds the six values in the order of :data:`CHANNELS`
     (um and urad); ``beam_ok`` is False when any channel is out of range.
@@ -119,7 +119,7 @@ class Interferometer(Protocol):
 
     ``read`` gives the raw channels: ``linear_um`` is the displacement along the
     beam since the last :meth:`zero` (actual, not an error: the run step
-    subtracts the commanded displacement), the other five as in CONVENTIONS.md
+    subtracts the commanded displacement), the other five as in docs/conventions.md
     in the frame of the beam (``u`` along the beam from the launch unit).
     """
 
@@ -252,3 +252,17 @@ def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading
         channels=channels,
         beam_ok=all(r.beam_ok for r in readings),
     )
+
+
+class ClosesOnExit:
+    """Mixin: an object holding a connection or a file is a context manager that
+    calls its ``close()`` on exit (``with open_devices(...) as devices:``)."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

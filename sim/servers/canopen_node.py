@@ -357,7 +357,7 @@ RPDOS: dict[int, tuple[struct.Struct, Callable[[Cia402Axis, bytes], None]]] = {
 class CanopenUnitServer:
     """Every axis of the given units as CiA 402 nodes on one CAN bus.
 
-    Node ids are the CONVENTIONS.md axis numbers (launch a1, a2 = 1, 2;
+    Node ids are the docs/conventions.md axis numbers (launch a1, a2 = 1, 2;
     receiver a3, a4, a5 = 3, 4, 5) plus ``node_base``. The host's heartbeat
     (node 127, CAN id 0x77F) feeds every unit's watchdog.
 

@@ -345,7 +345,7 @@ _UNITS_CASES = [
     ("timeout-negative", replace(U, "move_s: 30.0", "move_s: -1"), "timeouts.move_s"),
     ("timeout-a-day", replace(U, "move_s: 30.0", "move_s: 86400"), "timeouts.move_s"),
     ("no-format", replace(U, "format: xmalign.units/1", "formt: xmalign.units/1"), "format"),
-    ("format-2", replace(U, "format: xmalign.units/1", "format: xmalign.units/2"), "version"),
+    ("format-2", replace(U, "format: xmalign.units/1", "format: xmalign.units/2"), "newer xmalign"),
     ("rate-nan", replace(U, "rate_hz: 50", "rate_hz: .nan"), "rate_hz"),
 ]
 
@@ -418,7 +418,7 @@ _POSE_CASES = [
         replace(P, '"method": "joint",', '"method": "joint", "method": "x",'),
         "method",
     ),
-    ("format-9", edit_json(P, sets("format", value="xmalign.launch-pose/9")), "version '9'"),
+    ("format-9", edit_json(P, sets("format", value="xmalign.launch-pose/9")), "reads up to /1"),
 ]
 
 L = "plan.json"

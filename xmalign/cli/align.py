@@ -209,8 +209,7 @@ def _align_live(
     from firmware_iface.config import load_units_config, open_devices
 
     config = load_units_config(config_path)
-    live = open_devices(config, machine)
-    try:
+    with open_devices(config, machine) as live:
         devices = AlignmentDevices(
             live.launch, live.receiver, live.interferometer, WallClock(), distance_mm
         )
@@ -218,5 +217,3 @@ def _align_live(
             if manual:
                 manual_alignment(devices, machine, config.timeouts.move_s)
         run_fine_alignment(devices, settings, "wall time")
-    finally:
-        live.close()

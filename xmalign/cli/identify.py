@@ -27,6 +27,7 @@ from xmalign.cli.common import (
 from xmalign.errors import InputError
 from xmalign.formats.common import refuse_overwriting, refuse_replacing
 from xmalign.formats.pose import write_pose
+from xmalign.formats.provenance import sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
@@ -197,8 +198,7 @@ def _live_identification(
     config = load_units_config(config_path)
     design = design_step(machine, alignments)
     _print_design_warnings(design.warnings)
-    live = open_devices(config, machine)
-    try:
+    with open_devices(config, machine) as live:
         clock = WallClock()
         devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
         jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
@@ -214,8 +214,6 @@ def _live_identification(
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
             )
-    finally:
-        live.close()
 
 
 def _print_design_warnings(warnings: list[str]) -> None:
@@ -342,7 +340,8 @@ def identify_command(
         result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
-        write_pose(out, result.to_pose())
+        session_used = input or (session_path if sim else session_file)
+        write_pose(out, result.to_pose(), sources(session=session_used, machine=machine))
         console.print(f"pose written to {out}", markup=False)
     else:
         console.print(

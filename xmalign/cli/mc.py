@@ -28,6 +28,8 @@ from xmalign.cli.common import (
 from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
 from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text, refuse_overwriting
+from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.studies import study_document
 
 if TYPE_CHECKING:
     from sim.mc import StrategyResult, StudySettings
@@ -145,10 +147,12 @@ def _plot(draw: Callable[[], Path | None], name: str) -> Path | None:
 
 
 def _results_json(
-    results: Sequence[StrategyResult], settings: StudySettings, machine_name: str
+    results: Sequence[StrategyResult],
+    settings: StudySettings,
+    machine_name: str,
+    inputs: Sequence[FileSource] = (),
 ) -> str:
-    document = {
-        "format": "xmalign-mc/1",
+    body = {
         "machine": machine_name,
         "mode": settings.mode,
         "digits": settings.digits,
@@ -181,7 +185,7 @@ def _results_json(
             for r in results
         ],
     }
-    return json.dumps(document, indent=2) + "\n"
+    return json.dumps(study_document(body, inputs), indent=2) + "\n"
 
 
 def mc(
@@ -284,7 +288,8 @@ def mc(
     _refuse_if_every_trial_failed(results)
     # the results first: nothing after this may lose minutes of trials
     output_folder(out, "--out")
-    atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
+    document = _results_json(results, settings, chosen_machine.name, sources(machine=machine))
+    atomic_write_text(out / "mc.json", document)
     console.print(_table(results, tolerance_um, mode))
     written = [
         out / "mc.json",

@@ -31,14 +31,15 @@ from xmalign.formats.common import (
     refuse_replacing,
     same_file,
 )
-from xmalign.formats.error_tables import error_tables_to_csv, read_error_tables
+from xmalign.formats.error_tables import error_tables_text, read_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
+from xmalign.formats.provenance import FileSource, sources
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station, post_stations
 from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
-from xmalign.steps import comp_step
+from xmalign.steps import as_left_step, comp_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -207,7 +208,8 @@ def post(
             verification = _post_verification(
                 verify_plan or plan[0], verify_data, machine, applied.mean
             )
-        files = {out: error_tables_to_csv(result.fit.tables).encode("utf-8")}
+        inputs = _inputs(plan, data, machine) + _instrument_inputs(tracker, tracer)
+        files = {out: error_tables_text(result.fit.tables, inputs, machine_).encode("utf-8")}
         if report is not None:
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
@@ -246,12 +248,25 @@ def post(
     )
 
 
+def _inputs(plans: list[Path], data: list[Path], machine: Path | None) -> list[FileSource]:
+    """The files error tables are made from: each station's measurements and plan, the machine."""
+    stations = [sources(measurements=d, plan=p) for p, d in zip(plans, data, strict=True)]
+    return [source for pair in stations for source in pair] + sources(machine=machine)
+
+
+def _instrument_inputs(tracker: list[Path], tracer: list[Path]) -> list[FileSource]:
+    """The tracker and tracer files the tables were made from."""
+    return [FileSource.of("tracker", p) for p in tracker] + [
+        FileSource.of("tracer", p) for p in tracer
+    ]
+
+
 def _post_verification(
     plan: Path, data: Path, machine: Path | None, applied: ErrorTables
 ) -> PostResult:
     """The verification run posted on its own, with the tables ``applied`` during it."""
-    machine_, stations = _stations([plan], [data], machine)
-    return post_stations(machine_, stations, applied)
+    plan_ = read_plan(plan)
+    return as_left_step(machine_for_plan(machine, plan_, plan), plan_, data, applied)
 
 
 def _as_left(machine: Machine, result: PostResult, verification: PostResult) -> RichTable:
@@ -298,12 +313,14 @@ def comp(
     name = controller or machine_.controller
     tables = read_error_tables(errors)
     tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
+    machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 
         files, done = volumetric_files(tables, machine_, ini, out)
         _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini}, force)
         console.print(done, highlight=False)
+        _warn(machine_notes)
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
@@ -336,6 +353,7 @@ def comp(
         )
     for line in result.loading.lines():
         console.print(line, highlight=False)
+    _warn(machine_notes)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
@@ -348,6 +366,11 @@ def comp(
             f" ({fit.after_um:.2f} of {fit.before_um:.2f} um left)",
             highlight=False,
         )
+
+
+def _warn(warnings: list[str]) -> None:
+    for warning in warnings:
+        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
 
 
 def _check_outputs(inputs: Mapping[str, PathsOf], paths: list[Path], force: bool) -> None:

@@ -34,13 +34,12 @@ from xmalign.formats.common import (
     atomic_write_text,
     refuse_overwriting,
     refuse_replacing,
-    write_json,
 )
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
+from xmalign.formats.provenance import sources
+from xmalign.formats.studies import write_design
 from xmalign.machine import Machine
-
-DESIGN_FORMAT = "xmalign.identify-design/1"
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -160,7 +159,7 @@ def program(
         highlight=False,
     )
     if plan_out is not None:
-        write_plan(plan_out, measurement.plan)
+        write_plan(plan_out, measurement.plan, sources(pose=pose, machine=machine))
     if out is not None:
         atomic_write_text(out, text)
     else:
@@ -235,14 +234,12 @@ def plan_identify(
         f" z {1e3 * std[2]:.1f} um, gamma {1e6 * std[3]:.1f} urad"
     )
     if out is not None:
-        write_json(
+        write_design(
             out,
-            {
-                "format": DESIGN_FORMAT,
-                "machine": machine_model.name,
-                "machine_mm": design.machine_mm.tolist(),
-                "predicted_covariance": design.pose_covariance.tolist(),
-            },
+            machine_model.name,
+            design.machine_mm,
+            design.pose_covariance,
+            sources(machine=machine),
         )
 
 

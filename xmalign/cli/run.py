@@ -221,12 +221,10 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
     )
-    try:
+    with devices:
         yield Measurement(
             lambda output: _measure(output, plan, lambda: capture(output)), environment
         )
-    finally:
-        devices.close()
 
 
 def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) -> None:

@@ -13,7 +13,7 @@ From the ISG / TF5280 "Volumetric compensation" documentation:
 The kernel builds the compensation from the ISO 230 error model itself, so the
 values are errors, not corrections. They are ISO 230-1 errors of each axis's
 own motion: a workpiece-side axis's tables are written with the sign reversed
-(CONVENTIONS.md states every error as tool relative to workpiece). The chain
+(docs/conventions.md states every error as tool relative to workpiece). The chain
 goes into the header comment; the start-up list (``vol_comp[i].file_name``,
 axis assignment, ``Chain``, ``max_records``) is configured in the CNC.
 """

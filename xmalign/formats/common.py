@@ -274,7 +274,7 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
         The file cannot be read, is not JSON (with line and column), repeats a
         key or holds a non-finite number.
     FormatError
-        The format name or version is not ``expected_format``.
+        Not the format of ``expected_format`` or a newer version of it.
     """
     path = Path(path)
     text = read_text(path)
@@ -297,25 +297,34 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
     return data
 
 
-def check_format(found: object, expected_format: str, source: str) -> None:
-    """Refuse a missing, foreign or newer ``format`` value with a clear message."""
-    name, _, version = expected_format.partition("/")
+def format_problem(found: str, expected_format: str) -> str | None:
+    """What keeps a reader of ``expected_format`` (``name/N``) from reading ``found``.
+
+    Versions 1 to N are read (each reader migrates the older ones); a foreign
+    name, a version that is not a whole number or a newer one is a problem.
+    """
+    name, _, newest = expected_format.partition("/")
+    found_name, _, found_version = found.partition("/")
+    if found_name != name:
+        return f"'{found}' is not a {name} file"
+    if not found_version.isdigit() or int(found_version) < 1:
+        return f"'{found}': the version is not a whole number"
+    if int(found_version) > int(newest):
+        return f"written by a newer xmalign: format {found}, this one reads up to /{newest}"
+    return None
+
+
+def check_format(found: object, expected_format: str, source: str) -> int:
+    """The version of a ``format`` value; refuse a missing, foreign or newer one
+    (:func:`format_problem`) with one line naming the file."""
     if found is None:
         raise FormatError(
             located(source, "key 'format'", f"missing (expected '{expected_format}')")
         )
-    found_name, _, found_version = str(found).partition("/")
-    if found_name != name:
-        raise FormatError(located(source, "key 'format'", f"'{found}' is not a {name} file"))
-    if found_version != version:
-        raise FormatError(
-            located(
-                source,
-                "key 'format'",
-                f"version '{found_version}' of {name} is not supported"
-                f" (this xmalign reads version {version})",
-            )
-        )
+    problem = format_problem(str(found), expected_format)
+    if problem is not None:
+        raise FormatError(located(source, "key 'format'", problem))
+    return int(str(found).partition("/")[2])
 
 
 def _new_file_mode() -> int:

@@ -1,8 +1,8 @@
-"""Measurement CSV of FORMATS.md (output of ``run``, input of ``post``).
+"""Measurement CSV of docs/formats.md (output of ``run``, input of ``post``).
 
 Rows are appended, flushed and synced one at a time, so an interrupted run
 loses nothing; the reader names the line of any row it cannot use. Besides the
-columns of FORMATS.md a file written by ``xmalign run`` carries (see
+columns of docs/formats.md a file written by ``xmalign run`` carries (see
 docs/measurement-files.md):
 
 - a first comment line ``# xmalign measurements plan_sha256=<hex>``, the
@@ -14,6 +14,13 @@ docs/measurement-files.md):
   each segment with its own setup terms);
 - one ``# setup`` comment line per alignment of a line, with the locked unit
   angles (a resume keeps the setup when the units still stand there).
+
+Version 2 (:data:`MEASUREMENTS_FORMAT`) adds, after that first line, the
+history preamble of :mod:`xmalign.formats.provenance` (format, software,
+``created_utc``, the plan file's SHA-256), a ``time_s`` column (seconds on the
+run's clock since the run, or its resumption, started: each start writes a
+``# run started_utc=...`` line) and nothing else; version 1 files (no
+``# format:`` line, no ``time_s``) are read as they are.
 
 Lines starting with ``#`` are comments for every reader of the file.
 """
@@ -38,6 +45,13 @@ import numpy as np
 from xmalign.errors import FormatError, InputError
 from xmalign.formats.common import os_problem, refuse_special, sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
+from xmalign.formats.provenance import (
+    FileSource,
+    Provenance,
+    csv_preamble,
+    now_utc,
+    read_csv_preamble,
+)
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
 
@@ -54,8 +68,13 @@ HEADER = (
     "z_mm",
     *CHANNELS,
 )
+MEASUREMENTS_FORMAT = "xmalign.measurements/2"
+#: What a file without a ``# format:`` line is (written before files carried history).
+FIRST_FORMAT = "xmalign.measurements/1"
 SEGMENT_COLUMN = "segment"
-#: Optional environment columns of FORMATS.md with the range a workshop can have.
+#: Seconds on the run's clock since the run (or its resumption) started.
+TIME_COLUMN = "time_s"
+#: Optional environment columns of docs/formats.md with the range a workshop can have.
 ENVIRONMENT_LIMITS = {
     "air_temp_c": (-20.0, 60.0),
     "air_pressure_hpa": (500.0, 1200.0),
@@ -65,9 +84,9 @@ ENVIRONMENT_LIMITS = {
 #: xmalign's own: which environment values of the row were held at their last good
 #: reading, and why (empty when all were fresh); written with the environment columns.
 FLAGS_COLUMN = "environment_flags"
-OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
+OPTIONAL_COLUMNS = (SEGMENT_COLUMN, TIME_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
 #: What ``xmalign run`` writes.
-WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN)
+WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN, TIME_COLUMN)
 #: The largest travel a machine can have, mm (commanded points and targets).
 MAX_COORDINATE_MM = 100_000.0
 #: A recorded point farther than this from its plan target belongs to another plan, mm.
@@ -76,6 +95,7 @@ PLAN_KEY = "plan_sha256"
 SEED_KEY = "sim_seed"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
+RUN_START_TAG = "# run started_utc="
 
 
 @dataclass(frozen=True)
@@ -103,7 +123,8 @@ class MeasurementRow:
 
     ``segment`` numbers the line's setup (0 unless the units were re-aligned on
     a resume); ``environment`` holds the optional environment columns present and
-    ``environment_flags`` says which of them were held at their last good value.
+    ``environment_flags`` says which of them were held at their last good value;
+    ``time_s`` when the point was captured, s since the run started (None: not recorded).
     """
 
     line: str
@@ -116,6 +137,7 @@ class MeasurementRow:
     segment: int = 0
     environment: Mapping[str, float] = field(default_factory=dict)
     environment_flags: str = ""
+    time_s: float | None = None
     #: Line of the file the row was read from (0: not read from a file), for messages.
     file_line: int = field(default=0, compare=False)
 
@@ -141,6 +163,7 @@ class MeasurementRow:
             )
         )
         values[SEGMENT_COLUMN] = str(self.segment)
+        values[TIME_COLUMN] = "" if self.time_s is None else f"{self.time_s:.3f}"
         values.update({name: repr(float(v)) for name, v in self.environment.items()})
         values[FLAGS_COLUMN] = self.environment_flags
         missing = [name for name in columns if name not in values]
@@ -189,6 +212,7 @@ class MeasurementFile:
     torn: TornRow | None = None
     #: The ``--seed`` of a run on the virtual machine (None: a live run, or not recorded).
     sim_seed: int | None = None
+    history: Provenance | None = None
 
     @property
     def environment_columns(self) -> tuple[str, ...]:
@@ -250,6 +274,7 @@ class _Reader:
         self.limits = limits
         self.file = MeasurementFile(path, [], columns=())
         self.seen: dict[tuple[str, int, str, int], int] = {}
+        self.preamble: list[str] = []
 
     def where(self, number: int) -> str:
         return f"{self.path}: line {number}"
@@ -264,6 +289,8 @@ class _Reader:
                     self.file.sim_seed = self._seed(value, number)
         elif text.startswith(SETUP_TAG + " "):
             self.file.setups.append(self._setup(text, number))
+        if not self.file.columns:
+            self.preamble.append(text)
 
     def _seed(self, value: str, number: int) -> int:
         if not value.isdigit():
@@ -299,6 +326,9 @@ class _Reader:
                 f"{self.where(number)}: {what}; the header must be {','.join(HEADER)}"
                 f" (optionally followed by {', '.join(OPTIONAL_COLUMNS)})"
             )
+        self.file.history = read_csv_preamble(
+            self.preamble, MEASUREMENTS_FORMAT, str(self.path), FIRST_FORMAT
+        )
         self.file.columns = columns
 
     def row(self, fields: list[str], number: int) -> MeasurementRow:
@@ -372,6 +402,7 @@ def _parse_row(values: Mapping[str, str], where: str) -> MeasurementRow:
             name: _number(values, name, where) for name in ENVIRONMENT_LIMITS if name in values
         },
         environment_flags=values.get(FLAGS_COLUMN, ""),
+        time_s=_number(values, TIME_COLUMN, where) if values.get(TIME_COLUMN) else None,
     )
 
 
@@ -497,13 +528,16 @@ class MeasurementWriter:
         path: str | Path,
         plan_sha256: str | None = None,
         environment_columns: tuple[str, ...] = (),
+        *,
         sim_seed: int | None = None,
+        inputs: Iterable[FileSource] = (),
     ) -> MeasurementWriter:
         """Start a new file (an existing empty file counts as new, nothing else does).
 
         ``environment_columns`` (names of :data:`ENVIRONMENT_LIMITS`) are written
         after the channels, with the flags column, when the run samples the environment;
         ``sim_seed`` is the virtual machine's seed of a simulated run.
+        ``inputs`` (the plan file) go into the history preamble.
         """
         path = Path(path)
         unknown = [name for name in environment_columns if name not in ENVIRONMENT_LIMITS]
@@ -527,7 +561,9 @@ class MeasurementWriter:
         writer = cls(path, fd, columns, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
         preamble += f" {SEED_KEY}={sim_seed}" if sim_seed is not None else ""
-        writer._put(preamble + "\n" + ",".join(columns) + "\n")
+        history = csv_preamble(MEASUREMENTS_FORMAT, inputs)
+        writer._put(preamble + "\n" + history + ",".join(columns) + "\n")
+        writer.note_start()
         sync_folder(path.parent)
         return writer
 
@@ -547,6 +583,7 @@ class MeasurementWriter:
             except OSError as error:
                 writer.close()
                 raise _write_error(path, error) from error
+        writer.note_start()
         return writer
 
     def _put(self, text: str) -> None:
@@ -572,6 +609,10 @@ class MeasurementWriter:
         self._put(_csv_line(row.fields(self.columns)))
         self.saved += 1
 
+    def note_start(self) -> None:
+        """Mark where a run (or its resumption) starts: ``time_s`` counts from here."""
+        self._put(f"{RUN_START_TAG}{now_utc()}\n")
+
     def note_setup(self, setup: LineSetup) -> None:
         """Record a line's alignment (the locked unit angles) before its rows."""
         self._put(setup.comment() + "\n")
@@ -595,7 +636,10 @@ def _csv_line(fields: list[str]) -> str:
 
 
 def write_measurements(
-    path: str | Path, rows: Iterable[MeasurementRow], plan_sha256: str | None = None
+    path: str | Path,
+    rows: Iterable[MeasurementRow],
+    plan_sha256: str | None = None,
+    inputs: Iterable[FileSource] = (),
 ) -> None:
     """Write a new measurement CSV (refused where a non-empty file exists).
 
@@ -604,7 +648,7 @@ def write_measurements(
     rows = list(rows)
     present = rows[0].environment if rows else {}
     columns = tuple(name for name in ENVIRONMENT_LIMITS if name in present)
-    with MeasurementWriter.create(path, plan_sha256, columns) as writer:
+    with MeasurementWriter.create(path, plan_sha256, columns, inputs=inputs) as writer:
         for row in rows:
             writer.append(row)
 

@@ -1,9 +1,14 @@
-"""Measurement plan (``xmalign.plan/1``) of FORMATS.md."""
+"""Measurement plan (``xmalign.plan/1``) of docs/formats.md.
+
+The history keys (:mod:`xmalign.formats.provenance`) are kept apart from the
+plan's content: they are not part of its identity (``plan_sha256``).
+"""
 
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -22,6 +27,13 @@ from xmalign.formats.common import (
     read_json,
     validate,
     write_json,
+)
+from xmalign.formats.provenance import (
+    FileSource,
+    Provenance,
+    json_history,
+    read_json_history,
+    without_history,
 )
 from xmalign.geometry import Vec
 
@@ -161,11 +173,15 @@ class PlanLine:
 
 @dataclass
 class Plan:
+    """A measurement plan; ``source`` and ``history`` are set when it was read from a file."""
+
     machine: str
     receiver_offset_mm: Vec
     spindle_angle_rad: float
     lines: list[PlanLine]
     extra: dict[str, Any] = field(default_factory=dict)
+    source: FileSource | None = field(default=None, compare=False)
+    history: Provenance | None = field(default=None, compare=False)
 
     def line(self, line_id: str) -> PlanLine:
         for line in self.lines:
@@ -175,7 +191,9 @@ class Plan:
 
 
 def parse_plan(data: dict, source: str) -> Plan:
-    model = validate(_PlanModel, data, source)
+    """A Plan from a decoded document (format checked); history keys kept apart."""
+    history = read_json_history(data, source)
+    model = validate(_PlanModel, without_history(data), source)
     lines = [
         PlanLine(
             id=m.id,
@@ -198,11 +216,15 @@ def parse_plan(data: dict, source: str) -> Plan:
         spindle_angle_rad=math.radians(model.spindle_angle_deg),
         lines=lines,
         extra=dict(model.model_extra or {}),
+        history=history,
     )
 
 
 def read_plan(path: str | Path) -> Plan:
-    return parse_plan(read_json(path, PLAN_FORMAT), str(path))
+    """Read and validate a plan file; ``source`` records its SHA-256."""
+    plan = parse_plan(read_json(path, PLAN_FORMAT), str(path))
+    plan.source = FileSource.of("plan", path)
+    return plan
 
 
 def _floats(values: Vec) -> list[float]:
@@ -210,6 +232,7 @@ def _floats(values: Vec) -> list[float]:
 
 
 def plan_to_dict(plan: Plan) -> dict:
+    """The plan's content as JSON (no history: this is what its identity is made of)."""
     return {
         "format": PLAN_FORMAT,
         "machine": plan.machine,
@@ -235,10 +258,11 @@ def plan_to_dict(plan: Plan) -> dict:
     }
 
 
-def write_plan(path: str | Path, plan: Plan) -> None:
-    """Write a plan; a line id the reader would refuse (:func:`line_id_problem`) is refused."""
+def write_plan(path: str | Path, plan: Plan, inputs: Iterable[FileSource] = ()) -> None:
+    """Write the plan with its history (``inputs``: the pose and machine files); a line id
+    the reader would refuse (:func:`line_id_problem`) is refused."""
     for number, line in enumerate(plan.lines):
         problem = line_id_problem(line.id)
         if problem is not None:
             raise OutputError(located(path, f"key 'lines.{number}.id'", problem))
-    write_json(path, plan_to_dict(plan))
+    write_json(path, json_history(PLAN_FORMAT, inputs) | plan_to_dict(plan))

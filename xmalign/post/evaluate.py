@@ -235,7 +235,7 @@ def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: 
 
 
 def compensate(machine: Machine, station: Station) -> StationCompensation:
-    """The station's readings compensated for air, dead path and material (FORMATS.md).
+    """The station's readings compensated for air, dead path and material (docs/formats.md).
 
     A file without environment columns is taken as already compensated, at
     20 °C. Drift-check rows are taken out of the rows and checked.

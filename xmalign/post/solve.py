@@ -3,14 +3,14 @@
 Follows seed 000 (Montavon et al.): every error motion is a linear B-spline
 (triangular basis functions, its Eq. 8-10) over the compensation points, so the
 channels are linear in the table values (its Eq. 12-14). The sensitivities come
-from the rigid-body model of CONVENTIONS.md through
+from the rigid-body model of docs/conventions.md through
 :meth:`xmalign.rigid_body.Chain.lever_arms` (``d(dp)/d(eps_K) = -[r_K]x``) and
 :func:`xmalign.rigid_body.squareness_deviation`. The setup terms of
 :mod:`xmalign.post.setup_terms` are nuisance columns of the same system. The
 system is weighted with the channel standard uncertainties (its Eq. 19-21) and
 the covariance of the table values propagated from them (its Eq. 22, GUM).
 
-Table conventions (CONVENTIONS.md) are imposed by leaving columns out: the
+Table conventions (docs/conventions.md) are imposed by leaving columns out: the
 positioning and angular tables have no value at their first compensation point,
 the straightness tables none at their first and last; these are exactly the
 directions the six lines cannot see (a rigid motion of the whole machine and
@@ -215,7 +215,7 @@ def _slope_matrix(knots_mm: Vec) -> Vec:
 
 
 def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
-    """Knots of one mean table that get a column (table conventions of CONVENTIONS.md)."""
+    """Knots of one mean table that get a column (table conventions of docs/conventions.md)."""
     free = np.ones(n_knots, dtype=bool)
     free[0] = False
     if error < 3 and error != AXIS_INDEX[axis]:
