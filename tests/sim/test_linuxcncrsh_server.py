@@ -50,9 +50,10 @@ def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> Non
     assert np.allclose(client.position_mm(), [100, 50, -10]) and client.is_standstill()
     client.resume()
     _wait(lambda: client.position_mm()[0] > 110)
-    client.hold()  # feed hold mid-move: the machine stops where it is
+    client.hold()  # feed hold mid-move: the machine stops where it is (as LinuxCNC's status,
+    # the program state follows the acknowledged command a moment later)
+    _wait(lambda: client.program_state() == "paused" and client.is_standstill())
     held = client.position_mm()
-    assert client.program_state() == "paused" and client.is_standstill()
     time.sleep(0.1)
     assert np.array_equal(client.position_mm(), held)
     client.resume()

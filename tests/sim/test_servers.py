@@ -122,14 +122,14 @@ def test_canopen_nodes_move_refuse_and_watch_the_heartbeat():
         assert server.node_ids == [1, 2, 3, 4, 5]
         node = canopen.RemoteNode(4, str(EDS_PATH))
         network.add_node(node)
-        assert node.sdo[0x6041].raw & 0x4F == 0x40  # switch on disabled
-        node.sdo[0x6040].raw = 0x06
-        node.sdo[0x6040].raw = 0x07
-        assert node.sdo[0x6041].raw & 0x6F == 0x21  # no host heartbeat: no further than ready
+        # The host heartbeat from the start: on a busy computer the 500 ms of the watchdog
+        # after power-on may be gone before the first SDO answers (what a unit does without
+        # a heartbeat: test_cia402_node.py, on a virtual clock).
         beat = network.send_periodic(0x77F, [0x05], 0.1)
         time.sleep(0.15)
         if node.sdo[0x6041].raw & 0x08:  # powered on long ago: the watchdog's fault 4
             node.sdo[0x6040].raw = 0x80
+        assert node.sdo[0x6041].raw & 0x4F == 0x40  # switch on disabled
         for word in (0x06, 0x07, 0x0F):
             node.sdo[0x6040].raw = word
         assert node.sdo[0x6041].raw & 0x6F == 0x27  # operation enabled
@@ -180,7 +180,8 @@ def test_interferometer_on_a_pty(machine):
         samples = [line for line in lines if isinstance(line, InterferometerReading)]
         times = np.array([s.time_s for s in samples])
         assert len(samples) >= 39 and np.all(np.diff(times) > 0)
-        assert 0.1 < times[-1] - times[0] < 0.5  # about 200 samples/s
+        # about 200 samples/s: the typical spacing (a busy computer delays a few samples)
+        assert 0.0025 < np.median(np.diff(times)) < 0.01
         port.write(b"STREAM OFF\n")
     finally:
         port.close()
