@@ -98,7 +98,7 @@ class AgentLink:
                 status, body = int(reply.status), reply.read()
         except urllib.error.HTTPError as error:  # an MTConnectError document comes with it
             status, body = error.code, error.read()
-        except (TimeoutError, socket.timeout) as error:
+        except TimeoutError as error:
             raise DeviceTimeoutError(
                 f"{self.name} did not answer {path} within {self.timeout_s:g} s"
             ) from error

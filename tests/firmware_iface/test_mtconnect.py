@@ -82,7 +82,11 @@ def test_units_declared_by_the_agent_win_over_native_units(vmc_agent: TestAgent)
     ("device", "axes", "message"),
     [
         (None, ("X", "Y", "Z"), "expected one device, the agent has: VMC-3Axis, Lathe"),
-        ("Lathe", ("X", "Y", "Z"), "no actual machine POSITION of a linear axis Y (linear axes: X, Z)"),
+        (
+            "Lathe",
+            ("X", "Y", "Z"),
+            "no actual machine POSITION of a linear axis Y (linear axes: X, Z)",
+        ),
         ("VMC-3Axis", ("X", "Y", "W"), "linear axis W (linear axes: X, Y, Z)"),
     ],
 )
@@ -124,9 +128,7 @@ def test_unavailable_values_are_a_device_fault(
     linuxcnc_agent: TestAgent, field: str, what: str
 ) -> None:
     machine = open_mtconnect(linuxcnc_agent.url, 2.0)
-    linuxcnc_agent.current = linuxcnc_agent.current.replace(
-        "{" + field + "}", "UNAVAILABLE", 1
-    )
+    linuxcnc_agent.current = linuxcnc_agent.current.replace("{" + field + "}", "UNAVAILABLE", 1)
     with pytest.raises(DeviceError, match=f"reports the {what} UNAVAILABLE"):
         machine.status()
 
