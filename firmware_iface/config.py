@@ -19,8 +19,13 @@
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it) or file
+      source: prompt               # prompt (operator types it), file, mtconnect or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
+      # mtconnect: {url: http://192.168.10.30:5000, device: VMC}   (source: mtconnect)
+      # sinumerik: {endpoint: opc.tcp://192.168.214.241:4840, user: xmalign,
+      #             password_env: XMALIGN_OPCUA_PASSWORD}          (source: sinumerik)
+      #   both read-only: the operator runs the program, xmalign follows the machine
+      #   (firmware_iface/controller_config.py has every key)
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
@@ -48,6 +53,13 @@ import canopen
 from pydantic import Field, model_validator
 
 from firmware_iface.canopen_axis import CanopenUnit
+from firmware_iface.controller_config import (
+    MTConnectConfig,
+    SinumerikConfig,
+    open_mtconnect_source,
+    open_sinumerik_source,
+    resolve_paths,
+)
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
@@ -65,7 +77,14 @@ from xmalign.formats.common import (
     validate,
 )
 from xmalign.machine import Machine
-from xmalign.roles import Clock, EnvironmentSource, Interferometer, MachineMover, PositioningUnit
+from xmalign.roles import (
+    Clock,
+    EnvironmentSource,
+    Interferometer,
+    MachineMover,
+    MachinePositionSource,
+    PositioningUnit,
+)
 
 UNITS_FORMAT = "xmalign.units/1"
 
@@ -116,14 +135,22 @@ class InterferometerConfig(_Strict):
 
 
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file"] = "prompt"
+    source: Literal["prompt", "file", "mtconnect", "sinumerik"] = "prompt"
     file: Path | None = None
+    mtconnect: MTConnectConfig | None = None
+    sinumerik: SinumerikConfig | None = None
 
     @model_validator(mode="after")
-    def _file_given(self) -> MachinePositionConfig:
-        if (self.source == "file") != (self.file is not None):
-            raise ValueError("'file' is required with source: file, and only then")
+    def _source_given(self) -> MachinePositionConfig:
+        for source in ("file", "mtconnect", "sinumerik"):
+            if (self.source == source) != (getattr(self, source) is not None):
+                raise ValueError(f"'{source}' is required with source: {source}, and only then")
         return self
+
+    @property
+    def follows_the_machine(self) -> bool:
+        """The operator runs the program; xmalign follows the machine's position."""
+        return self.source in ("file", "mtconnect", "sinumerik")
 
 
 class Timeouts(_Strict):
@@ -158,7 +185,10 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
                 update={"replay": _resolve(config.interferometer.replay, base_dir)}
             ),
             "machine_position": config.machine_position.model_copy(
-                update={"file": _resolve(config.machine_position.file, base_dir)}
+                update={
+                    "file": _resolve(config.machine_position.file, base_dir),
+                    "sinumerik": resolve_paths(config.machine_position.sinumerik, base_dir),
+                }
             ),
             "environment": resolve_environment(config.environment, base_dir),
         }
@@ -275,12 +305,24 @@ def open_devices(
             if config.environment is None
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
+        position = _open_position_source(config, closers)
     except BaseException:
         for close in reversed(closers):
             close()
         raise
-    source = config.machine_position
-    mover = OperatorPrompt(
-        machine, ask, tell, FilePositions(source.file) if source.file is not None else None
-    )
+    mover = OperatorPrompt(machine, ask, tell, position)
     return LiveDevices(launch, receiver, interferometer, mover, closers, environment)
+
+
+def _open_position_source(
+    config: UnitsConfig, closers: list[Callable[[], None]]
+) -> MachinePositionSource | None:
+    """Where an operator-run machine's position is read: a file or the controller."""
+    source = config.machine_position
+    if source.file is not None:
+        return FilePositions(source.file)
+    if source.mtconnect is not None:
+        return open_mtconnect_source(source.mtconnect, config.timeouts.io_s, closers)
+    if source.sinumerik is not None:
+        return open_sinumerik_source(source.sinumerik, config.timeouts.io_s, closers)
+    return None

@@ -439,6 +439,7 @@ def open_sinumerik(
     settle_s: float = 0.5,
     standstill_tolerance_mm: float = 0.002,
     clock: Clock | None = None,
+    mode_group: int = 1,
 ) -> SinumerikMachine:
     """Open a session and read the axes once (one line naming the server on failure)."""
     machine = SinumerikMachine(
@@ -449,5 +450,6 @@ def open_sinumerik(
         clock,
         settle_s,
         standstill_tolerance_mm,
+        mode_group,
     )
     return machine.open()

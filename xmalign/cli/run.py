@@ -183,7 +183,7 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     def capture(output: RunOutput) -> CalibrationRun:
         drive = (
             following_drive(devices.mover, _tell_operator, machine)
-            if config.machine_position.source == "file"
+            if config.machine_position.follows_the_machine
             else stepping_drive(devices.mover, machine)
         )
         roles = RunStepDevices(
