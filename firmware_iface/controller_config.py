@@ -90,13 +90,16 @@ class SinumerikConfig(StrictFileModel):
             raise ValueError(f"security_policy {self.security_policy} needs 'certificate'")
         if self.password is not None and self.password_env is not None:
             raise ValueError("give 'password' or 'password_env', not both")
-        identity = self.identity or ("user" if self.user is not None else "anonymous")
-        if identity == "user" and self.user is None:
+        if self.login == "user" and self.user is None:
             raise ValueError("identity: user needs 'user'")
-        if identity == "certificate" and self.certificate is None:
+        if self.login == "certificate" and self.certificate is None:
             raise ValueError("identity: certificate needs 'certificate'")
-        self.identity = identity
         return self
+
+    @property
+    def login(self) -> Literal["user", "certificate", "anonymous"]:
+        """The identity: as given, else user when a user is named, else anonymous."""
+        return self.identity or ("user" if self.user is not None else "anonymous")
 
 
 def resolve_paths(config: SinumerikConfig | None, base_dir: Path) -> SinumerikConfig | None:
@@ -150,7 +153,7 @@ def open_sinumerik_source(
         certificate=config.certificate,
         private_key=config.private_key,
         server_certificate=config.server_certificate,
-        identity=config.identity or "anonymous",
+        identity=config.login,
         user=config.user,
         password=_password(config),
     )

@@ -7,19 +7,23 @@ the test as the NC would set them.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
-from asyncua import ua
+from asyncua import Server, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from cli_helpers import free_port
+from cryptography.x509.oid import ExtendedKeyUsageOID
 from sinumerik_server import SinumerikServer
 
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
-from xmalign.errors import DeviceError, TransportError
+from xmalign.errors import DeviceError, TransportError, XmalignError
 
 USER = OpcUaSecurity(identity="user", user="xmalign", password="s3cret-Pw")
 
@@ -164,3 +168,56 @@ def test_standstill_over_the_settle_time(server: SinumerikServer) -> None:
             seen.append(machine.is_standstill())
             clock.sleep(0.2)
         assert seen == [False, False, False, False, False, True, True]
+
+
+@pytest.fixture(scope="module")
+def certificates(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Self-signed certificates for the server and for xmalign (asyncua's generator)."""
+    folder = tmp_path_factory.mktemp("pki")
+    files = {}
+    for who, use in [
+        ("server", ExtendedKeyUsageOID.SERVER_AUTH),
+        ("client", ExtendedKeyUsageOID.CLIENT_AUTH),
+    ]:
+        key, cert = folder / f"{who}-key.pem", folder / f"{who}-cert.der"
+        asyncio.run(
+            setup_self_signed_certificate(
+                key, cert, f"urn:xmalign:test:{who}", "127.0.0.1", [use], {"commonName": who}
+            )
+        )
+        files[f"{who}_key"], files[f"{who}_cert"] = key, cert
+    return files
+
+
+def test_an_encrypted_session_with_certificate_and_password(certificates: dict[str, Path]) -> None:
+    async def secure(server: Server) -> None:
+        await server.load_certificate(str(certificates["server_cert"]))
+        await server.load_private_key(str(certificates["server_key"]))
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+
+    server = SinumerikServer(users={"xmalign": "s3cret-Pw"}, configure=secure).start()
+    try:
+        security = OpcUaSecurity(
+            policy="Basic256Sha256",
+            certificate=certificates["client_cert"],
+            private_key=certificates["client_key"],
+            identity="user",
+            user="xmalign",
+            password="s3cret-Pw",
+        )
+        server.set_position(1.0, 2.0, 3.0)
+        with open_sinumerik(server.endpoint, 5.0, security) as machine:
+            assert np.allclose(machine.position_mm(), [1.0, 2.0, 3.0])
+        plain = OpcUaSecurity(identity="user", user="xmalign", password="s3cret-Pw")
+        with pytest.raises(XmalignError, match="cannot open a session with"):
+            open_sinumerik(server.endpoint, 5.0, plain)  # the server offers no unencrypted endpoint
+        as_certificate = OpcUaSecurity(
+            policy="Basic256Sha256",
+            certificate=certificates["client_cert"],
+            private_key=certificates["client_key"],
+            identity="certificate",
+        )
+        with open_sinumerik(server.endpoint, 5.0, as_certificate) as machine:
+            assert machine.program_state() == "idle"
+    finally:
+        server.stop()
