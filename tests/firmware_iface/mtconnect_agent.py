@@ -95,7 +95,7 @@ class TestAgent:
             "now": stamp(now),
             "execution": self.execution,
             "mode": self.mode,
-            **{axis: repr(self.values[axis]) for axis in AXES},
+            **{axis: repr(float(self.values[axis])) for axis in AXES},
             **{
                 f"{axis}_time": stamp(now if self.repeat_unchanged else self.changed[axis])
                 for axis in AXES
