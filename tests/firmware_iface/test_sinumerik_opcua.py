@@ -8,8 +8,11 @@ the test as the NC would set them.
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import logging
 import re
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -221,3 +224,36 @@ def test_an_encrypted_session_with_certificate_and_password(certificates: dict[s
             assert machine.program_state() == "idle"
     finally:
         server.stop()
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("o6") is None, reason="o6 (open62541 for Python) not installed"
+)
+def test_cross_check_against_open62541() -> None:
+    """The same client against another OPC UA stack: open62541, through PyPI's o6.
+
+    o6's free build ends its process ten minutes after the import, so the server
+    runs in a process of its own (tests/firmware_iface/o6_sinumerik_server.py);
+    o6 is not among the project's dependencies (docs/hardware.md).
+    """
+    port = free_port()
+    script = Path(__file__).with_name("o6_sinumerik_server.py")
+    server = subprocess.Popen(
+        [sys.executable, str(script), str(port)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None
+        banner = iter(server.stdout.readline, "")  # o6 prints its banner first
+        assert any(line.strip() == "READY" for line in banner), "the o6 server did not start"
+        with open_sinumerik(f"opc.tcp://127.0.0.1:{port}", 5.0, OpcUaSecurity()) as machine:
+            assert np.allclose(machine.position_mm(), [1250.5, -300.25, -42.0])
+            status = machine.status()
+            assert (status.program_state, status.mode) == ("running", "AUTOMATIC")
+            assert status.state == "progStatus 3 (in progress), chanStatus 1 (active)"
+            assert machine.loaded_program() == "/_N_MPF_DIR/_N_XMALIGN_MPF"
+    finally:
+        server.communicate(input="", timeout=30)
