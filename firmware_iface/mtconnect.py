@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import http.client
 import logging
+import math
 import socket
 import urllib.error
 import urllib.parse
@@ -44,6 +45,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from types import TracebackType
+from typing import Protocol
 
 import numpy as np
 
@@ -71,6 +73,16 @@ EXECUTION_STATES: dict[str, ProgramState] = {
     "PROGRAM_STOPPED": "paused",
 }
 UNAVAILABLE = "UNAVAILABLE"
+
+
+class AgentTransport(Protocol):
+    """What the driver needs of the HTTP side (:class:`AgentLink`, or a test double)."""
+
+    name: str
+
+    def get(self, path: str) -> tuple[int, bytes]: ...
+
+    def close(self) -> None: ...
 
 
 class AgentLink:
@@ -135,7 +147,8 @@ class MTConnectMachine:
 
     Parameters
     ----------
-    link : AgentLink
+    link : AgentTransport
+        Usually an :class:`AgentLink`.
     device : str, optional
         The ``Device`` name or uuid; needed when the agent serves several.
     axes : sequence of 3 str
@@ -148,7 +161,7 @@ class MTConnectMachine:
 
     def __init__(
         self,
-        link: AgentLink,
+        link: AgentTransport,
         device: str | None = None,
         axes: Sequence[str] = ("X", "Y", "Z"),
         clock: Clock | None = None,
@@ -233,6 +246,10 @@ class MTConnectMachine:
             raise TransportError(
                 f"{self.name} sent a damaged /{request} document"
                 f" (not XML at line {line}, column {column})"
+            ) from error
+        except (LookupError, ValueError) as error:  # e.g. a damaged encoding declaration
+            raise TransportError(
+                f"{self.name} sent a damaged /{request} document ({error})"
             ) from error
         if _local(root.tag) == "MTConnectError":
             errors = [
@@ -327,11 +344,12 @@ class MTConnectMachine:
         for axis, item in zip(self.axes, self._positions, strict=True):
             text = self._value(current, item, f"{axis} position")
             try:
-                values.append(float(text) * item.mm_per_unit)
-            except ValueError as error:
-                raise DeviceError(
-                    f"{self.name}: the {axis} position '{text}' is not a number"
-                ) from error
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise DeviceError(f"{self.name}: the {axis} position '{text}' is not a number")
+            values.append(value * item.mm_per_unit)
         position = np.array(values)
         log.debug("%s: machine position %s mm", self.name, np.array2string(position))
         return position

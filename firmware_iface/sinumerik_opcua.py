@@ -226,6 +226,10 @@ class OpcUaLink:
         return TransportError(f"{doing} {self.name} ({type(error).__name__}: {error})")
 
     @property
+    def is_open(self) -> bool:
+        return self._client is not None
+
+    @property
     def client(self) -> Client:
         if self._client is None:
             raise TransportError(f"no session with {self.name} (closed)")
@@ -360,7 +364,7 @@ class SinumerikMachine:
         self.link.close()
 
     def __enter__(self) -> SinumerikMachine:
-        return self if self.link._client is not None else self.open()
+        return self if self.link.is_open else self.open()
 
     def __exit__(
         self,
@@ -417,6 +421,8 @@ class SinumerikMachine:
             position = np.array([float(v) for v in values]) * self._mm_per_unit
         except (TypeError, ValueError) as error:
             raise DeviceError(f"{self.name} reports a position that is not a number") from error
+        if not np.isfinite(position).all():
+            raise DeviceError(f"{self.name} reports a position that is not a number: {position}")
         log.debug("%s: machine position %s mm", self.name, np.array2string(position))
         return position
 

@@ -66,7 +66,8 @@ class TestAgent:
         return self
 
     def stop(self) -> None:
-        self._server.shutdown()
+        if self._thread.is_alive():
+            self._server.shutdown()
         self._server.server_close()
 
     def set(self, **values: float) -> None:

@@ -62,8 +62,7 @@ def _mtconnect_stand(tmp_path: Path) -> Iterator[Stand]:
         yield Stand(machine, lambda x, y, z: agent.set(X=x, Y=y, Z=z), agent.stop, agent.url, clock)
     finally:
         machine.close()
-        if agent._thread.is_alive():
-            agent.stop()
+        agent.stop()
 
 
 def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:

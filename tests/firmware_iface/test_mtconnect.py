@@ -15,6 +15,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 from cli_helpers import free_port
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mtconnect_agent import TestAgent
 
 from firmware_iface.mtconnect import AgentLink, MTConnectMachine, open_mtconnect
@@ -123,6 +125,16 @@ def test_a_damaged_document_is_one_transport_error(
     assert linuxcnc_agent.url in str(caught.value) and "\n" not in str(caught.value)
 
 
+@pytest.mark.parametrize("text", ["NaN", "INF", "1.5mm", ""])
+def test_a_position_that_is_not_a_finite_number_is_a_device_fault(
+    linuxcnc_agent: TestAgent, text: str
+) -> None:
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0)
+    linuxcnc_agent.current = linuxcnc_agent.current.replace("{Y}", text, 1)
+    with pytest.raises(DeviceError, match=f"the Y position '{text}' is not a number"):
+        machine.position_mm()
+
+
 @pytest.mark.parametrize(("field", "what"), [("X", "X position"), ("execution", "Execution")])
 def test_unavailable_values_are_a_device_fault(
     linuxcnc_agent: TestAgent, field: str, what: str
@@ -182,3 +194,49 @@ def test_requests_are_logged_without_anything_else(
     assert f"the MTConnect agent at {linuxcnc_agent.url} > GET {linuxcnc_agent.url}/probe" in lines
     assert any(re.search(r"< HTTP 200, \d+ bytes$", line) for line in lines)
     assert any("machine position" in line for line in lines)
+
+
+class DocumentsLink:
+    """The agent's documents without HTTP: for many damaged variants, fast."""
+
+    name = "the MTConnect agent at test://documents"
+
+    def __init__(self, probe: bytes, current: bytes) -> None:
+        self.bodies = {"probe": probe, "current": current}
+
+    def get(self, path: str) -> tuple[int, bytes]:
+        return 200, self.bodies[path]
+
+    def close(self) -> None:
+        pass
+
+
+def _documents() -> tuple[bytes, bytes]:
+    agent = TestAgent("linuxcnc", "LinuxCNC")
+    agent.stop()  # only its documents are wanted
+    agent.set(X=1.5, Y=2.5, Z=-3.5)
+    return agent.probe.encode(), agent.render("/current")[1]
+
+
+PROBE, CURRENT = _documents()
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    cut=st.integers(min_value=0, max_value=len(CURRENT)),
+    flips=st.lists(st.tuples(st.integers(0, len(CURRENT) - 1), st.integers(0, 255)), max_size=4),
+)
+def test_damaged_current_documents_give_a_position_or_one_project_error(
+    cut: int, flips: list[tuple[int, int]]
+) -> None:
+    damaged = bytearray(CURRENT[:cut] if not flips else CURRENT)
+    for at, byte in flips:
+        if at < len(damaged):
+            damaged[at] = byte
+    machine = MTConnectMachine(DocumentsLink(PROBE, bytes(damaged))).open()
+    try:
+        status = machine.status()
+    except (TransportError, DeviceError) as error:
+        assert "test://documents" in str(error) and "\n" not in str(error)
+    else:
+        assert status.position_mm.shape == (3,) and np.isfinite(status.position_mm).all()
