@@ -3,16 +3,18 @@
 The object dictionary is ``cia402_axis.eds`` beside this file; the node
 behaviour is docs/canopen-axis.md. The driver takes a connected
 ``canopen.Network`` (transport apart from driver: a socketcan, PCAN, virtual
-or udp_multicast bus are interchangeable) and uses SDOs only, so it needs no
+or udp_local bus are interchangeable, firmware_iface/can_bus.py) and uses SDOs only, so it needs no
 PDO configuration:
 
 * profile position moves (``0x6060`` = 1) with the new-set-point handshake;
 * cyclic synchronous velocity (``0x6060`` = 9) for tracking (:meth:`CanopenAxis.run_at`);
 * homing (``0x6060`` = 6), fault reset, and locking = *switched on* (brake applied).
 
-The host heartbeat (CAN id ``0x77F``) that the nodes' watchdog consumes is
-produced by :class:`CanopenUnit` while it is open; opening clears a heartbeat
-fault left from power-on or an earlier host. Every SDO read and write is logged
+The nodes boot into NMT *pre-operational*; :class:`CanopenUnit` starts each
+one (NMT start) once it has answered an SDO. The host heartbeat (CAN id
+``0x77F``) that the nodes' watchdog consumes is produced by
+:class:`CanopenUnit` while it is open; opening clears a heartbeat fault left
+from power-on or an earlier host. Every SDO read and write is logged
 on the ``firmware_iface.canopen_axis`` logger at DEBUG.
 """
 
@@ -34,7 +36,7 @@ from xmalign.errors import (
     OutOfRangeError,
     TransportError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 EDS_PATH = Path(__file__).with_name("cia402_axis.eds")
 
@@ -48,13 +50,17 @@ NEW_SET_POINT, HALT, FAULT_RESET = 0x10, 0x100, 0x80
 FAULT, TARGET_REACHED, SET_POINT_ACK = 0x08, 0x400, 0x1000
 #: Statusword mask and value of *operation enabled* (the only state with the brake released).
 STATE_MASK, SWITCHED_ON_STATE, OPERATION_ENABLED = 0x6F, 0x23, 0x27
+#: *Fault reaction active* (mask, value): the node stops the axis and takes no command.
+FAULT_REACTION_MASK, FAULT_REACTION_ACTIVE = 0x4F, 0x0F
+#: The longest fault reaction of a node: a stop from full speed (0.33 s on the units).
+FAULT_REACTION_TIMEOUT_S = 2.0
 #: SDO abort code "value range of parameter exceeded": the node refuses a target.
 ABORT_VALUE_RANGE = 0x06090030
 #: ``0x603F`` holds ``FAULT_CODE_BASE + fault code`` of registers.yaml.
 FAULT_CODE_BASE = 0xFF00
 #: The host's heartbeat: node 127, state operational, every 100 ms (the nodes allow 500 ms).
 HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S = 0x77F, b"\x05", 0.1
-#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+#: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 
 T = TypeVar("T")
@@ -70,7 +76,7 @@ class CanopenAxis:
     node : canopen.RemoteNode
         The node, added to a connected network with the EDS.
     name : str
-        Axis name of CONVENTIONS.md (``a1`` .. ``a5``).
+        Axis name of docs/conventions.md (``a1`` .. ``a5``).
     device_name : str
         Unit name for messages, e.g. ``"launch unit on can0"``.
     clock : Clock
@@ -91,7 +97,18 @@ class CanopenAxis:
         self.clock = clock or WallClock()
         self.poll_s = poll_s
         self._mode: int | None = None
+        #: Bit 8 (halt) of the controlword this driver wrote last: with it CiA 402 sets
+        #: statusword bit 10 for "velocity 0", not for "target reached".
+        self._halted = False
         self.counts_per_rev = self._read(ENCODER_RESOLUTION, 1)
+
+    def start(self) -> None:
+        """NMT start: the node goes to *operational* (it boots into *pre-operational*)."""
+        log.debug("%s: NMT start", self.label)
+        try:
+            self.node.nmt.state = "OPERATIONAL"
+        except (can.CanError, OSError) as error:
+            raise TransportError(f"lost the CAN bus of {self.label}: {error}") from error
 
     # --- SDO access with errors that name the axis ----------------------------------------
     def _sdo(self, action: Callable[[], T], verb: str) -> T:
@@ -121,6 +138,8 @@ class CanopenAxis:
 
         log.debug("%s: SDO write 0x%04X:0 <- %d (0x%X)", self.label, index, value, value)
         self._sdo(write, f"write of 0x{index:04X}")
+        if index == CONTROLWORD:
+            self._halted = bool(value & HALT)
 
     def _set_mode(self, mode: int) -> None:
         if self._mode != mode:
@@ -170,11 +189,13 @@ class CanopenAxis:
             self.enable()
 
     def wait_in_position(self, timeout_s: float) -> None:
-        self._wait_for(TARGET_REACHED, timeout_s, "reach its target")
+        """Wait for target reached (bit 10). After :meth:`stop` (halt) the bit only says the
+        axis stands: a halted axis never reaches its target, and the wait runs to its end."""
+        self._wait_for(TARGET_REACHED, timeout_s, "reach its target", unless_halted=True)
 
-    def _wait_for(self, bit: int, timeout_s: float, what: str) -> None:
+    def _wait_for(self, bit: int, timeout_s: float, what: str, unless_halted: bool = False) -> None:
         deadline = self.clock.now() + timeout_s
-        while not self.statusword() & bit:
+        while not self.statusword() & bit or (unless_halted and self._halted):
             if self.clock.now() >= deadline:
                 raise DeviceTimeoutError(f"{self.label} did not {what} in {timeout_s:g} s")
             self.clock.sleep(self.poll_s)
@@ -196,6 +217,14 @@ class CanopenAxis:
         self._write(CONTROLWORD, SWITCH_ON)
 
     def reset_fault(self) -> None:
+        """Fault reset (once the fault reaction is over: the node ignores it before), enable."""
+        deadline = self.clock.now() + FAULT_REACTION_TIMEOUT_S
+        while self._read(STATUSWORD) & FAULT_REACTION_MASK == FAULT_REACTION_ACTIVE:
+            if self.clock.now() >= deadline:
+                raise DeviceTimeoutError(
+                    f"{self.label} did not end its fault reaction in {FAULT_REACTION_TIMEOUT_S:g} s"
+                )
+            self.clock.sleep(self.poll_s)
         self._write(CONTROLWORD, 0)
         self._write(CONTROLWORD, FAULT_RESET)
         self.enable()
@@ -220,7 +249,7 @@ class CanopenAxis:
         self._write(CONTROLWORD, ENABLE_OPERATION)
 
 
-class CanopenUnit(AxisGroup):
+class CanopenUnit(AxisGroup, ClosesOnExit):
     """A positioning unit made of CiA 402 axis nodes; implements ``PositioningUnit``.
 
     Parameters
@@ -266,6 +295,8 @@ class CanopenUnit(AxisGroup):
             )
             for i, node_id in enumerate(ids)
         )
+        for axis in self._axes:
+            axis.start()
         self.clear_heartbeat_faults()
 
     def close(self) -> None:

@@ -12,23 +12,29 @@
       channel: can0
       bitrate: 500000              # default 500000
       node_ids: [3, 4, 5]          # default: the axis numbers a3, a4, a5
-      # hop_limit: 0               # udp_multicast only: TTL, default 0 (this computer only)
+      # interface: udp_local       # the simulated bus of `xmalign sim serve --canopen GROUP`
+      # host: 127.0.0.1            # udp_local only: the interface it runs on (default loopback)
+      # hop_limit: 0               # udp_local, udp_multicast: TTL, default 0 (this computer only)
     interferometer:
       port: /dev/ttyUSB0           # or a pyserial URL (socket://host:port)
       baudrate: 115200             # default 115200
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it), file, mtconnect or sinumerik
+      source: prompt               # prompt (operator types it), file, linuxcncrsh, mtconnect
+      #                              or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
-      # mtconnect: {url: http://192.168.10.30:5000, device: VMC}   (source: mtconnect)
+      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
+      #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # mtconnect: {url: http://192.168.10.30:5000, device: VMC}
       # sinumerik: {endpoint: opc.tcp://192.168.214.241:4840, user: xmalign,
-      #             password_env: XMALIGN_OPCUA_PASSWORD}          (source: sinumerik)
-      #   both read-only: the operator runs the program, xmalign follows the machine
-      #   (firmware_iface/controller_config.py has every key)
+      #             password_env: XMALIGN_OPCUA_PASSWORD}
+      #   (mtconnect, sinumerik: read-only, the operator runs the program; every key
+      #   in firmware_iface/controller_config.py)
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
+      machine_s: 600.0             # the machine reaching its next stop (linuxcncrsh)
     environment:                   # optional; see docs/environment.md
       source: serial               # fixed, file, serial, modbus-tcp or modbus-rtu
       port: /dev/ttyUSB1
@@ -48,10 +54,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
 
-import can
 import canopen
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from firmware_iface.can_bus import (
+    LOOPBACK,
+    UDP_LOCAL,
+    check_interface,
+    multicast_group,
+    open_can_bus,
+)
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.controller_config import (
     MTConnectConfig,
@@ -61,6 +73,13 @@ from firmware_iface.controller_config import (
     resolve_paths,
 )
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
+from firmware_iface.linuxcncrsh import (
+    DEFAULT_CONNECT_PASSWORD,
+    DEFAULT_ENABLE_PASSWORD,
+    DEFAULT_PORT,
+    LinuxCnc,
+    open_linuxcnc,
+)
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from firmware_iface.weather_station import (
@@ -68,7 +87,7 @@ from firmware_iface.weather_station import (
     open_environment,
     resolve_environment,
 )
-from xmalign.errors import InputError, TransportError
+from xmalign.errors import InputError
 from xmalign.formats.common import (
     StrictFileModel,
     check_format,
@@ -79,6 +98,7 @@ from xmalign.formats.common import (
 from xmalign.machine import Machine
 from xmalign.roles import (
     Clock,
+    ClosesOnExit,
     EnvironmentSource,
     Interferometer,
     MachineMover,
@@ -112,8 +132,21 @@ class CanopenUnitConfig(_Strict):
     channel: str
     bitrate: Annotated[int, Field(gt=0)] = 500000
     node_ids: list[Annotated[int, Field(ge=1, le=127)]] | None = None
-    #: udp_multicast only: TTL of the frames; 0 keeps the bus on this computer.
+    #: udp_local only: IPv4 address of the network interface the bus runs on.
+    host: str = LOOPBACK
+    #: udp_local and udp_multicast: TTL of the frames; 0 keeps the bus on this computer.
     hop_limit: Annotated[int, Field(ge=0, le=255)] = 0
+
+    @field_validator("interface")
+    @classmethod
+    def _known_interface(cls, interface: str) -> str:
+        check_interface(interface)
+        return interface
+
+    @field_validator("channel")
+    @classmethod
+    def _group_of_udp_local(cls, channel: str, info: ValidationInfo) -> str:
+        return multicast_group(channel) if info.data.get("interface") == UDP_LOCAL else channel
 
 
 UnitConfig = Annotated[
@@ -134,15 +167,39 @@ class InterferometerConfig(_Strict):
         return self
 
 
+class LinuxcncrshConfig(_Strict):
+    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md)."""
+
+    host: str
+    port: Annotated[int, Field(ge=1, le=65535)] = DEFAULT_PORT
+    connect_password: str = DEFAULT_CONNECT_PASSWORD
+    enable_password: str = DEFAULT_ENABLE_PASSWORD
+    #: Where xmalign writes its program (a folder the LinuxCNC computer reads).
+    program: Path
+    #: The same file as LinuxCNC opens it (default: ``program``).
+    program_on_cnc: str | None = None
+    joints: Annotated[int, Field(ge=1, le=9)] = 3
+    #: Actual within this of commanded counts as standing still, mm.
+    in_position_mm: Annotated[float, Field(gt=0, le=1)] = 0.002
+    #: Largest distance from the plan's point at which a point is captured, mm.
+    tolerance_mm: Annotated[float, Field(gt=0, le=1)] = 0.005
+
+    @property
+    def cnc_program_path(self) -> str:
+        """The program as LinuxCNC opens it (absolute: LinuxCNC starts from its INI's folder)."""
+        return self.program_on_cnc or str(self.program.resolve())
+
+
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file", "mtconnect", "sinumerik"] = "prompt"
+    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect", "sinumerik"] = "prompt"
     file: Path | None = None
+    linuxcncrsh: LinuxcncrshConfig | None = None
     mtconnect: MTConnectConfig | None = None
     sinumerik: SinumerikConfig | None = None
 
     @model_validator(mode="after")
     def _source_given(self) -> MachinePositionConfig:
-        for source in ("file", "mtconnect", "sinumerik"):
+        for source in ("file", "linuxcncrsh", "mtconnect", "sinumerik"):
             if (self.source == source) != (getattr(self, source) is not None):
                 raise ValueError(f"'{source}' is required with source: {source}, and only then")
         return self
@@ -156,6 +213,8 @@ class MachinePositionConfig(_Strict):
 class Timeouts(_Strict):
     io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
     move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    #: The machine reaching its next stop while xmalign runs the program, s.
+    machine_s: Annotated[float, Field(gt=0, le=86400)] = 600.0
 
 
 class UnitsConfig(_Strict):
@@ -184,13 +243,23 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
             "interferometer": config.interferometer.model_copy(
                 update={"replay": _resolve(config.interferometer.replay, base_dir)}
             ),
-            "machine_position": config.machine_position.model_copy(
-                update={
-                    "file": _resolve(config.machine_position.file, base_dir),
-                    "sinumerik": resolve_paths(config.machine_position.sinumerik, base_dir),
-                }
-            ),
+            "machine_position": _resolve_machine_position(config.machine_position, base_dir),
             "environment": resolve_environment(config.environment, base_dir),
+        }
+    )
+
+
+def _resolve_machine_position(
+    config: MachinePositionConfig, base_dir: Path
+) -> MachinePositionConfig:
+    rsh = config.linuxcncrsh
+    return config.model_copy(
+        update={
+            "file": _resolve(config.file, base_dir),
+            "linuxcncrsh": None
+            if rsh is None
+            else rsh.model_copy(update={"program": base_dir / rsh.program}),
+            "sinumerik": resolve_paths(config.sinumerik, base_dir),
         }
     )
 
@@ -206,8 +275,9 @@ def load_units_config(path: str | Path) -> UnitsConfig:
 
 
 @dataclass
-class LiveDevices:
-    """The devices a ``units.yaml`` names, opened; :meth:`close` releases them."""
+class LiveDevices(ClosesOnExit):
+    """The devices a ``units.yaml`` names, opened; :meth:`close` (or the end of a
+    ``with`` block) releases them."""
 
     launch: PositioningUnit
     receiver: PositioningUnit
@@ -215,6 +285,8 @@ class LiveDevices:
     mover: MachineMover
     closers: list[Callable[[], None]] = field(default_factory=list)
     environment: EnvironmentSource | None = None
+    #: The controller xmalign runs the program on (``source: linuxcncrsh``).
+    controller: LinuxCnc | None = None
 
     def close(self) -> None:
         """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
@@ -234,21 +306,15 @@ def _open_unit(
     if isinstance(config, CanopenUnitConfig):
         key = (config.interface, config.channel)
         if key not in networks:
-            network = canopen.Network()
-            try:
-                options = (
-                    {"hop_limit": config.hop_limit} if config.interface == "udp_multicast" else {}
-                )
-                network.connect(
-                    interface=config.interface,
-                    channel=config.channel,
-                    bitrate=config.bitrate,
-                    **options,
-                )
-            except (can.CanError, OSError, ValueError) as error:
-                raise TransportError(
-                    f"cannot open the CAN bus {config.channel} ({config.interface}): {error}"
-                ) from error
+            bus = open_can_bus(
+                config.interface,
+                config.channel,
+                bitrate=config.bitrate,
+                host=config.host,
+                hop_limit=config.hop_limit,
+            )
+            network = canopen.Network(bus)
+            network.connect()
             networks[key] = network
             closers.append(network.disconnect)
         unit = CanopenUnit(networks[key], kind, config.node_ids, f"{name} on {config.channel}")
@@ -305,19 +371,20 @@ def open_devices(
             if config.environment is None
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
-        position = _open_position_source(config, closers)
+        controller = _open_controller(config, closers)
+        position = controller or _position_source(config, closers)
     except BaseException:
         for close in reversed(closers):
             close()
         raise
     mover = OperatorPrompt(machine, ask, tell, position)
-    return LiveDevices(launch, receiver, interferometer, mover, closers, environment)
+    return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
 
 
-def _open_position_source(
+def _position_source(
     config: UnitsConfig, closers: list[Callable[[], None]]
 ) -> MachinePositionSource | None:
-    """Where an operator-run machine's position is read: a file or the controller."""
+    """Where an operator-run machine's position is read: a file, or a controller followed."""
     source = config.machine_position
     if source.file is not None:
         return FilePositions(source.file)
@@ -326,3 +393,21 @@ def _open_position_source(
     if source.sinumerik is not None:
         return open_sinumerik_source(source.sinumerik, config.timeouts.io_s, closers)
     return None
+
+
+def _open_controller(config: UnitsConfig, closers: list[Callable[[], None]]) -> LinuxCnc | None:
+    """The LinuxCNC of ``source: linuxcncrsh``, connected and enabled for control."""
+    rsh = config.machine_position.linuxcncrsh
+    if rsh is None:
+        return None
+    cnc = open_linuxcnc(
+        rsh.host,
+        rsh.port,
+        config.timeouts.io_s,
+        rsh.connect_password,
+        rsh.enable_password,
+        rsh.joints,
+        rsh.in_position_mm,
+    )
+    closers.append(cnc.close)
+    return cnc

@@ -8,7 +8,7 @@
         device: VMC-3Axis          # default: the agent's only device
         axes: [X, Y, Z]            # the Linear components giving x, y, z
         timeout_s: 2.0             # default: timeouts.io_s
-        settle_s: 0.5              # standstill: unchanged this long ...
+        settle_s: 0.2              # standstill: unchanged this long ...
         standstill_mm: 0.002       # ... within this
 
     machine_position:
@@ -48,7 +48,7 @@ class MTConnectConfig(StrictFileModel):
     device: str | None = None
     axes: Annotated[list[str], Field(min_length=3, max_length=3)] = ["X", "Y", "Z"]
     timeout_s: Seconds | None = None
-    settle_s: SettleSeconds = 0.5
+    settle_s: SettleSeconds = 0.2
     standstill_mm: StandstillMm = 0.002
 
 
@@ -79,7 +79,7 @@ class SinumerikConfig(StrictFileModel):
     #: user (user and password), certificate (the client certificate), anonymous.
     identity: Literal["user", "certificate", "anonymous"] | None = None
     timeout_s: Seconds | None = None
-    settle_s: SettleSeconds = 0.5
+    settle_s: SettleSeconds = 0.2
     standstill_mm: StandstillMm = 0.002
 
     @model_validator(mode="after")

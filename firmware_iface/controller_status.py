@@ -10,12 +10,9 @@ the controller's own word for the operator (``FEED_HOLD``, ``progStatus 2
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 from xmalign.geometry import Vec
-
-#: Not running, running (dwells included), or stopped mid-program (M0, feed hold).
-ProgramState = Literal["idle", "running", "paused"]
+from xmalign.roles import ProgramState
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """A checker of CANopen EDS files against the rules of CiA 306 (EDS format 4.0).
 
-No ``eds-validate`` exists on PyPI or Debian, so the project checks its EDS
-with this module and with the ``canopen`` library's own EDS import. Rules
+The project checks its EDS with this module, with ``eds-validate`` (PyPI
+``eds-utils``) and with the ``canopen`` library's own EDS import. Rules
 (docs/canopen-axis.md, "Checking the EDS"):
 
 * the sections [FileInfo], [DeviceInfo], [DummyUsage], [MandatoryObjects],
@@ -12,7 +12,8 @@ with this module and with the ``canopen`` library's own EDS import. Rules
   0x1000, 0x1001, 0x1018; optional ones lie in 0x1000–0x1FFF or 0x6000–0xFFFF,
   manufacturer ones in 0x2000–0x5FFF;
 * a VAR has a known DataType, an AccessType of ro/wo/rw/rwr/rww/const, a
-  PDOMapping of 0/1 and a DefaultValue that fits its type; an ARRAY or RECORD
+  PDOMapping of 0/1 and a DefaultValue that fits its type and lies within its
+  LowLimit and HighLimit (which fit the type too); an ARRAY or RECORD
   has as many sub-object sections as ``SubNumber`` says, and sub-index 0 is an
   UNSIGNED8 whose default is the highest sub-index;
 * NrOfRXPDO / NrOfTXPDO count the PDO communication objects, each has its
@@ -237,26 +238,42 @@ class _Checker:
         if access is not None and access.lower() not in ACCESS_TYPES:
             self.fail(name, f"AccessType={access} is not one of {sorted(ACCESS_TYPES)}")
         self.integer(name, "PDOMapping", 0, 1)
-        default = self.get(name, "DefaultValue")
-        if default is not None and data_type in DATA_TYPES:
-            self.default_fits(name, data_type, default)
+        if data_type in DATA_TYPES:
+            values = {
+                key: self.fitting(name, key, data_type)
+                for key in ("DefaultValue", "LowLimit", "HighLimit")
+            }
+            self.within_limits(name, values)
 
-    def default_fits(self, name: str, data_type: int, default: str) -> None:
+    def fitting(self, name: str, key: str, data_type: int) -> int | None:
+        """The integer value of ``key`` if it is given and fits ``data_type`` (else None)."""
+        text = self.get(name, key)
         bits = DATA_TYPES[data_type][1]
-        if bits == 0 or data_type in (0x08, 0x11):
-            return
+        if text is None or bits == 0 or data_type in (0x08, 0x11):
+            return None
         try:
-            value = _int(default)
+            value = _int(text)
         except ValueError:
-            self.fail(name, f"DefaultValue={default} is not a number")
-            return
+            self.fail(name, f"{key}={text} is not a number")
+            return None
         low, high = (
             (-(1 << (bits - 1)), (1 << (bits - 1)) - 1)
             if data_type in _SIGNED
             else (0, (1 << bits) - 1)
         )
         if not low <= value <= high:
-            self.fail(name, f"DefaultValue={default} does not fit {DATA_TYPES[data_type][0]}")
+            self.fail(name, f"{key}={text} does not fit {DATA_TYPES[data_type][0]}")
+            return None
+        return value
+
+    def within_limits(self, name: str, values: dict[str, int | None]) -> None:
+        low, high, default = values["LowLimit"], values["HighLimit"], values["DefaultValue"]
+        if low is not None and high is not None and low > high:
+            self.fail(name, f"LowLimit={low} above HighLimit={high}")
+        if default is not None and (
+            (low is not None and default < low) or (high is not None and default > high)
+        ):
+            self.fail(name, f"DefaultValue={default} outside LowLimit..HighLimit")
 
     def pdos(self) -> None:
         for kind, first_comm, first_map in (("RX", 0x1400, 0x1600), ("TX", 0x1800, 0x1A00)):

@@ -33,7 +33,13 @@ import serial
 from firmware_iface.xm_line_protocol import Command, Reply, decode_line, encode_command
 from xmalign.errors import DeviceError, DeviceTimeoutError, FormatError, TransportError
 from xmalign.formats.common import read_text
-from xmalign.roles import CHANNELS, Interferometer, InterferometerReading, mean_reading
+from xmalign.roles import (
+    CHANNELS,
+    ClosesOnExit,
+    Interferometer,
+    InterferometerReading,
+    mean_reading,
+)
 
 STREAM_HEADER = ("time_s", *CHANNELS, "beam_ok")
 #: Consecutive corrupted lines tolerated (each is discarded) before the line counts as broken.
@@ -164,7 +170,7 @@ def _covered_s(samples: list[InterferometerReading]) -> float:
     return span_s * len(samples) / (len(samples) - 1)
 
 
-class RecordingInterferometer:
+class RecordingInterferometer(ClosesOnExit):
     """Reads another interferometer and appends every sample it returns to a stream CSV."""
 
     def __init__(self, inner: Interferometer, path: str | Path) -> None:

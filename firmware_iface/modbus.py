@@ -1,4 +1,4 @@
-"""Modbus driver of the positioning-unit firmware interface (REGISTERS.md).
+"""Modbus driver of the positioning-unit firmware interface (docs/registers.md).
 
 The driver (:class:`ModbusUnit`, :class:`ModbusAxis`) talks to a
 :class:`RegisterTransport`: anything that reads and writes holding registers.
@@ -37,13 +37,17 @@ from xmalign.errors import (
     TransportError,
     XmalignError,
 )
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, WallClock
 
 #: Modbus exception code "illegal data value": the firmware refuses an out-of-range write.
 ILLEGAL_DATA_VALUE = 3
 #: Modbus exception code "server device busy": another host controls the unit.
 SERVER_DEVICE_BUSY = 6
-#: CONVENTIONS.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
+#: Modbus exception code "illegal data address": no such (writable, whole) register.
+ILLEGAL_DATA_ADDRESS = 2
+#: Modbus exception code "gateway target device failed to respond": no unit with that id.
+GATEWAY_TARGET_FAILED = 11
+#: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
 _UINT16 = 1 << 16
 _UINT32 = 1 << 32
@@ -77,7 +81,7 @@ def decode(register: Register, words: Sequence[int]) -> int:
     return raw
 
 
-class ModbusTransport:
+class ModbusTransport(ClosesOnExit):
     """A pymodbus client with reconnect and retries; errors name ``device_name``.
 
     Parameters
@@ -152,7 +156,18 @@ class ModbusTransport:
         if code == SERVER_DEVICE_BUSY:
             return DeviceError(
                 f"the {self.device_name} refused the {verb} at register {address}: another host"
-                " controls it (Modbus exception 6, server device busy)"
+                " controls it (Modbus exception 6, server device busy; it is free once that"
+                " host closes its connection or stops changing the heartbeat for 500 ms)"
+            )
+        if code == ILLEGAL_DATA_ADDRESS:
+            return DeviceError(
+                f"the {self.device_name} refused the {verb} at register {address}: no such"
+                " register, a read-only one, or one word of a 32-bit value (Modbus exception 2)"
+            )
+        if code == GATEWAY_TARGET_FAILED:
+            return DeviceError(
+                f"the {self.device_name} has no unit with device id {self.device_id}"
+                f" (Modbus exception 11 to the {verb} at register {address}); check device_id"
             )
         if code == ILLEGAL_DATA_VALUE:
             return OutOfRangeError(
@@ -258,6 +273,8 @@ class ModbusAxis:
         self._control(Control.ENABLE)
 
     def reset_fault(self) -> None:
+        """Reset the axis's fault; a heartbeat goes first (the unit refuses it without one)."""
+        self.unit.beat_now()
         self._control(Control.ENABLE | Control.FAULT_RESET)
         self._control(Control.ENABLE)
 
@@ -281,7 +298,7 @@ class ModbusAxis:
         self.unit.write(self.number, "control", int(bits))
 
 
-class ModbusUnit(AxisGroup):
+class ModbusUnit(AxisGroup, ClosesOnExit):
     """A positioning unit behind a register transport; implements ``PositioningUnit``.
 
     Parameters
@@ -316,6 +333,7 @@ class ModbusUnit(AxisGroup):
         self.register_map = register_map or load_register_map()
         self._heartbeat_value = 0
         self._last_beat_s = -math.inf
+        self._heartbeat_lock = threading.Lock()
         self._heartbeat_thread: threading.Thread | None = None
         self._heartbeat_stop = threading.Event()
         self._heartbeat_failure: Exception | None = None
@@ -389,18 +407,28 @@ class ModbusUnit(AxisGroup):
         """Change the heartbeat register if half a heartbeat period has passed."""
         self._beat_if_older(self.register_map.heartbeat_period_s / 2.0)
 
+    def beat_now(self) -> None:
+        """Change the heartbeat register now (before a fault reset, which needs a fresh one).
+
+        The register holds the driver's previous beat (just after opening, whatever an
+        earlier host left, but the open's first beat went before), so this one is a
+        change either way and the unit takes the fault reset that follows.
+        """
+        self._beat_if_older(0.0)
+
     def _beat_if_older(self, age_s: float) -> None:
         if self._heartbeat_failure is not None:
             raise HeartbeatError(
                 f"the heartbeat to the {self.device_name} stalled: {self._heartbeat_failure}"
             ) from self._heartbeat_failure
-        now = self.clock.now()
-        if now - self._last_beat_s < age_s:
-            return
-        self._last_beat_s = now
-        # 1..65535: the power-on value 0 never comes back, so every beat is a change
-        self._heartbeat_value = self._heartbeat_value % (_UINT16 - 1) + 1
-        self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
+        with self._heartbeat_lock:  # the background thread and the calls: one count
+            now = self.clock.now()
+            if now - self._last_beat_s < age_s:
+                return
+            self._last_beat_s = now
+            # 1..65535: the power-on value 0 never comes back, so every beat is a change
+            self._heartbeat_value = self._heartbeat_value % (_UINT16 - 1) + 1
+            self._write_register(self.register_map.device["heartbeat"], self._heartbeat_value)
 
     def start_heartbeat(self) -> None:
         """Beat from a background thread (wall time) until :meth:`stop_heartbeat`.

@@ -44,16 +44,15 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from types import TracebackType
 from typing import Protocol
 
 import numpy as np
 
-from firmware_iface.controller_status import ControllerStatus, ProgramState
+from firmware_iface.controller_status import ControllerStatus
 from firmware_iface.standstill import StandstillWindow
 from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +141,7 @@ def _local(tag: str) -> str:
     return tag.rsplit("}", 1)[-1]
 
 
-class MTConnectMachine:
+class MTConnectMachine(ClosesOnExit):
     """The machine as its MTConnect agent reports it (``MachinePositionSource``, read-only).
 
     Parameters
@@ -165,7 +164,7 @@ class MTConnectMachine:
         device: str | None = None,
         axes: Sequence[str] = ("X", "Y", "Z"),
         clock: Clock | None = None,
-        settle_s: float = 0.5,
+        settle_s: float = 0.2,
         standstill_tolerance_mm: float = 0.002,
     ) -> None:
         if len(axes) != 3:
@@ -196,14 +195,6 @@ class MTConnectMachine:
 
     def __enter__(self) -> MTConnectMachine:
         return self if self._positions else self.open()
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- the role ----------------------------------------------------------------
     def position_mm(self) -> Vec:
@@ -393,7 +384,7 @@ def open_mtconnect(
     timeout_s: float,
     device: str | None = None,
     axes: Sequence[str] = ("X", "Y", "Z"),
-    settle_s: float = 0.5,
+    settle_s: float = 0.2,
     standstill_tolerance_mm: float = 0.002,
     clock: Clock | None = None,
 ) -> MTConnectMachine:

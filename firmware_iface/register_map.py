@@ -1,4 +1,4 @@
-"""The register map of REGISTERS.md, loaded from ``registers.yaml``.
+"""The register map of docs/registers.md, loaded from ``registers.yaml``.
 
 One source for the driver and the simulated units.
 """

@@ -45,7 +45,6 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import Any, Literal
 
 import numpy as np
@@ -55,11 +54,11 @@ from asyncua.ua.attribute_ids import AttributeIds
 from asyncua.ua.status_codes import StatusCodes
 from asyncua.ua.uaerrors import UaError, UaStatusCodeError
 
-from firmware_iface.controller_status import ControllerStatus, ProgramState
+from firmware_iface.controller_status import ControllerStatus
 from firmware_iface.standstill import StandstillWindow
 from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError, XmalignError
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, WallClock
+from xmalign.roles import Clock, ClosesOnExit, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
 
@@ -306,7 +305,7 @@ def _stop(client: Client) -> None:
         client.tloop.stop()
 
 
-class SinumerikMachine:
+class SinumerikMachine(ClosesOnExit):
     """The machine as its SINUMERIK OPC UA server reports it (``MachinePositionSource``).
 
     Parameters
@@ -332,7 +331,7 @@ class SinumerikMachine:
         axis_indices: Sequence[int] = (1, 2, 3),
         length_unit: Literal["mm", "inch"] = "mm",
         clock: Clock | None = None,
-        settle_s: float = 0.5,
+        settle_s: float = 0.2,
         standstill_tolerance_mm: float = 0.002,
         mode_group: int = 1,
     ) -> None:
@@ -365,14 +364,6 @@ class SinumerikMachine:
 
     def __enter__(self) -> SinumerikMachine:
         return self if self.link.is_open else self.open()
-
-    def __exit__(
-        self,
-        kind: type[BaseException] | None,
-        error: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- the role ----------------------------------------------------------------
     def position_mm(self) -> Vec:
@@ -442,7 +433,7 @@ def open_sinumerik(
     channel: int = 1,
     axis_indices: Sequence[int] = (1, 2, 3),
     length_unit: Literal["mm", "inch"] = "mm",
-    settle_s: float = 0.5,
+    settle_s: float = 0.2,
     standstill_tolerance_mm: float = 0.002,
     clock: Clock | None = None,
     mode_group: int = 1,

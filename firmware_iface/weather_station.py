@@ -30,13 +30,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from firmware_iface.interferometer import LineConnection, open_serial
 from firmware_iface.modbus import RegisterTransport, rtu_transport, tcp_transport
 from firmware_iface.xm_line_protocol import checksum
 from xmalign.environment import check_sensor
 from xmalign.errors import DeviceTimeoutError, FormatError, TransportError
+from xmalign.formats.common import StrictFileModel
 from xmalign.roles import Clock, EnvironmentReading, EnvironmentSource, WallClock
 
 _log = logging.getLogger(__name__)
@@ -125,7 +126,7 @@ class FileEnvironment:
     def read(self) -> EnvironmentReading:
         try:
             modified = self.path.stat().st_mtime
-            lines = self.path.read_text(encoding="utf-8").splitlines()
+            lines = self.path.read_text(encoding="utf-8-sig").splitlines()
         except OSError as error:
             raise TransportError(
                 f"cannot read the environment file {self.path} ({error.strerror})"
@@ -265,11 +266,7 @@ class ModbusWeatherStation:
 # ---------------------------------------------------------------- units.yaml
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class _Common(_Strict):
+class _Common(StrictFileModel):
     #: Station serial and sensor serials, for the calibration record.
     serial: str | None = None
     sensor_serials: dict[str, str] = {}

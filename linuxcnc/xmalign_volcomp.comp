@@ -5,17 +5,35 @@ Sits between the motion controller and the drives. Each servo period it takes th
 commanded tool point (the joints' *pos-cmd*, trivkins: every joint is one axis),
 computes the correction *c* that makes the rigid-body model of the table file
 put the tool on the commanded point (*c* = -dp(k + c), first-order model of 18
-error motions, 3 squareness errors, the kinematic chain and the tool offset),
-adds it to each joint's *motor-pos-cmd* on its way to the drive and subtracts it
-from the drive's feedback on its way back, so the motion controller sees no
-following error from it. Gantries (two joints on one axis, coordinates=XYYZ)
-give both joints their axis's correction.
+error motions, 3 squareness errors, the kinematic chain and the tool offset)
+and adds it to each joint's *motor-pos-cmd* on its way to the drive. Gantries
+(two joints on one axis, coordinates=XYYZ) give both joints their axis's
+correction.
+
+Two functions. *command*, right after motion-controller, computes the
+correction and writes the drives' commands. *feedback*, right before
+motion-controller (after the drives' feedback is read), subtracts from each
+drive's feedback the correction that was sent with the command the feedback
+answers (the last period's), so the motion controller sees no following error
+from the correction and no more delay than without the component.
 
 The table file is written by *xmalign comp --controller linuxcnc-volumetric* and
 read once when the component loads (uspace builds: rtapi_app is a user
 process). A file that cannot be read, is damaged (its CRC-32 does not match) or
 does not fit makes *loadrt* fail with the file, the line and the reason, so
 LinuxCNC does not start.
+
+When it applies: the correction follows the model only while *all-homed*
+(motion.is-all-homed), every *joint-homed-N* (joint.N.homed) and
+*motion-enabled* (motion.motion-enabled) are TRUE (*active*).
+motion.is-all-homed alone is not enough: it reads TRUE before the motion
+controller has activated its joints. With the machine on but a joint not homed,
+the correction returns to zero (homing then takes place uncorrected, in the
+frame the tables were measured in). With the machine off (E-stop; the drives
+are disabled) the correction is held while the joints stay homed, and is set
+to zero at once when they are not. The applied correction moves towards its
+goal at most *max-rate* mm/s: no step when homing completes, the machine is
+switched on or a joint is unhomed.
 
 Safe limits: while the tool point lies outside the range the tables cover, or
 the correction exceeds the file's bound, *ok* is FALSE and the correction is
@@ -24,9 +42,7 @@ trips: *enable-out* (wired to iocontrol.0.emc-enable-in) drops and LinuxCNC
 goes to E-stop. The operator's E-stop reset (*reset*, wired to
 iocontrol.0.user-request-enable) clears the trip, so the machine can be moved
 back (the correction stays held until the tool point is back where it is
-valid; a new trip needs *ok* to fall again). Before all joints are homed the
-correction is zero. The applied correction moves towards its target at most
-*max-rate* mm/s (no step when homing completes).
+valid; a new trip needs *ok* to fall again).
 
 Build and install: *halcompile --install linuxcnc/xmalign_volcomp.comp*.
 """;
@@ -36,7 +52,10 @@ pin in float motor_pos_cmd_#[16 : personality] "joint.N.motor-pos-cmd: the motio
 pin out float motor_pos_out_#[16 : personality] "corrected command, to the drive";
 pin in float motor_pos_fb_in_#[16 : personality] "the drive's feedback";
 pin out float motor_pos_fb_out_#[16 : personality] "feedback less the correction, to joint.N.motor-pos-fb";
-pin in bit homed "motion.is-all-homed: corrections apply once every joint is homed";
+pin in bit joint_homed_#[16 : personality] "joint.N.homed";
+pin in bit all_homed "motion.is-all-homed";
+pin in bit motion_enabled "motion.motion-enabled: the machine is on";
+pin out bit active "the correction follows the model: every joint homed, all-homed, machine on";
 pin in bit enable_in "the E-stop chain's input (e.g. iocontrol.0.user-enable-out)";
 pin out bit enable_out "enable-in unless tripped, to iocontrol.0.emc-enable-in";
 pin out bit ok "FALSE while the position is outside the tables or the correction exceeds its bound";
@@ -44,13 +63,14 @@ pin out s32 fault "0 ok, 1 outside the tables, 2 correction beyond the bound";
 pin out bit tripped "set when ok falls; cleared by reset or while enable-in is FALSE";
 pin in bit reset "iocontrol.0.user-request-enable: the operator's E-stop reset clears the trip";
 pin out float correction_#[3] "applied correction X, Y, Z, mm";
-pin out float target_#[3] "model correction at the commanded point X, Y, Z, mm";
+pin out float target_#[3] "model correction at the commanded point X, Y, Z, mm (0 until homed)";
 pin in float max_rate = 1.0 "largest rate of change of the applied correction, mm/s";
 
 option extra_setup yes;
 option period no;
 
-function _ fp;
+function feedback fp "before motion-controller: each drive's feedback less the correction sent with the command it answers";
+function command fp "after motion-controller: the correction, added to each drive's command";
 license "GPL";
 author "xmalign";
 ;;
@@ -334,9 +354,20 @@ EXTRA_SETUP() {
     return 0;
 }
 
-FUNCTION(_) {
-    double k[3] = {0, 0, 0}, goal[3], dp[3], q[3], step;
+FUNCTION(feedback) {
+    int j;
+    for (j = 0; j < personality; j++)
+        motor_pos_fb_out(j) = motor_pos_fb_in(j) - applied_mm[joint_axis[j]];
+}
+
+FUNCTION(command) {
+    double k[3] = {0, 0, 0}, goal[3] = {0, 0, 0}, dp[3], q[3], step;
     int seen[3] = {0, 0, 0}, j, a, iteration, code = 0;
+    int homed = all_homed;
+
+    /* every joint by its own pin too: is-all-homed reads TRUE before the joints are active */
+    for (j = 0; j < personality; j++)
+        homed = homed && joint_homed(j);
 
     for (j = 0; j < personality; j++) {
         a = joint_axis[j];
@@ -345,8 +376,6 @@ FUNCTION(_) {
             seen[a] = 1;
         }
     }
-    for (a = 0; a < 3; a++)
-        goal[a] = 0;
     if (homed) {
         for (a = 0; a < 3; a++)
             if (seen[a] && (k[a] < cover_low_mm[a] - 1e-6 || k[a] > cover_high_mm[a] + 1e-6))
@@ -363,21 +392,24 @@ FUNCTION(_) {
             if (fabs(goal[a]) > bound_mm)
                 code = 2;
     }
-    if (code == 0) {
+    if (code == 0)
+        for (a = 0; a < 3; a++)
+            target(a) = goal[a];
+    if (motion_enabled && code == 0) {
         step = fabs(max_rate) * fperiod;
         for (a = 0; a < 3; a++) {
             double change = goal[a] - applied_mm[a];
             applied_mm[a] += change > step ? step : (change < -step ? -step : change);
-            target(a) = goal[a];
         }
+    } else if (!motion_enabled && !homed) {
+        /* drives disabled, frame unknown: nothing moves, and homing must start from 0 */
+        for (a = 0; a < 3; a++)
+            applied_mm[a] = 0;
     }
     for (a = 0; a < 3; a++)
         correction(a) = applied_mm[a];
-    for (j = 0; j < personality; j++) {
-        double c = applied_mm[joint_axis[j]];
-        motor_pos_out(j) = motor_pos_cmd(j) + c;
-        motor_pos_fb_out(j) = motor_pos_fb_in(j) - c;
-    }
+    for (j = 0; j < personality; j++)
+        motor_pos_out(j) = motor_pos_cmd(j) + applied_mm[joint_axis[j]];
     if (reset || !enable_in)
         tripped = 0;
     else if (code != 0 && last_code == 0)
@@ -385,5 +417,6 @@ FUNCTION(_) {
     last_code = code;
     fault = code;
     ok = code == 0;
+    active = motion_enabled && homed && code == 0;
     enable_out = enable_in && !tripped;
 }

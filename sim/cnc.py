@@ -554,6 +554,12 @@ class SimulatedCnc:
         self._segment = _Segment(self.position_mm(), target, now, speed, self._acceleration)
         return self._segment.duration_s
 
+    def stop(self) -> None:
+        """Stop where the tool point is now, at once (a feed hold of the simulated CNC)."""
+        now = self._clock.now()
+        here = self._segment.position_mm(now)
+        self._segment = _Segment(here, here, now, 1.0, self._acceleration)
+
     def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
         """Move the tool point and return when it stands still there."""
         self._clock.sleep(self.start_move(position_mm, feed_mm_min))

@@ -19,7 +19,7 @@ import numpy as np
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.environment import SHOPS, attach_shop
-from sim.machine import ErrorAmplitudes
+from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.units import SimPositioningUnit
 from sim.world import World, build_world
 from trajectories.planner import MeasurementPlan
@@ -44,11 +44,12 @@ from xmalign.identify import IdentificationResult, IdentificationUncertainty
 from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
+from xmalign.post.evaluate import PostResult, post_process
 from xmalign.rigid_body import Chain, ErrorTables, RemainingErrors
 from xmalign.steps import (
     PROGRAM_SUFFIX,
     RunStepDevices,
+    as_left_step,
     comp_step,
     design_step,
     following_drive,
@@ -149,6 +150,8 @@ class DryRunReport:
     identification: IdentificationResult
     truth_launch2mcs_mm: Vec
     truth_gamma_rad: float
+    #: The virtual machine that was measured (its errors are the truth of the tables).
+    truth: VirtualMachine
     plan: MeasurementPlan
     margins: list[LineMargin]
     volumetric_before_um: float
@@ -198,6 +201,40 @@ def placement_scatter_mm(rng: np.random.Generator) -> Vec:
     return scatter
 
 
+@dataclass(frozen=True)
+class Placement:
+    """What the seed of a virtual setup decides: where the launch unit really stands
+    (the machine file with its true position), its azimuth and the world's seed."""
+
+    machine: Machine
+    gamma_rad: float
+    world_seed: int
+
+    @property
+    def launch2mcs_mm(self) -> Vec:
+        """The launch unit's true position, mm (3,) (the machine file's guess scattered)."""
+        if self.machine.launch_unit is None:
+            raise InputError(
+                f"{self.machine.name}: the machine file has no launch_unit.position_mm"
+            )
+        return np.asarray(self.machine.launch_unit.position_mm, dtype=float)
+
+
+def placement(machine: Machine, seed: int) -> Placement:
+    """The placement of the virtual setup of ``seed`` (:func:`virtual_setup` builds on it;
+    the Monte Carlo identification trials take their truth from it)."""
+    rng = np.random.default_rng(seed)
+    placed = machine
+    if machine.launch_unit is not None:
+        scatter = placement_scatter_mm(rng)
+        launch_unit = machine.launch_unit.model_copy(
+            update={"position_mm": list(np.asarray(machine.launch_unit.position_mm) + scatter)}
+        )
+        placed = machine.model_copy(update={"launch_unit": launch_unit})
+    world_seed = int(rng.integers(2**31))
+    return Placement(placed, float(rng.uniform(-math.pi, math.pi)), world_seed)
+
+
 def virtual_setup(
     machine: Machine,
     seed: int,
@@ -209,18 +246,11 @@ def virtual_setup(
     With ``lockstep`` its clock is a :class:`~sim.clock.LockstepClock`, so the
     setup can be served (:func:`measure_served`); in-process it behaves the same.
     """
-    rng = np.random.default_rng(seed)
-    placed = machine
-    if machine.launch_unit is not None:
-        scatter = placement_scatter_mm(rng)
-        launch_unit = machine.launch_unit.model_copy(
-            update={"position_mm": list(np.asarray(machine.launch_unit.position_mm) + scatter)}
-        )
-        placed = machine.model_copy(update={"launch_unit": launch_unit})
+    placed = placement(machine, seed)
     world = build_world(
-        placed,
-        seed=int(rng.integers(2**31)),
-        gamma_rad=float(rng.uniform(-math.pi, math.pi)),
+        placed.machine,
+        seed=placed.world_seed,
+        gamma_rad=placed.gamma_rad,
         amplitudes=amplitudes,
         clock=LockstepClock() if lockstep else None,
     )
@@ -331,10 +361,12 @@ def measure_served(
 
     for unit in (setup.world.launch, setup.world.receiver):
         unit.keep_heartbeat(False)  # the in-process host of the identification is gone
-    with serve_world(setup.world, machine, program, dialect, setup.cnc) as served:
-        devices = open_devices(
+    with (
+        serve_world(setup.world, machine, program, dialect, setup.cnc) as served,
+        open_devices(
             served.config, machine, ask=_no_operator, tell=lambda text: None, clock=served.clock
-        )
+        ) as devices,
+    ):
         following = following_drive(devices.mover, served.operator, machine, FOLLOW_POLL_S)
 
         def drive(run: CalibrationRun) -> None:
@@ -343,13 +375,10 @@ def measure_served(
                 served.run_to_stop_at(pre_position_mm(first, machine.measurement.overrun_mm))
             following(run)
 
-        try:
-            roles = RunStepDevices(
-                devices.launch, devices.receiver, devices.interferometer, served.clock
-            )
-            return run_step(plan, roles, output, drive)
-        finally:
-            devices.close()
+        roles = RunStepDevices(
+            devices.launch, devices.receiver, devices.interferometer, served.clock
+        )
+        return run_step(plan, roles, output, drive)
 
 
 def _no_operator(prompt: str) -> str:
@@ -409,7 +438,6 @@ def simulate_calibration(
     options = options or DryRunOptions()
     stage = on_stage or (lambda name: None)
     check_dry_run_folder(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
     station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
     clock = setup.world.clock
@@ -420,6 +448,8 @@ def simulate_calibration(
     if positions is None:
         design = design_step(machine, options.identification_positions)
         positions, design_warnings = design.machine_mm, list(design.warnings)
+    # only now, with the options found good, is the folder made
+    workdir.mkdir(parents=True, exist_ok=True)
     result = identify_virtually(
         setup, machine, positions, workdir / "session.json", options.method, options.seed
     )
@@ -446,7 +476,9 @@ def simulate_calibration(
     started = clock.now()
     csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
-    with open_run_output(csv_path, plan, resume=False, environment=monitor) as output:
+    with open_run_output(
+        csv_path, plan, resume=False, environment=monitor, sim_seed=options.seed
+    ) as output:
         output.on_saved = on_point or (lambda saved: None)
         run = measure(output)
     run_s = clock.now() - started
@@ -472,11 +504,7 @@ def simulate_calibration(
         verification = workdir / "verification.csv"
         with open_run_output(verification, plan, resume=False, environment=monitor) as output:
             measure(output)
-        left = post_stations(
-            machine,
-            [Station(plan, read_measurements(verification), verification.name)],
-            applied,
-        )
+        left = as_left_step(machine, plan, verification, applied)
         remaining = RemainingErrors(truth, applied)
         as_left = AsLeft(
             left,
@@ -491,6 +519,7 @@ def simulate_calibration(
         identification=result,
         truth_launch2mcs_mm=setup.world.launch2mcs_mm,
         truth_gamma_rad=setup.world.gamma_rad,
+        truth=truth,
         plan=measurement_plan,
         margins=_margins(measurement_plan, rows, machine),
         volumetric_before_um=volumetric_rms_um(chain, points, truth, ErrorTables()),

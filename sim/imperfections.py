@@ -18,7 +18,7 @@ class UnitImperfections:
     encoder_noise_rad : float
         Standard deviation of each encoder reading.
     zero_offsets_rad : ndarray, shape (n_axes,)
-        True angle minus reported angle of each axis (``c_k`` of CONVENTIONS.md;
+        True angle minus reported angle of each axis (``c_k`` of docs/conventions.md;
         for the launch unit the first one is absorbed in gamma).
     axis_offset_mm : ndarray, shape (3,)
         Where the optical centre really is relative to the cp, in the head frame

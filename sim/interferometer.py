@@ -1,4 +1,4 @@
-"""The simulated six-channel interferometer (XM-60 class) of CONVENTIONS.md.
+"""The simulated six-channel interferometer (XM-60 class) of docs/conventions.md.
 
 The reading follows from the true geometry: the launch head's beam (unit
 angles, zero offsets, axis offset, beam misalignment), the receiver carried by

@@ -1,4 +1,4 @@
-"""The virtual machine tool: seedable rigid-body errors of CONVENTIONS.md behind ``ErrorModel``.
+"""The virtual machine tool: seedable rigid-body errors (docs/conventions.md), ``ErrorModel``.
 
 Each of the 18 error motions is, as in the Monte Carlo study of seed 003
 (its Eq. 3 and Table 1), a polynomial of order 0 and 1 plus two Fourier terms
@@ -232,7 +232,7 @@ class VirtualMachine:
         return np.append(points, high) if high - points[-1] > 1e-9 else points
 
     def truth_tables(self, spacing_mm: float) -> ErrorTableSet:
-        """The true errors as compensation tables, in the table conventions of CONVENTIONS.md.
+        """The true errors as compensation tables, in the table conventions of docs/conventions.md.
 
         Positioning and angular errors are zero at the first point; straightness
         is zero at the first and last point, its end-point slope moved into the
@@ -269,7 +269,7 @@ class VirtualMachine:
         return result
 
     def write_truth_tables(self, path: str, spacing_mm: float) -> None:
-        """Write :meth:`truth_tables` as an error-table CSV (FORMATS.md)."""
+        """Write :meth:`truth_tables` as an error-table CSV (docs/formats.md)."""
         write_error_tables(path, self.truth_tables(spacing_mm))
 
     # helpers --------------------------------------------------------------------

@@ -33,18 +33,22 @@ import numpy as np
 from sim.dry_run import (
     DryRunOptions,
     measured_strokes,
-    placement_scatter_mm,
+    placement,
     simulate_calibration,
-    virtual_setup,
 )
 from sim.identification import SessionImperfections, simulate_session, spread_positions
 from sim.machine import ErrorAmplitudes
-from trajectories.identification_design import MIN_POSITIONS
+from trajectories.identification_design import MIN_POSITIONS, count_problem
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.geometry import Vec, wrap_angle
-from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
+from xmalign.identify import (
+    METHODS,
+    IdentificationResult,
+    IdentificationUncertainty,
+    identify,
+)
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.montecarlo import AdaptiveStudy
 from xmalign.post.compare import grid_points, remove_rigid_motion
@@ -54,6 +58,8 @@ from xmalign.steps import design_step
 MODES = ("identification", "calibration")
 #: Points along a line at which the predicted beam envelope is kept (fractions 0..1).
 ENVELOPE_SAMPLES = 21
+#: The random stream of an identification trial's session, apart from the placement's.
+SESSION_STREAM = 1
 #: Named launch-unit placements: the machine file's guess, its x and y moved to the centre
 #: of the travel, or mirrored through the centre (the opposite corner), same height.
 PLACEMENTS = ("guess", "centre", "opposite")
@@ -118,13 +124,21 @@ def _placed(machine: Machine, placement: str) -> Vec:
     return np.array([2 * centre[0] - guess[0], 2 * centre[1] - guess[1], guess[2]])
 
 
-def _positive_int(low: int) -> Callable[[str], object]:
+def _positive_int(low: int) -> Callable[[str], int]:
     def parse(text: str) -> int:
         if not text.isdigit() or int(text) < low:
             raise ValueError(f"expected a whole number >= {low}")
         return int(text)
 
     return parse
+
+
+def _alignments(text: str) -> int:
+    count = _positive_int(MIN_POSITIONS)(text)
+    problem = count_problem(count)
+    if problem is not None:
+        raise ValueError(problem)
+    return count
 
 
 def _spacing(text: str) -> float:
@@ -157,7 +171,7 @@ VARIATIONS: dict[str, Variation] = {
     "identification": Variation(
         "identification", _one_of(IDENTIFICATIONS), lambda m: IDENTIFICATIONS
     ),
-    "alignments": Variation("alignments", _positive_int(MIN_POSITIONS), lambda m: (4, 6, 10)),
+    "alignments": Variation("alignments", _alignments, lambda m: (4, 6, 10)),
     "targets": Variation(
         "target_spacing_mm",
         _spacing,
@@ -287,18 +301,12 @@ def _plan_outcome(plan: MeasurementPlan, strategy_index: int) -> TrialOutcome:
     return outcome
 
 
-def _launch_truth(machine: Machine, rng: np.random.Generator) -> tuple[Vec, float]:
-    """Where the unit really stands: as :func:`sim.dry_run.virtual_setup` scatters it."""
-    return _launch_guess_mm(machine) + placement_scatter_mm(rng), float(
-        rng.uniform(-math.pi, math.pi)
-    )
-
-
 def identification_trial(spec: TrialSpec) -> TrialOutcome:
     """Identification only: closed-form session, identify, plan the lines."""
     machine = spec.machine
-    rng = np.random.default_rng(spec.seed)
-    position_mm, gamma_rad = _launch_truth(machine, rng)
+    truth = placement(machine, spec.seed)  # where the dry run of this seed places the unit
+    position_mm, gamma_rad = truth.launch2mcs_mm, truth.gamma_rad
+    rng = np.random.default_rng([spec.seed, SESSION_STREAM])
     imperfections = SessionImperfections.realistic(rng)
     session = simulate_session(
         spec.identification_mm,
@@ -341,8 +349,7 @@ def calibration_trial(spec: TrialSpec) -> TrialOutcome:
     with tempfile.TemporaryDirectory(prefix="xmalign-mc-") as workdir:
         report = simulate_calibration(machine, Path(workdir), options)
         tables = read_error_tables(report.files["errors"]).model()
-    # the same seed rebuilds the same virtual machine: the truth behind the report
-    truth = virtual_setup(machine, spec.seed, spec.amplitudes).world.machine
+    truth = report.truth  # the virtual machine the dry run measured
     grid = grid_points(*measured_strokes(report.plan))
     residual = residual_map_um(Chain.parse(machine.chain), grid, truth, tables)
     outcome = _plan_outcome(report.plan, spec.strategy_index)
@@ -441,6 +448,8 @@ class StudySettings:
             raise InputError("--batch and --trials must be at least 2 (a batch needs a spread)")
         if self.digits < 1:
             raise InputError(f"--digits {self.digits}: must be at least 1")
+        if self.method not in METHODS:
+            raise InputError(f"--method '{self.method}': choose {', '.join(METHODS)}")
 
 
 def run_study(

@@ -3,7 +3,7 @@
 Pure: a plan of the three axis lines and three face diagonals of a machine's
 travel, and the channels the interferometer would read on them for any
 :class:`~xmalign.rigid_body.ErrorModel`, with backlash, setup terms and noise.
-The channel model is the one of CONVENTIONS.md; the deviation is
+The channel model is the one of docs/conventions.md; the deviation is
 :func:`xmalign.rigid_body.deviation`.
 """
 
@@ -63,7 +63,7 @@ def six_line_plan(
 
 @dataclass(frozen=True)
 class SetupDisturbance:
-    """What the setup adds (CONVENTIONS.md), and the channel noise, in file units."""
+    """What the setup adds (docs/conventions.md), and the channel noise, in file units."""
 
     straightness_offset_um: float = 40.0
     straightness_slope_urad: float = 50.0

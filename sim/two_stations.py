@@ -33,6 +33,7 @@ from trajectories.stations import StationProposal, propose_second_station
 from xmalign.calibration import open_run_output
 from xmalign.formats.error_tables import write_error_tables
 from xmalign.formats.measurements import read_measurements
+from xmalign.formats.provenance import sources
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult, Station, post_stations
@@ -139,7 +140,14 @@ def simulate_two_stations(
         for run in (first, second)
     ]
     post = post_stations(machine, stations)
-    write_error_tables(workdir / "errors.csv", post.fit.tables)
+    inputs = [
+        source
+        for name in ("station1", "station2")
+        for source in sources(
+            measurements=workdir / f"{name}-measurements.csv", plan=workdir / f"{name}-plan.json"
+        )
+    ]
+    write_error_tables(workdir / "errors.csv", post.fit.tables, inputs, machine)
     chain = Chain.parse(machine.chain)
     truth = setup.world.machine
     model = post.fit.tables.model()

@@ -9,10 +9,14 @@ inside are rad; the registers speak encoder counts.
 
 Firmware rules (docs/registers.md): ``start``, ``home`` and ``fault_reset`` act
 on their rising edge; ``start`` needs ``enable | unlock`` and no fault;
-clearing ``unlock`` stops the axis and it is locked once at rest. The watchdog
-runs from power-on: until the heartbeat register has changed, ``enable`` and
-``unlock`` are ignored; 350 ms after the last change (or power-on) every axis
-quick-stops and brakes (fault 4), so it is at rest and locked by 500 ms.
+clearing ``unlock`` stops the axis and it is locked once at rest; a stop never
+rewrites the target, so "in position" means at the target the host wrote. The
+watchdog runs from power-on: 350 ms after the last change of the heartbeat
+register (or power-on) every axis quick-stops and brakes (fault 4), so it is at
+rest and locked by 500 ms. Until the heartbeat has changed (after power-on, and
+again after every expiry) the watchdog is not armed: every control bit but
+``stop`` is ignored (no enable, unlock, start, home, track nor fault reset), so
+fault 4 stays and nothing moves until the host is beating again.
 """
 
 from __future__ import annotations
@@ -27,8 +31,14 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from firmware_iface.register_map import Control, RegisterMap, Status, load_register_map
-from firmware_iface.unit import HEARTBEAT_FAULT, AxisGroup, axis_fault
+from firmware_iface.register_map import (
+    Control,
+    Register,
+    RegisterMap,
+    Status,
+    load_register_map,
+)
+from firmware_iface.unit import HEARTBEAT_FAULT, axis_fault
 from sim import motion
 from sim.clock import SimClock
 from sim.imperfections import UnitImperfections
@@ -38,7 +48,7 @@ from xmalign.errors import (
     OutOfRangeError,
 )
 from xmalign.geometry import Vec, rot_x, rot_y, rot_z
-from xmalign.roles import Clock
+from xmalign.roles import Clock, move_axes
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +259,6 @@ class SimAxis:
         deceleration = deceleration_rad_s2 or self.limits.acceleration_rad_s2
         self.profile = motion.stop(self.profile, when, deceleration)
         self._homing = False
-        self.target_rad = self.profile.final_position
 
     def fault(
         self, code: int, time_s: float | None = None, deceleration_rad_s2: float | None = None
@@ -261,6 +270,19 @@ class SimAxis:
 
     def reset_fault(self) -> None:
         self.fault_code = 0
+
+
+#: The control bits a unit ignores while its watchdog is not armed (no heartbeat since
+#: power-on or since the watchdog expired): all but ``stop``.
+NEEDS_HEARTBEAT = (
+    Control.ENABLE
+    | Control.UNLOCK
+    | Control.START
+    | Control.FAULT_RESET
+    | Control.HOME
+    | Control.TRACK
+)
+_DEFINED_CONTROL_BITS = sum(int(bit) for bit in Control)
 
 
 @dataclass(frozen=True)
@@ -302,7 +324,7 @@ class SimUnit:
         rng = np.random.default_rng(seed)
         offsets = np.resize(np.asarray(self.imperfections.zero_offsets_rad, dtype=float), 3)
         if kind == "launch":
-            offsets[0] = 0.0  # c1 is absorbed in gamma (CONVENTIONS.md)
+            offsets[0] = 0.0  # c1 is absorbed in gamma (docs/conventions.md)
         self.axes = tuple(
             SimAxis(
                 name,
@@ -320,6 +342,7 @@ class SimUnit:
         )
         self._control = [Control(0)] * len(self.axes)
         self._heartbeat = 0
+        #: The watchdog is armed: the heartbeat changed since power-on and since its last expiry.
         self.heartbeat_seen = False
         self._heartbeat_time_s = self.clock.now()
         self._watchdog_tripped = False
@@ -333,9 +356,19 @@ class SimUnit:
             self.check_watchdog()
             if value != self._heartbeat:
                 self._heartbeat = value
-                self._heartbeat_time_s = self.clock.now()
-                self.heartbeat_seen = True
-                self._watchdog_tripped = False
+                self._arm_watchdog()
+
+    def heartbeat_age_s(self) -> float:
+        """Time since the heartbeat last changed (or power-on), on the unit's clock."""
+        with self.lock:
+            self.check_watchdog()
+            return self.clock.now() - self._heartbeat_time_s
+
+    def _arm_watchdog(self) -> None:
+        """A heartbeat: the watchdog counts from now, and a fault reset is accepted again."""
+        self._heartbeat_time_s = self.clock.now()
+        self.heartbeat_seen = True
+        self._watchdog_tripped = False
 
     def keep_heartbeat(self, on: bool) -> None:
         """An in-process host's background heartbeat: while on, the heartbeat is never stale.
@@ -346,15 +379,14 @@ class SimUnit:
         with self.lock:
             self.check_watchdog()
             if on or self._host_beating:
-                self._heartbeat_time_s = self.clock.now()
-                self.heartbeat_seen = True
-                self._watchdog_tripped = False
+                self._arm_watchdog()
             self._host_beating = on
 
     def check_watchdog(self) -> None:
         """Quick-stop and brake every axis (fault 4) once the heartbeat is stale.
 
         Evaluated retroactively: the stop begins at the expiry, however late it is noticed.
+        The watchdog is then disarmed until the heartbeat changes again (:meth:`control`).
         """
         if self._host_beating:
             self._heartbeat_time_s = self.clock.now()
@@ -363,6 +395,7 @@ class SimUnit:
         expiry_s = self._heartbeat_time_s + self.register_map.quick_stop_start_s
         if self.clock.now() >= expiry_s:
             self._watchdog_tripped = True
+            self.heartbeat_seen = False
             log.warning(
                 "%s unit: heartbeat watchdog expired: no heartbeat for %.0f ms; every axis"
                 " quick-stopped and locked (fault 4)",
@@ -402,13 +435,25 @@ class SimUnit:
         return self.register_map.axis_stride * (len(self.axes) + 1)
 
     def _written(self, words: dict[int, int]) -> list[tuple[str, int]]:
-        """The registers (name, axis number or 0) a write touches; InputError if not writable."""
+        """The registers (name, axis number or 0) a write touches; InputError if not writable
+        or if it covers only one word of a 32-bit register (a value is written whole)."""
         touched: list[tuple[str, int]] = []
         for address in words:
             name, axis = self._register_at(address)
             if (name, axis) not in touched:
                 touched.append((name, axis))
+        for name, axis in touched:
+            reg = self._register(name, axis)
+            if any(a not in words for a in range(reg.address, reg.address + reg.width)):
+                raise InputError(
+                    f"register {reg.address} ({reg.name}) is 32 bits: write both words"
+                    f" ({reg.address}-{reg.address + 1}) in one request"
+                )
         return touched
+
+    def _register(self, name: str, axis: int) -> Register:
+        """Register ``name`` of axis ``axis``, or of the device for axis 0."""
+        return self.register_map.axis(axis, name) if axis else self.register_map.device[name]
 
     def _register_at(self, address: int) -> tuple[str, int]:
         rmap = self.register_map
@@ -425,12 +470,8 @@ class SimUnit:
         raise InputError(f"register {address} is not a register of the {self.kind} unit")
 
     def _value(self, name: str, axis: int, words: dict[int, int]) -> int:
-        reg = self.register_map.axis(axis, name) if axis else self.register_map.device[name]
-        current = self._image()
-        raw = [
-            words.get(a, current.get(a, 0)) & 0xFFFF
-            for a in range(reg.address, reg.address + reg.width)
-        ]
+        reg = self._register(name, axis)
+        raw = [words[a] & 0xFFFF for a in range(reg.address, reg.address + reg.width)]
         if reg.width == 1:
             return raw[0]
         value = (raw[0] << 16) | raw[1]
@@ -452,13 +493,19 @@ class SimUnit:
             return lambda: axis.set_velocity_limit(
                 min(counts_to_rad(value), axis.limits.max_velocity_rad_s)
             )
-        return lambda: self.control(n, Control(value & 0x7F))
+        undefined = value & ~_DEFINED_CONTROL_BITS
+        if undefined:
+            raise OutOfRangeError(
+                f"axis {axis.name}: control bits {undefined:#06x} are not defined (bits 0-6 are)"
+            )
+        return lambda: self.control(n, Control(value))
 
     def control(self, n: int, value: Control) -> None:
         """Apply a control-register write to axis ``n`` (1-based)."""
         with self.lock:
-            if not self.heartbeat_seen:  # no host heartbeat yet: the axis stays disabled, locked
-                value &= ~(Control.ENABLE | Control.UNLOCK)
+            self.check_watchdog()
+            if not self.heartbeat_seen:  # the watchdog is not armed: nothing but stop
+                value &= ~NEEDS_HEARTBEAT
             axis = self.axes[n - 1]
             edges = _Edges(rising=value & ~self._control[n - 1], value=value)
             self._control[n - 1] = value
@@ -597,11 +644,13 @@ class _SimRotaryAxis:
             with self.unit.lock:
                 self._raise_fault()
                 remaining_s = self._axis.profile.end_s - clock.now()
-            if remaining_s <= 0.0:
-                return
+                if remaining_s <= 0.0 and self._axis.in_position():
+                    return
             if clock.now() >= deadline_s:
                 raise DeviceTimeoutError(f"axis {self.name} not in position after {timeout_s:g} s")
-            clock.sleep(min(remaining_s, step_s, deadline_s - clock.now()))
+            # at rest short of the target (stopped): nothing will change before the deadline
+            wait_s = remaining_s if remaining_s > 0.0 else deadline_s - clock.now()
+            clock.sleep(min(wait_s, step_s, deadline_s - clock.now()))
 
     def stop(self) -> None:
         self.host.beat()
@@ -629,7 +678,7 @@ class _SimRotaryAxis:
             return self._axis.fault_code
 
     def reset_fault(self) -> None:
-        self.host.beat()
+        self.host.beat(now=True)  # the unit takes a fault reset only with the heartbeat running
         self.unit.control(self.n, Control.ENABLE | Control.FAULT_RESET)
         self.unit.control(self.n, Control.ENABLE)
 
@@ -640,11 +689,14 @@ class _SimRotaryAxis:
             raise axis_fault(label, self._axis.fault_code)
 
 
-class SimPositioningUnit(AxisGroup):
+class SimPositioningUnit:
     """In-process ``PositioningUnit`` on a :class:`SimUnit` (reported angles, rad).
 
-    It plays the host: it changes the unit's heartbeat from every call (at most
-    every half heartbeat period of the unit's clock) and, like the drivers opened
+    It implements the role on its own, not through the drivers' ``AxisGroup``, so
+    the unit contract suite (tests/firmware_iface/test_unit_contract.py) compares
+    two implementations and catches a bug they would share. It plays the host: it
+    changes the unit's heartbeat from every call (at most every half heartbeat
+    period of the unit's clock) and, like the drivers opened
     from a ``units.yaml``, keeps a background heartbeat until :meth:`stop_heartbeat`
     (a host that stalls or closes). Opening it clears a heartbeat fault left from
     power-on, as the drivers do when they connect.
@@ -660,18 +712,37 @@ class SimPositioningUnit(AxisGroup):
         self._axes = tuple(_SimRotaryAxis(self, n) for n in range(1, len(unit.axes) + 1))
         self.beat()
         self.unit.keep_heartbeat(True)
-        self.clear_heartbeat_faults()
+        for axis in self._axes:  # a heartbeat fault left from power-on; the axes stay locked
+            if axis.fault_code() == HEARTBEAT_FAULT:
+                axis.reset_fault()
+
+    @property
+    def axes(self) -> tuple[_SimRotaryAxis, ...]:
+        return self._axes
+
+    def lock(self) -> None:
+        """Stop every axis and apply the brakes."""
+        for axis in self._axes:
+            axis.lock()
+
+    def reset_faults(self) -> None:
+        """Reset every axis's fault (as the drivers' ``reset_faults``); the axes stay locked."""
+        for axis in self._axes:
+            axis.reset_fault()
 
     def stop_heartbeat(self) -> None:
         """Stop the background heartbeat; the calls still beat."""
         self.unit.keep_heartbeat(False)
 
-    def beat(self) -> None:
-        """Change the heartbeat if half a heartbeat period has passed on the unit's clock."""
-        now = self.clock.now()
-        if now - self._last_beat_s < self.unit.register_map.heartbeat_period_s / 2.0:
+    def beat(self, now: bool = False) -> None:
+        """Change the heartbeat if half a heartbeat period has passed on the unit's clock.
+
+        ``now``: change it whenever it last changed (before a fault reset).
+        """
+        time_s = self.clock.now()
+        if not now and time_s - self._last_beat_s < self.unit.register_map.heartbeat_period_s / 2:
             return
-        self._last_beat_s = now
+        self._last_beat_s = time_s
         self._heartbeat_value = self._heartbeat_value % 0xFFFF + 1
         self.unit.heartbeat(self._heartbeat_value)
 
@@ -685,4 +756,4 @@ class SimPositioningUnit(AxisGroup):
         if targets.shape == (len(self._axes),):
             for axis, target in zip(self._axes, targets, strict=True):
                 axis._axis.check_target(float(target))
-        super().move_to(targets, timeout_s)
+        move_axes(self._axes, targets, timeout_s, self.device_name, self.clock)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,6 +13,7 @@ from sim.imperfections import UnitImperfections
 from sim.interferometer import SimInterferometer
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.units import SimUnit
+from xmalign.errors import InputError
 from xmalign.geometry import Vec
 from xmalign.kinematics import EncoderOffsets
 from xmalign.machine import Machine
@@ -69,6 +71,8 @@ def build_world(
     the centre of the travel). ``clock`` (default: a new one, following the
     wall clock with ``real_time``) is the time of every device.
     """
+    if not math.isfinite(gamma_rad):
+        raise InputError(f"launch-unit azimuth {gamma_rad}: not a finite number")
     rng = np.random.default_rng(seed)
     clock = clock or SimClock(real_time=real_time)
     vm = VirtualMachine(machine, amplitudes, seed=int(rng.integers(2**31)))

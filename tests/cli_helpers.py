@@ -1,5 +1,8 @@
 """Running the ``xmalign`` command as a user would, for the CLI tests; a free port.
 
+:class:`Process` runs one in the background (``sim serve``, a live run) and
+collects its output lines as they come.
+
 (tests/ is on sys.path because tests/conftest.py lives there.)
 """
 
@@ -7,14 +10,23 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
+import queue
+import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import IO
 from unittest import mock
 
 from xmalign.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+#: A wide terminal (one message per line) and this checkout's packages first.
+PROCESS_ENV = {**os.environ, "COLUMNS": "200", "PYTHONPATH": str(ROOT)}
 
 
 def run_cli(
@@ -69,3 +81,88 @@ def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
+
+
+class Process:
+    """An ``xmalign`` process whose output lines are collected as they come (``wait_for`` one)."""
+
+    def __init__(self, args: list[str], cwd: Path, stdin: int | None = None) -> None:
+        self.popen = subprocess.Popen(
+            [sys.executable, "-m", "xmalign", *args],
+            cwd=cwd,
+            stdin=stdin if stdin is not None else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=PROCESS_ENV,
+        )
+        self.lines: list[str] = []
+        self._t0 = time.monotonic()
+        self.timed: list[str] = []  # the lines with the seconds since the start (messages)
+        self._new: queue.Queue[str] = queue.Queue()
+        self.stderr = ""
+        threading.Thread(target=self._read, daemon=True).start()
+        threading.Thread(target=self._read_stderr, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            self.lines.append(line)
+            self.timed.append(f"[{time.monotonic() - self._t0:7.2f} s] {line}")
+            self._new.put(line)
+
+    def _read_stderr(self) -> None:
+        assert self.popen.stderr is not None
+        self.stderr = self.popen.stderr.read()
+
+    def said(self) -> str:
+        """Everything the process said so far, each line after its time since the start."""
+        return "".join(self.timed) + self.stderr
+
+    def wait_for(self, text: str, timeout_s: float = 60.0) -> str:
+        """The next output line (after those already waited for) that holds ``text``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                line = self._new.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"no '{text}' within {timeout_s} s:\n{self.said()}") from None
+            if text in line:
+                return line
+
+    def wait_for_all(self, *texts: str, timeout_s: float = 60.0) -> None:
+        """The next output lines until each text was in one of them, in any order (lines
+        written by different threads of the process come in either order)."""
+        missing = set(texts)
+        while missing:
+            line = self.next_line(timeout_s)
+            if line is None:
+                raise AssertionError(f"ended without {missing}:\n{self.said()}")
+            missing = {text for text in missing if text not in line}
+
+    def next_line(self, timeout_s: float = 60.0) -> str | None:
+        """The next output line; None once the process has ended and said everything."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                return self._new.get(timeout=0.2)
+            except queue.Empty:
+                if self.popen.poll() is not None and self._new.empty():
+                    time.sleep(0.2)  # the reader takes the last lines
+                    if self._new.empty():
+                        return None
+        raise AssertionError(f"no output within {timeout_s} s:\n{self.said()}")
+
+    def finish(self, timeout_s: float = 60.0) -> int:
+        code = self.popen.wait(timeout=timeout_s)
+        time.sleep(0.1)  # the readers take the last lines
+        return code
+
+    def stop(self) -> None:
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGINT)
+            try:
+                self.popen.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()

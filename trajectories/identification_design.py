@@ -48,6 +48,25 @@ logger = logging.getLogger(__name__)
 
 #: Smallest number of alignments that determines the pose (4 unknowns, 4 angles each).
 MIN_POSITIONS = 2
+#: Most alignments a design is made for: beyond about 24 the predicted pose uncertainty
+#: improves by less than 1 um (the errors common to all alignments dominate), while the
+#: design time grows with the cube of the count (48 positions: about 15 s).
+MAX_POSITIONS = 50
+
+
+def count_problem(count: int) -> str | None:
+    """What is wrong with a number of identification positions, or None."""
+    if count < MIN_POSITIONS:
+        return f"{count}: at least {MIN_POSITIONS} positions are needed"
+    if count > MAX_POSITIONS:
+        return (
+            f"{count} positions: at most {MAX_POSITIONS} (beyond about 24 the pose"
+            " uncertainty hardly improves, the errors common to all alignments dominate,"
+            " while the design time grows with the cube of the count)"
+        )
+    return None
+
+
 #: Steepest beam a design may use, degrees above (or below) the horizontal.
 MAX_ELEVATION_DEG = 60.0
 #: Smallest distance between two positions, as a fraction of the travel's diagonal.
@@ -313,14 +332,16 @@ def design_identification(machine: Machine, count: int = 6) -> IdentificationDes
     Raises
     ------
     InputError
-        No coarse launch position in the machine file, or ``count`` too small.
+        No coarse launch position in the machine file, or ``count`` outside
+        :data:`MIN_POSITIONS` .. :data:`MAX_POSITIONS`.
     GeometryError
         No feasible design (the solver found none inside the travel and ranges, with
         distinct positions and no steep beam); the message gives the solver's status.
     """
     setting = _Setting.of(machine)
-    if count < MIN_POSITIONS:
-        raise InputError(f"--count {count}: at least {MIN_POSITIONS} positions are needed")
+    problem = count_problem(count)
+    if problem is not None:
+        raise InputError(f"identification design: {problem}")
     attempts = [
         _solve_from(machine, setting, _start_points(machine, count, skip=k * count))
         for k in range(_STARTS)

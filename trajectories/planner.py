@@ -1,4 +1,4 @@
-"""From an identified launch pose to the measurement plan (FORMATS.md ``xmalign.plan/1``).
+"""From an identified launch pose to the measurement plan (docs/formats.md ``xmalign.plan/1``).
 
 Each line is laid out by :mod:`trajectories.lines`, its unit angles come from
 :func:`xmalign.kinematics.aligned_angles` with the pose's encoder offsets, and

@@ -69,7 +69,7 @@ ALIGNED_CHANNELS = (
 )
 _CHANNEL_INDEX = [CHANNELS.index(name) for name in ALIGNED_CHANNELS]
 #: Accepted range of the running distance estimate, mm (an XM-60 reaches 4 m).
-_DISTANCE_LIMITS_MM = (20.0, 10000.0)
+DISTANCE_LIMITS_MM = (20.0, 10000.0)
 #: Smallest predicted beam motion of a launch step that re-estimates the distance, um.
 _MIN_PROBE_UM = 20.0
 #: Largest factor by which one step's response may change the distance estimate.
@@ -249,6 +249,17 @@ def _describe(error: Vec) -> str:
     return ", ".join(f"{n} {v:+.1f} {u}" for n, v, u in zip(names, error, units, strict=False))
 
 
+def _check_distance(distance_mm: float) -> None:
+    """A cp-to-cp distance the search and the loops can work with (a NaN, an infinity or
+    a micrometre would make the spiral search endless)."""
+    low, high = DISTANCE_LIMITS_MM
+    if not low <= distance_mm <= high:
+        raise OutOfRangeError(
+            f"cp-to-cp distance {distance_mm:g} mm is outside {low:g}..{high:g} mm"
+            " (the instrument's reach)"
+        )
+
+
 def search_offsets_urad(step_urad: float, radius_urad: float) -> Vec:
     """Offsets of a square spiral around the centre, nearest first, (N, 2) urad.
 
@@ -377,6 +388,7 @@ def find_beam(
     setpoint (launch then receiver angles, rad) where the beam is in range and
     the reading there; raises BeamLostError when the search does not find it.
     """
+    _check_distance(distance_mm)
     centre = np.asarray(last_in_range_rad, dtype=float)
     recovery = _Recovery(last_in_range_rad=centre.copy())
     return _recover(
@@ -399,7 +411,7 @@ def _updated_distance(
     if np.linalg.norm(lever) * distance_mm * 1e-3 < _MIN_PROBE_UM:
         return distance_mm
     estimate = -1e3 * float(straightness_change_um @ lever) / float(lever @ lever)
-    low, high = _DISTANCE_LIMITS_MM
+    low, high = DISTANCE_LIMITS_MM
     if not low <= estimate <= high:
         return distance_mm
     return float(
@@ -442,10 +454,13 @@ def fine_align(
     BeamLostError
         A beam left its range and neither going back to the last in-range angles
         nor the spiral search found it (see the module's "Beam recovery").
+    OutOfRangeError
+        ``distance_mm`` is outside :data:`DISTANCE_LIMITS_MM`.
     DeviceTimeoutError
         Not converged within ``settings.timeout_s`` (search time not counted); the
         message gives the residuals.
     """
+    _check_distance(distance_mm)
     settings = settings or FineAlignmentSettings()
     n_axes = 5 if settings.align_roll and len(receiver.axes) >= 3 else 4
     start_s = clock.now()
@@ -526,7 +541,7 @@ _JOG_PATTERN = re.compile(r"^\s*a([1-5])\s+([+-]?\d+(?:\.\d*)?|[+-]?\.\d+)\s*$",
 
 @dataclass(frozen=True)
 class JogCommand:
-    """Move axis ``axis`` (1..5, CONVENTIONS.md numbering) by ``step_rad``."""
+    """Move axis ``axis`` (1..5, docs/conventions.md numbering) by ``step_rad``."""
 
     axis: int
     step_rad: float

@@ -21,7 +21,7 @@ which ``post`` fits with its own setup terms.
 
 The interferometer reports in its own frame, the launch head's (``u`` from the
 launch unit towards the receiver), with the raw displacement since its datum;
-the rows are written in the line frame of CONVENTIONS.md, with ``linear_um`` the actual
+the rows are written in the line frame of docs/conventions.md, with ``linear_um`` the actual
 minus the commanded displacement from the run's first point (where the datum
 is set).
 """
@@ -29,6 +29,7 @@ is set).
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -39,7 +40,15 @@ import numpy as np
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, find_beam, fine_align
 from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
-from xmalign.errors import BeamLostError, DeviceTimeoutError, InputError
+from xmalign.errors import (
+    BeamLostError,
+    DeviceError,
+    DeviceTimeoutError,
+    InputError,
+    TransportError,
+    XmalignError,
+)
+from xmalign.formats.common import refuse_special
 from xmalign.formats.measurements import (
     NOMINAL_LIMITS,
     ChannelLimits,
@@ -47,6 +56,7 @@ from xmalign.formats.measurements import (
     MeasurementFile,
     MeasurementRow,
     MeasurementWriter,
+    RunLock,
     check_recorded_plan,
     load_measurements,
     plan_sha256,
@@ -61,6 +71,7 @@ from xmalign.roles import (
     MachineMover,
     MachinePositionSource,
     PositioningUnit,
+    ProgramControl,
 )
 
 #: Fine alignment at a line start turns only the receiver (see FineAlignmentSettings).
@@ -133,7 +144,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
     """Axes of the interferometer's frame (the launch head's) for a line, rows u, v, w, (3, 3).
 
     Taken from the receiver's commanded angles: aligned, its optical axis is
-    ``-u`` and its "up" is the launch head's ``w`` (CONVENTIONS.md, roll 0).
+    ``-u`` and its "up" is the launch head's ``w`` (docs/conventions.md, roll 0).
     For any line that is not vertical this is the line frame of the beam.
     """
     phi3, phi4 = line.receiver_rad[:2]
@@ -143,7 +154,7 @@ def head_frame(line: PlanLine, spindle_angle_rad: float) -> Vec:
 
 
 def line_channels(reading: InterferometerReading, head2line: Vec, commanded_mm: float) -> Vec:
-    """Six channels of CONVENTIONS.md in the line frame from a head-frame reading, (6,).
+    """Six channels of docs/conventions.md in the line frame from a head-frame reading, (6,).
 
     ``head2line`` (3, 3) turns head-frame components into line-frame ones; the
     straightness is a vector across the beam and the angles a rotation vector,
@@ -188,6 +199,10 @@ class RunStatistics:
     #: Points not captured because the machine had gone on while the beam was searched
     #: (``--resume`` captures them).
     missed: list[tuple[str, int, str, int]] = field(default_factory=list)
+    #: xmalign ran the program (:func:`control_program`): from its start to its end, s,
+    #: and the part of it the machine waited at the programmed stops while the units were set.
+    program_s: float | None = None
+    stopped_s: float = 0.0
 
 
 @dataclass
@@ -229,6 +244,14 @@ class CalibrationRun:
     environment: EnvironmentMonitor | None = None
     #: Target (mm along the line) where the interferometer's datum counts from.
     _datum_mm: float = field(default=0.0, init=False, repr=False)
+    #: The beam was lost since the last capture (seen while the machine moved): the
+    #: interferometer lost its count, so the next capture goes as after a beam lost there.
+    count_lost: bool = field(default=False, init=False)
+    #: The clock when the run started: rows record their time from here (``time_s``).
+    _started_s: float = field(default=0.0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._started_s = self.clock.now()
 
     def line_is_done(self, line: PlanLine) -> bool:
         return all(point.key in self.done for point in capture_sequence(line))
@@ -254,6 +277,7 @@ class CalibrationRun:
 
         A line that has rows but must be aligned again continues in a new segment.
         """
+        self.count_lost = False  # the line starts with its own datum
         recorded = self.setups.get(line.id)
         if recorded is not None and self._stands_at(recorded):
             self.launch.lock()
@@ -360,7 +384,7 @@ class CalibrationRun:
             self.statistics.skipped += 1
             return None
         reading = self._settled_average(started, dwell_s)
-        if not reading.beam_ok:
+        if not reading.beam_ok or self.count_lost:
             recaptured = self._recapture(point, dwell_s, still_there)
             if recaptured is None:
                 self.statistics.missed.append(point.key)
@@ -381,6 +405,7 @@ class CalibrationRun:
             segment=self.setups[line.id].segment if line.id in self.setups else 0,
             environment=sample.values if sample else {},
             environment_flags=sample.flag_text if sample else "",
+            time_s=self.clock.now() - self._started_s,
         )
         self.record(row)
         self.done.add(point.key)
@@ -418,6 +443,7 @@ class CalibrationRun:
             self.launch.lock()
             self.receiver.lock()
             self.statistics.alignment_s += self.clock.now() - started
+        self.count_lost = False
         segment = self.last_segment.get(line.id, 0) + 1
         self._note_setup(LineSetup(line.id, segment, *self._standing_rad()))
         self.statistics.recovered.append(
@@ -434,6 +460,10 @@ class CalibrationRun:
         if not reading.beam_ok:
             raise BeamLostError(_beam_message(point, reading))
         return reading
+
+    def wait_for_beam(self, until_s: float) -> bool:
+        """Read until ``until_s``: True as soon as the beam is back (the units do not move)."""
+        return self._beam_returns(until_s)
 
     def _beam_returns(self, until_s: float) -> bool:
         """Read at the locked angles until ``until_s``: True when the beam is back by itself."""
@@ -552,6 +582,177 @@ def follow_machine(
             previous = point
 
 
+@dataclass
+class ControlledProgram:
+    """xmalign's program on a controller xmalign starts, holds and resumes.
+
+    ``tolerance_mm``: a point is captured only with the machine at rest within
+    this distance of the plan's point. ``timeout_s``: the longest the machine
+    may take to its next stop.
+    """
+
+    controller: ProgramControl
+    path: str
+    overrun_mm: float
+    tolerance_mm: float = 0.005
+    timeout_s: float = 600.0
+    poll_s: float = 0.05
+
+
+def control_program(
+    run: CalibrationRun, program: ControlledProgram, tell: Callable[[str], None]
+) -> None:
+    """Run the program on the controller and capture every point, no one at the machine.
+
+    The program is the one ``xmalign program`` writes for ``run.plan`` with a
+    programmed stop at each point instead of the dwell. xmalign starts it (a
+    program of an earlier run still open is aborted first), sets the units at
+    each line's first stop, and resumes it at every stop once the point is
+    captured (at once for points already recorded). A point is captured only
+    when the program stands at a stop and the machine at rest within
+    ``tolerance_mm`` of the plan's point; a stop anywhere else, or a program
+    that ends early, stops the run with one line (program and plan do not
+    match). While the machine moves between points the beam is watched: lost,
+    the feed is held until it comes back (at most ``BEAM_WAIT_S``), and the
+    next point is captured as after a beam lost there. On a fault the program
+    is aborted; on a lost connection or Ctrl-C the feed is held where the
+    controller still answers.
+    """
+    controller = program.controller
+    controller.check_ready()
+    _start_fresh(controller, program.path, tell)
+    started = run.clock.now()
+    try:
+        for line in run.plan.lines:
+            _control_line(run, program, line, tell)
+        _wait_for(run, _program_ended(controller), "end the program", program.timeout_s, 0.1)
+    except (TransportError, KeyboardInterrupt) as error:
+        note = _try(controller.hold, "the feed is held on the controller")
+        raise _noted(error, note) from error
+    except XmalignError as error:
+        note = _try(controller.stop_program, "the program was stopped on the controller")
+        raise _noted(error, note) from error
+    run.statistics.program_s = run.clock.now() - started
+
+
+def _start_fresh(controller: ProgramControl, path: str, tell: Callable[[str], None]) -> None:
+    """Start the program; one of an earlier run still open is aborted first."""
+    state = controller.program_state()
+    if state != "idle":
+        loaded = controller.loaded_program()
+        if loaded != path:
+            raise DeviceError(
+                f"the controller is {state} with another program ({loaded}); stop it first"
+            )
+        controller.stop_program()
+        tell(f"the program was {state} from an earlier run: aborted, started again from the top")
+    controller.start_program(path)
+
+
+def _control_line(
+    run: CalibrationRun, program: ControlledProgram, line: PlanLine, tell: Callable[[str], None]
+) -> None:
+    """Units set at the line's first stop; capture at each point's stop; resume each time."""
+    pre_mm = pre_position_mm(line, program.overrun_mm)
+    # on the way to a line the units are not yet set for it: the beam is not watched
+    _wait_program(run, program, pre_mm, f"the pre-position of line {line.id}", None)
+    stopped = run.clock.now()
+    if not run.line_is_done(line):
+        run.prepare_line(line)
+    _resume(run, program, pre_mm)
+    run.statistics.stopped_s += run.clock.now() - stopped
+    for point in capture_sequence(line):
+        _wait_program(run, program, point.point_mm, _where(point), tell)
+        run.capture(point, line.dwell_s, lambda p: True)  # the program waits at the stop
+        _resume(run, program, point.point_mm)
+
+
+def _resume(run: CalibrationRun, program: ControlledProgram, stop_mm: Vec) -> None:
+    """Resume, and wait until the controller shows it (running, or gone from the stop): a
+    stale 'paused' must not count as the next stop."""
+    controller = program.controller
+    controller.resume()
+
+    def going() -> bool:
+        moved = float(np.linalg.norm(controller.position_mm() - stop_mm))
+        return controller.program_state() != "paused" or moved > program.tolerance_mm
+
+    _wait_for(run, going, "go on after the stop", program.timeout_s, 0.01)
+
+
+def _wait_program(
+    run: CalibrationRun,
+    program: ControlledProgram,
+    target_mm: Vec,
+    what: str,
+    tell: Callable[[str], None] | None,
+) -> None:
+    """Until the program stands at a stop with the machine at rest at ``target_mm``.
+
+    DeviceError when the program ends first, or stands at a stop with the
+    machine at rest anywhere else: program and plan do not match. With
+    ``tell``, while the program runs, a lost beam holds the feed
+    (:func:`_hold_for_beam`).
+    """
+    controller = program.controller
+
+    def there() -> bool:
+        state = controller.program_state()
+        if state == "idle":
+            raise DeviceError(f"the program ended before {what}: program and plan do not match")
+        if state == "running":
+            if tell is not None and not run.interferometer.read().beam_ok:
+                _hold_for_beam(run, controller, what, tell)
+            return False
+        if not controller.is_standstill():
+            return False
+        position = controller.position_mm()
+        miss = float(np.linalg.norm(position - target_mm))
+        if miss > program.tolerance_mm:
+            raise DeviceError(
+                f"the program stopped with the machine at {np.round(position, 4).tolist()} mm,"
+                f" {miss:.4f} mm from {what} {np.round(target_mm, 4).tolist()} mm (tolerance"
+                f" {program.tolerance_mm} mm): program and plan do not match"
+            )
+        return True
+
+    _wait_for(run, there, f"stop at {what}", program.timeout_s, program.poll_s)
+
+
+def _hold_for_beam(
+    run: CalibrationRun, controller: ProgramControl, what: str, tell: Callable[[str], None]
+) -> None:
+    """The beam is lost while the machine moves: hold the feed until it is back (at most
+    ``BEAM_WAIT_S``), resume; the next capture counts the beam as lost there."""
+    controller.hold()
+    held = run.clock.now()
+    back = run.wait_for_beam(held + BEAM_WAIT_S)
+    run.count_lost = True
+    tell(
+        f"beam lost on the way to {what}: feed held {run.clock.now() - held:.1f} s,"
+        f" {'beam back' if back else 'beam still lost (searched for at the point)'}; resumed"
+    )
+    controller.resume()
+
+
+def _program_ended(controller: ProgramControl) -> Callable[[], bool]:
+    return lambda: controller.program_state() == "idle"
+
+
+def _try(action: Callable[[], None], done: str) -> str:
+    """Do ``action`` after a failure; what happened, for the error line."""
+    try:
+        action()
+    except XmalignError as error:
+        return f"the controller could not be reached to stop the program ({error})"
+    return done
+
+
+def _noted(error: BaseException, note: str) -> BaseException:
+    """The same error with ``note`` added to its one line."""
+    return type(error)(f"{error}; {note}")
+
+
 def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:
     """Where the program stops before a line: its first target less the overrun, mm (3,)."""
     return line.target_points_mm()[0] - overrun_mm * line.frame[0]
@@ -607,6 +808,27 @@ def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: 
         )
 
 
+#: A programmed stop farther than this from its plan line's axis is for another line, mm.
+STOP_OFF_LINE_MM = 1.0
+
+
+def check_program_stop(line: PlanLine, position_mm: Vec) -> None:
+    """Refuse a programmed stop that is not on the plan's next line (a program for other
+    lines): setting the units for a line the machine is not on would only lose the beam.
+
+    ``xmalign program`` stops each line at its pre-position, on the line's axis.
+    """
+    offset = np.asarray(position_mm, dtype=float) - line.start_mm
+    u = line.frame[0]
+    off_mm = float(np.linalg.norm(offset - (offset @ u) * u))
+    if off_mm > STOP_OFF_LINE_MM:
+        raise InputError(
+            f"the program stops at {np.round(position_mm, 3).tolist()} mm, {off_mm:.0f} mm off"
+            f" the plan's line {line.id}: program and plan do not match (a program for other"
+            " lines?)"
+        )
+
+
 class ProgramEvent(Protocol):
     """What a controller running the program reports (the simulated CNC's events)."""
 
@@ -636,6 +858,7 @@ def capture_program(
             line = next(lines, None)
             if line is None:
                 raise InputError("the program stops for more lines than the plan has")
+            check_program_stop(line, event.position_mm)
             if not run.line_is_done(line):
                 run.prepare_line(line)
             points = capture_sequence(line)
@@ -658,6 +881,8 @@ class RunOutput:
     on_saved: Callable[[int], None] = lambda saved: None
     #: Sampled at every point when the run records the environment.
     environment: EnvironmentMonitor | None = None
+    #: Held for the whole run: no other run appends to the file meanwhile.
+    lock: RunLock | None = None
 
     def append(self, row: MeasurementRow) -> None:
         self.writer.append(row)
@@ -689,6 +914,8 @@ class RunOutput:
 
     def close(self) -> None:
         self.writer.close()
+        if self.lock is not None:
+            self.lock.release()
 
     def __enter__(self) -> RunOutput:
         return self
@@ -712,13 +939,45 @@ def check_run_output(path: Path, resume: bool) -> None:
     """Refuse an ``--out`` a run cannot use, before anything is read, created or connected."""
     if path.is_dir():
         raise InputError(f"{path}: is a folder; give a file name for --out")
+    refuse_special(path, "--out")
     if resume and not path.exists():
         raise InputError(f"--resume: {path} does not exist yet; run without --resume")
+    if path.exists() and path.stat().st_size > 0:
+        _refuse_other_kinds(path)
     if not resume and path.exists() and path.stat().st_size > 0 and not _holds_no_points(path):
         raise InputError(
             f"{path} already holds measurements and is never replaced: add --resume to"
             " go on with it, or give another --out"
         )
+
+
+def _refuse_other_kinds(path: Path) -> None:
+    """An xmalign JSON file (a plan, a pose) given as ``--out`` is named for what it is."""
+    with path.open("rb") as handle:
+        start = handle.read(4096)
+    if not start.lstrip().startswith(b"{"):
+        return
+    found = re.search(rb'"format"\s*:\s*"([^"]+)"', start)
+    kind = found.group(1).decode("utf-8", "replace") if found else "JSON"
+    name = kind.removeprefix("xmalign.").partition("/")[0]
+    what = f"a {name} file ({kind})" if found else "a JSON file"
+    raise InputError(
+        f"{path}: --out: is {what}, not a measurement CSV; give the name of the measurement"
+        " file to write (e.g. --out measurements.csv)"
+    )
+
+
+def _check_seed(path: Path, recorded: int | None, sim_seed: int | None) -> None:
+    """A simulated run is resumed on the same virtual machine (the same ``--seed``).
+
+    A live run is not checked: the hardware may be a served virtual machine.
+    """
+    if recorded is None or sim_seed is None or recorded == sim_seed:
+        return
+    raise InputError(
+        f"--seed {sim_seed}: {path} was measured on the virtual machine of --seed {recorded};"
+        f" resume it with --seed {recorded}"
+    )
 
 
 def _check_environment_columns(
@@ -745,27 +1004,52 @@ def open_run_output(
     resume: bool,
     limits: ChannelLimits = NOMINAL_LIMITS,
     environment: EnvironmentMonitor | None = None,
+    sim_seed: int | None = None,
 ) -> RunOutput:
     """Open the measurement CSV of a run: a new file, or (``resume``) the one to go on with.
 
     Raw measurements are never replaced: without ``resume`` an existing file is
     refused unless it holds not one point. With ``resume`` the file must have
-    been recorded for ``plan``; a torn last row is cut off with a warning and
-    its point is measured again. With ``environment`` its first reading is taken
-    (complete and in range, or a one-line error) before the file is touched,
-    and every row records it.
+    been recorded for ``plan`` (and, on the virtual machine, with ``sim_seed``);
+    a torn last row is cut off with a warning and its point is measured again.
+    With ``environment`` its first reading is taken (complete and in range, or a
+    one-line error) before the file is touched, and every row records it. The
+    file is locked (:class:`RunLock`) before it is read or written, until the
+    output is closed.
     """
     path = Path(path)
     check_run_output(path, resume)
     if environment is not None:
         environment.prime()
+    lock = RunLock(path)
+    try:
+        output = _open_locked(path, plan, resume, limits, environment, sim_seed)
+    except BaseException:
+        lock.release()
+        raise
+    output.lock = lock
+    return output
+
+
+def _open_locked(
+    path: Path,
+    plan: Plan,
+    resume: bool,
+    limits: ChannelLimits,
+    environment: EnvironmentMonitor | None,
+    sim_seed: int | None,
+) -> RunOutput:
     columns = environment.columns if environment else ()
     if not resume or path.stat().st_size == 0:
         if _holds_no_points(path):
             os.truncate(path, 0)
-        writer = MeasurementWriter.create(path, plan_sha256(plan), columns)
+        inputs = [plan.source] if plan.source is not None else []
+        writer = MeasurementWriter.create(
+            path, plan_sha256(plan), columns, sim_seed=sim_seed, inputs=inputs
+        )
         return RunOutput(writer, environment=environment)
     recorded = load_measurements(path, limits, torn_ok=True)
+    _check_seed(path, recorded.sim_seed, sim_seed)
     _check_environment_columns(path, recorded.environment_columns, environment)
     warnings = check_recorded_plan(recorded, plan)
     if recorded.torn is not None:

@@ -45,7 +45,7 @@ _log = logging.getLogger(__name__)
 HENE_VACUUM_WAVELENGTH_NM = 632.991
 #: ISO 1 reference temperature, °C.
 REFERENCE_TEMP_C = 20.0
-#: The environment columns of the measurement CSV (FORMATS.md), in this order.
+#: The environment columns of the measurement CSV (docs/formats.md), in this order.
 ENVIRONMENT_COLUMNS = (
     "air_temp_c",
     "air_pressure_hpa",

@@ -18,6 +18,23 @@ class InputError(XmalignError, ValueError):
     """Bad user input: a file, key, option or value that cannot be used."""
 
 
+class MachineKeyError(InputError):
+    """A key of the machine file that cannot serve what was asked of it.
+
+    Raised where the file's name is not known (a compensation writer); the command
+    that read the file names it: ``FILE: key: problem``.
+    """
+
+    def __init__(self, key: str, problem: str) -> None:
+        super().__init__(f"{key}: {problem}")
+        self.key = key
+        self.problem = problem
+
+    def in_file(self, source: str) -> InputError:
+        """The same error naming the machine file it is about."""
+        return InputError(f"{source}: {self.key}: {self.problem}")
+
+
 class FormatError(InputError):
     """A file whose format, version or syntax xmalign does not know."""
 

@@ -78,7 +78,7 @@ def circular_mean(angles_rad: ArrayLike) -> float:
 
 
 def line_frame(u: ArrayLike) -> Vec:
-    """Line frame of CONVENTIONS.md for a line direction ``u``.
+    """Line frame of docs/conventions.md for a line direction ``u``.
 
     ``w`` is the part of +Z perpendicular to ``u`` (normalised), ``v = w x u``;
     for a vertical line ``v = +X`` and ``w = u x v``.

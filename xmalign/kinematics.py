@@ -1,4 +1,4 @@
-"""Positioning-unit kinematics of CONVENTIONS.md (pure numpy).
+"""Positioning-unit kinematics of docs/conventions.md (pure numpy).
 
 Launch unit (LU): beam direction ``d = Rz(gamma + phi1)·Ry(-phi2)·[1,0,0]``.
 Receiver unit (RU): optical axis ``u = Rz(gamma_R + phi3)·Ry(-phi4)·[1,0,0]``,

@@ -1,4 +1,4 @@
-"""The machine description (YAML) of FORMATS.md, validated with pydantic.
+"""The machine description (YAML) of docs/formats.md, validated with pydantic.
 
 Besides the keys of the spec, two optional sections are xmalign's own
 (documented in docs/conventions-notes.md): ``uncertainty`` (the a-priori
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from xmalign.errors import InputError
 from xmalign.formats.common import (
@@ -26,6 +26,7 @@ from xmalign.formats.common import (
     Distance_mm,
     StrictFileModel,
     Vector3_mm,
+    format_problem,
     located,
     read_yaml,
     validate,
@@ -35,6 +36,18 @@ from xmalign.geometry import Vec
 AxisName = Literal["X", "Y", "Z"]
 AXES: tuple[AxisName, AxisName, AxisName] = ("X", "Y", "Z")
 CONTROLLERS = ("sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg")
+#: The machine file's format; ``format:`` is optional (absent: version 1).
+MACHINE_FORMAT = "xmalign.machine/1"
+#: The series of each controller family xmalign knows (``cnc.series``); the first is the
+#: default, said in every file the writer makes (docs/controllers.md).
+SERIES: dict[str, tuple[str, ...]] = {
+    "sinumerik": ("840D sl", "828D", "ONE"),
+    "fanuc": ("0i", "16i", "18i", "30i", "31i", "32i"),
+    "heidenhain": ("MANUALplus 620", "TNC 620", "TNC 640", "TNC 4xx", "iTNC 530"),
+    "linuxcnc": ("2.9",),
+    "isg": ("ISG kernel",),
+}
+Direction = Literal["+", "-"]
 
 Vector3 = Vector3_mm
 TravelRange = Annotated[
@@ -43,8 +56,11 @@ TravelRange = Annotated[
 ]
 #: Feeds up to 500 m/min; micrometres up to 10 mm; microradians up to 0.1 rad.
 Feed_mm_min = Annotated[float, Field(gt=0, le=500_000, allow_inf_nan=False)]
-Micrometres = Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)]
-Microradians = Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)]
+#: Largest a-priori standard uncertainty of a length (10 mm) and of an angle (0.1 rad).
+MAX_UNCERTAINTY_UM = 10_000.0
+MAX_UNCERTAINTY_URAD = 100_000.0
+Micrometres = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_UM, allow_inf_nan=False)]
+Microradians = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_URAD, allow_inf_nan=False)]
 Allowance_um = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
 Allowance_urad = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
 Expansion_ppm_per_k = Annotated[float, Field(ge=-5.0, le=50.0, allow_inf_nan=False)]
@@ -119,6 +135,49 @@ class Uncertainty(_Strict):
     channel_roll_urad: Microradians = 2.5
 
 
+#: Uncertainty model ``[a_um, b_um_per_m]``: a + b per metre of distance (k = 1).
+DistanceModel_um = Annotated[
+    list[Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]],
+    Field(min_length=2, max_length=2),
+]
+
+
+class TrackerUncertainty(_Strict):
+    """Standard uncertainty (k = 1) of one laser-tracker point, along and across the beam.
+
+    Defaults: half the maximum permissible errors a tracker maker publishes
+    (distance 10 um + 0.3 um/m, transverse 15 um + 6 um/m; docs/formats.md).
+    """
+
+    radial_um: DistanceModel_um = [5.0, 0.15]
+    transverse_um: DistanceModel_um = [7.5, 3.0]
+
+    def radial_sigma_mm(self, distance_mm: Vec) -> Vec:
+        """Standard uncertainty along the beam at distances (N,), mm."""
+        return _affine_mm(self.radial_um, distance_mm)
+
+    def transverse_sigma_mm(self, distance_mm: Vec) -> Vec:
+        """Standard uncertainty across the beam at distances (N,), mm."""
+        return _affine_mm(self.transverse_um, distance_mm)
+
+
+class TracerUncertainty(_Strict):
+    """Standard uncertainty (k = 1) of one laser-tracer length (default 0.1 um + 0.15 um/m)."""
+
+    length_um: DistanceModel_um = [0.1, 0.15]
+
+    def length_sigma_mm(self, length_mm: Vec) -> Vec:
+        """Standard uncertainty of lengths (N,), mm."""
+        return _affine_mm(self.length_um, length_mm)
+
+
+def _affine_mm(model_um: list[float], distance_mm: Vec) -> Vec:
+    a, b = model_um
+    sigma = (a + b * np.abs(np.asarray(distance_mm, dtype=float)) / 1000.0) * 1e-3
+    # a model of 0 + 0 would give infinite weights; 1 nm is below any instrument
+    return np.maximum(sigma, 1e-6)
+
+
 class Measurement(_Strict):
     """How ``xmalign program`` lays out the measuring lines."""
 
@@ -167,6 +226,13 @@ class Cnc(_Strict):
     max_correction_um: Micrometres = 100.0
     #: path acceleration and deceleration, mm/s² (machine-time estimate and simulator)
     acceleration_mm_s2: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] | None = None
+    #: the controller's series within its family (``SERIES``; default: the first)
+    series: str | None = None
+    #: direction in which each axis makes its reference return (default: from where
+    #: ``reference_mm`` lies in the travel, see :meth:`Machine.reference_return`)
+    reference_return: dict[AxisName, Direction] = {}
+    #: the controller's own backlash compensation of each axis, um, where known
+    backlash_um: dict[AxisName, Allowance_um] = {}
 
     @field_validator("joints")
     @classmethod
@@ -189,10 +255,18 @@ class Cnc(_Strict):
         """The controller's name of ``axis`` (``default`` when the file gives none)."""
         return next((name for key, name in self.axis_names.items() if key == axis), default)
 
+    def backlash(self, axis: str) -> float | None:
+        """The controller's own backlash compensation of ``axis``, um (None: not given)."""
+        return next((um for key, um in self.backlash_um.items() if key == axis), None)
+
 
 class Machine(_Strict):
-    """A machine tool as xmalign sees it; lengths mm, angles as named."""
+    """A machine tool as xmalign sees it; lengths mm, angles as named.
 
+    ``format`` (optional, :data:`MACHINE_FORMAT`): a file without it is version 1.
+    """
+
+    format: str | None = None
     name: str
     serial: str | None = None
     chain: str
@@ -207,6 +281,9 @@ class Machine(_Strict):
     uncertainty: Uncertainty = Uncertainty()
     measurement: Measurement = Measurement()
     cnc: Cnc = Cnc()
+    smr_offset_mm: Vector3 = [0.0, 0.0, 0.0]
+    tracker: TrackerUncertainty = TrackerUncertainty()
+    tracer: TracerUncertainty = TracerUncertainty()
 
     @property
     def transit_feed_mm_min(self) -> float:
@@ -214,6 +291,40 @@ class Machine(_Strict):
         limit = self.interferometer.max_speed_mm_min
         rapid = self.feed_mm_min.rapid
         return rapid if limit is None else min(rapid, limit)
+
+    @model_validator(mode="after")
+    def _series_of_the_family(self) -> Machine:
+        known = SERIES[self.controller]
+        if self.cnc.series is not None and self.cnc.series not in known:
+            raise ValueError(
+                f"cnc.series: '{self.cnc.series}' is not a {self.controller} series xmalign"
+                f" knows (one of {', '.join(known)})"
+            )
+        return self
+
+    @property
+    def series(self) -> str:
+        """The controller's series: ``cnc.series``, else the family's default."""
+        return self.cnc.series or SERIES[self.controller][0]
+
+    def reference_return(self, axis: str) -> Direction | None:
+        """Direction of ``axis``'s reference return: ``cnc.reference_return``, else inferred.
+
+        A reference point at (within 1 % of the stroke of) the travel's lower end is
+        approached moving ``-``, at its upper end moving ``+``; one inside the travel
+        leaves the direction unknown (None): a writer that needs it asks for the key.
+        """
+        given = next((d for a, d in self.cnc.reference_return.items() if a == axis), None)
+        if given is not None:
+            return given
+        low, high = next(limits for a, limits in self.travel_mm.items() if a == axis)
+        reference = float(self.cnc.reference["XYZ".index(axis)])
+        margin = 0.01 * (high - low)
+        if reference <= low + margin:
+            return "-"
+        if reference >= high - margin:
+            return "+"
+        return None
 
     def geometry_sha256(self) -> str:
         """Identity of the machine a plan is made for: SHA-256 of its geometry.
@@ -228,6 +339,14 @@ class Machine(_Strict):
         )
         text = json.dumps(geometry, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    @field_validator("format")
+    @classmethod
+    def _known_format(cls, found: str | None) -> str | None:
+        problem = None if found is None else format_problem(found, MACHINE_FORMAT)
+        if problem is not None:
+            raise ValueError(problem)
+        return found
 
     @field_validator("chain")
     @classmethod
@@ -263,6 +382,11 @@ class Machine(_Strict):
     @property
     def spindle_angle_rad(self) -> float:
         return math.radians(self.spindle_angle_deg)
+
+    @property
+    def smr_offset(self) -> Vec:
+        """SMR centre from the CNC tool point, spindle frame, mm, shape (3,)."""
+        return np.asarray(self.smr_offset_mm, dtype=float)
 
     @property
     def receiver_offset(self) -> Vec:

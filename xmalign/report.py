@@ -44,13 +44,15 @@ from xmalign.environment import (
     StationCompensation,
     linear_budget_um,
 )
-from xmalign.formats.common import atomic_write_text
+from xmalign.errors import InputError
+from xmalign.formats.common import atomic_write_bytes
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.error_tables import Table as ErrorTable
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, measured_box_mm, tool_point_squareness_rad
 from xmalign.post.evaluate import PostResult
+from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.post.iso230_2 import ISO_230_2_RUNS, VdiFigures, runs_note, vdi3441_figures
 from xmalign.post.lines import UM_PER_MM
 from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows
@@ -391,6 +393,17 @@ def compensation_table(machine: Machine, result: PostResult, controller: str) ->
     return Table("Compensation predicted", ["", "um"], rows, note)
 
 
+def instruments_table(result: PostResult) -> list[Table]:
+    """Each tracker station's and tracer place's setup with U95 and residual (if any)."""
+    joint = result.instruments
+    if joint is None:
+        return []
+    rows = [[line] for line in instrument_lines(joint) + instrument_notes(joint)]
+    return [
+        Table("Laser tracker and tracer: setup (U95, k = 2) and residuals", ["instrument"], rows)
+    ]
+
+
 def report_tables(
     machine: Machine, result: PostResult, info: RecordInfo, controller: str | None = None
 ) -> list[Table]:
@@ -403,8 +416,8 @@ def report_tables(
     ]
     if info.vdi3441:
         tables.append(vdi_table(result))
+    tables += [squareness_table(result), *instruments_table(result)]
     tables += [
-        squareness_table(result),
         ranges_table(result),
         budget_table(machine, result, info),
     ]
@@ -669,18 +682,16 @@ def _pages(items: list[tuple[str, Figure]]) -> Iterator[Figure]:
         yield figure
 
 
-def write_pdf(
-    path: str | Path,
+def pdf_bytes(
     machine: Machine,
     result: PostResult,
     controller: str,
     info: RecordInfo | None = None,
-) -> None:
-    """Write the report as an A4 PDF (tables first, then one figure per page)."""
+) -> bytes:
+    """The report as an A4 PDF (tables first, then one figure per page)."""
     info = info or RecordInfo()
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    with PdfPages(partial) as pdf:
+    buffer = io.BytesIO()
+    with PdfPages(buffer) as pdf:
         page = _Page(pdf)
         page.write(f"Calibration of {machine.name}", 14, "bold")
         for table in report_tables(machine, result, info, controller):
@@ -689,7 +700,20 @@ def write_pdf(
         page.finish()
         for figure in _pages(report_figures(machine, result, info, controller)):
             pdf.savefig(figure)
-    partial.replace(path)
+    return buffer.getvalue()
+
+
+def report_bytes(
+    path: str | Path,
+    machine: Machine,
+    result: PostResult,
+    controller: str,
+    info: RecordInfo | None = None,
+) -> bytes:
+    """The report for ``path``: a PDF when it ends in ``.pdf``, else HTML (PNGs embedded)."""
+    if Path(path).suffix.lower() == ".pdf":
+        return pdf_bytes(machine, result, controller, info)
+    return render_report(machine, result, controller, info).encode("utf-8")
 
 
 def write_report(
@@ -699,8 +723,20 @@ def write_report(
     controller: str,
     info: RecordInfo | None = None,
 ) -> None:
-    """Write the report: a PDF when ``path`` ends in ``.pdf``, else HTML (PNGs embedded)."""
-    if Path(path).suffix.lower() == ".pdf":
-        write_pdf(path, machine, result, controller, info)
-    else:
-        atomic_write_text(path, render_report(machine, result, controller, info))
+    """Write the report (:func:`report_bytes`) atomically; a name that does not end in
+    ``.html``, ``.htm`` or ``.pdf`` is refused (:func:`check_report_name`)."""
+    check_report_name(path)
+    atomic_write_bytes(path, report_bytes(path, machine, result, controller, info))
+
+
+#: The report's file name endings and what each writes.
+REPORT_KINDS = {".html": "HTML", ".htm": "HTML", ".pdf": "PDF"}
+
+
+def check_report_name(path: str | Path) -> None:
+    """Refuse a report name whose ending is not one of :data:`REPORT_KINDS` (a ``.docx``
+    would get HTML under a name that promises another format)."""
+    suffix = Path(path).suffix
+    if suffix.lower() not in REPORT_KINDS:
+        found = f"'{suffix}'" if suffix else "no file name ending"
+        raise InputError(f"{path}: {found}: a report is written as .html or .pdf")

@@ -1,4 +1,4 @@
-"""Rigid-body error model of CONVENTIONS.md (ISO 230-1 names, first order).
+"""Rigid-body error model of docs/conventions.md (ISO 230-1 names, first order).
 
 The kinematic chain is written workpiece side to tool side with ``F`` for the
 frame (``FYXZ``, ``XFYZ``, ...). Every axis's error motions are stated as the

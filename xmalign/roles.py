@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -30,7 +30,7 @@ CHANNELS = (
 
 @dataclass(frozen=True)
 class InterferometerReading:
-    """One six-channel reading at the receiver cp, in the line frame (CONVENTIONS.md).
+    """One six-channel reading at the receiver cp, in the line frame (docs/conventions.md).
 
     ``channels`` holds the six values in the order of :data:`CHANNELS`
     (um and urad); ``beam_ok`` is False when any channel is out of range.
@@ -119,7 +119,7 @@ class Interferometer(Protocol):
 
     ``read`` gives the raw channels: ``linear_um`` is the displacement along the
     beam since the last :meth:`zero` (actual, not an error: the run step
-    subtracts the commanded displacement), the other five as in CONVENTIONS.md
+    subtracts the commanded displacement), the other five as in docs/conventions.md
     in the frame of the beam (``u`` along the beam from the launch unit).
     """
 
@@ -151,6 +151,47 @@ class MachineMover(MachinePositionSource, Protocol):
 
     def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
         """Move the tool point and return when it stands still there."""
+        ...
+
+
+#: A controller's program: not running, running, or stopped mid-program (M0 or feed hold).
+ProgramState = Literal["idle", "running", "paused"]
+
+
+@runtime_checkable
+class ProgramControl(MachinePositionSource, Protocol):
+    """A controller that runs xmalign's program and lets xmalign start, hold and resume it.
+
+    Only program control: xmalign never writes an axis position through it,
+    the controller's own limits and interlocks stay in force. Each method
+    returns once the controller has taken the command (DeviceError when it
+    refuses one).
+    """
+
+    def program_state(self) -> ProgramState: ...
+
+    def check_ready(self) -> None:
+        """Raise DriveFaultError unless the machine is on, homed and free of faults."""
+        ...
+
+    def loaded_program(self) -> str | None:
+        """The path of the program the controller has open, None if none."""
+        ...
+
+    def start_program(self, path: str) -> None:
+        """Open ``path`` (as the controller sees it) and run it from its first block."""
+        ...
+
+    def hold(self) -> None:
+        """Feed hold: the machine stops on its path; :meth:`resume` goes on."""
+        ...
+
+    def resume(self) -> None:
+        """Go on after a programmed stop (M0) or a feed hold."""
+        ...
+
+    def stop_program(self) -> None:
+        """Abort the program (the machine stops; a new start begins at the top)."""
         ...
 
 
@@ -211,3 +252,17 @@ def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading
         channels=channels,
         beam_ok=all(r.beam_ok for r in readings),
     )
+
+
+class ClosesOnExit:
+    """Mixin: an object holding a connection or a file is a context manager that
+    calls its ``close()`` on exit (``with open_devices(...) as devices:``)."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

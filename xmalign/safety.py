@@ -3,16 +3,19 @@
 :func:`units_locked_on_exit` is a context manager around any work with the
 units. On the way out, on success, on an error and on Ctrl-C alike, it stops
 and locks every axis of every unit, axis by axis, so one unreachable axis does
-not leave the others free. A second Ctrl-C while locking is deferred until the
-locking is done. Only roles are used here: the same code secures Modbus units,
+not leave the others free. A second Ctrl-C (or a SIGTERM, SIGHUP) while
+locking is deferred until the locking is done. :func:`stop_signals_as_interrupts`
+makes SIGTERM and SIGHUP stop a command as Ctrl-C does (:class:`StopSignal`).
+Only roles are used here: the same code secures Modbus units,
 CiA 402 axes and simulated units.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from xmalign.errors import DeviceError, XmalignError
@@ -46,20 +49,83 @@ def lock_all(units: tuple[PositioningUnit, ...]) -> list[str]:
     return problems
 
 
+#: Signals that stop a command as Ctrl-C does: a shutdown, a closed terminal or ssh session.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+class StopSignal(KeyboardInterrupt):
+    """SIGTERM or SIGHUP taken as a Ctrl-C; ``signum`` says which (exit code 128 + signum)."""
+
+    def __init__(self, signum: int, *args: object) -> None:
+        super().__init__(*args)
+        self.signum = signum
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+def like(interrupt: KeyboardInterrupt, message: str) -> KeyboardInterrupt:
+    """A KeyboardInterrupt saying ``message``, of the same kind (signal) as ``interrupt``."""
+    if isinstance(interrupt, StopSignal):
+        return StopSignal(interrupt.signum, message)
+    return KeyboardInterrupt(message)
+
+
+def _stop_handler(owner_pid: int) -> Callable[[int, object], None]:
+    """Raise StopSignal in the process that installed it; a forked worker (``mc``'s
+    process pool) that inherited it ends as the signal's default would end it."""
+
+    def handler(signum: int, frame: object) -> None:
+        if os.getpid() != owner_pid:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise StopSignal(signum)
+
+    return handler
+
+
 @contextmanager
-def _sigint_deferred() -> Iterator[None]:
-    """Hold back Ctrl-C (main thread only) and re-deliver it when the block ends."""
+def stop_signals_as_interrupts() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise :class:`StopSignal` (main thread only).
+
+    Whatever handles Ctrl-C then handles them too: the units are locked, every
+    point kept, and the command ends with one line.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    pending: list[bool] = []
-    previous = signal.signal(signal.SIGINT, lambda *_: pending.append(True))
+    stop = _stop_handler(os.getpid())
+    previous = {signum: signal.signal(signum, stop) for signum in STOP_SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if pending:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C, SIGTERM and SIGHUP (main thread only); re-deliver the first after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    deferred = (signal.SIGINT, *STOP_SIGNALS)
+    previous = {
+        signum: signal.signal(signum, lambda signum, _: pending.append(signum))
+        for signum in deferred
+    }
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if pending and pending[0] == signal.SIGINT:
         raise KeyboardInterrupt
+    if pending:
+        signal.raise_signal(pending[0])
 
 
 @contextmanager
@@ -93,7 +159,10 @@ def interrupted(error: KeyboardInterrupt) -> KeyboardInterrupt:
 
     Still a KeyboardInterrupt: the CLI prints it and exits with 130, as for any Ctrl-C.
     """
-    notes = getattr(error, "__notes__", [])
-    if notes:
-        return KeyboardInterrupt("interrupted by the operator; " + "; ".join(notes))
-    return KeyboardInterrupt("interrupted by the operator; all axes were stopped and locked")
+    cause = (
+        f"stopped by {error.name}"
+        if isinstance(error, StopSignal)
+        else "interrupted by the operator"
+    )
+    notes = getattr(error, "__notes__", []) or ["all axes were stopped and locked"]
+    return like(error, "; ".join([cause, *notes]))

@@ -6,7 +6,7 @@ study call these functions with real devices or the simulator's behind the
 same roles (:mod:`xmalign.roles`). Only what differs between a controller
 running the program and an operator stepping the machine is given by the
 caller: the *drive* of :func:`run_step` (:func:`program_drive`,
-:func:`stepping_drive`, :func:`following_drive`).
+:func:`stepping_drive`, :func:`following_drive`, :func:`controlled_drive`).
 """
 
 from __future__ import annotations
@@ -23,18 +23,26 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import (
     CalibrationRun,
+    ControlledProgram,
     ProgramEvent,
     RunOutput,
     capture_program,
+    control_program,
     follow_machine,
     step_through,
 )
 from xmalign.comp import Compensation, compensate
 from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
-from xmalign.formats.measurements import read_measurements
+from xmalign.formats.measurements import (
+    ChannelLimits,
+    check_recorded_plan,
+    load_measurements,
+    read_measurements,
+)
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import write_pose
+from xmalign.formats.provenance import sources
 from xmalign.formats.session import Session
 from xmalign.identification_routine import (
     PoseGuess,
@@ -44,13 +52,15 @@ from xmalign.identification_routine import (
 )
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
-from xmalign.post.evaluate import PostResult, post_process
+from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
+from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
     Interferometer,
     MachineMover,
     MachinePositionSource,
     PositioningUnit,
+    ProgramControl,
 )
 from xmalign.safety import units_locked_on_exit
 
@@ -150,24 +160,26 @@ def program_step(
     dialect: str | None = None,
     pose_path: Path | None = None,
     line_ids: tuple[str, ...] | None = None,
+    machine_path: Path | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
     The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
     (the same plan identity). ``program_path`` None: the suffix of the dialect
-    next to the plan as ``run<suffix>``.
+    next to the plan as ``run<suffix>``. The plan records the SHA-256 of the pose
+    file and of ``machine_path`` (the machine file, when there is one).
     """
     pose = result.to_pose()
     files: dict[str, Path] = {}
     if pose_path is not None:
-        write_pose(pose_path, pose)
+        write_pose(pose_path, pose, sources(machine=machine_path))
         files["pose"] = pose_path
     measurement = (
         plan_measurement(machine, pose)
         if line_ids is None
         else plan_measurement(machine, pose, line_ids)
     )
-    write_plan(plan_path, measurement.plan)
+    write_plan(plan_path, measurement.plan, sources(pose=pose_path, machine=machine_path))
     plan = read_plan(plan_path)
     dialect_name = resolve_dialect(machine, dialect)
     program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
@@ -213,6 +225,34 @@ def following_drive(
     )
 
 
+def controlled_drive(
+    controller: ProgramControl,
+    program_path: str,
+    tell: Callable[[str], None],
+    machine: Machine,
+    tolerance_mm: float,
+    timeout_s: float,
+) -> Drive:
+    """Capture while xmalign runs its program on the controller (start, hold, resume): the
+    program at ``program_path`` as the controller opens it (:func:`write_controller_program`
+    wrote it); a point only with the machine at rest within ``tolerance_mm`` of the plan's."""
+    program = ControlledProgram(
+        controller, program_path, machine.measurement.overrun_mm, tolerance_mm, timeout_s
+    )
+    return lambda run: control_program(run, program, tell)
+
+
+def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: Path) -> str:
+    """Write the plan's program for a controller xmalign runs it on: a programmed stop at
+    each point instead of the dwell (xmalign resumes it once the point is captured);
+    readable by all (the controller may run as another user); replaced on every run (it
+    is made from the plan)."""
+    program = write_program(plan, machine, make_dialect(dialect, machine, "run", True))
+    atomic_write_files({path: program.encode("utf-8")})
+    path.chmod(0o644)
+    return program
+
+
 @dataclass
 class RunStepDevices:
     """What a run uses: both units, the interferometer and the clock."""
@@ -251,13 +291,42 @@ class PostStepResult:
 
 
 def post_step(
-    machine: Machine, plan: Plan, measurements_path: Path, errors_path: Path
+    machine: Machine,
+    plan: Plan,
+    measurements_path: Path,
+    errors_path: Path,
+    machine_path: Path | None = None,
 ) -> PostStepResult:
-    """Fit the 21 errors to one station's measurement file and write the error tables."""
+    """Fit the 21 errors to one station's measurement file and write the error tables.
+
+    The tables name ``machine`` and the SHA-256 of the measurements, the plan
+    file (when ``plan`` was read from one) and ``machine_path``.
+    """
     rows = read_measurements(measurements_path)
     post = post_process(machine, plan, rows, measurements_path.name)
-    write_error_tables(errors_path, post.fit.tables)
+    inputs = sources(measurements=measurements_path, machine=machine_path)
+    inputs[1:1] = [plan.source] if plan.source is not None else []
+    write_error_tables(errors_path, post.fit.tables, inputs, machine)
     return PostStepResult(post, errors_path)
+
+
+def as_left_step(
+    machine: Machine, plan: Plan, verification_path: Path, applied: ErrorTables
+) -> PostResult:
+    """As found / as left: the verification run, measured with the controller's tables
+    ``applied`` loaded, posted on its own.
+
+    The file must have been recorded for ``plan``. The result's ``fit`` is the
+    machine's own geometry again (as found, measured through the compensation) and
+    :meth:`~xmalign.post.evaluate.PostResult.tool_point_errors` what the
+    compensation leaves (as left). ``xmalign post --verify-data`` and the dry run's
+    ``--verify`` call this one function.
+    """
+    limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
+    recorded = load_measurements(verification_path, limits)
+    check_recorded_plan(recorded, plan, check_points=False)
+    station = Station(plan, recorded.rows, str(verification_path))
+    return post_stations(machine, [station], applied)
 
 
 def comp_step(

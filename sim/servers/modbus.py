@@ -3,10 +3,14 @@
 The pymodbus register block is only a mirror: every request goes to the unit's
 register-level API first (``unit_device``'s action), so reads see the unit's
 state at that instant and a refused write answers a Modbus exception:
-exception 3 (illegal data value) for an out-of-range value, 2 (illegal data
-address) for a read-only or unknown register, 6 (server device busy) for a
-write from a connection that does not control the unit (docs/registers.md,
-"One controlling host"). Every request is logged on ``sim.servers.modbus`` at
+exception 3 (illegal data value) for an out-of-range value or an undefined
+control bit, 2 (illegal data address) for a read-only or unknown register or
+one word of a 32-bit value, 6 (server device busy) for a write from a
+connection that does not control the unit (docs/registers.md, "One
+controlling host"), 1 (illegal function) for any function but 3, 6 and 16.
+A serial unit answers its own device id only (never another id, never a
+broadcast); the reply to function 6 echoes the request, as the Modbus
+specification gives it. Every request is logged on ``sim.servers.modbus`` at
 DEBUG.
 """
 
@@ -16,10 +20,12 @@ import asyncio
 import contextvars
 import logging
 import threading
-import time
+import traceback
 from typing import Any
 
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import WriteSingleRegisterResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -33,40 +39,47 @@ log = logging.getLogger(__name__)
 #: The connection (request handler) whose request is being served.
 _connection: contextvars.ContextVar[object] = contextvars.ContextVar("modbus_connection")
 
-
-#: A serial line never closes: its master is taken as gone after this long without a request.
-SERIAL_MASTER_GONE_S = 1.0
+#: Read holding registers, write single register, write multiple registers.
+SERVED_FUNCTIONS = frozenset({3, 6, 16})
+#: The unit ids a unit answers on Modbus TCP besides its own: 0 (the original Modbus
+#: TCP value for a device addressed by its IP address) and 255 (the Modbus TCP
+#: implementation guide's "not significant"). On a serial line: its own id only.
+TCP_DIRECT_IDS = frozenset({0, 255})
 
 
 class ControllingHost:
-    """Which connection controls the unit: the first that writes, until it closes.
+    """Which connection controls the unit: the first that writes, until it closes or lapses.
 
-    One per unit, shared by every server of it (TCP and RTU). A serial line's
-    master also gives the unit up after :data:`SERIAL_MASTER_GONE_S` of silence.
+    One per unit, shared by every server of it (TCP and RTU). The owner's
+    control lapses once it has neither claimed the unit nor changed the
+    heartbeat for the watchdog timeout (500 ms): then the next connection that
+    writes takes it over (a host that hung with its socket open, or a serial
+    master that went quiet, does not hold the unit for ever).
     """
 
     def __init__(self) -> None:
         self.owner: object | None = None
-        self._owner_seen_s = 0.0
+        self._claimed_s = 0.0
         self._lock = threading.Lock()
 
-    def may_write(self, connection: object) -> bool:
-        """Claim the unit for ``connection`` if free; whether it controls the unit."""
+    def may_write(self, connection: object, unit: SimUnit) -> bool:
+        """Claim ``unit`` for ``connection`` if free or lapsed; whether it controls the unit."""
         with self._lock:
-            silent_s = time.monotonic() - self._owner_seen_s
-            if getattr(self.owner, "serial", False) and silent_s > SERIAL_MASTER_GONE_S:
-                log.info("the serial master has been silent for %.1f s; the unit is free", silent_s)
-                self.owner = None
+            if self.owner is not None and self.owner is not connection:
+                quiet_s = min(unit.heartbeat_age_s(), unit.clock.now() - self._claimed_s)
+                if quiet_s > unit.register_map.watchdog_timeout_s:
+                    log.info(
+                        "connection %s has not changed the heartbeat for %.0f ms: it no"
+                        " longer controls the unit",
+                        id(self.owner),
+                        1000.0 * quiet_s,
+                    )
+                    self.owner = None
             if self.owner is None:
                 self.owner = connection
+                self._claimed_s = unit.clock.now()
                 log.info("connection %s now controls the unit", id(connection))
             return self.owner is connection
-
-    def seen(self, connection: object) -> None:
-        """Any request of ``connection`` (reads too)."""
-        with self._lock:
-            if self.owner is connection:
-                self._owner_seen_s = time.monotonic()
 
     def release(self, connection: object) -> None:
         with self._lock:
@@ -88,8 +101,7 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         connection = _connection.get(None)
-        host.seen(connection)
-        if set_values and not host.may_write(connection):
+        if set_values and not host.may_write(connection, unit):
             log.debug(
                 "%s unit: fc %d @%d <- %s from %s: busy",
                 unit.kind,
@@ -128,17 +140,91 @@ def unit_device(unit: SimUnit, host: ControllingHost, device_id: int = 1) -> Sim
     return SimDevice(id=device_id, simdata=[registers], action=action)
 
 
-class _Handler(ServerRequestHandler):
-    """A connection: serves its requests as itself and frees the unit when it closes."""
+class _Refused(ModbusPDU):
+    """A request the unit cannot serve: answered with ``exception`` for its function code."""
 
-    def __init__(self, owner: Any, host: ControllingHost, serial: bool = False) -> None:
+    def __init__(self, function_code: int, exception: ExcCodes) -> None:
+        super().__init__()
+        self.function_code = function_code
+        self.exception = exception
+
+
+class _Decoder:
+    """pymodbus's request decoder, but a function other than 3, 6, 16 is refused
+    with exception 1 and a malformed request (e.g. a count outside 1..125) with 3,
+    each under its own function code (pymodbus answers function 0 with exception 1)."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def __getattr__(self, name: str) -> Any:  # the framers also look up frame sizes
+        return getattr(self.inner, name)
+
+    def decode(self, frame: bytes) -> ModbusPDU:
+        function_code = int(frame[0]) & 0x7F
+        if int(frame[0]) not in SERVED_FUNCTIONS:
+            return _Refused(function_code, ExcCodes.ILLEGAL_FUNCTION)
+        pdu = self.inner.decode(frame)
+        return pdu if pdu is not None else _Refused(function_code, ExcCodes.ILLEGAL_VALUE)
+
+
+class _Handler(ServerRequestHandler):
+    """A connection: serves its requests as itself and frees the unit when it closes.
+
+    Requests for another device id are not served: on a serial line (``serial``)
+    they, and broadcasts (id 0), get no reply at all; on TCP, ids 0 and 255 mean
+    this unit (:data:`TCP_DIRECT_IDS`) and any other id is answered exception 11
+    (gateway target device failed to respond).
+    """
+
+    def __init__(self, owner: Any, host: ControllingHost, device_id: int, serial: bool) -> None:
         super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)
+        self.framer.decoder = _Decoder(self.framer.decoder)  # type: ignore[assignment]
         self.host = host
+        self.device_id = device_id
         self.serial = serial
 
     async def handle_request(self) -> None:
+        request = self.last_pdu
+        if request is None:
+            return
         _connection.set(self)
-        await super().handle_request()
+        response = await self._answer(request)
+        if response is None:
+            return
+        response.transaction_id = request.transaction_id
+        response.dev_id = request.dev_id
+        self.server_send(response, self.last_addr)
+
+    def _for_this_unit(self, request: ModbusPDU) -> bool:
+        if request.dev_id == self.device_id:
+            return True
+        return not self.serial and request.dev_id in TCP_DIRECT_IDS
+
+    async def _answer(self, request: ModbusPDU) -> ModbusPDU | None:
+        if not self._for_this_unit(request):
+            log.debug(
+                "fc %d for device id %d, not %d: %s",
+                request.function_code,
+                request.dev_id,
+                self.device_id,
+                "no reply" if self.serial else "exception 11",
+            )
+            if self.serial:
+                return None
+            return ExceptionResponse(request.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        if isinstance(request, _Refused):
+            log.debug("fc %d: exception %d", request.function_code, request.exception)
+            return ExceptionResponse(request.function_code, request.exception)
+        try:
+            response = await request.datastore_update(self.server.context, self.device_id)
+        except Exception:  # a fault of the server itself: answered, and logged with its trace
+            log.error("fc %d failed: %s", request.function_code, traceback.format_exc())
+            return ExceptionResponse(request.function_code, ExcCodes.DEVICE_FAILURE)
+        if request.function_code == 6 and not response.isError():
+            # the specified reply echoes the request, whatever the register now holds
+            return WriteSingleRegisterResponse(address=request.address, registers=request.registers)
+        return response
 
     def callback_disconnected(self, exc: Exception | None) -> None:
         self.host.release(self)
@@ -146,21 +232,23 @@ class _Handler(ServerRequestHandler):
 
 
 class _TcpServer(ModbusTcpServer):
-    def __init__(self, host: ControllingHost, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, host: ControllingHost, device_id: int, *args: Any, **kwargs: Any) -> None:
         self.host = host
+        self.device_id = device_id
         super().__init__(*args, **kwargs)
 
     def callback_new_connection(self) -> _Handler:
-        return _Handler(self, self.host)
+        return _Handler(self, self.host, self.device_id, serial=False)
 
 
 class _SerialServer(ModbusSerialServer):
-    def __init__(self, host: ControllingHost, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, host: ControllingHost, device_id: int, *args: Any, **kwargs: Any) -> None:
         self.host = host
+        self.device_id = device_id
         super().__init__(*args, **kwargs)
 
     def callback_new_connection(self) -> _Handler:
-        return _Handler(self, self.host, serial=True)
+        return _Handler(self, self.host, self.device_id, serial=True)
 
 
 class ModbusUnitServer:
@@ -201,7 +289,9 @@ class ModbusUnitServer:
 
     def _build(self) -> ModbusTcpServer | ModbusSerialServer:
         device = unit_device(self.unit, self.controlling_host, self.device_id)
-        return _TcpServer(self.controlling_host, device, address=(self.host, self.port))
+        return _TcpServer(
+            self.controlling_host, self.device_id, device, address=(self.host, self.port)
+        )
 
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
@@ -241,8 +331,8 @@ class ModbusUnitServer:
 class ModbusRtuUnitServer(ModbusUnitServer):
     """Serve a unit over Modbus RTU on a new pty; a client opens :attr:`port` (e.g. /dev/pts/7).
 
-    The line's master is one host; it controls the unit once it writes, until it
-    has been silent for :data:`SERIAL_MASTER_GONE_S`.
+    The line's master is one host; it controls the unit once it writes, until its
+    heartbeat has been stale for the watchdog timeout (:class:`ControllingHost`).
     """
 
     def __init__(
@@ -262,7 +352,11 @@ class ModbusRtuUnitServer(ModbusUnitServer):
     def _build(self) -> ModbusTcpServer | ModbusSerialServer:
         device = unit_device(self.unit, self.controlling_host, self.device_id)
         return _SerialServer(
-            self.controlling_host, device, port=self.pair.server_port, baudrate=self.baudrate
+            self.controlling_host,
+            self.device_id,
+            device,
+            port=self.pair.server_port,
+            baudrate=self.baudrate,
         )
 
     def start(self, timeout_s: float = 5.0) -> None:

@@ -7,7 +7,7 @@ stations, also where :func:`trajectories.stations.propose_second_station` puts
 it. The planner lays out the lines as ``xmalign program`` would; the rows come
 from :func:`sim.synthetic.measure` with the per-sample noise of the XM-60 class
 interferometer (:class:`sim.interferometer.InterferometerNoise`) and the setup
-terms of CONVENTIONS.md. The fitted tables are compared with the truth by the
+terms of docs/conventions.md. The fitted tables are compared with the truth by the
 RMS volumetric difference after removing a rigid motion
 (:func:`xmalign.post.compare.volumetric_rms_um`), on a grid over the measured
 strokes (the box the station-1 axis lines span) and over the whole travel.

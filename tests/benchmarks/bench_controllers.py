@@ -14,6 +14,11 @@ both directions) is printed next to:
   point) fitted by the same code (``fit_tables``) to the *true* error field of
   the virtual machine instead of the one ``post`` predicts;
 - Fanuc with its straightness compensation option loaded too (``STRAIGHTNESS.TXT``);
+- per controller family and series, what the *files* make the control take out,
+  read back as each family's manual says it reads them (tests/xmalign/comp/controls.py:
+  Sinumerik 840D sl and 828D, Fanuc 0i and 30i, Heidenhain TNC 640 and TNC 4xx,
+  LinuxCNC), both directions averaged: this sees the families' own limits (rounding
+  to the detection unit, the TNC 4xx's power-of-two spacing, the 828D's eight tables);
 - the full 21-error model ``post`` fitted, applied ideally;
 - no compensation.
 
@@ -36,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_linuxcnc_volumetric import TOOL_OFFSET_MM, fitted_tables, held_out_machine  # noqa: E402
 
 from sim.machine import VirtualMachine  # noqa: E402
+from tests.xmalign.comp.controls import taken_out  # noqa: E402
 from xmalign.comp import WRITERS, compensate, writer  # noqa: E402
 from xmalign.comp.fit import CompModel, fit_tables, travel_grid  # noqa: E402
 from xmalign.formats.error_tables import ErrorTableSet  # noqa: E402
@@ -45,6 +51,16 @@ from xmalign.rigid_body import AXES, Chain, ErrorModel, ErrorTables, deviation  
 
 MACHINES = (("FYXZ", 9101), ("FYXZ", 9202), ("XFYZ", 9303))
 CONTROLLERS = tuple(name for name in WRITERS if name != "linuxcnc-volumetric")
+#: (controller, series) whose files are read back as the control reads them
+FAMILIES = (
+    ("sinumerik", "840D sl"),
+    ("sinumerik", "828D"),
+    ("fanuc", "0i"),
+    ("fanuc", "30i"),
+    ("heidenhain", "TNC 640"),
+    ("heidenhain", "TNC 4xx"),
+    ("linuxcnc", "2.9"),
+)
 
 
 def left_um(
@@ -68,6 +84,20 @@ def with_option(machine: Machine, tables: ErrorTableSet, controller: str) -> Err
     if fit.optional is None:
         return None
     return ErrorTables(tables={**fit.mean.tables, **fit.optional.tables})
+
+
+def read_back(machine: Machine, tables: ErrorTableSet, controller: str, series: str) -> ErrorModel:
+    """What the controller of ``series`` takes out, read from the files (both directions'
+    mean: the virtual machine's truth is direction-free here)."""
+    family = machine.model_copy(update={"controller": controller})
+    family = family.model_copy(update={"cnc": family.cnc.model_copy(update={"series": series})})
+    files = compensate(family, tables, controller).files
+    forward, reverse = (taken_out(controller, files, family, d) for d in "+-")
+    mean = {
+        name: (positions, (values + np.interp(positions, *reverse[name])) / 2)
+        for name, (positions, values) in forward.items()
+    }
+    return ErrorTables(tables=mean)
 
 
 def best_model(
@@ -101,6 +131,7 @@ def main() -> None:
     columns = [*CONTROLLERS, *(f"{name} + option" for name in options)]
     print(f"| machine | {' | '.join(columns)} | full model | none |")
     print("|---" * (len(columns) + 3) + "|")
+    families: list[list[float]] = []
     for chain_name, seed in MACHINES:
         machine = held_out_machine(chain_name)
         chain = Chain.parse(chain_name)
@@ -119,6 +150,14 @@ def main() -> None:
         full = left_um(chain, truth, tables.model(""), points)
         none = left_um(chain, truth, None, points)
         print(f"| {chain_name} {seed} | {' | '.join(cells)} | {full:.2f} | {none:.1f} |")
+        families.append(
+            [left_um(chain, truth, read_back(machine, tables, *f), points) for f in FAMILIES]
+        )
+    print("\nthe files read back as each family's control reads them (um RMS, same machines):")
+    print(f"| machine | {' | '.join(f'{c} {s}' for c, s in FAMILIES)} |")
+    print("|---" * (len(FAMILIES) + 1) + "|")
+    for (chain_name, seed), row in zip(MACHINES, families, strict=True):
+        print(f"| {chain_name} {seed} | {' | '.join(f'{v:.2f}' for v in row)} |")
 
 
 if __name__ == "__main__":

@@ -100,3 +100,15 @@ class ExpectedLines(_Script):
     def readline(self) -> bytes:
         reply, self._reply = self._reply, b""
         return reply
+
+
+class ExpectedRshLines(_Script):
+    """A linuxcncrsh ``LineLink`` that plays ``(request_line, reply_line)`` steps."""
+
+    name = "scripted LinuxCNC"
+
+    def ask(self, line: str) -> str:
+        return self.next((line,))
+
+    def close(self) -> None:
+        pass

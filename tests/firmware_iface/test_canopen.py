@@ -20,7 +20,7 @@ from xmalign.safety import units_locked_on_exit
 
 
 @pytest.fixture
-def bus() -> Iterator[tuple[SimUnit, canopen.Network]]:
+def served() -> Iterator[tuple[CanopenUnitServer, canopen.Network]]:
     """A real-time simulated receiver unit as nodes 3, 4, 5, and a connected host network."""
     channel = f"xmalign-{uuid.uuid4().hex}"
     sim = SimUnit("receiver", SimClock(real_time=True), seed=5)
@@ -28,9 +28,25 @@ def bus() -> Iterator[tuple[SimUnit, canopen.Network]]:
     server.start()
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel)
-    yield sim, network
+    yield server, network
     network.disconnect()
     server.stop()
+
+
+@pytest.fixture
+def bus(served) -> tuple[SimUnit, canopen.Network]:  # noqa: ANN001
+    server, network = served
+    return server.units[0], network
+
+
+def test_opening_starts_the_nodes(served) -> None:  # noqa: ANN001
+    server, network = served
+    assert {node.nmt.state for node in server.nodes.values()} == {"PRE-OPERATIONAL"}
+    unit = CanopenUnit(network, "receiver", device_name="receiver unit")
+    try:
+        assert {node.nmt.state for node in server.nodes.values()} == {"OPERATIONAL"}
+    finally:
+        unit.close()
 
 
 def test_profile_position_moves_and_locks(bus) -> None:  # noqa: ANN001

@@ -11,9 +11,9 @@ from firmware_iface.canopen_axis import EDS_PATH
 from firmware_iface.eds_check import check_eds, main
 
 OPTIONAL_OBJECTS = {
-    0x1008, 0x1016, 0x1017, 0x1400, 0x1600, 0x1800, 0x1A00, 0x603F, 0x6040, 0x6041, 0x605A,
-    0x6060, 0x6061, 0x6064, 0x606C, 0x607A, 0x607D, 0x6081, 0x6083, 0x6085, 0x608F, 0x6098,
-    0x60FF, 0x6502,
+    0x1008, 0x1014, 0x1016, 0x1017, 0x1400, 0x1401, 0x1600, 0x1601, 0x1800, 0x1A00, 0x603F,
+    0x6040, 0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x606C, 0x607A, 0x607D, 0x6081, 0x6083,
+    0x6085, 0x608F, 0x6098, 0x60FF, 0x6502,
 }  # fmt: skip
 
 
@@ -62,7 +62,7 @@ def test_eds_validate_finds_nothing_but_its_own_empty_section_false_positive(tmp
 
 @needs_eds_validate
 def test_eds_validate_finds_a_damaged_object_list(tmp_path):
-    path = damaged(tmp_path, "24=0x6502\n", "")
+    path = damaged(tmp_path, "27=0x6502\n", "")
     assert any("0x6502" in line for line in _eds_validate(path))
 
 
@@ -75,10 +75,19 @@ def test_canopen_imports_it_with_every_listed_object_and_the_pdo_mapping():
     }
     # profile position, homing, cyclic synchronous velocity
     assert od[0x6502].default == 0x0001 | 0x0020 | 0x0100
-    assert od[0x1400][1].default == 0x204 and od[0x1800][1].default == 0x184
-    assert [od[0x1600][s].default for s in (1, 2)] == [0x60400010, 0x607A0020]
+    # RPDO 1 the controlword alone, RPDO 2 the target position alone: a PDO never carries a
+    # stale copy of an object the host wrote otherwise (canopen's BaseNode402 sends RPDO 1)
+    assert [od[0x1400][1].default, od[0x1401][1].default, od[0x1800][1].default] == [
+        0x204,
+        0x304,
+        0x184,
+    ]
+    assert [od[0x1600][0].default, od[0x1600][1].default] == [1, 0x60400010]
+    assert [od[0x1601][0].default, od[0x1601][1].default] == [1, 0x607A0020]
     assert [od[0x1A00][s].default for s in (1, 2)] == [0x60410010, 0x60640020]
-    assert od.device_information.nr_of_RXPDO == od.device_information.nr_of_TXPDO == 1
+    assert od.device_information.nr_of_RXPDO == 2 and od.device_information.nr_of_TXPDO == 1
+    assert od[0x1014].default == 0x84  # EMCY
+    assert (od[0x6081].min, od[0x6081].max) == (1, od[0x6081].default)
 
 
 def damaged(tmp_path: Path, old: str, new: str) -> Path:
@@ -92,10 +101,10 @@ def damaged(tmp_path: Path, old: str, new: str) -> Path:
 @pytest.mark.parametrize(
     ("old", "new", "problem"),
     [
-        ("SupportedObjects=24\n", "SupportedObjects=23\n", "numbered 1..23"),
-        ("24=0x6502\n", "", "numbered 1..24"),
+        ("SupportedObjects=27\n", "SupportedObjects=26\n", "numbered 1..26"),
+        ("27=0x6502\n", "", "numbered 1..27"),
         ("[6502]\nParameterName", "[6503]\nParameterName", "6502] listed in [OptionalObjects]"),
-        ("NrOfRXPDO=1", "NrOfRXPDO=2", "NrOfRXPDO=2 but 1"),
+        ("NrOfRXPDO=2", "NrOfRXPDO=1", "NrOfRXPDO=1 but 2"),
         ("SubNumber=5\n\n[1800sub0]", "SubNumber=4\n\n[1800sub0]", "SubNumber=4 but 5"),
         ("DefaultValue=0x60640020", "DefaultValue=0x60640010", "with 16 bits"),
         ("DefaultValue=0x607A0020", "DefaultValue=0x60980008", "PDOMapping=0"),
@@ -108,7 +117,10 @@ def damaged(tmp_path: Path, old: str, new: str) -> Path:
         ("CreationDate=01-01-2025", "CreationDate=2025-01-01", "CreationDate"),
         ("EDSVersion=4.0", "EDSVersion=3.0", "EDSVersion must be 4.0"),
         ("[DummyUsage]", "[Dummies]", "[DummyUsage] section missing"),
-        ("24=0x6502\n", "24=0x2502\n", "0x2502 does not belong in this list"),
+        ("27=0x6502\n", "27=0x2502\n", "0x2502 does not belong in this list"),
+        ("HighLimit=699051", "HighLimit=600000", "DefaultValue=699051 outside LowLimit..HighLimit"),
+        ("LowLimit=1", "LowLimit=800000", "LowLimit=800000 above HighLimit=699051"),
+        ("LowLimit=1", "LowLimit=-1", "LowLimit=-1 does not fit UNSIGNED32"),
         (
             "DataType=0x0007\nAccessType=ro\nDefaultValue=0x00000121",
             "DataType=0x0030\nAccessType=ro\nDefaultValue=0x00000121",

@@ -144,6 +144,14 @@ def test_example_units_config_loads() -> None:
             "launch: {transport: modbus-tcp, host: x, speed: 3}",
             "key 'launch.modbus-tcp.speed': not a known key",
         ),
+        (
+            "launch: {transport: canopen, interface: udp_local, channel: 999.999.1.1}",
+            "key 'launch.canopen.channel': '999.999.1.1' is not an IPv4 multicast group",
+        ),
+        (
+            "launch: {transport: canopen, interface: nosuchbus, channel: can0}",
+            "key 'launch.canopen.interface': no CAN interface 'nosuchbus'",
+        ),
     ],
 )
 def test_bad_units_config_names_file_and_key(tmp_path, body: str, fragment: str) -> None:  # noqa: ANN001
@@ -268,3 +276,41 @@ def test_operator_prompt_stands_still_and_reports_the_confirmed_position(referen
     assert mover.is_standstill()
     with pytest.raises(XmalignError, match="no answer from the operator"):
         mover.position_mm()  # asked where the machine stands before any move
+
+
+def test_linuxcncrsh_source_with_defaults_and_its_program_path(tmp_path) -> None:  # noqa: ANN001
+    path = tmp_path / "units.yaml"
+    path.write_text(
+        "format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
+        "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {port: /dev/null}\n"
+        "machine_position:\n  source: linuxcncrsh\n"
+        "  linuxcncrsh: {host: cnc, program: shared/run.ngc}\n"
+    )
+    rsh = load_units_config(path).machine_position.linuxcncrsh
+    assert rsh is not None
+    assert (rsh.port, rsh.connect_password, rsh.enable_password) == (5007, "EMC", "EMCTOO")
+    assert rsh.cnc_program_path == str((tmp_path / "shared" / "run.ngc").resolve())
+    assert load_units_config(path).timeouts.machine_s == 600.0
+
+
+@pytest.mark.parametrize(
+    ("position", "fragment"),
+    [
+        ("{source: linuxcncrsh}", "'linuxcncrsh' is required with source: linuxcncrsh"),
+        ("{source: linuxcncrsh, linuxcncrsh: {program: p.ngc}}", "linuxcncrsh.host"),
+        (
+            "{source: linuxcncrsh, linuxcncrsh: {host: h, program: p, tolerance_mm: 0}}",
+            "linuxcncrsh.tolerance_mm",
+        ),
+        ("{source: prompt, linuxcncrsh: {host: h, program: p}}", "and only then"),
+    ],
+)
+def test_bad_linuxcncrsh_source_names_the_key(tmp_path, position: str, fragment: str) -> None:  # noqa: ANN001
+    path = tmp_path / "units.yaml"
+    path.write_text(
+        "format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
+        "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {port: /dev/null}\n"
+        f"machine_position: {position}\n"
+    )
+    with pytest.raises(InputError, match=f"units.yaml: .*{fragment}"):
+        load_units_config(path)

@@ -162,9 +162,17 @@ def test_rtu_transport_on_a_missing_port_names_the_device(tmp_path) -> None:  # 
         ModbusUnit(transport)
 
 
-def test_an_unexpected_exception_code_is_named() -> None:
-    class IllegalAddress:
-        exception_code = 2
+@pytest.mark.parametrize(
+    ("code", "message"),
+    [
+        (2, "refused the read at register 99: no such register, .*32-bit value .*exception 2"),
+        (11, "has no unit with device id 1 .*exception 11 .*check device_id"),
+        (4, "answered the read at register 99 with Modbus exception 4"),
+    ],
+)
+def test_exception_codes_are_named(code: int, message: str) -> None:
+    class Refusal:
+        exception_code = code
 
         def isError(self) -> bool:  # noqa: N802 (pymodbus's name)
             return True
@@ -172,13 +180,11 @@ def test_an_unexpected_exception_code_is_named() -> None:
     class Client:
         connected = True
 
-        def read_holding_registers(self, *args: object, **kwargs: object) -> IllegalAddress:
-            return IllegalAddress()
+        def read_holding_registers(self, *args: object, **kwargs: object) -> Refusal:
+            return Refusal()
 
     transport = ModbusTransport(Client(), "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
-    with pytest.raises(
-        DeviceError, match="answered the read at register 99 with Modbus exception 2"
-    ):
+    with pytest.raises(DeviceError, match=message):
         transport.read_registers(99, 1)
 
 

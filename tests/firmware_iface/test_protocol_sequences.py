@@ -32,6 +32,9 @@ OPEN_LAUNCH_UNIT = [
     ("read", 2, 1, [2]),  # axis count
     ("write", 3, [1], None),  # first heartbeat: 1, never the power-on 0
     ("read", 24, 1, [4]),  # axis 1 fault code: the power-on watchdog
+    # a fresh heartbeat right before the fault reset, which the unit refuses without one:
+    # 1 then 2 is a change whatever value an earlier host left in the register
+    ("write", 3, [2], None),
     ("write", 16, [ENABLE | FAULT_RESET], None),  # fault reset on the rising edge...
     ("write", 16, [ENABLE], None),  # ...and back, still locked
     ("read", 40, 1, [0]),  # axis 2 fault code: none
@@ -53,7 +56,7 @@ def test_modbus_open_move_heartbeat_and_lock() -> None:
         ("write", 32, [ENABLE | UNLOCK | START], None),
         ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0
         ("read", 17, 1, [ENABLED | MOVING | HOMED]),  # t = 0.05
-        ("write", 3, [2], None),  # t = 0.1: half a heartbeat period since the last change
+        ("write", 3, [3], None),  # t = 0.1: half a heartbeat period since the last change
         ("read", 17, 1, [ENABLED | IN_POSITION | HOMED]),
         ("read", 33, 1, [ENABLED | IN_POSITION | HOMED]),
     ]
@@ -71,6 +74,44 @@ def test_modbus_a_heartbeat_fault_is_read_and_named() -> None:
         unit = opened(script, clock)
         with pytest.raises(HeartbeatError, match="axis a1 .* heartbeat watchdog expired"):
             unit.axes[0].check()
+
+
+def test_modbus_a_live_host_recovers_from_a_trip_with_a_heartbeat_before_each_reset() -> None:
+    """The unit refuses a fault reset until the heartbeat changes after a trip: the
+    driver changes it right before each reset, even 0 s after the last beat."""
+    clock = SimClock()
+    check = [("read", 17, 1, [FAULT | LOCKED | HOMED]), ("read", 24, 1, [4])]
+    reset = [
+        ("write", 3, [3], None),
+        ("write", 16, [ENABLE | FAULT_RESET], None),
+        ("write", 16, [ENABLE], None),
+        ("write", 3, [4], None),
+        ("write", 32, [ENABLE | FAULT_RESET], None),
+        ("write", 32, [ENABLE], None),
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *check, *reset]) as script:
+        unit = opened(script, clock)
+        with pytest.raises(HeartbeatError):
+            unit.axes[0].check()
+        unit.reset_faults()
+
+
+def test_modbus_an_axis_stopped_short_never_arrives() -> None:
+    """After a stop the unit keeps the host's target: at rest but not in position, the
+    wait polls (and beats) to its deadline."""
+    clock = SimClock()
+    wait = [
+        ("write", 16, [ENABLE | UNLOCK | STOP], None),
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0: at rest, short of the target
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0.05
+        ("write", 3, [3], None),
+        ("read", 17, 1, [ENABLED | HOMED]),  # t = 0.1: the deadline
+    ]
+    with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *wait]) as script:
+        unit = opened(script, clock)
+        unit.axes[0].stop()
+        with pytest.raises(DeviceTimeoutError, match="a1 .* did not reach its target in 0.1 s"):
+            unit.axes[0].wait_in_position(0.1)
 
 
 def test_a_leftover_step_fails() -> None:
@@ -143,6 +184,37 @@ def test_cia402_heartbeat_fault_reads_the_error_code() -> None:
             axis.wait_in_position(1.0)
 
 
+def test_cia402_a_halted_axis_has_not_reached_its_target() -> None:
+    """With halt (bit 8) set, CiA 402 sets statusword bit 10 for "velocity 0"."""
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("write", 0x6040, 0, 0x010F, None),  # halt
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0: standing
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.05
+        ("read", 0x6041, 0, OPERATION_ENABLED | 0x0400),  # t = 0.1: the deadline
+    ]
+    with ExpectedSdo(1, steps) as node:
+        axis = CanopenAxis(node, "a1", "launch unit", SimClock(), poll_s=0.05)  # type: ignore[arg-type]
+        axis.stop()
+        with pytest.raises(DeviceTimeoutError, match="a1 .* did not reach its target in 0.1 s"):
+            axis.wait_in_position(0.1)
+
+
+def test_cia402_fault_reset_waits_until_the_fault_reaction_is_over() -> None:
+    steps = [
+        ("read", 0x608F, 1, 2**23),
+        ("read", 0x6041, 0, 0x021F),  # fault reaction active: the node takes no command
+        ("read", 0x6041, 0, 0x021F),
+        ("read", 0x6041, 0, 0x0218),  # fault: at rest
+        ("write", 0x6040, 0, 0x00, None),
+        ("write", 0x6040, 0, 0x80, None),  # fault reset on the rising edge of bit 7 (15)
+        ("write", 0x6040, 0, 0x06, None),
+        ("write", 0x6040, 0, 0x07, None),  # enabled, brake applied
+    ]
+    with ExpectedSdo(3, steps) as node:
+        CanopenAxis(node, "a3", "receiver unit", SimClock()).reset_fault()  # type: ignore[arg-type]
+
+
 HOME = 32
 
 
@@ -179,7 +251,7 @@ def test_modbus_homing_that_never_ends_times_out() -> None:
         ("write", 32, [ENABLE | UNLOCK | HOME], None),
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.05
-        ("write", 3, [2], None),  # the heartbeat goes on while waiting
+        ("write", 3, [3], None),  # the heartbeat goes on while waiting
         ("read", 17, 1, [ENABLED | MOVING]),  # t = 0.1: past the deadline
     ]
     with ExpectedRegisters([*OPEN_LAUNCH_UNIT, *home]) as script:

@@ -2,8 +2,10 @@
 and the in-process simulated unit, each in front of the same simulated firmware.
 
 The same assertions for all: the axes, opening over a power-on heartbeat fault,
-moves, locking, refused targets, one deadline per move, and a stale host
-heartbeat reported as a ``HeartbeatError`` with every axis stopped and locked.
+moves, locking, refused targets, one deadline per move, a stale host
+heartbeat reported as a ``HeartbeatError`` with every axis stopped and locked,
+and a host that is alive again resetting the fault and moving on (an axis the
+watchdog stopped short is not "in position").
 """
 
 from __future__ import annotations
@@ -18,7 +20,12 @@ import numpy as np
 import pytest
 from cli_helpers import free_port
 
-from firmware_iface.canopen_axis import CanopenUnit
+from firmware_iface.canopen_axis import (
+    HOST_HEARTBEAT_DATA,
+    HOST_HEARTBEAT_ID,
+    HOST_HEARTBEAT_PERIOD_S,
+    CanopenUnit,
+)
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
 from sim.clock import SimClock
 from sim.servers.canopen_node import CanopenUnitServer
@@ -36,6 +43,7 @@ class Implementation:
     firmware: SimUnit
     clock: Clock
     stall_heartbeat: Callable[[], None]
+    resume_heartbeat: Callable[[], None]
 
 
 def _powered_on_long_ago(clock: SimClock) -> SimUnit:
@@ -54,7 +62,7 @@ def modbus_tcp() -> Iterator[Implementation]:
     transport = tcp_transport("127.0.0.1", server.port, "launch unit", timeout_s=2.0)
     unit = ModbusUnit(transport, expected_kind=KIND)
     unit.start_heartbeat()
-    yield Implementation(unit, firmware, clock, unit.stop_heartbeat)
+    yield Implementation(unit, firmware, clock, unit.stop_heartbeat, unit.start_heartbeat)
     unit.close()
     server.stop()
 
@@ -68,7 +76,7 @@ def modbus_rtu() -> Iterator[Implementation]:
         rtu_transport(server.serial_port, "launch unit", timeout_s=2.0), expected_kind=KIND
     )
     unit.start_heartbeat()
-    yield Implementation(unit, firmware, clock, unit.stop_heartbeat)
+    yield Implementation(unit, firmware, clock, unit.stop_heartbeat, unit.start_heartbeat)
     unit.close()
     server.stop()
 
@@ -82,8 +90,17 @@ def canopen_nodes() -> Iterator[Implementation]:
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel)
     unit = CanopenUnit(network, KIND, device_name="launch unit")
-    yield Implementation(unit, firmware, clock, unit.close)
+    resumed = []
+
+    def resume() -> None:  # the host's heartbeat, produced again
+        resumed.append(
+            network.send_periodic(HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S)
+        )
+
+    yield Implementation(unit, firmware, clock, unit.close, resume)
     unit.close()
+    for task in resumed:
+        task.stop()
     network.disconnect()
     server.stop()
 
@@ -92,7 +109,9 @@ def simulated() -> Iterator[Implementation]:
     clock = SimClock()  # virtual time: the same assertions, evaluated in no time
     firmware = _powered_on_long_ago(clock)
     unit = SimPositioningUnit(firmware)
-    yield Implementation(unit, firmware, clock, unit.stop_heartbeat)
+    yield Implementation(
+        unit, firmware, clock, unit.stop_heartbeat, lambda: firmware.keep_heartbeat(True)
+    )
 
 
 @pytest.fixture(params=[modbus_tcp, modbus_rtu, canopen_nodes, simulated])
@@ -146,3 +165,39 @@ def test_a_stale_heartbeat_is_a_heartbeat_error_and_locks(implementation: Implem
         role.axes[0].wait_in_position(1.0)
     assert isinstance(error.value, DriveFaultError)
     assert all(axis.is_locked() and axis.fault_code == 4 for axis in firmware.axes)
+
+
+def test_a_live_host_resets_a_trip_and_moves_on(implementation: Implementation) -> None:
+    """A host stalled long enough to trip the watchdog, then beating again: the fault
+    reset is taken, the axis the watchdog stopped short is not in position (the
+    target stays the one the host wrote), and the next move runs."""
+    role, firmware, clock = implementation.role, implementation.firmware, implementation.clock
+    role.axes[0].move_to(1.5)
+    clock.sleep(0.3)
+    implementation.stall_heartbeat()
+    clock.sleep(0.7)
+    with pytest.raises(HeartbeatError):
+        role.axes[0].wait_in_position(1.0)
+    implementation.resume_heartbeat()
+    role.reset_faults()
+    assert [axis.fault_code for axis in firmware.axes] == [0, 0]
+    assert firmware.axes[0].target_rad == pytest.approx(1.5, abs=1e-6)
+    with pytest.raises(DeviceTimeoutError):  # stopped short of 1.5 rad: never arrives
+        role.axes[0].wait_in_position(0.2)
+    role.move_to(np.array([0.02, -0.01]), timeout_s=10.0)
+    np.testing.assert_allclose(role.angles_rad(), [0.02, -0.01], atol=1e-5)
+    role.lock()
+
+
+def test_an_axis_the_host_stopped_short_never_arrives(implementation: Implementation) -> None:
+    """'In position' means at the target the host wrote: after a stop mid-move the wait
+    runs to its deadline instead of taking the rest for arrival."""
+    role, firmware, clock = implementation.role, implementation.firmware, implementation.clock
+    role.axes[0].move_to(1.5)
+    clock.sleep(0.3)
+    role.axes[0].stop()
+    clock.sleep(0.5)
+    assert not firmware.axes[0].is_moving()
+    with pytest.raises(DeviceTimeoutError):
+        role.axes[0].wait_in_position(0.2)
+    role.lock()

@@ -121,28 +121,37 @@ class Display:
         self.wait_for(idle, timeout_s, "the interpreter to be idle and the joints in position")
 
     # -- actions ---------------------------------------------------------------------
-    def op_estop_reset(self, action):
-        self.command.state(linuxcnc.STATE_ESTOP_RESET)
+    def set_state(self, state, what):
+        self.command.state(state)
         self.command.wait_complete()
-        self.wait_for(lambda s: s.task_state == linuxcnc.STATE_ESTOP_RESET, 5, "estop reset")
+        self.wait_for(lambda s: s.task_state == state, 5, what)
 
-    def op_machine_on(self, action):
-        self.command.state(linuxcnc.STATE_ON)
-        self.command.wait_complete()
-        self.wait_for(lambda s: s.task_state == linuxcnc.STATE_ON, 5, "machine on")
-
-    def op_home(self, action):
+    def in_joint_mode(self, send, done, timeout_s, what):
+        """``send(-1)`` (home or unhome all) in joint mode; wait until ``done(homed flags)``."""
         self.set_mode(linuxcnc.MODE_MANUAL)
         self.command.teleop_enable(0)
         self.command.wait_complete()
-        self.command.home(-1)
+        send(-1)
         self.command.wait_complete()
         joints = self.poll().joints
-        self.wait_for(
-            lambda s: all(s.homed[j] for j in range(joints)), action.get("timeout_s", 30), "homing"
-        )
+        self.wait_for(lambda s: done(s.homed[:joints]), timeout_s, what)
+
+    def op_estop_reset(self, action):
+        self.set_state(linuxcnc.STATE_ESTOP_RESET, "estop reset")
+
+    def op_machine_on(self, action):
+        self.set_state(linuxcnc.STATE_ON, "machine on")
+
+    def op_estop(self, action):
+        self.set_state(linuxcnc.STATE_ESTOP, "estop")
+
+    def op_home(self, action):
+        self.in_joint_mode(self.command.home, all, action.get("timeout_s", 30), "homing")
         self.command.teleop_enable(1)
         self.command.wait_complete()
+
+    def op_unhome(self, action):
+        self.in_joint_mode(self.command.unhome, lambda homed: not any(homed), 5, "unhoming")
 
     def op_mdi(self, action):
         self.set_mode(linuxcnc.MODE_MDI)

@@ -14,8 +14,8 @@ Usage::
     run.value("at")["joint.0.pos-cmd"]
 
 Actions (run in order by ``display.py``; the first that fails ends the list):
-``estop_reset``, ``machine_on``, ``home``, ``mdi`` (``gcode``; waits until idle
-and in position), ``pins`` (``names``: ``hal.get_value`` of each),
+``estop_reset``, ``machine_on``, ``home``, ``estop``, ``unhome`` (all joints), ``mdi``
+(``gcode``; waits until idle and in position), ``pins`` (``names``: ``hal.get_value`` of each),
 ``setp`` (``name``, ``value``), ``sleep`` (``seconds``), ``run`` (``program``:
 runs it to the end, resuming after every M0; ``watch``: pins whose largest
 absolute value is returned; ``feed_override``: set before the start;
@@ -27,8 +27,12 @@ action may carry a ``label``.
 LinuxCNC refuses to run as root: as root the harness runs it as the user
 ``XMALIGN_LINUXCNC_USER`` (default ``xmcnc``, created with ``useradd`` when
 missing); otherwise as the current user. Only one LinuxCNC runs per host: every
-start holds ``flock /tmp/xmalign-linuxcnc.lock`` until the previous instance's
+start holds ``flock /tmp/xmalign-linuxcnc.flock`` until the previous instance's
 processes are gone.
+
+:func:`linuxcnc_serving` starts a LinuxCNC whose display is ``linuxcncrsh``
+(``write_sim_config(..., display="linuxcncrsh --port P")``) and keeps it
+running for the ``with`` block: other processes command it over TCP.
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ import fcntl
 import json
 import os
 import shutil
+import signal
+import socket
 import subprocess
 import time
 from collections.abc import Iterator, Sequence
@@ -45,10 +51,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-LOCK_PATH = Path("/tmp/xmalign-linuxcnc.lock")
+#: The host-wide lock every start of LinuxCNC takes (``flock`` on the command line, the
+#: same ``fcntl.flock`` here), so that tests, CI and other helpers never start two.
+LOCK_PATH = Path("/tmp/xmalign-linuxcnc.flock")
 USER = os.environ.get("XMALIGN_LINUXCNC_USER", "xmcnc")
 SYSTEM_PYTHON = Path("/usr/bin/python3")
 DISPLAY_SCRIPT = Path(__file__).resolve().parent / "display.py"
+#: ``[APPLICATIONS] APP`` that writes the actual position to a file (``publish_position``).
+PUBLISH_SCRIPT = Path(__file__).resolve().parent / "publish_position.py"
 #: Processes of a LinuxCNC instance that outlive ``linuxcnc`` for a few seconds.
 LINGERING = ("linuxcncsvr", "milltask", "rtapi_app", "io", "iov2", "halui")
 AXES = ("X", "Y", "Z")
@@ -107,13 +117,23 @@ class SimMachine:
     #: Y, < 5e-7 mm/s, during a Z move); they flip LinuxCNC's ``backlash-corr`` too, but
     #: its ``backlash-filt`` (what reaches the motor) stayed at the physical direction's value.
     direction_latches: bool = False
+    #: each joint's drive is a ``scale`` (gain 1) at the start of the servo thread, so its
+    #: feedback in a period is the command of the period before, as with a real drive
+    #: whose position is read at the start of the period (``hm2.read``,
+    #: ``stepgen.capture-position``); False: the command is netted straight to the
+    #: feedback, which anything after the motion controller reads in the same period.
+    #: With ``drive_lag`` a ``minmax`` per joint (``drive-range-N.min``/``max``) tracks
+    #: every command the drive was sent since the start.
+    drive_lag: bool = False
 
     @property
     def joints(self) -> int:
         return len(self.coordinates)
 
 
-def _ini_text(machine: SimMachine, halfile: str) -> str:
+def _ini_text(
+    machine: SimMachine, halfile: str, display: str = "./display.py", apps: Sequence[str] = ()
+) -> str:
     v, a = machine.max_velocity_mm_s, machine.max_acceleration_mm_s2
     gantry = len(set(machine.coordinates)) < machine.joints
     sections = [
@@ -121,7 +141,7 @@ def _ini_text(machine: SimMachine, halfile: str) -> str:
         (
             "DISPLAY",
             {
-                "DISPLAY": "./display.py",
+                "DISPLAY": display,
                 "CYCLE_TIME": "0.100",
                 "MAX_FEED_OVERRIDE": f"{machine.max_feed_override}",
             },
@@ -152,6 +172,8 @@ def _ini_text(machine: SimMachine, halfile: str) -> str:
         ),
         ("EMCIO", {"EMCIO": "io", "CYCLE_TIME": "0.100", "TOOL_TABLE": "sim.tbl"}),
     ]
+    if apps:
+        sections.append(("APPLICATIONS", {"APP": apps[0]}))
     for axis in AXES:
         low, high = machine.travel_mm[axis]
         sections.append(
@@ -202,16 +224,18 @@ def _hal_text(machine: SimMachine) -> str:
         "# xmalign test harness: trivkins sim, each joint's command looped back as feedback",
         "loadrt [KINS]KINEMATICS",
         "loadrt [EMCMOT]EMCMOT servo_period_nsec=[EMCMOT]SERVO_PERIOD num_joints=[KINS]JOINTS",
+        *(_lagging_drives(machine.joints) if machine.drive_lag else []),
         "addf motion-command-handler servo-thread",
         "addf motion-controller servo-thread",
         "net estop-loop iocontrol.0.user-enable-out iocontrol.0.emc-enable-in",
         "net tool-prep-loop iocontrol.0.tool-prepare iocontrol.0.tool-prepared",
         "net tool-change-loop iocontrol.0.tool-change iocontrol.0.tool-changed",
     ]
-    lines += [
-        f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
-        for joint in range(machine.joints)
-    ]
+    if not machine.drive_lag:
+        lines += [
+            f"net j{joint}pos joint.{joint}.motor-pos-cmd => joint.{joint}.motor-pos-fb"
+            for joint in range(machine.joints)
+        ]
     if machine.direction_latches:
         lines.append(f"loadrt comp count={machine.joints}")
         for joint in range(machine.joints):
@@ -223,8 +247,35 @@ def _hal_text(machine: SimMachine) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_sim_config(folder: Path, machine: SimMachine | None = None) -> Path:
+def _lagging_drives(joints: int) -> list[str]:
+    """Drives answering a period late, and a record of their commands (see drive_lag)."""
+    drives = ",".join(f"drive-{j}" for j in range(joints))
+    ranges = ",".join(f"drive-range-{j}" for j in range(joints))
+    lines = [f"loadrt scale names={drives}", f"loadrt minmax names={ranges}"]
+    for j in range(joints):
+        lines += [
+            f"addf drive-{j} servo-thread",
+            f"addf drive-range-{j} servo-thread",
+            f"setp drive-{j}.gain 1",
+            f"setp drive-{j}.offset 0",
+            f"net j{j}cmd joint.{j}.motor-pos-cmd => drive-{j}.in drive-range-{j}.in",
+            f"net j{j}fb drive-{j}.out => joint.{j}.motor-pos-fb",
+        ]
+    return lines
+
+
+def write_sim_config(
+    folder: Path,
+    machine: SimMachine | None = None,
+    display: str = "./display.py",
+    publish_position: Path | None = None,
+) -> Path:
     """Write an INI, its HAL file, a tool table and the display into ``folder``.
+
+    ``display`` is the INI's ``[DISPLAY] DISPLAY`` (default the harness display,
+    which :func:`run_linuxcnc` drives; ``linuxcncrsh ...`` for :func:`linuxcnc_serving`).
+    ``publish_position``: a file LinuxCNC keeps its actual position in (an
+    ``[APPLICATIONS]`` entry running ``publish_position.py``).
 
     The folder is made writable for the LinuxCNC user (LinuxCNC writes its
     parameter file there). Returns the INI's path (``folder/sim.ini``).
@@ -234,9 +285,11 @@ def write_sim_config(folder: Path, machine: SimMachine | None = None) -> Path:
     folder.chmod(0o777)
     (folder / "sim.hal").write_text(_hal_text(machine))
     (folder / "sim.tbl").write_text("T1 P1 D0 Z0 ;\n")
-    (folder / "sim.ini").write_text(_ini_text(machine, "sim.hal"))
-    shutil.copy(DISPLAY_SCRIPT, folder / "display.py")
-    (folder / "display.py").chmod(0o755)
+    apps = [] if publish_position is None else [f"./publish_position.py {publish_position}"]
+    (folder / "sim.ini").write_text(_ini_text(machine, "sim.hal", display, apps))
+    for script in (DISPLAY_SCRIPT, PUBLISH_SCRIPT):
+        shutil.copy(script, folder / script.name)
+        (folder / script.name).chmod(0o755)
     return folder / "sim.ini"
 
 
@@ -285,12 +338,50 @@ class LinuxCNCRun:
         return f"returncode {self.returncode}\nreport {json.dumps(self.report)}\n{self.output}"
 
 
+def _ancestors() -> set[int]:
+    """This process and its parents, grandparents, ... (from /proc)."""
+    pids, pid = set(), os.getpid()
+    while pid > 1 and pid not in pids:
+        pids.add(pid)
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            break
+        pid = int(stat.rsplit(")", 1)[1].split()[1])
+    return pids
+
+
+def _held_by_an_ancestor(path: Path) -> bool:
+    """A ``flock`` command around this test run holds ``path`` (/proc/locks names its pid)."""
+    try:
+        inode = path.stat().st_ino
+        table = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return False
+    holders = {
+        int(fields[4])
+        for fields in (line.split() for line in table)
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5].endswith(f":{inode}")
+    }
+    return bool(holders & _ancestors())
+
+
 @contextmanager
 def host_lock(timeout_s: float = 600.0) -> Iterator[None]:
-    """Hold the host-wide LinuxCNC lock (other helpers' runs wait on the same file)."""
-    with open(LOCK_PATH, "a") as stream:
+    """Hold the host-wide LinuxCNC lock (other helpers' runs wait on the same file).
+
+    Run under ``flock /tmp/xmalign-linuxcnc.flock pytest ...``, the lock is
+    already this run's: then the workers of the run take a second file among
+    themselves, so that they too start one LinuxCNC at a time.
+    """
+    path = LOCK_PATH
+    with open(path, "a"):
+        pass
+    if _held_by_an_ancestor(path):
+        path = path.with_name(path.name + ".workers")
+    with open(path, "a") as stream:
         with suppress(PermissionError):  # created by another user: already shared
-            os.chmod(LOCK_PATH, 0o666)
+            os.chmod(path, 0o666)
         deadline = time.monotonic() + timeout_s
         while True:
             try:
@@ -298,7 +389,7 @@ def host_lock(timeout_s: float = 600.0) -> Iterator[None]:
                 break
             except BlockingIOError:
                 if time.monotonic() > deadline:
-                    raise TimeoutError(f"{LOCK_PATH} held for more than {timeout_s} s") from None
+                    raise TimeoutError(f"{path} held for more than {timeout_s} s") from None
                 time.sleep(0.2)
         try:
             yield
@@ -343,9 +434,7 @@ def run_linuxcnc(
         f"XMALIGN_HARNESS_RESULT={result_path}",
         f"HOME={Path('~' + user).expanduser() if user else Path.home()}",
     ]
-    command = ["env", *environment, "linuxcnc", "-r", str(ini.resolve())]
-    if user:
-        command = ["runuser", "-u", user, "--", *command]
+    command = _linuxcnc_command(ini, user, environment)
     with host_lock():
         _wait_gone(user, 30.0)
         process = subprocess.Popen(
@@ -368,6 +457,60 @@ def run_linuxcnc(
             output += f"\n[harness] processes still running after the end: {left}"
     report = json.loads(result_path.read_text()) if result_path.exists() else None
     return LinuxCNCRun(process.returncode, output, report)
+
+
+def _linuxcnc_command(ini: Path, user: str | None, environment: list[str]) -> list[str]:
+    command = ["env", *environment, "linuxcnc", "-r", str(ini.resolve())]
+    return ["runuser", "-u", user, "--", *command] if user else command
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as probe:
+        probe.settimeout(0.5)
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
+@contextmanager
+def linuxcnc_serving(ini: Path, port: int, *, start_timeout_s: float = 60.0) -> Iterator[Path]:
+    """A LinuxCNC whose display is linuxcncrsh on ``port``, running for the ``with`` block.
+
+    Holds the host lock from the start until its processes are gone again;
+    yields the file LinuxCNC's output goes to. The end is SIGTERM to the
+    process group (``linuxcnc`` shuts its processes down on it).
+    """
+    folder = ini.resolve().parent
+    share_with_linuxcnc_user(folder)
+    user = run_as_user()
+    home = Path("~" + user).expanduser() if user else Path.home()
+    output_path = folder / "linuxcnc-output.txt"
+    with host_lock(), open(output_path, "w") as output:
+        _wait_gone(user, 30.0)
+        process = subprocess.Popen(
+            _linuxcnc_command(ini, user, [f"HOME={home}"]),
+            cwd=folder,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + start_timeout_s
+            while not _listening(port):
+                if process.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"linuxcncrsh did not listen on {port}:\n{output_path.read_text()}"
+                    )
+                time.sleep(0.2)
+            yield output_path
+        finally:
+            with suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGTERM)
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+            _wait_gone(user, 20.0)
 
 
 def standard_start() -> list[dict[str, Any]]:

@@ -51,7 +51,8 @@ pytestmark = pytest.mark.linuxcnc
 ROOT = Path(__file__).resolve().parents[2]
 COMPONENT_SOURCE = ROOT / "linuxcnc" / "xmalign_volcomp.comp"
 MODULE = Path("/usr/lib/linuxcnc/modules/xmalign_volcomp.so")
-SIM = SimMachine()
+#: every joint's drive answers a period late, as a real one (harness.SimMachine.drive_lag)
+SIM = SimMachine(drive_lag=True)
 TOOL_OFFSET_MM = [10.0, -5.0, -120.0]
 #: 0.1 um, the required agreement of the pins with the model
 TOLERANCE_MM = 1e-4
@@ -117,6 +118,7 @@ def _merged(folder: Path, coordinates: str, chain: str, **machine: float) -> tup
     """The merged INI of a sim config, and the model of the error tables it loads.
 
     LinuxCNC turns the machine off on a following error above 1 nm in any servo period.
+    The sim config itself (uncompensated) is ``folder/sim.ini``.
     """
     ini = write_sim_config(folder, replace(SIM, coordinates=coordinates, ferror_mm=1e-6))
     model = _machine_and_errors(folder, chain, **machine)
@@ -220,6 +222,118 @@ def test_corrections_at_the_pins_equal_the_model_and_add_no_following_error(
     assert max(largest[f"{INSTANCE}.correction-{a}"] for a in range(3)) > 0.010
     assert largest[f"{INSTANCE}.tripped"] == 0
     assert run.report["state"]["enabled"]
+
+
+#: the sim's position resolution (no encoder: a float), mm
+RESOLUTION_MM = 1e-9
+
+
+def _correction_pins() -> list[str]:
+    return [f"{INSTANCE}.{pin}" for pin in ("target-0", "target-1", "target-2", "active")] + [
+        f"{INSTANCE}.correction-{a}" for a in range(3)
+    ]
+
+
+def _drive_commands(joints: int) -> list[str]:
+    """The smallest and largest command each drive was sent since the start."""
+    return [f"drive-range-{j}.{end}" for j in range(joints) for end in ("min", "max")]
+
+
+def _applied(pins: dict, coordinates: str) -> np.ndarray:
+    """Correction on each joint's drive pin, mm."""
+    return np.array(
+        [
+            pins[f"{INSTANCE}.motor-pos-out-{j}"] - pins[f"joint.{j}.motor-pos-cmd"]
+            for j in range(len(coordinates))
+        ]
+    )
+
+
+@pytest.mark.parametrize(("coordinates", "chain"), [("XYZ", "XFYZ"), ("XYYZ", "FYXZ")])
+def test_no_correction_reaches_the_drives_before_homing_and_the_joints_home_as_without_it(
+    component, linuxcnc_dir, coordinates, chain
+):
+    """Issue 22: motion.is-all-homed reads TRUE before LinuxCNC activates its joints.
+
+    With drives that answer a period late, a correction sent then moved the homed
+    motor-offsets by µm. The uncompensated sim (same drives) is the reference.
+    """
+    ini, volumetric = _merged(linuxcnc_dir, coordinates, chain)
+    joints = len(coordinates)
+    offsets = [f"joint.{j}.motor-offset" for j in range(joints)]
+    home = [f"joint.{j}.pos-cmd" for j in range(joints)]
+
+    plain = run_linuxcnc(
+        linuxcnc_dir / "sim.ini",
+        [*standard_start(), {"op": "pins", "names": offsets + home, "label": "homed"}],
+    )
+    run = run_linuxcnc(
+        ini,
+        [
+            {"op": "pins", "names": _drive_commands(joints), "label": "start"},
+            {"op": "estop_reset"},
+            {"op": "machine_on"},
+            {"op": "sleep", "seconds": 0.2},
+            {"op": "pins", "names": _drive_commands(joints), "label": "on"},
+            {"op": "home"},
+            {"op": "pins", "names": offsets, "label": "homed"},
+            {"op": "sleep", "seconds": 0.3},
+            {"op": "pins", "names": _pin_names(joints) + _correction_pins(), "label": "after"},
+        ],
+    )
+
+    for label in ("start", "on"):
+        commands = run.value(label)
+        assert all(value == 0.0 for value in commands.values()), (label, commands)
+    reference = plain.value("homed")
+    homed = run.value("homed")
+    for name in offsets:
+        assert homed[name] == pytest.approx(reference[name], abs=RESOLUTION_MM), (name, homed)
+    at_home = np.array([[reference[f"joint.{coordinates.index(a)}.pos-cmd"] for a in "XYZ"]])
+    expected = volumetric.correction(at_home)[0]
+    assert np.abs(expected).max() > 0.001
+    after = run.value("after")
+    assert after[f"{INSTANCE}.active"]
+    per_joint = [expected["XYZ".index(axis)] for axis in coordinates]
+    np.testing.assert_allclose(_applied(after, coordinates), per_joint, rtol=0, atol=TOLERANCE_MM)
+
+
+def test_the_correction_is_held_in_estop_and_returns_to_zero_when_the_joints_are_unhomed(
+    component, linuxcnc_dir
+):
+    ini, volumetric = _merged(linuxcnc_dir, "XYZ", "XFYZ")
+    point = np.array([250.0, 120.0, -80.0])
+    names = _pin_names(3) + _correction_pins()
+    run = run_linuxcnc(
+        ini,
+        [
+            *standard_start(),
+            _goto(point, "go"),
+            {"op": "pins", "names": names, "label": "on"},
+            {"op": "estop", "label": "estop"},
+            {"op": "sleep", "seconds": 0.2},
+            {"op": "pins", "names": names, "label": "off"},
+            {"op": "estop_reset"},
+            {"op": "machine_on"},
+            {"op": "unhome", "label": "unhome"},
+            {"op": "sleep", "seconds": 0.3},
+            {"op": "pins", "names": names, "label": "unhomed"},
+        ],
+    )
+
+    expected = volumetric.correction(point)[0]
+    assert np.abs(expected).max() > 0.001
+    on, off, unhomed = (run.value(label) for label in ("on", "off", "unhomed"))
+    np.testing.assert_allclose(_applied(on, "XYZ"), expected, rtol=0, atol=TOLERANCE_MM)
+    held = [on[f"{INSTANCE}.correction-{a}"] for a in range(3)]
+    assert on[f"{INSTANCE}.active"] and not off[f"{INSTANCE}.active"]
+    assert [off[f"{INSTANCE}.correction-{a}"] for a in range(3)] == held
+    assert not unhomed[f"{INSTANCE}.active"]
+    for a in range(3):
+        assert unhomed[f"{INSTANCE}.correction-{a}"] == 0.0
+        assert unhomed[f"{INSTANCE}.target-{a}"] == 0.0
+    np.testing.assert_array_equal(_applied(unhomed, "XYZ"), 0.0)
+    assert run.report["state"]["homed"] == [False] * 3
 
 
 def test_leaving_the_tables_trips_the_estop_and_holds_the_correction(component, linuxcnc_dir):

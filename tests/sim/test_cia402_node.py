@@ -1,36 +1,61 @@
-"""The simulated CiA 402 nodes: the state diagram, and canopen's own BaseNode402 driving them."""
+"""The simulated CiA 402 node without a bus: the state diagram (canopen's table and the
+CiA 402 command coding), the fault reaction on a virtual clock, and its objects.
+
+canopen's ``BaseNode402`` driving the nodes in another process: test_canopen_processes.py.
+"""
 
 import itertools
-import time
-import uuid
+import math
 
 import canopen
 import pytest
-from canopen.profiles.p402 import BaseNode402, State402
+from canopen import SdoAbortedError
+from canopen.profiles.p402 import State402
 
 from sim.clock import SimClock
-from sim.servers.canopen_node import EDS_PATH, STATE_BITS, CanopenUnitServer, next_state
+from sim.servers.canopen_node import (
+    EDS_PATH,
+    FAULT,
+    FAULT_REACTION_ACTIVE,
+    OPERATION_ENABLED,
+    READY_TO_SWITCH_ON,
+    STATE_BITS,
+    SWITCH_ON_DISABLED,
+    Cia402Axis,
+    next_state,
+)
 from sim.units import SimUnit, rad_to_counts
 
 OUR_STATES = set(STATE_BITS)
 #: canopen's transition table lists 16 (quick stop active -> operation enabled), which CiA 402
 #: allows only for quick stop option codes 5..8; the nodes have option code 2 (0x605A).
 NOT_WITH_OPTION_CODE_2 = {("QUICK STOP ACTIVE", "OPERATION ENABLED")}
+#: CiA 402's command coding: "switch on" with bit 3 set (0x0F) in Ready to switch on takes
+#: transition 3 and then 4 (e.g. the table "3 (+4)" of the ABB FEPL-02 manual, p. 79, and
+#: "Switch on + enable operation" of the Toshiba VF-S15 CANopen manual, from DSP 402 V3.0
+#: table 27). canopen's table has only the single steps.
+SWITCH_ON_AND_ENABLE = {("READY TO SWITCH ON", "OPERATION ENABLED"): 0x0F}
 COMMANDS = sorted({*State402.TRANSITIONTABLE.values(), 0x0F, 0x07, 0x06, 0x02, 0x00, 0x80})
 
 
 def diagram():
-    """canopen's CiA 402 transition table, restricted to the transitions between our states."""
-    return {
+    """The commanded transitions between our states: canopen's CiA 402 table (without the
+    automatic ones) and CiA 402's 3 + 4."""
+    commanded = {
         pair: word
         for pair, word in State402.TRANSITIONTABLE.items()
         if set(pair) <= OUR_STATES
         and pair not in NOT_WITH_OPTION_CODE_2
-        and word != 0x00
-        or pair[1] == "SWITCH ON DISABLED"
-        and pair[0] in OUR_STATES
-        and word == 0x00
+        and (word != 0x00 or pair[1] == "SWITCH ON DISABLED")
     }
+    return commanded | SWITCH_ON_AND_ENABLE
+
+
+def test_the_diagram_has_the_fault_reaction_as_canopen_reads_it():
+    for state in ("FAULT REACTION ACTIVE", "FAULT", "OPERATION ENABLED", "QUICK STOP ACTIVE"):
+        mask, value = State402.SW_MASK[state]
+        assert STATE_BITS[state] & mask == value
+    assert STATE_BITS[FAULT_REACTION_ACTIVE] & 0x4F == 0x0F  # CiA 402: x0xx 1111
 
 
 @pytest.mark.parametrize(("pair", "word"), sorted(diagram().items()))
@@ -46,113 +71,96 @@ def test_nothing_outside_the_diagram_is_taken(state, word):
     assert target == state or diagram().get((state, target)) is not None
     if state == "FAULT":
         assert next_state(state, 0x80, 0x80) == "FAULT"  # bit 7 held high: no new edge
+    if state == "FAULT REACTION ACTIVE":
+        assert target == state  # it ends by itself, once the axis is at rest
+
+
+def beating(unit, clock, seconds, step_s=0.1):
+    """Let ``seconds`` pass with a host heartbeat every ``step_s``."""
+    for _ in range(round(seconds / step_s)):
+        clock.sleep(step_s)
+        unit.heartbeat(unit.read_registers(3, 1)[0] % 0xFFFF + 1)
 
 
 @pytest.fixture
-def bus():
-    channel = f"xmalign-{uuid.uuid4().hex}"
-    unit = SimUnit("launch", SimClock(real_time=True), seed=2)
-    server = CanopenUnitServer([unit], channel, "virtual")
-    server.start()
-    network = canopen.Network()
-    network.connect(interface="virtual", channel=channel)
-    node = BaseNode402(2, str(EDS_PATH))
-    network.add_node(node)
-    yield unit, network, node
-    network.disconnect()
-    server.stop()
+def running():
+    """Axis a1 of a launch unit on a virtual clock, moving at 30 deg/s in profile position."""
+    clock = SimClock()
+    unit = SimUnit("launch", clock, seed=1)
+    node = Cia402Axis(unit, 1)
+    unit.heartbeat(1)
+    for word in (0x06, 0x0F):  # shutdown, then switch on + enable operation (3 + 4)
+        node.write_controlword(word)
+    assert node.state == OPERATION_ENABLED
+    node.write(0x607A, 0, rad_to_counts(math.radians(120.0)))
+    node.write_controlword(0x1F)
+    beating(unit, clock, 1.0)
+    assert unit.axes[0].is_moving()
+    return clock, unit, node
 
 
-def operational(node):
-    node.nmt.state = "PRE-OPERATIONAL"
-    node.setup_402_state_machine()  # reads the PDO configuration over SDO
-    node.nmt.state = "OPERATIONAL"
-    deadline = time.monotonic() + 2.0
-    while not node.tpdo_values.get(0x6041):
-        assert time.monotonic() < deadline, "no TPDO"
-        time.sleep(0.01)
+def test_a_fault_shows_fault_reaction_active_until_the_axis_is_at_rest(running):
+    clock, unit, node = running
+    expiry_s = clock.now() + unit.register_map.quick_stop_start_s  # the heartbeat stops here
+    samples = []
+    while clock.now() < expiry_s + 0.3:
+        clock.sleep(0.005)
+        samples.append((clock.now(), node.statusword(), unit.axes[0].is_moving()))
+        if node.state == FAULT_REACTION_ACTIVE:
+            node.write_controlword(0x00)  # ignored while the reaction runs
+            node.write_controlword(0x80)
+    reacting = [t for t, word, _ in samples if word & 0x4F == 0x0F]
+    # 30 deg/s to rest at the quick-stop deceleration (360 deg/s²): 83 ms of fault reaction
+    stop_s = math.radians(30.0) / unit.register_map.quick_stop_rad_s2
+    assert reacting[0] == pytest.approx(expiry_s, abs=0.006)
+    assert reacting[-1] - reacting[0] == pytest.approx(stop_s, abs=0.011)
+    assert all(not moving for _, word, moving in samples if word & 0x4F == 0x08)  # Fault at rest
+    assert samples[-1][1] & 0x4F == 0x08
+    assert node.read(0x603F, 0) == 0xFF04
+    assert node.read(0x1001, 0) == 0x11  # generic + communication error
 
 
-def test_base_node_402_sets_the_mode_enables_moves_and_locks(bus):
-    unit, network, node = bus
-    heartbeat = network.send_periodic(0x77F, b"\x05", 0.1)
-    try:
-        operational(node)
-        assert set(node.tpdo_pointers) == {0x6041, 0x6064}
-        assert set(node.rpdo_pointers) == {0x6040, 0x607A}
-        if node.state == "FAULT":  # the unit was up for a while without a host heartbeat
-            node.reset_from_fault()
-        node.op_mode = "PROFILED POSITION"
-        assert node.op_mode == "PROFILED POSITION"
-        with pytest.raises(TypeError):  # 0x6502 says profile velocity is not supported
-            node.op_mode = "PROFILED VELOCITY"
-        node.state = "OPERATION ENABLED"
-        assert not unit.axes[1].is_locked()
-        target = rad_to_counts(-0.03)
-        node.rpdo_pointers[0x607A].raw = target
-        node.controlword = 0x1F  # new set-point, sent with the target in RPDO 1
-        node.rpdo_pointers[0x607A].raw = target
-        node.controlword = 0x0F
-        deadline = time.monotonic() + 5.0
-        while not node.statusword & 0x400 or abs(node.tpdo_values[0x6064] - target) > 10:
-            assert time.monotonic() < deadline, hex(node.statusword)
-            time.sleep(0.01)
-        node.state = "SWITCHED ON"  # disable operation: stop and brake
-        assert unit.axes[1].is_locked()
-        node.op_mode = "HOMING"
-        assert node.homing(timeout=5)
-        node.op_mode = "CYCLIC SYNCHRONOUS VELOCITY"
-        node.sdo[0x60FF].raw = rad_to_counts(0.2)
-        node.state = "OPERATION ENABLED"
-        time.sleep(0.3)
-        assert node.sdo[0x606C].raw == rad_to_counts(0.2)
-        node.controlword = 0x02  # quick stop while running
-        deadline = time.monotonic() + 1.0
-        while node.state != "SWITCH ON DISABLED":  # quick stop option code 2
-            assert time.monotonic() < deadline, node.state
-            time.sleep(0.01)
-        assert unit.axes[1].is_locked()
-    finally:
-        heartbeat.stop()
+def test_a_fault_reset_is_refused_until_the_heartbeat_is_back(running):
+    clock, unit, node = running
+    clock.sleep(1.0)  # the watchdog trips: fault 4, at rest
+    assert node.read(0x6041, 0) & 0x4F == 0x08
+    position = node.read(0x6064, 0)
+    for word in (0x00, 0x80, 0x06, 0x07, 0x0F, 0x1F):  # fault reset, then a move: refused
+        node.write_controlword(word)
+        assert node.state == FAULT
+    clock.sleep(1.0)
+    assert node.read(0x6064, 0) == position
+    assert node.read(0x603F, 0) == 0xFF04
+    unit.heartbeat(unit.read_registers(3, 1)[0] + 1)  # the host is back
+    node.write_controlword(0x00)
+    node.write_controlword(0x80)
+    assert node.state == SWITCH_ON_DISABLED
+    assert node.read(0x603F, 0) == 0 and node.read(0x1001, 0) == 0
 
 
-def test_a_drive_refuses_to_skip_states(bus):
-    unit, network, node = bus
-    heartbeat = network.send_periodic(0x77F, b"\x05", 0.1)
-    try:
-        operational(node)
-        if node.state == "FAULT":
-            node.reset_from_fault()
-        node.state = "SWITCH ON DISABLED"
-        node.sdo[0x6040].raw = 0x0F  # enable operation from switch on disabled: ignored
-        assert node.sdo[0x6041].raw & 0x4F == 0x40
-        node.sdo[0x6040].raw = 0x07  # switch on from switch on disabled: ignored
-        assert node.sdo[0x6041].raw & 0x4F == 0x40
-        with pytest.raises(ValueError):  # canopen itself knows no such transition either
-            node._change_state("OPERATION ENABLED")
-        node.state = "SWITCHED ON"
-        node.sdo[0x6040].raw = 0x02  # quick stop from switched on: transition 10
-        assert node.sdo[0x6041].raw & 0x4F == 0x40
-        assert unit.axes[1].is_locked()
-    finally:
-        heartbeat.stop()
+def test_switch_on_and_enable_needs_the_host_heartbeat():
+    unit = SimUnit("receiver", SimClock(), seed=2)
+    node = Cia402Axis(unit, 2)
+    node.write_controlword(0x06)
+    node.write_controlword(0x0F)  # 3 + 4 refused: no host heartbeat yet
+    assert node.state == READY_TO_SWITCH_ON
+    unit.heartbeat(1)
+    node.write_controlword(0x0F)
+    assert node.state == OPERATION_ENABLED and not unit.axes[1].is_locked()
 
 
-def test_no_enable_without_a_host_heartbeat_and_a_stale_one_faults(bus):
-    unit, network, node = bus
-    operational(node)
-    with pytest.raises(RuntimeError):  # stuck in ready to switch on, or in the power-on fault
-        node.state = "OPERATION ENABLED"
-    assert unit.axes[1].is_locked()
-    heartbeat = network.send_periodic(0x77F, b"\x05", 0.1)
-    time.sleep(0.15)
-    if node.state == "FAULT":
-        node.reset_from_fault()
-    node.state = "OPERATION ENABLED"
-    heartbeat.stop()
-    deadline = time.monotonic() + 1.0
-    while node.state != "FAULT":
-        assert time.monotonic() < deadline, node.state
-        time.sleep(0.01)
-    assert node.sdo[0x603F].raw == 0xFF04
-    assert unit.axes[1].is_locked()
+@pytest.mark.parametrize(("kind", "n"), [("launch", 1), ("launch", 2), ("receiver", 3)])
+def test_profile_velocity_round_trips_within_the_eds_limits(kind, n):
+    node = Cia402Axis(SimUnit(kind, SimClock()), n)
+    od = canopen.import_od(str(EDS_PATH), n)[0x6081]
+    highest = node.read(0x6081, 0)  # the power-on value: the axis's maximum
+    assert highest == od.default == od.max == node.max_profile_velocity_counts_s()
+    node.write(0x6081, 0, highest)  # what it reads back it takes
+    assert node.read(0x6081, 0) == highest
+    node.write(0x6081, 0, od.min)
+    assert node.read(0x6081, 0) == od.min == 1
+    for refused in (od.max + 1, od.min - 1):
+        with pytest.raises(SdoAbortedError) as error:
+            node.write(0x6081, 0, refused)
+        assert error.value.code == 0x06090030
+    assert node.read(0x6081, 0) == 1

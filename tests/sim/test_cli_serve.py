@@ -9,7 +9,9 @@ import textwrap
 import uuid
 
 import numpy as np
+import pytest
 import serial
+from cli_helpers import assert_one_line_error, run_cli
 from pymodbus.client import ModbusTcpClient
 
 from firmware_iface.config import load_units_config, open_devices
@@ -35,7 +37,7 @@ def test_sim_serve_over_every_protocol_until_sigint(free_port, tmp_path):
             str(free_port),  # on --host, 127.0.0.1 by default
             "--rtu",
             "--canopen",
-            group,  # udp_multicast with TTL 0: this computer only
+            group,  # udp_local: the loopback only, TTL 0
             "--interferometer-pty",
             "--log-file",
             str(log_file),
@@ -83,6 +85,9 @@ def test_sim_serve_over_every_protocol_until_sigint(free_port, tmp_path):
     assert any(
         "sim.servers.canopen_node DEBUG node 3 SDO write 0x6040:0 <- 6" in line for line in logged
     )
+    # the nodes booted into pre-operational; the driver started them
+    assert any("canopen_node DEBUG node 3 NMT boot-up -> pre-operational" in x for x in logged)
+    assert any("sim.servers.canopen_node DEBUG NMT command 0x01 for node 3" in x for x in logged)
 
 
 def live_devices_of_a_units_yaml(tmp_path, modbus_port, group, pty_path):
@@ -93,7 +98,7 @@ def live_devices_of_a_units_yaml(tmp_path, modbus_port, group, pty_path):
         textwrap.dedent(f"""\
         format: xmalign.units/1
         launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {modbus_port}}}
-        receiver: {{transport: canopen, interface: udp_multicast, channel: "{group}"}}
+        receiver: {{transport: canopen, interface: udp_local, channel: "{group}"}}
         interferometer: {{port: {pty_path}}}
         """)
     )
@@ -127,3 +132,44 @@ def test_sim_serve_bad_option_is_one_line():
     )
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "HOST:PORT" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("options", "fragments"),
+    [
+        (
+            ("--canopen", "x", "--can-interface", "nosuchbus"),
+            ("--can-interface nosuchbus", "udp_local"),
+        ),
+        (("--canopen", "999.999.1.1"), ("--canopen 999.999.1.1", "not an IPv4 multicast group")),
+        (("--canopen", "239.74.1.1", "--can-hop-limit", "256"), ("--can-hop-limit 256",)),
+        (
+            ("--canopen", "239.74.1.1", "--can-host", "192.0.2.254"),
+            ("cannot open the CAN bus 239.74.1.1", "192.0.2.254"),
+        ),
+    ],
+)
+def test_sim_serve_bad_can_options_are_one_line(options, fragments):
+    assert_one_line_error(run_cli("sim", "serve", *options), *fragments)
+
+
+def test_a_server_thread_that_dies_stops_serve_with_one_line():
+    """A device thread ended by an error (the interferometer's, say) must not leave
+    ``sim serve`` saying "serving": the watch sets the stop and names the thread."""
+    import threading
+
+    from xmalign.cli.sim import stop_when_a_thread_dies
+
+    stopped = threading.Event()
+    before = threading.excepthook
+    with stop_when_a_thread_dies(stopped) as died:
+
+        def fail() -> None:
+            raise ValueError("cannot convert float NaN to integer")
+
+        thread = threading.Thread(target=fail, name="xm-commands")
+        thread.start()
+        thread.join()
+    assert stopped.is_set()
+    assert died == ["xm-commands: ValueError: cannot convert float NaN to integer"]
+    assert threading.excepthook is before

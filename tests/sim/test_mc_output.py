@@ -68,7 +68,7 @@ def test_a_plot_failure_is_a_warning(capsys):
     [
         ("--error-scale", "-0.5", "--error-scale"),
         ("--squareness-urad", "-1", "--squareness-urad"),
-        ("--workers", "-2", "--workers -2"),
+        ("--workers", "-2", "--workers"),
     ],
 )
 def test_mc_refuses_a_negative_setting_before_any_trial(tmp_path, option, value, named):

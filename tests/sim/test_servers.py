@@ -10,6 +10,7 @@ import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
 
+from firmware_iface.can_bus import DEFAULT_PORT, LocalUdpBus
 from firmware_iface.register_map import Control, Status, load_register_map
 from firmware_iface.xm_line_protocol import Reply, decode_line
 from sim.clock import SimClock
@@ -74,7 +75,13 @@ def test_modbus_move_lock_and_refusals(modbus):
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK], device_id=1)
     client.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.START], device_id=1)
     assert Status.MOVING in mb_status(client, 2)
-    assert wait_for(lambda: Status.IN_POSITION in mb_status(client, 2))
+    beats = iter(range(2, 1000))
+
+    def beating_in_position():  # the host beats while it waits (the move takes 360 ms)
+        client.write_registers(3, [next(beats)], device_id=1)
+        return Status.IN_POSITION in mb_status(client, 2)
+
+    assert wait_for(beating_in_position)
     actual = client.read_holding_registers(RMAP.axis(2, "actual").address, count=2, device_id=1)
     high, low = actual.registers
     assert abs((high << 16 | low) - rad_to_counts(0.05)) <= 200  # encoder noise
@@ -180,17 +187,16 @@ def test_interferometer_on_a_pty(machine):
         server.stop()
 
 
-def test_canopen_over_udp_multicast_stays_on_this_computer():
+def test_canopen_over_udp_local_stays_on_the_loopback():
     group = "239.74.{}.{}".format(*uuid.uuid4().bytes[:2])  # a group of its own per run
-    server = CanopenUnitServer(
-        [SimUnit("launch", SimClock(real_time=True))], group, "udp_multicast"
-    )
+    server = CanopenUnitServer([SimUnit("launch", SimClock(real_time=True))], group, "udp_local")
     server.start()
-    network = canopen.Network()
-    network.connect(interface="udp_multicast", channel=group, hop_limit=0)
+    network = canopen.Network(LocalUdpBus(group))
+    network.connect()
     try:
-        sockets = [server.network.bus._multicast._socket, network.bus._multicast._socket]
+        sockets = [server.network.bus._sender, network.bus._sender]
         assert [s.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) for s in sockets] == [0, 0]
+        assert server.network.bus._receiver.getsockname() == (group, DEFAULT_PORT)
         node = canopen.RemoteNode(2, str(EDS_PATH))
         network.add_node(node)
         assert node.sdo[0x6502].raw == 0x121  # frames go round on loopback
@@ -199,12 +205,11 @@ def test_canopen_over_udp_multicast_stays_on_this_computer():
         server.stop()
 
 
-def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
+def test_one_controlling_host_across_tcp_and_rtu(free_port):
     from pymodbus.client import ModbusSerialClient
 
     from sim.servers import modbus as servers
 
-    monkeypatch.setattr(servers, "SERIAL_MASTER_GONE_S", 0.6)
     unit = SimUnit("launch", SimClock(real_time=True))
     host = servers.ControllingHost()
     tcp = ModbusUnitServer(unit, "127.0.0.1", free_port, controlling_host=host)
@@ -221,10 +226,11 @@ def test_one_controlling_host_across_tcp_and_rtu(free_port, monkeypatch):
         tcp_client.close()
         assert wait_for(lambda: not rtu_client.write_registers(3, [2], device_id=1).isError())
         assert tcp_client.connect()
-        rtu_client.read_holding_registers(0, count=1, device_id=1)  # the master is still there
         assert tcp_client.write_registers(3, [3], device_id=1).exception_code == 6
-        time.sleep(0.7)  # the serial master is silent: taken as gone
+        rtu_client.read_holding_registers(0, count=1, device_id=1)  # reads do not hold the unit
+        time.sleep(RMAP.watchdog_timeout_s + 0.1)  # the serial master's heartbeat went stale
         assert not tcp_client.write_registers(3, [3], device_id=1).isError()
+        assert rtu_client.write_registers(3, [4], device_id=1).exception_code == 6
     finally:
         tcp_client.close()
         rtu_client.close()

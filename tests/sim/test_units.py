@@ -95,6 +95,31 @@ def test_out_of_range_target_moves_nothing():
     assert unit.read_registers(16, 9) == before
 
 
+@pytest.mark.parametrize("name", ["target", "velocity_limit"])
+@pytest.mark.parametrize("word", [0, 1])
+def test_a_32_bit_value_is_written_whole_or_refused(name, word):
+    unit = SimUnit("launch", SimClock())
+    Host(unit)
+    address = RMAP.axis(1, name).address
+    before = unit.read_registers(16, 9)
+    with pytest.raises(InputError, match=f"is 32 bits: write both words \\({address}-"):
+        unit.write_registers(address + word, [0x0001])
+    assert unit.read_registers(16, 9) == before
+    unit.write_registers(address, words(rad_to_counts(0.1)))
+    assert unit.read_registers(address, 2) == words(rad_to_counts(0.1))
+
+
+@pytest.mark.parametrize("bits", [1 << 7, 1 << 15, 0x0083])
+def test_undefined_control_bits_are_refused(bits):
+    unit = SimUnit("launch", SimClock())
+    Host(unit)
+    control = RMAP.axis(1, "control").address
+    with pytest.raises(OutOfRangeError, match="control bits .* not defined"):
+        unit.write_registers(control, [bits])
+    assert unit.read_registers(control, 1) == [0]
+    assert Status.ENABLED not in status(unit)
+
+
 def test_read_only_and_unknown_registers():
     unit = SimUnit("launch", SimClock())
     with pytest.raises(InputError, match="read-only"):
@@ -172,6 +197,86 @@ def test_fault_reset_after_the_heartbeat_resumes():
     unit.write_registers(16, [Control.ENABLE | Control.FAULT_RESET])
     assert unit.axes[0].fault_code == 0
     assert Status.LOCKED in status(unit)
+
+
+def _watchdog_tripped_after_one_heartbeat(unit, clock):
+    unit.write_registers(3, [1])  # one heartbeat, then the host goes silent
+    clock.sleep(RMAP.watchdog_timeout_s)
+    assert unit.read_registers(RMAP.axis(1, "fault_code").address, 1) == [4]
+
+
+def test_no_reset_nor_motion_after_a_trip_until_the_heartbeat_changes_again():
+    """The sequence of the report: one heartbeat, a trip, then reset, enable, unlock,
+    start with no new heartbeat moved 90 deg at full speed. Now nothing moves."""
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    _watchdog_tripped_after_one_heartbeat(unit, clock)
+    control = RMAP.axis(1, "control").address
+    unit.write_registers(control, [Control.ENABLE | Control.FAULT_RESET])
+    assert unit.read_registers(RMAP.axis(1, "fault_code").address, 1) == [4]  # refused
+    start_move(unit, 1, math.radians(90.0))
+    clock.sleep(5.0)
+    bits = status(unit)
+    assert bits & (Status.ENABLED | Status.MOVING | Status.FAULT | Status.LOCKED) == (
+        Status.FAULT | Status.LOCKED
+    )
+    assert unit.reported_rad()[0] == 0.0
+    unit.write_registers(3, [1])  # the value it holds: not a change
+    unit.write_registers(control, [Control.ENABLE | Control.FAULT_RESET])
+    assert unit.axes[0].fault_code == 4
+    # the host beats again: the reset is taken, the move runs...
+    host = Host(unit)
+    host.beat()
+    unit.write_registers(control, [Control.ENABLE | Control.FAULT_RESET])
+    assert unit.axes[0].fault_code == 0
+    start_move(unit, 1, math.radians(90.0))
+    host.run_for(0.5)
+    assert Status.MOVING in status(unit)
+    # ...and the watchdog trips again once the heartbeat goes stale again
+    clock.sleep(RMAP.watchdog_timeout_s)
+    bits = status(unit)
+    assert Status.FAULT in bits and Status.LOCKED in bits and Status.MOVING not in bits
+    assert unit.axes[0].fault_code == 4
+    unit.write_registers(control, [Control.ENABLE | Control.FAULT_RESET])
+    assert unit.axes[0].fault_code == 4
+
+
+def test_no_track_nor_home_while_the_watchdog_is_not_armed():
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    _watchdog_tripped_after_one_heartbeat(unit, clock)
+    control = RMAP.axis(1, "control").address
+    unit.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.HOME])
+    unit.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.TRACK])
+    clock.sleep(1.0)
+    assert unit.axes[0].fault_code == 4  # not overwritten by a track's fault 7
+    assert not unit.axes[0].is_moving() and unit.read_registers(control, 1) == [0]
+
+
+@pytest.mark.parametrize("stop", ["watchdog", "host stop", "unlock cleared"])
+def test_an_axis_stopped_short_is_not_in_position(stop):
+    """Reported: stopped at 95.18 deg of a 100 deg move by the watchdog, status 0x3b
+    (in position). A stop never rewrites the target the host wrote."""
+    clock = SimClock()
+    unit = SimUnit("launch", clock)
+    host = Host(unit)
+    target_counts = rad_to_counts(math.radians(100.0))
+    start_move(unit, 1, math.radians(100.0))
+    host.run_for(3.0)
+    control = RMAP.axis(1, "control").address
+    if stop == "watchdog":
+        clock.sleep(1.0)
+    elif stop == "host stop":
+        unit.write_registers(control, [Control.ENABLE | Control.UNLOCK | Control.STOP])
+    else:
+        unit.write_registers(control, [Control.ENABLE])
+    if stop != "watchdog":
+        host.run_for(1.0)
+    bits = status(unit)
+    assert Status.MOVING not in bits and Status.IN_POSITION not in bits
+    assert unit.reported_rad()[0] < math.radians(99.0)
+    target = unit.read_registers(RMAP.axis(1, "target").address, 2)
+    assert target == words(target_counts)
 
 
 def test_homing_and_not_homed_fault():

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 
 from sim.dry_run import DryRunOptions, measured_strokes, simulate_calibration
 from xmalign.formats.error_tables import read_error_tables
@@ -114,3 +114,38 @@ def test_tool_point_squareness_of_a_pure_squareness_is_that_squareness(reference
     np.testing.assert_allclose(
         tool_point_squareness_rad(chain, points, model), list(squareness.values()), atol=1e-12
     )
+
+
+def test_post_and_the_dry_run_take_as_left_from_the_one_step(
+    verified, reference_machine, tmp_path, monkeypatch
+):
+    """`post --verify-data` calls the step layer's as_left_step (a spy in its place sees
+    the call), and the dry run's as left is what that step gives for its files."""
+    import xmalign.cli.post as post_command
+    from xmalign import steps
+    from xmalign.comp import fit_for
+
+    report, workdir = verified
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(args[2])
+        return steps.as_left_step(*args, **kwargs)
+
+    monkeypatch.setattr(post_command, "as_left_step", spy)
+    result = run_in_process(
+        "post",
+        *("--plan", str(workdir / "plan.json"), "--data", str(workdir / "measurements.csv")),
+        *("--verify-data", str(workdir / "verification.csv")),
+        *("--out", str(tmp_path / "errors.csv")),
+    )
+    assert result.returncode == 0, result.stderr
+    assert calls == [workdir / "verification.csv"]
+    tables = read_error_tables(workdir / "errors.csv")
+    applied = fit_for(reference_machine, tables, reference_machine.controller).mean
+    plan = read_plan(workdir / "plan.json")
+    again = steps.as_left_step(reference_machine, plan, workdir / "verification.csv", applied)
+    for name, table in again.fit.tables.tables.items():
+        np.testing.assert_allclose(
+            report.as_left.post.fit.tables.tables[name].values, table.values, atol=1e-6
+        )  # 1 nm: the tables applied here are read back from errors.csv (0.1 nm digits)

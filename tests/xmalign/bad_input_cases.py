@@ -17,7 +17,10 @@ import errno
 import hashlib
 import io
 import json
+import os
 import shutil
+import socket
+import stat
 import sys
 import traceback
 from collections.abc import Callable
@@ -29,7 +32,17 @@ from typing import Any
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-EXAMPLES = ("fyxz.yaml", "units.yaml", "session.json", "pose.json", "plan.json", "errors.csv")
+EXAMPLES = (
+    "fyxz.yaml",
+    "units.yaml",
+    "session.json",
+    "pose.json",
+    "plan.json",
+    "errors.csv",
+    "tracker.csv",
+    "tracer.csv",
+    "spatial-analyzer.txt",
+)
 MEASUREMENTS_HEADER = (
     "line,run,direction,index,target_mm,x_mm,y_mm,z_mm,linear_um,straightness_v_um,"
     "straightness_w_um,angle_u_urad,angle_v_urad,angle_w_urad\n"
@@ -43,6 +56,17 @@ COMMAND = {
     "pose.json": ("program", "--pose", "pose.json", "--out", "run.mpf"),
     "plan.json": ("post", "--plan", "plan.json", "--data", "m.csv", "--out", "errors-new.csv"),
     "errors.csv": ("comp", "--errors", "errors.csv", "--out", "comp"),
+    "tracker.csv": ("post", "--tracker", "tracker.csv", "--out", "errors-new.csv"),
+    "tracer.csv": ("post", "--tracer", "tracer.csv", "--out", "errors-new.csv"),
+    "spatial-analyzer.txt": (
+        "import",
+        "--spatial-analyzer",
+        "spatial-analyzer.txt",
+        "--points",
+        "points.csv",
+        "--out",
+        "tracker-new.csv",
+    ),
 }
 
 Damage = Callable[[Path], None]
@@ -76,6 +100,7 @@ class Outcome:
 def write(name: str, content: str | bytes) -> Damage:
     def apply(folder: Path) -> None:
         path = folder / name
+        path.parent.mkdir(exist_ok=True)
         path.unlink(missing_ok=True)
         if isinstance(content, bytes):
             path.write_bytes(content)
@@ -109,6 +134,16 @@ def append(name: str, text: str) -> Damage:
     def apply(folder: Path) -> None:
         with (folder / name).open("a", encoding="utf-8") as handle:
             handle.write(text)
+
+    return apply
+
+
+def each(*damages: Damage) -> Damage:
+    """All of ``damages``, in order."""
+
+    def apply(folder: Path) -> None:
+        for damage in damages:
+            damage(folder)
 
     return apply
 
@@ -238,6 +273,7 @@ def _generic_cases() -> list[Case]:
 
 M = "fyxz.yaml"
 MACHINE = COMMAND[M]
+_CNC = "  acceleration_mm_s2: 1000"
 _MACHINE_CASES = [
     ("nan-travel", replace(M, "X: [0, 2000]", "X: [0, .nan]"), "travel_mm.X.1"),
     ("inf-travel", replace(M, "X: [0, 2000]", "X: [0, .inf]"), "travel_mm.X.1"),
@@ -280,6 +316,23 @@ _MACHINE_CASES = [
     ("a-list", write(M, "- a\n- b\n"), "mapping"),
     ("tab-indent", replace(M, "  X: [0, 2000]", "\tX: [0, 2000]"), "line"),
     ("bad-date", append(M, "built: 2024-13-45\n"), M),
+    # the controller model (docs/controllers.md)
+    ("series-of-another-family", replace(M, _CNC, _CNC + "\n  series: 30i"), "cnc.series"),
+    ("reference-return-up", replace(M, _CNC, _CNC + "\n  reference_return: {X: up}"), "X"),
+    ("backlash-negative", replace(M, _CNC, _CNC + "\n  backlash_um: {Y: -3}"), "backlash_um.Y"),
+    (
+        "itnc-530",
+        each(
+            replace(M, "controller: sinumerik", "controller: heidenhain"),
+            replace(M, _CNC, _CNC + "\n  series: iTNC 530"),
+        ),
+        "iTNC 530",
+    ),
+    (
+        "reference-inside-without-return",
+        replace(M, _CNC, _CNC + "\n  reference_mm: [1000, 0, 0]"),
+        "cnc.reference_return.X",
+    ),
 ]
 
 U = "units.yaml"
@@ -292,7 +345,7 @@ _UNITS_CASES = [
     ("timeout-negative", replace(U, "move_s: 30.0", "move_s: -1"), "timeouts.move_s"),
     ("timeout-a-day", replace(U, "move_s: 30.0", "move_s: 86400"), "timeouts.move_s"),
     ("no-format", replace(U, "format: xmalign.units/1", "formt: xmalign.units/1"), "format"),
-    ("format-2", replace(U, "format: xmalign.units/1", "format: xmalign.units/2"), "version"),
+    ("format-2", replace(U, "format: xmalign.units/1", "format: xmalign.units/2"), "newer xmalign"),
     ("rate-nan", replace(U, "rate_hz: 50", "rate_hz: .nan"), "rate_hz"),
     ("mtconnect-missing", replace(U, "source: prompt", "source: mtconnect"), "mtconnect"),
     (
@@ -381,7 +434,7 @@ _POSE_CASES = [
         replace(P, '"method": "joint",', '"method": "joint", "method": "x",'),
         "method",
     ),
-    ("format-9", edit_json(P, sets("format", value="xmalign.launch-pose/9")), "version '9'"),
+    ("format-9", edit_json(P, sets("format", value="xmalign.launch-pose/9")), "reads up to /1"),
 ]
 
 L = "plan.json"
@@ -453,6 +506,38 @@ _ERROR_CASES = [
 ]
 
 
+T, R = "tracker.csv", "tracer.csv"
+TRACKER, TRACER = COMMAND[T], COMMAND[R]
+_TRACKER_CASES = [
+    ("wrong-format", replace(T, "tracker-points/1", "tracker-points/2"), "line 1"),
+    ("nan-point", replace(T, "\nT1,0,0,0.0,", "\nT1,0,0,nan,"), "not a finite number"),
+    ("no-index-no-path", replace(T, "\nT1,0,0,", "\nT1,0,,"), "on the fly"),
+    ("repeated", replace(T, "\nT1,1,0,", "\nT1,0,0,"), "repeats the reading"),
+    ("missing-column", replace(T, ",tz_mm", ""), "lacks column tz_mm"),
+    (
+        "two-points",
+        write(
+            T,
+            "# xmalign tracker-points/1\nstation,run,index,x_mm,y_mm,z_mm,"
+            "tx_mm,ty_mm,tz_mm\nT1,0,0,0,0,0,1,2,3\nT1,0,1,9,0,0,10,2,3\n",
+        ),
+        "X axis stood at 2",
+    ),
+]
+_TRACER_CASES = [
+    ("wrong-format", replace(R, "tracer-lengths/1", "tracer-length/1"), "line 1"),
+    ("bad-guess", replace(R, "guess_mm=", "guess_mm=x"), "guess_mm"),
+    ("inf-length", replace(R, "\nP1,0,0,0.0,", "\nP1,0,0,inf,"), "not a finite number"),
+    ("three-places", lambda folder: _keep_tracer_places(folder / R, 3), "3 tracer places"),
+]
+
+
+def _keep_tracer_places(path: Path, places: int) -> None:
+    keep = tuple(f"P{i + 1}," for i in range(places))
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    path.write_text("".join(x for x in lines if not x.startswith("P") or x.startswith(keep)))
+
+
 def _kind_cases() -> list[Case]:
     cases = []
     for prefix, argv, table in (
@@ -462,6 +547,8 @@ def _kind_cases() -> list[Case]:
         (P, POSE, _POSE_CASES),
         (L, PLAN, _PLAN_CASES),
         (E, ERRORS, _ERROR_CASES),
+        (T, TRACKER, _TRACKER_CASES),
+        (R, TRACER, _TRACER_CASES),
     ):
         for name, damage, fragment in table:
             cases.append(Case(f"{prefix}-{name}", argv, (prefix, fragment), damage))
@@ -558,6 +645,16 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case("mc-seed", ("mc", "--seed", "-1", "--out", "mc"), ("--seed",)),
     Case("serve-seed", ("sim", "serve", "--modbus", "127.0.0.1:0", "--seed", "-2"), ("--seed",)),
+    Case(
+        "serve-can-interface-unknown",
+        ("sim", "serve", "--canopen", "x", "--can-interface", "nosuchbus"),
+        ("--can-interface nosuchbus", "no CAN interface", "udp_local"),
+    ),
+    Case(
+        "serve-canopen-not-a-group",
+        ("sim", "serve", "--canopen", "999.999.1.1"),
+        ("--canopen 999.999.1.1", "not an IPv4 multicast group"),
+    ),
     # command-line mistakes: one line too, not click's box
     Case("usage-seed-text", ("dry-run", "--seed", "abc"), ("dry-run", "--seed", "--help")),
     Case("usage-missing-value", ("post", "--plan"), ("--plan", "requires an argument")),
@@ -568,13 +665,13 @@ _CLI_CASES = [
     # writing fails: the old output stays as it was
     Case(
         "comp-read-only",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
     Case(
         "identify-out-read-only",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "permission denied"),
         patch=read_only_folder,
     ),  # noqa: E501
@@ -586,13 +683,13 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case(
         "comp-full-disk",
-        ("comp", "--errors", E, "--out", "comp"),
+        ("comp", "--errors", E, "--out", "comp", "--force"),
         ("comp", "disk full"),
         patch=full_disk,
     ),  # noqa: E501
     Case(
         "identify-full-disk",
-        ("identify", "--input", S, "--out", "pose-old.json"),
+        ("identify", "--input", S, "--out", "pose-old.json", "--force"),
         ("pose-old.json", "disk full"),
         patch=full_disk,
     ),  # noqa: E501
@@ -632,7 +729,486 @@ _CLI_CASES = [
     ),  # noqa: E501
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES
+
+# -- issue 22, careless user: tracebacks, hangs and silent acceptances --------------------
+
+
+def measured(change: Callable[[list], list] | None = None) -> Damage:
+    """m.csv holding a synthetic measurement of plan.json (reference machine), changed."""
+
+    def apply(folder: Path) -> None:
+        import numpy as np
+
+        from sim.machine import VirtualMachine
+        from sim.synthetic import measure
+        from xmalign.formats.measurements import write_measurements
+        from xmalign.formats.plan import read_plan
+        from xmalign.machine import default_machine_path, load_machine
+        from xmalign.rigid_body import Chain
+
+        machine = load_machine(default_machine_path())
+        plan = read_plan(folder / L)
+        truth = VirtualMachine(machine, seed=4)
+        rows = measure(plan, Chain.parse(machine.chain), truth, np.random.default_rng(9))
+        (folder / "m.csv").unlink()
+        write_measurements(folder / "m.csv", change(rows) if change else rows)
+
+    return apply
+
+
+# -- outputs that would destroy something (issue 22, "Data damaged" and "Messages") ------
+#
+# Device nodes, FIFOs and sockets are made in the case's folder, never the real /dev/null.
+# Each case also keeps the node what it was (tests/xmalign/test_outputs.py checks that).
+
+
+def node(name: str, kind: str) -> Damage:
+    """A FIFO, a socket, or (root only) a character device like /dev/null or /dev/full."""
+
+    def apply(folder: Path) -> None:
+        path = folder / name
+        path.parent.mkdir(exist_ok=True)
+        path.unlink(missing_ok=True)
+        if kind == "fifo":
+            os.mkfifo(path)
+        elif kind == "socket":
+            with socket.socket(socket.AF_UNIX) as server:
+                server.bind(str(path))
+        else:
+            device = {"null": os.makedev(1, 3), "full": os.makedev(1, 7)}[kind]
+            os.mknod(path, 0o666 | stat.S_IFCHR, device)
+
+    return apply
+
+
+def _row_of_z(**changes: Any) -> Callable[[list], list]:
+    """Change one row of line Z (run 2, forward, index 3)."""
+    from dataclasses import replace as changed
+
+    def change(rows: list) -> list:
+        return [changed(r, **changes) if r.key() == ("Z", 2, "+", 3) else r for r in rows]
+
+    return change
+
+
+def _dead_z(rows: list) -> list:
+    from dataclasses import replace as changed
+
+    return [changed(r, channels=0.0 * r.channels) if r.line == "Z" else r for r in rows]
+
+
+def _x_tables_moved(folder: Path) -> None:
+    """The X tables' positions 50 m further: tables of another machine."""
+    path = folder / E
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    moved = [
+        line.replace(f",{line.split(',')[1]},", f",{float(line.split(',')[1]) + 50000:.3f},", 1)
+        if line[2:3] == "X" and line.split(",")[1]
+        else line
+        for line in lines
+    ]
+    path.write_text("".join(moved), encoding="utf-8")
+
+
+def every_trial_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every Monte Carlo trial fails (as with an absurd option the checks let through)."""
+    import sim.mc
+    from xmalign.montecarlo import AdaptiveStudy
+
+    def run_study(machine: Any, chosen: Any, settings: Any, *rest: Any) -> list:
+        failure = "GeometryError: no feasible plan"
+        return [
+            sim.mc.StrategyResult(s, AdaptiveStudy(), trials=2, failures=[failure] * 2)
+            for s in chosen
+        ]
+
+    monkeypatch.setattr(sim.mc, "run_study", run_study)
+
+
+_POST = ("post", "--plan", L, "--data", "m.csv", "--out", "e-new.csv")
+_SQUARENESS_ROWS = (
+    "EC0Y,,3.6878,urad,1.2626\nEA0Z,,-3.6786,urad,2.4545\nEB0Z,,-27.4713,urad,1.9945\n"
+)
+_CARELESS_USER_CASES = [
+    # tracebacks: NaN or infinity in a number option (one check for every option)
+    Case(
+        "identify-encoder-nan",
+        ("identify", "--sim", "--encoder-urad", "nan"),
+        ("--encoder-urad", "not a finite number"),
+    ),
+    Case(
+        "identify-distance-inf",
+        ("identify", "--sim", "--distance-um", "inf"),
+        ("--distance-um", "not a finite number"),
+    ),
+    Case(
+        "identify-uncertainty-zero",
+        ("identify", "--sim", "--tool-rotation-urad", "0"),
+        ("--tool-rotation-urad", "must be positive"),
+    ),
+    Case(
+        "identify-distance-1e300",
+        ("identify", "--sim", "--distance-um", "1e300"),
+        ("--distance-um", "at most 10000 um"),
+    ),
+    Case(
+        "mc-error-scale-nan",
+        ("mc", "--error-scale", "nan", "--out", "mc"),
+        ("--error-scale", "nan"),
+    ),
+    Case(
+        "serve-gamma-nan",
+        ("sim", "serve", "--gamma-deg", "nan", "--interferometer-pty"),
+        ("--gamma-deg", "nan"),
+    ),
+    Case(
+        "post-index-beyond-targets",
+        _POST,
+        ("m.csv", "line Z run 2", "target index 99"),
+        measured(_row_of_z(index=99)),
+    ),
+    # hangs: an impossible distance, absurd counts (the limit and why)
+    Case(
+        "align-distance-inf",
+        ("align", "--sim", "--distance-mm", "inf", "--timeout", "2"),
+        ("--distance-mm", "inf"),
+    ),
+    Case(
+        "align-distance-1um", ("align", "--sim", "--distance-mm", "0.001"), ("--distance-mm", "20")
+    ),
+    Case("align-timeout-negative", ("align", "--sim", "--timeout", "-1"), ("--timeout",)),
+    Case(
+        "identify-alignments-100000",
+        ("identify", "--sim", "--alignments", "100000"),
+        ("--alignments", "at most 50", "uncertainty"),
+    ),
+    Case(
+        "plan-identify-count-1000", ("plan-identify", "--count", "1000"), ("--count", "at most 50")
+    ),
+    Case(
+        "dry-run-positions-999",
+        ("dry-run", "--identification-positions", "999", "--out", "dr"),
+        ("--identification-positions", "at most 50"),
+    ),
+    Case(
+        "mc-vary-alignments-100",
+        ("mc", "--vary", "alignments=4:100", "--out", "mc"),
+        ("alignments", "'100'", "at most 50"),
+    ),
+    # silent: yes/no values read as 1.0 where a number is expected
+    Case(
+        "pose-gamma-true",
+        POSE,
+        (P, "gamma_deg", "yes/no"),
+        edit_json(P, sets("gamma_deg", value=True)),
+    ),
+    Case(
+        "machine-spindle-yes",
+        MACHINE,
+        (M, "spindle_angle_deg", "yes/no"),
+        replace(M, "spindle_angle_deg: 0", "spindle_angle_deg: yes"),
+    ),
+    Case(
+        "session-spindle-true",
+        SESSION,
+        (S, "spindle_angle_deg", "yes/no"),
+        edit_json(S, sets("spindle_angle_deg", value=True)),
+    ),
+    Case(
+        "session-position-false",
+        SESSION,
+        (S, "alignments.0.machine_mm.1", "yes/no"),
+        edit_json(S, sets("alignments", 0, "machine_mm", 1, value=False)),
+    ),
+    Case(
+        "plan-spindle-true",
+        PLAN,
+        (L, "spindle_angle_deg", "yes/no"),
+        edit_json(L, sets("spindle_angle_deg", value=True)),
+    ),
+    Case(
+        "units-timeout-yes",
+        UNITS,
+        (U, "timeouts.io_s", "yes/no"),
+        replace(U, "io_s: 1.0", "io_s: yes"),
+    ),
+    # silent: post's data
+    Case(
+        "post-dead-instrument",
+        _POST,
+        ("m.csv", "line Z", "read exactly 0", "dead"),
+        measured(_dead_z),
+    ),
+    Case(
+        "post-run-outside-plan",
+        _POST,
+        ("m.csv: line ", ": line Z run 7", "runs 1..2"),
+        measured(_row_of_z(run=7)),
+    ),
+    Case(
+        "post-same-pair-twice",
+        (
+            "post",
+            "--plan",
+            L,
+            "--data",
+            "m.csv",
+            "--plan",
+            L,
+            "--data",
+            "m.csv",
+            "--out",
+            "e-new.csv",
+        ),
+        ("m.csv", "station 1", "station 2", "twice"),
+        measured(),
+    ),
+    Case(
+        "post-report-docx", (*_POST, "--report", "r.docx"), ("r.docx", "'.docx'", ".html or .pdf")
+    ),
+    Case(
+        "post-report-no-extension",
+        (*_POST, "--report", "record"),
+        ("record", "no file name ending"),
+    ),
+    # silent: error tables
+    Case("comp-no-squareness", ERRORS, (E, "EC0Y, EA0Z, EB0Z"), replace(E, _SQUARENESS_ROWS, "")),
+    Case(
+        "comp-tables-outside-travel",
+        ERRORS,
+        (E, "EXX", "X travel", "50255.6", "0..2000"),
+        _x_tables_moved,
+    ),
+    # silent: mc
+    Case("mc-unknown-method", ("mc", "--method", "nope", "--out", "mc"), ("--method", "'nope'")),
+    Case(
+        "mc-squareness-inf",
+        ("mc", "--squareness-urad", "inf", "--out", "mc"),
+        ("--squareness-urad", "inf"),
+    ),
+    Case(
+        "mc-squareness-1e9",
+        ("mc", "--squareness-urad", "1e9", "--out", "mc"),
+        ("--squareness-urad",),
+    ),
+    Case(
+        "mc-every-trial-fails",
+        ("mc", "--trials", "2", "--batch", "2", "--out", "mc"),
+        ("every trial failed", "GeometryError"),
+        patch=every_trial_fails,
+    ),
+]
+
+
+def recorded_with_seed(seed: int) -> Damage:
+    """m.csv as a simulated run with ``--seed SEED`` leaves it (no point yet)."""
+    return write("m.csv", f"# xmalign measurements sim_seed={seed}\n" + MEASUREMENTS_HEADER)
+
+
+AS_ROOT = os.geteuid() == 0
+RUN = ("run", "--sim", "--in-process", "--plan", L)
+_DEVICE_CASES = [
+    Case(
+        "identify-out-dev-null",
+        (*SESSION[:3], "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "identify-out-dev-full",
+        (*SESSION[:3], "--out", "full"),
+        ("full", "--out", "character device"),
+        node("full", "full"),
+    ),
+    Case(
+        "program-plan-out-dev-null",
+        (*POSE, "--plan-out", "nul"),
+        ("nul", "--plan-out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "run-out-dev-null",
+        (*RUN, "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "post-out-dev-null",
+        (*PLAN[:5], "--out", "nul"),
+        ("nul", "--out", "character device"),
+        node("nul", "null"),
+    ),
+    Case(
+        "comp-out-a-device-in-the-folder",
+        (*ERRORS, "--force"),
+        ("NC_CEC.INI", "character device"),
+        node("comp/NC_CEC.INI", "null"),
+    ),
+]
+_FILES_CASES = [
+    *(_DEVICE_CASES if AS_ROOT else []),
+    # FIFOs and sockets: refused at once (a FIFO would block until something reads it)
+    Case(
+        "identify-out-fifo",
+        (*SESSION[:3], "--out", "ff"),
+        ("ff", "--out", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "identify-out-socket",
+        (*SESSION[:3], "--out", "so"),
+        ("so", "--out", "socket"),
+        node("so", "socket"),
+    ),
+    Case(
+        "program-out-fifo", (*POSE[:3], "--out", "ff"), ("ff", "--out", "FIFO"), node("ff", "fifo")
+    ),
+    Case("run-out-fifo", (*RUN, "--out", "ff"), ("ff", "--out", "FIFO"), node("ff", "fifo")),
+    Case(
+        "run-log-file-fifo",
+        (*RUN, "--out", "new.csv", "--log-file", "ff"),
+        ("ff", "--log-file", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "post-report-fifo",
+        (*PLAN, "--report", "ff"),
+        ("ff", "--report", "FIFO"),
+        node("ff", "fifo"),
+    ),
+    Case(
+        "comp-out-a-fifo-in-the-folder",
+        (*ERRORS, "--force"),
+        ("NC_CEC.INI", "FIFO"),
+        node("comp/NC_CEC.INI", "fifo"),
+    ),
+    Case(
+        "mc-out-a-fifo-in-the-folder",
+        ("mc", "--out", "comp"),
+        ("mc.json", "--out", "FIFO"),
+        node("comp/mc.json", "fifo"),
+    ),
+    Case(
+        "serve-position-file-fifo",
+        ("sim", "serve", "--position-file", "ff", "--program", "run.mpf"),
+        ("ff", "--position-file", "FIFO"),
+        both(node("ff", "fifo"), write("run.mpf", "G0 X0\n")),
+    ),
+    # an output that is an input or another output, --log-file included, in every command
+    Case(
+        "run-log-file-is-the-plan",
+        (*RUN, "--out", "new.csv", "--log-file", L),
+        (L, "--log-file", "--plan", "written into"),
+    ),
+    Case(
+        "run-log-file-is-the-out",
+        (*RUN, "--out", "m.csv", "--log-file", "m.csv"),
+        ("m.csv", "--log-file", "--out"),
+    ),
+    Case(
+        "run-log-file-is-the-machine",
+        (*RUN, "--out", "new.csv", "--machine", M, "--log-file", M),
+        (M, "--log-file", "--machine"),
+    ),
+    Case(
+        "run-out-is-the-program",
+        (*RUN, "--out", "run.mpf", "--program", "run.mpf"),
+        ("run.mpf", "--out", "--program"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case(
+        "run-out-a-link-to-the-plan",
+        (*RUN, "--out", "link.csv"),
+        ("link.csv", "--out", "--plan"),
+        lambda folder: (folder / "link.csv").symlink_to(L),
+    ),
+    Case(
+        "align-log-file-is-the-config",
+        ("align", "--live", "--config", U, "--log-file", U),
+        (U, "--log-file", "--config"),
+    ),
+    Case(
+        "identify-log-file-is-the-out",
+        (*SESSION[:3], "--out", "p.json", "--log-file", "p.json"),
+        ("p.json", "--log-file", "--out"),
+    ),
+    Case(
+        "serve-log-file-is-the-machine",
+        ("sim", "serve", "--modbus", "127.0.0.1:0", "--machine", M, "--log-file", M),
+        (M, "--log-file", "--machine"),
+    ),
+    Case(
+        "serve-position-file-is-the-program",
+        ("sim", "serve", "--position-file", "run.mpf", "--program", "run.mpf"),
+        ("run.mpf", "--position-file", "--program"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case(
+        "serve-position-file-is-a-plan",
+        ("sim", "serve", "--position-file", L, "--program", "run.mpf"),
+        (L, "--position-file", "machine position"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    # files a later step or the user relies on: replaced only with --force
+    Case("comp-replaces-the-users-table", ERRORS, ("NC_CEC.INI", "--out", "--force")),
+    Case(
+        "comp-replaces-ax-eec",
+        (*ERRORS[:3], "--out", "user"),
+        ("AX_EEC.INI", "--force"),
+        write("user/AX_EEC.INI", "; the user's own table\n"),
+    ),
+    Case(
+        "comp-replaces-joints-ini",
+        (*ERRORS[:3], "--out", "user", "--controller", "linuxcnc"),
+        ("joints.ini", "--force"),
+        write("user/joints.ini", "[JOINT_0]\n"),
+    ),
+    Case("program-replaces-the-plan", (*POSE, "--plan-out", L), (L, "--plan-out", "--force")),
+    Case(
+        "program-replaces-the-program",
+        (*POSE[:3], "--out", "run.mpf"),
+        ("run.mpf", "--out", "--force"),
+        write("run.mpf", "G0 X0\n"),
+    ),
+    Case("identify-replaces-the-pose", (*SESSION[:3], "--out", P), (P, "--out", "--force")),
+    Case(
+        "identify-sim-replaces-the-session",
+        ("identify", "--sim", "--session-out", S),
+        (S, "--session-out", "--force"),
+    ),
+    # a line id the measurement CSV cannot hold
+    Case(
+        "run-plan-id-comma",
+        (*RUN, "--out", "new.csv"),
+        (L, "lines.0.id", "','"),
+        edit_json(L, _line("id", "X,Y")),
+    ),
+    Case(
+        "run-plan-id-newline",
+        (*RUN, "--out", "new.csv"),
+        (L, "lines.1.id", "'\\n'"),
+        edit_json(L, _line("id", "Y\nZ", 1)),
+    ),
+    Case("post-plan-id-hash", PLAN, (L, "lines.0.id", "'#'"), edit_json(L, _line("id", "#X"))),
+    Case("post-plan-id-space", PLAN, (L, "lines.0.id", "' '"), edit_json(L, _line("id", "X 1"))),
+    # messages that say what is wrong
+    Case(
+        "run-resume-with-another-seed",
+        (*RUN, "--out", "m.csv", "--resume", "--seed", "2"),
+        ("--seed 2", "m.csv", "--seed 1"),
+        recorded_with_seed(1),
+    ),
+    Case(
+        "run-out-a-plan-file",
+        (*RUN, "--out", "plan2.json"),
+        ("plan2.json", "--out", "plan file", "not a measurement CSV"),
+        lambda folder: shutil.copy(folder / L, folder / "plan2.json"),
+    ),
+    Case("run-out-a-pose-file", (*RUN, "--out", P), (P, "--out", "launch-pose file")),
+    # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
+]
+
+CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES + _FILES_CASES
 
 
 # -- running a case -----------------------------------------------------------------------
@@ -646,6 +1222,16 @@ def prepare(folder: Path) -> None:
     (folder / "comp").mkdir()
     (folder / "comp" / "NC_CEC.INI").write_text("old table\n", encoding="utf-8")
     (folder / "pose-old.json").write_text("{}\n", encoding="utf-8")
+    (folder / "points.csv").write_text(_point_list(), encoding="utf-8")
+
+
+def _point_list() -> str:
+    """The point list ``program --instrument tracker --points-out`` writes (import reads it)."""
+    from trajectories.instruments import InstrumentProgram, point_list_csv, tracker_points
+    from xmalign.machine import default_machine_path, load_machine
+
+    machine = load_machine(default_machine_path())
+    return point_list_csv(InstrumentProgram(points_mm=tracker_points(machine)), machine.smr_offset)
 
 
 def hashes(folder: Path) -> dict[str, str]:

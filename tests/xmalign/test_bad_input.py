@@ -42,7 +42,7 @@ def test_bad_input_is_one_line_and_loses_nothing(
 @pytest.mark.parametrize(
     "argv",
     [
-        ("comp", "--errors", "errors.csv", "--out", "comp", "--machine", "fyxz.yaml"),
+        ("comp", "--errors", "errors.csv", "--out", "comp", "--machine", "fyxz.yaml", "--force"),
         ("identify", "--input", "session.json", "--out", "pose-new.json"),
         ("program", "--pose", "pose.json", "--out", "run.mpf", "--plan-out", "plan-new.json"),
     ],
@@ -63,13 +63,13 @@ def test_outputs_get_the_umask_mode_not_0600(tmp_path: Path, monkeypatch: pytest
     monkeypatch.chdir(tmp_path)
     previous = os.umask(0o027)
     try:
-        code, stderr, _ = run_main(("comp", "--errors", "errors.csv", "--out", "comp"))
+        code, stderr, _ = run_main(("comp", "--errors", "errors.csv", "--out", "comp-new"))
         assert code == 0, stderr
         code, stderr, _ = run_main(("identify", "--input", "session.json", "--out", "p.json"))
         assert code == 0, stderr
     finally:
         os.umask(previous)
-    for path in [tmp_path / "p.json", *(tmp_path / "comp").iterdir()]:
+    for path in [tmp_path / "p.json", *(tmp_path / "comp-new").iterdir()]:
         assert path.stat().st_mode & 0o777 == 0o640, path
 
 
@@ -89,7 +89,7 @@ def test_comp_replaces_all_controller_files_or_none(
         real_fsync(fd)
 
     monkeypatch.setattr(os, "fsync", fsync)
-    code, stderr, _ = run_main(("comp", "--errors", "errors.csv", "--out", "comp"))
+    code, stderr, _ = run_main(("comp", "--errors", "errors.csv", "--out", "comp", "--force"))
     assert code == 2 and "disk full" in stderr
     assert [p.name for p in (tmp_path / "comp").iterdir()] == ["NC_CEC.INI"]
     assert (tmp_path / "comp" / "NC_CEC.INI").read_text() == "old table\n"

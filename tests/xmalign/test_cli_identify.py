@@ -28,7 +28,7 @@ def test_malformed_session_is_one_line(tmp_path):
 def test_unknown_version_is_one_line(tmp_path):
     path = tmp_path / "session.json"
     path.write_text(json.dumps({"format": "xmalign.identify-session/9", "alignments": []}))
-    assert_one_line_error(run_cli("identify", "--input", str(path)), "version '9'")
+    assert_one_line_error(run_cli("identify", "--input", str(path)), "newer xmalign")
 
 
 def test_too_few_alignments_is_one_line(tmp_path):
@@ -55,5 +55,6 @@ def test_live_and_uncertainty_options_are_checked_first(tmp_path):
     )
     assert_one_line_error(
         run_cli("identify", "--sim", "--encoder-urad", "-1"),
-        "encoder_rad: the uncertainty must be positive",
+        "--encoder-urad",
+        "the uncertainty must be positive",
     )

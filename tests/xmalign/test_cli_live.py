@@ -14,6 +14,7 @@ import json
 import math
 import os
 import re
+import signal
 import subprocess
 import textwrap
 import threading
@@ -258,6 +259,28 @@ def test_live_run_stopped_by_ctrl_c_keeps_its_points_and_resumes_without_a_repea
     total = len(_points(short_plan))
     assert f"{total - saved} points captured; {total} points in {out}" in resumed.stdout
     assert "setup kept" in resumed.stdout or "aligned again" in resumed.stdout
+
+
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_live_run_stopped_by_sigterm_or_sighup_is_handled_as_ctrl_c(
+    reference_machine, short_plan, tmp_path, stop
+):
+    """A shutdown or a closed ssh session: units locked, every point kept, one line naming
+    the signal, exit code 128 + the signal's number (143, 129), as shells report it."""
+    out = tmp_path / "m.csv"
+    handler = signal.getsignal(stop)
+    with served(reference_machine, tmp_path, short_plan) as world:
+        stopped = _run_with_a_fifth_prompt_that(
+            lambda: signal.raise_signal(stop), world, short_plan, out
+        )
+        assert stopped.returncode == 128 + stop, stopped.stderr
+        assert all(axis.is_locked() for axis in world.axes())
+    saved = len(read_measurements(out))
+    assert 0 < saved < len(_points(short_plan))
+    assert stopped.stderr.strip().splitlines() == [
+        f"xmalign: {stop.name}: stopped: {saved} points kept in {out}; go on with --resume"
+    ]
+    assert signal.getsignal(stop) == handler  # the command gives the signal back
 
 
 def test_the_interferometer_gone_mid_run_is_one_line_and_keeps_the_points(

@@ -40,7 +40,7 @@ def test_run_refuses_bad_invocations(tmp_path):
     plan.write_text('{"format": "xmalign.plan/7"}')
     assert_one_line_error(
         run_cli("run", "--plan", str(plan), "--sim", "--out", str(tmp_path / "m.csv")),
-        "version '7'",
+        "format xmalign.plan/7, this one reads up to /1",
     )
 
 
@@ -89,11 +89,12 @@ def test_run_never_replaces_measurements(dry, tmp_path):
 
 
 def _first_row(change):
-    """Apply ``change`` to the fields of the first data row (line 4, after the X setup)."""
+    """Apply ``change`` to the fields of the first data row (line 9: after the history
+    preamble, the header, the run's start and the X setup)."""
 
     def damage(text):
         lines = text.split("\n")
-        lines[3] = ",".join(change(lines[3].split(",")))
+        lines[8] = ",".join(change(lines[8].split(",")))
         return "\n".join(lines)
 
     return damage
@@ -103,11 +104,11 @@ BAD_RESUMES = [
     (
         "duplicate",
         lambda text: text + text.splitlines()[-1] + "\n",
-        "line 399: line XZ run 0 direction + index 0 is recorded twice (first at line 398)",
+        "line 404: line XZ run 0 direction + index 0 is recorded twice (first at line 403)",
     ),
-    ("nan", _first_row(lambda f: [*f[:8], "nan", *f[9:]]), "line 4: linear_um is nan"),
-    ("1e12 um", _first_row(lambda f: [*f[:9], "1e12", *f[10:]]), "line 4: straightness 1e+12"),
-    ("latin-1", lambda text: text.replace("X,1,+,1,", "\u00c9,1,+,1,", 1), "line 5: not UTF-8"),
+    ("nan", _first_row(lambda f: [*f[:8], "nan", *f[9:]]), "line 9: linear_um is nan"),
+    ("1e12 um", _first_row(lambda f: [*f[:9], "1e12", *f[10:]]), "line 9: straightness 1e+12"),
+    ("latin-1", lambda text: text.replace("X,1,+,1,", "\u00c9,1,+,1,", 1), "line 10: not UTF-8"),
     ("another plan", lambda text: text.replace("sha256=", "sha256=0", 1), "another plan"),
     (
         "not this plan",

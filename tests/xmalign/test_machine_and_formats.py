@@ -85,7 +85,11 @@ def test_session_round_trip(tmp_path):
     ("text", "error", "message"),
     [
         ("{not json", InputError, "line 1: not valid JSON at column 2"),
-        ('{"format": "xmalign.identify-session/2"}', FormatError, "version '2'"),
+        (
+            '{"format": "xmalign.identify-session/2"}',
+            FormatError,
+            "newer xmalign: format xmalign.identify-session/2, this one reads up to /1",
+        ),
         ('{"format": "xmalign.plan/1"}', FormatError, "not a xmalign.identify-session"),
         ('{"alignments": []}', FormatError, "key 'format': missing"),
         (
@@ -157,8 +161,9 @@ def test_measurements_append_and_bad_row_line_number(tmp_path):
     assert [r.index for r in rows] == [0, 1]
     np.testing.assert_allclose(rows[0].channels, np.arange(6.0))
     with path.open("a") as handle:
-        handle.write("X,1,?,2,200,1,2,3,0,0,0,0,0,0,0\n")
-    with pytest.raises(InputError, match=r"line 5: direction"):
+        handle.write("X,1,?,2,200,1,2,3,0,0,0,0,0,0,0,7.5\n")
+    bad_line = len(path.read_text().splitlines())
+    with pytest.raises(InputError, match=rf"line {bad_line}: direction"):
         read_measurements(path)
 
 
@@ -168,7 +173,7 @@ def test_error_tables_round_trip(tmp_path):
             "EXX": Table(np.array([0.0, 100, 200]), np.array([0.0, 1e-3, 2e-3]), np.full(3, 1e-4)),
             "EBY+": Table(np.array([0.0, 100]), np.array([0.0, 5e-6]), np.array([np.nan, 1e-6])),
         },
-        squareness={"EC0Y": (12.5e-6, 1.1e-6)},
+        squareness={"EC0Y": (12.5e-6, 1.1e-6), "EA0Z": (0.0, 1e-6), "EB0Z": (-3e-6, 1e-6)},
     )
     path = tmp_path / "errors.csv"
     write_error_tables(path, tables)

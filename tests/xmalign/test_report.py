@@ -136,3 +136,19 @@ def test_pdf_is_a4_and_holds_the_record(reference_machine, found, info, tmp_path
     ).stdout
     for fragment in ("EX-0001", "XM60-1234", "EXCEEDED", "asks for 5", "Uncertainty budget"):
         assert fragment in text, fragment
+
+
+def test_pdf_is_written_atomically_or_not_at_all(reference_machine, found, info, tmp_path: Path):
+    """The PDF goes through atomic_write_files like every other file (no own rename)."""
+    from xmalign.errors import OutputError
+
+    folder = tmp_path / "record.pdf"
+    folder.mkdir()
+    with pytest.raises(OutputError, match="record.pdf: cannot write: is a folder"):
+        write_report(folder, reference_machine, found, "sinumerik", info)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["record.pdf"]
+    kept = tmp_path / "kept.pdf"
+    kept.write_bytes(b"the old record")
+    write_report(kept, reference_machine, found, "sinumerik", info)
+    assert kept.read_bytes().startswith(b"%PDF")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.pdf", "record.pdf"]

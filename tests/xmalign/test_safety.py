@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import os
+import signal
+
 import numpy as np
 import pytest
 
 from sim.clock import SimClock
 from sim.units import SimPositioningUnit, SimUnit
 from xmalign.errors import DeviceError, DriveFaultError, TransportError
-from xmalign.safety import interrupted, lock_all, units_locked_on_exit
+from xmalign.safety import (
+    StopSignal,
+    interrupted,
+    lock_all,
+    stop_signals_as_interrupts,
+    units_locked_on_exit,
+)
 
 
 def moving_units() -> tuple[SimClock, SimPositioningUnit, SimPositioningUnit]:
@@ -118,3 +127,66 @@ def test_a_lost_unit_is_one_sentence_not_one_per_axis() -> None:
         "could not lock axes a3, a4, a5 of the receiver unit: lost the connection to the"
         " launch unit at 10.0.0.5:502"
     ]
+
+
+class SignalledWhileLocking:
+    """An axis whose lock command is interrupted by a signal (a shutdown while locking)."""
+
+    name = "a1"
+
+    def __init__(self, axis, signum: int) -> None:
+        self.axis, self.signum = axis, signum
+
+    def lock(self) -> None:
+        signal.raise_signal(self.signum)
+        self.axis.lock()
+
+
+def test_a_sigterm_while_locking_waits_until_every_axis_is_locked() -> None:
+    clock, launch, receiver = moving_units()
+
+    class Unit:
+        kind = "launch"
+        axes = (SignalledWhileLocking(launch.axes[0], signal.SIGTERM), *launch.axes[1:])
+
+    with (
+        stop_signals_as_interrupts(),
+        pytest.raises(StopSignal) as caught,
+        units_locked_on_exit(Unit(), receiver),
+    ):
+        pass
+    assert caught.value.signum == signal.SIGTERM
+    assert all_locked(clock, launch, receiver)
+
+
+def test_sigterm_becomes_one_line_naming_it() -> None:
+    _, launch, _ = moving_units()
+    with (
+        stop_signals_as_interrupts(),
+        pytest.raises(StopSignal) as caught,
+        units_locked_on_exit(launch),
+    ):
+        signal.raise_signal(signal.SIGHUP)
+    error = interrupted(caught.value)
+    assert isinstance(error, StopSignal) and error.signum == signal.SIGHUP
+    assert str(error) == "stopped by SIGHUP; all axes were stopped and locked"
+
+
+def test_a_forked_worker_ends_on_sigterm_as_by_default() -> None:
+    """``mc``'s process pool forks workers that inherit the handler: a SIGTERM ends a worker
+    as it would without xmalign (no StopSignal, no traceback in a worker)."""
+    ready, tell = os.pipe()
+    with stop_signals_as_interrupts():
+        child = os.fork()
+        if child == 0:  # pragma: no cover - the worker; a StopSignal here exits with 3
+            try:
+                os.write(tell, b"r")
+                signal.pause()
+            finally:
+                os._exit(3)
+        os.read(ready, 1)  # the worker runs Python code: the signal is not lost in the fork
+        os.kill(child, signal.SIGTERM)
+        _, status = os.waitpid(child, 0)
+    os.close(ready)
+    os.close(tell)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM

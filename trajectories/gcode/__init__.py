@@ -28,9 +28,12 @@ CONTROLLER_DIALECTS = {
 }
 
 
-def make_dialect(name: str, machine: Machine, program_name: str = "XMALIGN") -> Dialect:
-    """The dialect ``name`` for ``machine`` (its ``cnc.work_offset``), naming the program."""
-    return DIALECTS[name](program_name, machine.cnc.work_offset)
+def make_dialect(
+    name: str, machine: Machine, program_name: str = "XMALIGN", stop_at_points: bool = False
+) -> Dialect:
+    """The dialect ``name`` for ``machine`` (its ``cnc.work_offset``), naming the program;
+    ``stop_at_points``: a programmed stop instead of each dwell (xmalign resumes it)."""
+    return DIALECTS[name](program_name, machine.cnc.work_offset, stop_at_points)
 
 
 def resolve_dialect(machine: Machine, dialect: str | None) -> str:

@@ -36,10 +36,20 @@ class Dialect(ABC):
     name: str = ""
 
     def __init__(
-        self, program_name: str = "XMALIGN", work_offset: WorkOffset | None = None
+        self,
+        program_name: str = "XMALIGN",
+        work_offset: WorkOffset | None = None,
+        stop_at_points: bool = False,
     ) -> None:
         self.program_name = program_name
         self.work_offset = work_offset
+        #: A programmed stop at each capture point instead of the dwell: for a controller
+        #: that xmalign itself resumes once the point is captured (docs/hardware.md).
+        self.stop_at_points = stop_at_points
+
+    def capture_wait(self, seconds: float) -> list[str]:
+        """What the program does at a capture point: dwell, or stop for xmalign."""
+        return [self.stop()] if self.stop_at_points else self.dwell(seconds)
 
     def program_axes(self, axes_mm: Mapping[str, float]) -> dict[str, float]:
         """Machine coordinates of the named axes in program coordinates (work offset removed)."""

@@ -29,9 +29,12 @@ class IsoDialect(Dialect):
     name = "iso"
 
     def __init__(
-        self, program_name: str = "XMALIGN", work_offset: WorkOffset | None = None
+        self,
+        program_name: str = "XMALIGN",
+        work_offset: WorkOffset | None = None,
+        stop_at_points: bool = False,
     ) -> None:
-        super().__init__(program_name, work_offset or DEFAULT_WORK_OFFSET)
+        super().__init__(program_name, work_offset or DEFAULT_WORK_OFFSET, stop_at_points)
 
     def begin(self) -> list[str]:
         assert self.work_offset is not None

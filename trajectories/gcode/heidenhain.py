@@ -26,14 +26,17 @@ class HeidenhainDialect(Dialect):
     name = "heidenhain"
 
     def __init__(
-        self, program_name: str = "XMALIGN", work_offset: WorkOffset | None = None
+        self,
+        program_name: str = "XMALIGN",
+        work_offset: WorkOffset | None = None,
+        stop_at_points: bool = False,
     ) -> None:
         if work_offset is not None:
             raise InputError(
                 "cnc.work_offset: the heidenhain dialect moves with M91 (machine datum) and"
                 " takes no work offset; remove the key"
             )
-        super().__init__(program_name)
+        super().__init__(program_name, None, stop_at_points)
 
     @property
     def _pgm(self) -> str:

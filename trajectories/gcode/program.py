@@ -7,7 +7,9 @@ For each line of the plan:
    pre-position (first target minus the overrun), feed down to it;
 3. a programmed stop, so the positioning units can be set before the run;
 4. each run: the targets in order, each approached in ``+u`` and followed by a
-   dwell, then the overrun past the last target; bidirectional runs come back
+   dwell (or, for a controller xmalign runs the program on, a programmed stop
+   that xmalign resumes once the point is captured), then the overrun past
+   the last target; bidirectional runs come back
    over the targets in reverse (approached in ``-u``), unidirectional runs feed
    back to the pre-position. Between targets the tool moves at the transit
    feed (the rapid feed, or the interferometer's ``max_speed_mm_min`` if
@@ -126,7 +128,7 @@ def _run_blocks(
             yield from _approach_blocks(
                 dialect, timer.position_mm, points[index], feeds, approach_mm, timer
             )
-            yield from dialect.dwell(line.dwell_s)
+            yield from dialect.capture_wait(line.dwell_s)
             timer.dwell(line.dwell_s)
         past = points[-1] + overrun_mm * u if direction == "+" else points[0] - overrun_mm * u
         yield dialect.feed(_axes(past), feeds.measure)
@@ -167,7 +169,7 @@ def _line_blocks(
     yield from _approach_blocks(
         dialect, timer.position_mm, points[0], feeds, machine.measurement.approach_mm, timer
     )
-    yield from dialect.dwell(line.dwell_s)
+    yield from dialect.capture_wait(line.dwell_s)
     timer.dwell(line.dwell_s)
     yield dialect.comment(f"line {line.id}: retract")
     yield dialect.retract({"Z": safe_z})

@@ -5,19 +5,24 @@ Each command lives in its own module with a ``register(app)`` function. Any
 problem), becomes one line on stderr and exit code 2; Ctrl-C becomes one line
 and exit code 130. A command that wants to say more on Ctrl-C (e.g. how many
 points were kept) raises ``KeyboardInterrupt("stopped: ...")``: that message
-is printed instead of the generic one.
+is printed instead of the generic one. SIGTERM and SIGHUP stop a command as
+Ctrl-C does (:func:`xmalign.safety.stop_signals_as_interrupts`): the same line,
+naming the signal, and exit code 128 + the signal's number (143, 129).
 """
 
 from __future__ import annotations
 
+import math
 import sys
-from typing import Annotated, Any
+from collections.abc import Callable
+from typing import Annotated, Any, get_args
 
 import typer
 from typer.core import TyperGroup
 
 from xmalign import __version__
 from xmalign.cli import align, identify
+from xmalign.cli import instruments as instruments_command
 from xmalign.cli import mc as mc_command
 from xmalign.cli import post as post_command
 from xmalign.cli import program as program_command
@@ -26,6 +31,7 @@ from xmalign.cli import sim as sim_command
 from xmalign.cli.common import keep_library_logs_off_the_terminal
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import os_problem
+from xmalign.safety import StopSignal, stop_signals_as_interrupts
 
 
 def _is_usage_error(error: Exception) -> bool:
@@ -34,10 +40,56 @@ def _is_usage_error(error: Exception) -> bool:
     return "UsageError" in names and "NoArgsIsHelpError" not in names
 
 
+def _number(value: object) -> float | None:
+    """A command-line value as a float (a text as typed, or a default), else None."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+
+
+def _not_finite(value: object) -> float | None:
+    """The first NaN or infinity in an option's value (one, or several), else None."""
+    values = value if isinstance(value, list | tuple) else (value,)
+    numbers = (_number(v) for v in values)
+    return next((v for v in numbers if v is not None and not math.isfinite(v)), None)
+
+
+def _takes_floats(param: Any) -> bool:
+    annotation = getattr(getattr(param, "type_descriptor", None), "annotation", None)
+    return annotation is float or float in get_args(annotation)
+
+
+def _finite_numbers_only(command: Any) -> None:
+    """Every number option of ``command`` and its subcommands refuses NaN and infinity.
+
+    One check for all options, before their own conversion and range (click's
+    ranges let NaN through): a NaN would pass every ``value < 0`` test and end as
+    a traceback, or a hang, deep in the maths.
+    """
+    for subcommand in getattr(command, "commands", {}).values():
+        _finite_numbers_only(subcommand)
+    for param in command.params:
+        if _takes_floats(param) and not getattr(param, "finite_only", False):
+            param.process_value = _finite_first(param.opts[0], param.process_value)
+            param.finite_only = True
+
+
+def _finite_first(option: str, process: Callable[..., Any]) -> Callable[..., Any]:
+    def checked(ctx: Any, value: Any) -> Any:
+        bad = _not_finite(value)
+        if bad is not None:
+            raise InputError(f"option {option}: {bad} is not a finite number")
+        return process(ctx, value)
+
+    return checked
+
+
 class _OneLineUsageErrors(TyperGroup):
     """A command-line mistake (unknown option, bad value) as one line, like a bad file."""
 
     def invoke(self, ctx: Any) -> Any:
+        _finite_numbers_only(self)
         try:
             return super().invoke(ctx)
         except Exception as error:
@@ -88,6 +140,7 @@ for command_module in (
     align,
     sim_command,
     mc_command,
+    instruments_command,
 ):
     command_module.register(app)
 
@@ -113,15 +166,22 @@ def _say(line: str) -> None:
 
 def _stopped(interrupt: KeyboardInterrupt | None) -> None:
     message = str(interrupt.args[0]) if interrupt is not None and interrupt.args else ""
-    _say(message or "stopped by Ctrl-C")
-    sys.exit(EXIT_INTERRUPTED)
+    if not isinstance(interrupt, StopSignal):
+        _say(message or "stopped by Ctrl-C")
+        sys.exit(EXIT_INTERRUPTED)
+    if not message:
+        _say(f"stopped by {interrupt.name}")
+    else:
+        _say(message if interrupt.name in message else f"{interrupt.name}: {message}")
+    sys.exit(128 + interrupt.signum)
 
 
 def main() -> None:
     """Console-script entry point."""
     keep_library_logs_off_the_terminal()
     try:
-        app()
+        with stop_signals_as_interrupts():
+            app()
     except SystemExit as stop:
         if stop.code == EXIT_INTERRUPTED:
             _stopped(_interrupt_of(stop))
@@ -132,8 +192,9 @@ def main() -> None:
         _say(f"error: {error}")
         sys.exit(2)
     except OSError as error:
-        where = error.filename if error.filename is not None else "file"
-        _say(f"error: {where}: {os_problem(error)}")
+        # no file behind it (a name lookup, a socket): no "file:" that names nothing
+        where = f"{error.filename}: " if error.filename is not None else ""
+        _say(f"error: {where}{os_problem(error)}")
         sys.exit(2)
     except UnicodeDecodeError as error:  # a reader that did not go through read_text
         _say(f"error: an input file is not UTF-8 text (byte 0x{error.object[error.start]:02x})")

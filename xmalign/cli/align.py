@@ -19,6 +19,7 @@ import typer
 from rich.table import Table
 
 from xmalign.alignment import (
+    DISTANCE_LIMITS_MM,
     AlignmentDevices,
     AlignmentStep,
     FineAlignmentResult,
@@ -37,6 +38,7 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError, OutOfRangeError, XmalignError
+from xmalign.formats.common import refuse_overwriting
 from xmalign.machine import Machine
 from xmalign.roles import WallClock
 from xmalign.safety import interrupted, units_locked_on_exit
@@ -155,16 +157,24 @@ def register(app: typer.Typer) -> None:
         distance_mm: Annotated[
             float | None,
             typer.Option(
-                help="First guess of the cp-to-cp distance, mm (--sim: the true one, --live: 1000)."
+                min=DISTANCE_LIMITS_MM[0],
+                max=DISTANCE_LIMITS_MM[1],
+                help="First guess of the cp-to-cp distance, mm (--sim: the true one,"
+                " --live: 1000).",
             ),
         ] = None,
-        timeout_s: Annotated[float, typer.Option("--timeout", help="Give up after, s.")] = 5.0,
+        timeout_s: Annotated[
+            float, typer.Option("--timeout", min=0, help="Give up after, s.")
+        ] = 5.0,
         log_file: LogFileOption = None,
     ) -> None:
         """Fine-align the launch and receiver units on the interferometer channels."""
         if sim == live:
             raise InputError("choose one of --sim and --live")
         check_seed(seed)
+        refuse_overwriting(
+            {"--config": config, "--machine": machine_file}, {}, {"--log-file": log_file}
+        )
         machine = machine_or_default(machine_file)
         settings = FineAlignmentSettings(timeout_s=timeout_s)
         log_handler = start_log_file(log_file)
@@ -199,8 +209,7 @@ def _align_live(
     from firmware_iface.config import load_units_config, open_devices
 
     config = load_units_config(config_path)
-    live = open_devices(config, machine)
-    try:
+    with open_devices(config, machine) as live:
         devices = AlignmentDevices(
             live.launch, live.receiver, live.interferometer, WallClock(), distance_mm
         )
@@ -208,5 +217,3 @@ def _align_live(
             if manual:
                 manual_alignment(devices, machine, config.timeouts.move_s)
         run_fine_alignment(devices, settings, "wall time")
-    finally:
-        live.close()

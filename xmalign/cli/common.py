@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import logging
-import os
 import time
-from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated
 
@@ -13,15 +11,12 @@ import typer
 from rich.console import Console
 
 from xmalign.errors import InputError, OutputError
-from xmalign.formats.common import located, os_problem
+from xmalign.formats.common import located, os_problem, refuse_special
 from xmalign.formats.plan import Plan
 from xmalign.machine import Machine, default_machine_path, load_machine
 
 console = Console()
 error_console = Console(stderr=True)
-
-#: Paths given to one option: none, one, or several (a repeated option).
-PathsOf = Path | Sequence[Path] | None
 
 
 def machine_or_default(path: Path | None) -> Machine:
@@ -47,52 +42,16 @@ def machine_for_plan(path: Path | None, plan: Plan, plan_path: Path) -> Machine:
     )
 
 
-def _each(paths: PathsOf) -> Iterable[Path]:
-    if paths is None:
-        return ()
-    if isinstance(paths, Path | str):
-        return (Path(paths),)
-    return (Path(p) for p in paths)
-
-
-def same_file(a: Path, b: Path) -> bool:
-    """True when two paths name one file (links followed; a missing file by its full path)."""
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return a.resolve() == b.resolve()
-
-
-def refuse_overwriting(inputs: Mapping[str, PathsOf], outputs: Mapping[str, PathsOf]) -> None:
-    """Refuse a command whose output would replace one of its inputs or another output.
-
-    ``inputs`` and ``outputs`` map an option name (``"--data"``) to the path(s)
-    given, None for an option left out. Call it before anything is read or written.
+def check_output_folder(path: Path, option: str) -> None:
+    """Refuse a file in the place of an output folder (nothing is created yet).
 
     Raises
     ------
     InputError
-        Naming the file and both options.
+        ``path`` is an existing file.
     """
-    written: list[tuple[str, Path]] = []
-    for out_option, out_paths in outputs.items():
-        for out_path in _each(out_paths):
-            for in_option, in_paths in inputs.items():
-                if any(same_file(out_path, in_path) for in_path in _each(in_paths)):
-                    raise InputError(
-                        located(
-                            out_path,
-                            out_option,
-                            f"is also the {in_option} file; it would be replaced"
-                            " (write to another file)",
-                        )
-                    )
-            for other_option, other in written:
-                if same_file(out_path, other):
-                    raise InputError(
-                        located(out_path, out_option, f"is also the {other_option} file")
-                    )
-            written.append((out_option, out_path))
+    if path.exists() and not path.is_dir():
+        raise InputError(located(path, option, "is a file; give a folder for the output files"))
 
 
 def output_folder(path: Path, option: str) -> Path:
@@ -105,13 +64,22 @@ def output_folder(path: Path, option: str) -> Path:
     OutputError
         The folder cannot be created (no permission, read-only, disk full).
     """
-    if path.exists() and not path.is_dir():
-        raise InputError(located(path, option, "is a file; give a folder for the output files"))
+    check_output_folder(path, option)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise OutputError(located(path, "cannot create the folder", os_problem(error))) from error
     return path
+
+
+def check_positions(count: int, option: str) -> int:
+    """A number of identification positions the design can serve (limit and why)."""
+    from trajectories.identification_design import count_problem
+
+    problem = count_problem(count)
+    if problem is not None:
+        raise InputError(f"option {option}: {problem}")
+    return count
 
 
 def check_seed(seed: int, option: str = "--seed") -> int:
@@ -120,6 +88,15 @@ def check_seed(seed: int, option: str = "--seed") -> int:
         raise InputError(f"option {option}: {seed} must be 0 or more")
     return seed
 
+
+#: The ``--force`` option of the commands whose outputs a later step or a user relies on.
+ForceOption = Annotated[
+    bool,
+    typer.Option(
+        "--force",
+        help="Replace output files that already exist (without it they are never replaced).",
+    ),
+]
 
 #: The ``--log-file PATH`` option of every command that talks to devices.
 LogFileOption = Annotated[
@@ -146,6 +123,7 @@ def start_log_file(path: Path | None) -> logging.Handler | None:
     """
     if path is None:
         return None
+    refuse_special(path, "--log-file", appended=True)
     try:
         handler = logging.FileHandler(path, encoding="utf-8")
     except OSError as error:

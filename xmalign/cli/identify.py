@@ -15,26 +15,31 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from xmalign.cli.common import (
+    ForceOption,
     LogFileOption,
+    check_positions,
     check_seed,
     console,
     machine_or_default,
-    refuse_overwriting,
     start_log_file,
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.formats.common import refuse_overwriting, refuse_replacing
 from xmalign.formats.pose import write_pose
+from xmalign.formats.provenance import sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
-from xmalign.machine import Machine
+from xmalign.machine import MAX_UNCERTAINTY_UM, MAX_UNCERTAINTY_URAD, Machine
 from xmalign.steps import IdentifyStepResult, design_step, identify_step
 
 
 def _uncertainty(
-    machine: Machine | None, overrides: dict[str, float | None]
+    machine: Machine | None, overrides: dict[str, tuple[str, float | None]]
 ) -> IdentificationUncertainty:
+    """The machine's (or the default) uncertainties with the options given (option name ->
+    (field, value in um or urad))."""
     base = (
         IdentificationUncertainty.from_machine(machine.uncertainty)
         if machine is not None
@@ -51,10 +56,16 @@ def _uncertainty(
         "machine_common_mm": 1e-3,
         "collimation_rad": 1e-6,
     }
-    changes = {k: v * scale[k] for k, v in overrides.items() if v is not None}
-    for key, value in changes.items():
-        if value <= 0:
-            raise InputError(f"option for {key}: the uncertainty must be positive")
+    for option, (key, value) in overrides.items():
+        unit, limit = (
+            ("um", MAX_UNCERTAINTY_UM) if option.endswith("-um") else ("urad", MAX_UNCERTAINTY_URAD)
+        )
+        if value is not None and not 0 < value <= limit:
+            raise InputError(
+                f"option {option} ({key}): {value:g}: the uncertainty must be positive and at"
+                f" most {limit:g} {unit} (as in the machine file)"
+            )
+    changes = {key: value * scale[key] for key, value in overrides.values() if value is not None}
     return IdentificationUncertainty(**{**base.__dict__, **changes})
 
 
@@ -187,8 +198,7 @@ def _live_identification(
     config = load_units_config(config_path)
     design = design_step(machine, alignments)
     _print_design_warnings(design.warnings)
-    live = open_devices(config, machine)
-    try:
+    with open_devices(config, machine) as live:
         clock = WallClock()
         devices = RoutineDevices(live.mover, live.launch, live.receiver, live.interferometer, clock)
         jog = AlignmentDevices(live.launch, live.receiver, live.interferometer, clock, 1000.0)
@@ -204,8 +214,6 @@ def _live_identification(
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
             )
-    finally:
-        live.close()
 
 
 def _print_design_warnings(warnings: list[str]) -> None:
@@ -269,6 +277,7 @@ def identify_command(
         float | None, typer.Option(help="Beam collimation (direction) uncertainty, µrad (k=1).")
     ] = None,
     log_file: LogFileOption = None,
+    force: ForceOption = False,
 ) -> None:
     """Identify the launch unit's pose (position and azimuth) from aligned units."""
     if method not in METHODS:
@@ -278,23 +287,27 @@ def identify_command(
     if live and (config is None or session_file is None):
         raise InputError("--live needs --config UNITS.yaml and --session SESSION.json")
     check_seed(seed)
+    if sim or live:
+        check_positions(alignments, "--alignments")
     refuse_overwriting(
         {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
-        {"--out": out, "--session-out": session_out, "--log-file": log_file},
+        {"--out": out, "--session-out": session_out},
+        {"--log-file": log_file},
     )
+    refuse_replacing({"--out": out, "--session-out": session_out}, force)
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,
         {
-            "encoder_rad": encoder_urad,
-            "machine_position_mm": machine_position_um,
-            "unit_kinematics_mm": unit_kinematics_um,
-            "zero_offset_rad": zero_offset_urad,
-            "distance_mm": distance_um,
-            "tool_rotation_rad": tool_rotation_urad,
-            "tool_rotation_common_rad": tool_rotation_common_urad,
-            "machine_common_mm": machine_common_um,
-            "collimation_rad": beam_collimation_urad,
+            "--encoder-urad": ("encoder_rad", encoder_urad),
+            "--machine-position-um": ("machine_position_mm", machine_position_um),
+            "--unit-kinematics-um": ("unit_kinematics_mm", unit_kinematics_um),
+            "--zero-offset-urad": ("zero_offset_rad", zero_offset_urad),
+            "--distance-um": ("distance_mm", distance_um),
+            "--tool-rotation-urad": ("tool_rotation_rad", tool_rotation_urad),
+            "--tool-rotation-common-urad": ("tool_rotation_common_rad", tool_rotation_common_urad),
+            "--machine-common-um": ("machine_common_mm", machine_common_um),
+            "--beam-collimation-urad": ("collimation_rad", beam_collimation_urad),
         },
     )
     truth = None
@@ -327,8 +340,14 @@ def identify_command(
         result = identify(session, method, uncertainty, str(input))
     print_result(result, session, truth)
     if out is not None:
-        write_pose(out, result.to_pose())
+        session_used = input or (session_path if sim else session_file)
+        write_pose(out, result.to_pose(), sources(session=session_used, machine=machine))
         console.print(f"pose written to {out}", markup=False)
+    else:
+        console.print(
+            "pose not written (give --out pose.json to keep it for xmalign program)",
+            markup=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -18,15 +18,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
+    check_output_folder,
     check_seed,
     console,
     error_console,
     machine_or_default,
     output_folder,
-    refuse_overwriting,
 )
-from xmalign.errors import InputError, TransportError
-from xmalign.formats.common import atomic_write_text
+from xmalign.cli.instruments import compare_instruments_command
+from xmalign.errors import InputError, TransportError, XmalignError
+from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text, refuse_overwriting
+from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.studies import study_document
 
 if TYPE_CHECKING:
     from sim.mc import StrategyResult, StudySettings
@@ -122,6 +125,14 @@ def _within(result: StrategyResult, quantity: str, tolerance_um: float) -> str:
     return f"{np.count_nonzero(values <= tolerance_um) / result.trials:.1%}"
 
 
+def _refuse_if_every_trial_failed(results: Sequence[StrategyResult]) -> None:
+    """A study whose every trial failed has no result: say why, exit non-zero."""
+    failures = [failure for result in results for failure in result.failures]
+    trials = sum(result.trials for result in results)
+    if trials and len(failures) == trials:
+        raise XmalignError(f"every trial failed ({trials} of {trials}), e.g. {failures[0]}")
+
+
 def _plot(draw: Callable[[], Path | None], name: str) -> Path | None:
     """Draw one figure; a failure is a warning (the results are already written)."""
     try:
@@ -136,10 +147,12 @@ def _plot(draw: Callable[[], Path | None], name: str) -> Path | None:
 
 
 def _results_json(
-    results: Sequence[StrategyResult], settings: StudySettings, machine_name: str
+    results: Sequence[StrategyResult],
+    settings: StudySettings,
+    machine_name: str,
+    inputs: Sequence[FileSource] = (),
 ) -> str:
-    document = {
-        "format": "xmalign-mc/1",
+    body = {
         "machine": machine_name,
         "mode": settings.mode,
         "digits": settings.digits,
@@ -172,7 +185,7 @@ def _results_json(
             for r in results
         ],
     }
-    return json.dumps(document, indent=2) + "\n"
+    return json.dumps(study_document(body, inputs), indent=2) + "\n"
 
 
 def mc(
@@ -193,8 +206,9 @@ def mc(
     mode: Annotated[
         str,
         typer.Option(
-            help="calibration (the whole dry run, ~1 s a trial) or identification "
-            "(identification and line planning only, ~10 ms)."
+            help="calibration (the whole dry run, ~1 s a trial), identification "
+            "(identification and line planning only, ~10 ms) or instruments (laser tracker,"
+            " tracers and XM-60 compared on the same machines, ~10 s a trial)."
         ),
     ] = "calibration",
     batch: Annotated[int, typer.Option(help="Trials per batch of the adaptive procedure.")] = 20,
@@ -204,20 +218,30 @@ def mc(
     scheduler: Annotated[
         str | None, typer.Option(help="Dask scheduler address (default: local processes).")
     ] = None,
-    workers: Annotated[int, typer.Option(help="Local worker processes (default: every core).")] = 0,
+    workers: Annotated[
+        int, typer.Option(min=0, help="Local worker processes (default: every core).")
+    ] = 0,
     seed: Annotated[int, typer.Option(help="Seed of the study; every strategy sees it.")] = 0,
     method: Annotated[str, typer.Option(help="Identification method.")] = "joint",
     error_scale: Annotated[
-        float, typer.Option(help="Factor on the machine-error amplitudes (seed 003 Table 1).")
+        float,
+        typer.Option(min=0, help="Factor on the machine-error amplitudes (seed 003 Table 1)."),
     ] = 1.0,
     squareness_urad: Annotated[
-        float, typer.Option(help="Half-width of the random squareness errors, urad.")
+        float,
+        typer.Option(
+            min=0,
+            max=MAX_ERROR_RAD * 1e6,
+            help="Half-width of the random squareness errors, urad (at most what an error"
+            " table holds).",
+        ),
     ] = 20.0,
     tolerance_um: Annotated[
         float | None,
         typer.Option(
+            min=0,
             help="Report the share of trials within this: volumetric error after comp "
-            "(calibration) or launch position error (identification), um."
+            "(calibration) or launch position error (identification), um.",
         ),
     ] = None,
     out: Annotated[Path, typer.Option(help="Directory for mc.json and the plots.")] = Path("mc"),
@@ -228,14 +252,14 @@ def mc(
     from sim.mc import StudySettings, run_study, strategies
     from sim.mc_plots import plot_envelopes, plot_histograms, plot_volumetric_map
 
-    if error_scale < 0 or squareness_urad < 0:
-        raise InputError("--error-scale and --squareness-urad must not be negative")
-    if workers < 0:
-        raise InputError(f"--workers {workers}: must be 0 (every core) or more")
     check_seed(seed)
+    if mode == "instruments":
+        amplitudes = ErrorAmplitudes(scale=error_scale, squareness_urad=squareness_urad)
+        compare_instruments_command(machine_or_default(machine), trials, seed, amplitudes, out)
+        return
     written_names = ("mc.json", "histograms.png", "envelopes.png", "volumetric.png")
+    check_output_folder(out, "--out")
     refuse_overwriting({"--machine": machine}, {"--out": [out / name for name in written_names]})
-    output_folder(out, "--out")
     settings = StudySettings(
         mode=mode,
         max_trials=trials,
@@ -247,6 +271,7 @@ def mc(
     )
     chosen_machine = machine_or_default(machine)
     chosen = strategies(chosen_machine, vary.split(","))
+    output_folder(out, "--out")
     progress = Progress(
         TextColumn("trials"),
         BarColumn(),
@@ -260,9 +285,11 @@ def mc(
             chosen_machine, chosen, settings, executor, lambda: progress.advance(task)
         )
         progress.update(task, total=sum(r.trials for r in results))
+    _refuse_if_every_trial_failed(results)
     # the results first: nothing after this may lose minutes of trials
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "mc.json", _results_json(results, settings, chosen_machine.name))
+    output_folder(out, "--out")
+    document = _results_json(results, settings, chosen_machine.name, sources(machine=machine))
+    atomic_write_text(out / "mc.json", document)
     console.print(_table(results, tolerance_um, mode))
     written = [
         out / "mc.json",

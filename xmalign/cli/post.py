@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 from typing import Annotated
@@ -12,23 +13,33 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
+    ForceOption,
     console,
     error_console,
     machine_for_plan,
     machine_or_default,
     output_folder,
-    refuse_overwriting,
 )
+from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
-from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_files, read_text
-from xmalign.formats.error_tables import read_error_tables, write_error_tables
+from xmalign.errors import InputError, MachineKeyError
+from xmalign.formats.common import (
+    PathsOf,
+    atomic_write_files,
+    read_text,
+    refuse_overwriting,
+    refuse_replacing,
+    same_file,
+)
+from xmalign.formats.error_tables import error_tables_text, read_error_tables
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import read_plan
-from xmalign.machine import Machine
+from xmalign.formats.provenance import FileSource, sources
+from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
-from xmalign.steps import comp_step
+from xmalign.steps import as_left_step, comp_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -73,7 +84,16 @@ def _stations(
             f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
             " launch-unit station, in the same order"
         )
+    for later, path in enumerate(data[1:], start=1):
+        first = next(k for k, other in enumerate(data) if same_file(path, other))
+        if first < later:
+            raise InputError(
+                f"{path}: --data is given for station {first + 1} and again for station"
+                f" {later + 1}; its points would count twice (give each station's data once)"
+            )
     read = [(read_plan(plan_path), plan_path) for plan_path in plans]
+    if not read:
+        return machine_or_default(machine), []
     machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
     limits = ChannelLimits.of_ranges(**machine_.interferometer.ranges())
     stations = []
@@ -85,15 +105,23 @@ def _stations(
 
 
 def post(
-    plan: Annotated[
-        list[Path],
-        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
-    ],
-    data: Annotated[
-        list[Path],
-        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
-    ],
     out: Annotated[Path, typer.Option(help="Error-table CSV to write.")],
+    plan: Annotated[
+        list[Path] | None,
+        typer.Option(help="Measurement plan (xmalign.plan/1 JSON); once per station, in order."),
+    ] = None,
+    data: Annotated[
+        list[Path] | None,
+        typer.Option(help="Measurement CSV written by xmalign run; once per station, in order."),
+    ] = None,
+    tracker: Annotated[
+        list[Path] | None,
+        typer.Option(help="Laser-tracker points (tracker-points/1 CSV); repeatable."),
+    ] = None,
+    tracer: Annotated[
+        list[Path] | None,
+        typer.Option(help="Laser-tracer lengths (tracer-lengths/1 CSV); repeatable."),
+    ] = None,
     machine: MachineOption = None,
     report: Annotated[
         Path | None, typer.Option(help="Also write the calibration record here (.html or .pdf).")
@@ -136,7 +164,13 @@ def post(
 
     With --verify-data, the measurement made after loading the compensation is
     posted on its own and compared with the calibration (as found / as left).
+
+    --tracker and --tracer files (each repeatable) join the same fit, with or
+    without lines: every tracker station brings its pose, every tracer place its
+    pivot and constants, each reading weighted with its instrument's uncertainty.
     """
+    plan, data, tracker, tracer = plan or [], data or [], tracker or [], tracer or []
+    check_inputs(plan, tracker, tracer, verify_data is not None and verify_plan is None)
     if verify_data is None and (verify_plan or verify_controller):
         option = "--verify-plan" if verify_plan else "--verify-controller"
         raise InputError(f"{option} needs --verify-data (the verification measurement)")
@@ -148,16 +182,25 @@ def post(
             "--units": units,
             "--verify-plan": verify_plan,
             "--verify-data": verify_data,
+            "--tracker": tracker,
+            "--tracer": tracer,
         },
         {"--out": out, "--report": report},
     )
+    if report is not None:
+        from xmalign.report import check_report_name
+
+        check_report_name(report)
     instruments = _instrument_serials(units) if units is not None else {}
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = _stations(plan, data, machine)
+        readings = read_instruments(tracker, tracer)
         points = sum(len(station.rows) for station in stations)
-        progress.update(task, description=f"fitting {points} points")
-        result = post_stations(machine_, stations)
+        extra = count_readings(readings)
+        fitting = ([f"{points} points"] if stations else []) + ([extra] if extra else [])
+        progress.update(task, description=f"fitting {', '.join(fitting)}")
+        result = post_stations(machine_, stations, instruments=readings)
         verification = None
         if verify_data is not None:
             progress.update(task, description="fitting the verification run")
@@ -165,11 +208,12 @@ def post(
             verification = _post_verification(
                 verify_plan or plan[0], verify_data, machine, applied.mean
             )
-        write_error_tables(out, result.fit.tables)
+        inputs = _inputs(plan, data, machine) + _instrument_inputs(tracker, tracer)
+        files = {out: error_tables_text(result.fit.tables, inputs, machine_).encode("utf-8")}
         if report is not None:
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
-            from xmalign.report import RecordInfo, write_report
+            from xmalign.report import RecordInfo, report_bytes
 
             info = RecordInfo.of_compensation(
                 result.compensation,
@@ -178,8 +222,13 @@ def post(
                 vdi3441=vdi3441,
                 verification=verification,
             )
-            write_report(report, machine_, result, machine_.controller, info)
+            files[report] = report_bytes(report, machine_, result, machine_.controller, info)
+        # the tables and the report together, or neither (a failed report leaves no tables)
+        atomic_write_files(files)
     console.print(_summary(result))
+    if result.instruments is not None:
+        for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
+            console.print(note, markup=False, soft_wrap=True)
     if verification is not None:
         console.print(_as_left(machine_, result, verification))
     for note in dict.fromkeys(result.notes):
@@ -193,18 +242,31 @@ def post(
             soft_wrap=True,
         )
     for warning in result.warnings:
-        console.print(f"[yellow]warning:[/yellow] {warning}")
+        console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )
+
+
+def _inputs(plans: list[Path], data: list[Path], machine: Path | None) -> list[FileSource]:
+    """The files error tables are made from: each station's measurements and plan, the machine."""
+    stations = [sources(measurements=d, plan=p) for p, d in zip(plans, data, strict=True)]
+    return [source for pair in stations for source in pair] + sources(machine=machine)
+
+
+def _instrument_inputs(tracker: list[Path], tracer: list[Path]) -> list[FileSource]:
+    """The tracker and tracer files the tables were made from."""
+    return [FileSource.of("tracker", p) for p in tracker] + [
+        FileSource.of("tracer", p) for p in tracer
+    ]
 
 
 def _post_verification(
     plan: Path, data: Path, machine: Path | None, applied: ErrorTables
 ) -> PostResult:
     """The verification run posted on its own, with the tables ``applied`` during it."""
-    machine_, stations = _stations([plan], [data], machine)
-    return post_stations(machine_, stations, applied)
+    plan_ = read_plan(plan)
+    return as_left_step(machine_for_plan(machine, plan_, plan), plan_, data, applied)
 
 
 def _as_left(machine: Machine, result: PostResult, verification: PostResult) -> RichTable:
@@ -244,30 +306,37 @@ def comp(
             help="LinuxCNC: the machine's INI; writes a merged copy (linuxcnc-volumetric: needed)."
         ),
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Fit the controller's compensation model over the whole travel and write its tables."""
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
+    tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
+    machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_files
 
         files, done = volumetric_files(tables, machine_, ini, out)
-        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini})
+        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini}, force)
         console.print(done, highlight=False)
+        _warn(machine_notes)
         return
     inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
-    result = comp_step(
-        machine_,
-        tables,
-        out,
-        name,
-        more_files=None
-        if ini is None
-        else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-        check_outputs=lambda paths: refuse_overwriting(inputs, {"--out": paths}),
-    )
+    try:
+        result = comp_step(
+            machine_,
+            tables,
+            out,
+            name,
+            more_files=None
+            if ini is None
+            else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
+            check_outputs=partial(_check_outputs, inputs, force=force),
+        )
+    except MachineKeyError as error:
+        raise error.in_file(str(machine or default_machine_path())) from error
     fit = result.fit
     console.print(
         f"{name}: wrote {', '.join(sorted(result.files))} in {out}\n"
@@ -282,6 +351,9 @@ def comp(
             f" ({100 * (1 - fit.after_optional_um / fit.before_um):.0f} % removed)",
             highlight=False,
         )
+    for line in result.loading.lines():
+        console.print(line, highlight=False)
+    _warn(machine_notes)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
@@ -296,10 +368,23 @@ def comp(
         )
 
 
-def _write_outputs(out: Path, files: dict[str, str], inputs: dict[str, Path | None]) -> None:
+def _warn(warnings: list[str]) -> None:
+    for warning in warnings:
+        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
+
+
+def _check_outputs(inputs: Mapping[str, PathsOf], paths: list[Path], force: bool) -> None:
+    """A controller's files never replace an input, nor (without --force) a file in --out."""
+    refuse_overwriting(inputs, {"--out": paths})
+    refuse_replacing({"--out": paths}, force)
+
+
+def _write_outputs(
+    out: Path, files: dict[str, str], inputs: Mapping[str, PathsOf], force: bool
+) -> None:
     """All of a controller\x27s files into ``out``, or none; never over one of the inputs."""
     output_folder(out, "--out")
-    refuse_overwriting(inputs, {"--out": [out / name for name in files]})
+    _check_outputs(inputs, [out / name for name in files], force)
     atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
 
 

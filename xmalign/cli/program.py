@@ -17,14 +17,29 @@ from trajectories.identification_design import IdentificationDesign, design_iden
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from trajectories.stations import propose_second_station
-from xmalign.cli.common import console, error_console, machine_or_default, refuse_overwriting
+from xmalign.cli.common import (
+    ForceOption,
+    check_positions,
+    console,
+    error_console,
+    machine_or_default,
+)
+from xmalign.cli.instruments import (
+    InstrumentRequest,
+    check_instrument_options,
+    program_instrument,
+)
 from xmalign.errors import GeometryError, InputError
-from xmalign.formats.common import atomic_write_text, write_json
+from xmalign.formats.common import (
+    atomic_write_text,
+    refuse_overwriting,
+    refuse_replacing,
+)
 from xmalign.formats.plan import write_plan
 from xmalign.formats.pose import read_pose
+from xmalign.formats.provenance import sources
+from xmalign.formats.studies import write_design
 from xmalign.machine import Machine
-
-DESIGN_FORMAT = "xmalign.identify-design/1"
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -80,15 +95,38 @@ def program(
         str | None,
         typer.Option(help="Comma-separated lines to plan, e.g. Z,YZ,XZ (default: all six)."),
     ] = None,
+    instrument: Annotated[
+        str | None,
+        typer.Option(help="Plan for a laser 'tracker' or 'tracer' instead (no --pose needed)."),
+    ] = None,
+    on_the_fly: Annotated[
+        bool, typer.Option("--on-the-fly", help="Tracker: paths on the fly, not points.")
+    ] = False,
+    places: Annotated[int | None, typer.Option(help="Tracer: how many places (default 4).")] = None,
+    points_out: Annotated[
+        Path | None,
+        typer.Option(help="With --instrument: the point list for the instrument's software."),
+    ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
 
     With all six lines it also proposes a second launch-unit station whose lines
     complete the strokes (docs/post.md); plan that station with --lines.
+
+    With --instrument tracker (--on-the-fly) or tracer (--places N): the points
+    or paths of a laser-tracker or laser-tracer calibration over the whole travel.
     """
+    check_instrument_options(instrument, on_the_fly, places)
+    if instrument is not None:
+        refuse_replacing({"--out": out, "--points-out": points_out}, force)
+        request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
+        program_instrument(machine_or_default(machine), request)
+        return
     refuse_overwriting(
         {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
     )
+    refuse_replacing({"--plan-out": plan_out, "--out": out}, force)
     if not pose.exists():
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"
@@ -121,7 +159,7 @@ def program(
         highlight=False,
     )
     if plan_out is not None:
-        write_plan(plan_out, measurement.plan)
+        write_plan(plan_out, measurement.plan, sources(pose=pose, machine=machine))
     if out is not None:
         atomic_write_text(out, text)
     else:
@@ -182,6 +220,7 @@ def plan_identify(
     ] = None,
 ) -> None:
     """Propose machine positions for identification that minimise the pose uncertainty."""
+    check_positions(count, "--count")
     refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
     with error_console.status("optimising the identification positions"):
@@ -195,14 +234,12 @@ def plan_identify(
         f" z {1e3 * std[2]:.1f} um, gamma {1e6 * std[3]:.1f} urad"
     )
     if out is not None:
-        write_json(
+        write_design(
             out,
-            {
-                "format": DESIGN_FORMAT,
-                "machine": machine_model.name,
-                "machine_mm": design.machine_mm.tolist(),
-                "predicted_covariance": design.pose_covariance.tolist(),
-            },
+            machine_model.name,
+            design.machine_mm,
+            design.pose_covariance,
+            sources(machine=machine),
         )
 
 

@@ -17,12 +17,14 @@ from rich.table import Table
 from xmalign.calibration import (
     CalibrationRun,
     RunOutput,
+    RunStatistics,
     capture_sequence,
     check_run_output,
     open_run_output,
 )
 from xmalign.cli.common import (
     LogFileOption,
+    check_positions,
     check_seed,
     console,
     error_console,
@@ -31,22 +33,24 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
+from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
+from xmalign.formats.common import refuse_overwriting
 from xmalign.formats.measurements import ChannelLimits, load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
+from xmalign.safety import like
 
 if TYPE_CHECKING:
     from sim.dry_run import DryRunOptions
 
-ShopOption = Annotated[
-    str,
-    typer.Option(
-        help="With --sim: the virtual shop's air and machine temperature: 'drifting'"
-        " (air 22 -> 25 °C, machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
-    ),
-]
+_SHOP_HELP = (
+    "the virtual shop's air and machine temperature: 'drifting' (air 22 -> 25 °C,"
+    " machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
+)
+ShopOption = Annotated[str, typer.Option(help=f"With --sim: {_SHOP_HELP}")]
+DryRunShopOption = Annotated[str, typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:])]
 InProcessOption = Annotated[
     bool,
     typer.Option(
@@ -74,13 +78,16 @@ def _point_count(plan: Plan) -> int:
     return sum(len(list(capture_sequence(line))) for line in plan.lines)
 
 
-def _stopped(out: Path, also: str = "") -> KeyboardInterrupt:
-    """Ctrl-C: one line saying what is kept and how to go on (printed by the CLI, exit 130)."""
+def _stopped(interrupt: KeyboardInterrupt, out: Path, also: str = "") -> KeyboardInterrupt:
+    """Ctrl-C (SIGTERM, SIGHUP): one line saying what is kept and how to go on.
+
+    Printed by the CLI, exit 130 (128 + the signal's number).
+    """
     try:
         saved = len(load_measurements(out, torn_ok=True).rows)
     except XmalignError:
         saved = 0
-    return KeyboardInterrupt(f"stopped: {saved} points kept in {out}; go on with --resume{also}")
+    return like(interrupt, f"stopped: {saved} points kept in {out}; go on with --resume{also}")
 
 
 def _kept(error: XmalignError, output: RunOutput) -> XmalignError:
@@ -175,31 +182,64 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     """Check the hardware configuration, open the devices; the live measurement."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.roles import WallClock
-    from xmalign.steps import RunStepDevices, following_drive, run_step, stepping_drive
+    from xmalign.steps import (
+        RunStepDevices,
+        controlled_drive,
+        following_drive,
+        run_step,
+        stepping_drive,
+        write_controller_program,
+    )
 
     config = load_units_config(config_path)
     devices = open_devices(config, machine)
+    rsh = config.machine_position.linuxcncrsh
 
     def capture(output: RunOutput) -> CalibrationRun:
-        drive = (
-            following_drive(devices.mover, _tell_operator, machine)
-            if config.machine_position.follows_the_machine
-            else stepping_drive(devices.mover, machine)
-        )
+        if devices.controller is not None and rsh is not None:
+            write_controller_program(plan, machine, "linuxcnc", rsh.program)
+            drive = controlled_drive(
+                devices.controller,
+                rsh.cnc_program_path,
+                _tell_operator,
+                machine,
+                rsh.tolerance_mm,
+                config.timeouts.machine_s,
+            )
+        elif config.machine_position.follows_the_machine:
+            drive = following_drive(devices.mover, _tell_operator, machine)
+        else:
+            drive = stepping_drive(devices.mover, machine)
         roles = RunStepDevices(
             devices.launch, devices.receiver, devices.interferometer, WallClock()
         )
-        return run_step(plan, roles, output, drive)
+        run = run_step(plan, roles, output, drive)
+        if run.statistics.program_s is not None:
+            _tell_machine_time(plan, machine, run.statistics)
+        return run
 
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
     )
-    try:
+    with devices:
         yield Measurement(
             lambda output: _measure(output, plan, lambda: capture(output)), environment
         )
-    finally:
-        devices.close()
+
+
+def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) -> None:
+    """The program's time on the machine against the G-code's own estimate."""
+    from trajectories.gcode.program import estimate_machine_time
+
+    assert statistics.program_s is not None
+    estimate = estimate_machine_time(plan, machine).total_s
+    console.print(
+        f"machine time {statistics.program_s - statistics.stopped_s:.1f} s without the"
+        f" {statistics.stopped_s:.1f} s at the stops for the units (G-code estimate"
+        f" {estimate:.1f} s); program {statistics.program_s:.1f} s from start to end",
+        markup=False,
+        soft_wrap=True,
+    )
 
 
 def _tell_operator(message: str) -> None:
@@ -252,6 +292,11 @@ def run_command(
     if in_process and not sim:
         raise InputError("--in-process is for --sim (a live run always uses the hardware)")
     check_seed(seed)
+    refuse_overwriting(
+        {"--plan": plan, "--machine": machine, "--config": config, "--program": program},
+        {"--out": out},
+        {"--log-file": log_file},
+    )
     check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
@@ -263,12 +308,14 @@ def run_command(
             _measurement(
                 machine_model, plan_model, sim, config, seed, program, dialect, shop, in_process
             ) as measurement,
-            open_run_output(out, plan_model, resume, limits, measurement.environment) as output,
+            open_run_output(
+                out, plan_model, resume, limits, measurement.environment, seed if sim else None
+            ) as output,
         ):
             try:
                 measurement.measure(output)
-            except KeyboardInterrupt:
-                raise _stopped(out) from None
+            except KeyboardInterrupt as interrupt:
+                raise _stopped(interrupt, out) from None
     finally:
         stop_log_file(log_handler)
 
@@ -350,6 +397,7 @@ def _results_table(report: object) -> Table:
 
 
 def _dry_run_stopped(
+    interrupt: KeyboardInterrupt,
     out: Path,
     stage: str,
     seed: int,
@@ -360,12 +408,13 @@ def _dry_run_stopped(
 ) -> KeyboardInterrupt:
     """Ctrl-C in a dry run: what is kept, and for the run stage how to go on."""
     if stage != "run":
-        return KeyboardInterrupt(f"stopped during {stage}: the files so far are in {out}/")
+        return like(interrupt, f"stopped during {stage}: the files so far are in {out}/")
     options = f" --machine {machine}" if machine else ""
     options += f" --dialect {dialect}" if dialect else ""
     options += f" --shop {shop}"
     options += " --in-process" if in_process else ""
     return _stopped(
+        interrupt,
         out / "measurements.csv",
         f" (xmalign run --sim --seed {seed}{options} --plan {out / 'plan.json'}"
         f" --out {out / 'measurements.csv'} --resume)",
@@ -388,7 +437,7 @@ def dry_run_command(
             min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
         ),
     ] = 1,
-    shop: ShopOption = "drifting",
+    shop: DryRunShopOption = "drifting",
     verify: Annotated[
         bool,
         typer.Option(
@@ -405,13 +454,23 @@ def dry_run_command(
             " Modbus TCP, a serial pty and a position file (docs/simulator.md).",
         ),
     ] = False,
+    instrument: Annotated[
+        str,
+        typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
+    ] = "xm60",
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
+    from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
+    if instrument != "xm60":
+        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        return
+    check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
+    resolve_dialect(machine_model, dialect)  # a bad --dialect before any folder is made
     check_dry_run_folder(out)
     options = DryRunOptions(
         seed=seed,
@@ -442,9 +501,11 @@ def dry_run_command(
 
         try:
             report = simulate_calibration(machine_model, out, options, on_stage, on_point)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as interrupt:
             stage = started[-1] if started else "start"
-            raise _dry_run_stopped(out, stage, seed, machine, dialect, shop, in_process) from None
+            raise _dry_run_stopped(
+                interrupt, out, stage, seed, machine, dialect, shop, in_process
+            ) from None
         progress.update(task, completed=stages, description="dry run: done")
     console.print(_results_table(report))
     design = [f"identification design: {warning}" for warning in report.design_warnings]

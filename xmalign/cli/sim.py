@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import signal
 import sys
 import threading
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -20,13 +22,15 @@ from xmalign.cli.common import (
     start_log_file,
     stop_log_file,
 )
-from xmalign.errors import InputError
+from xmalign.errors import DeviceError, InputError
+from xmalign.formats.common import located, read_text, refuse_overwriting
 from xmalign.machine import Machine
 
 if TYPE_CHECKING:
     from sim.servers.served_cnc import ServedCnc
     from sim.world import World
 
+log = logging.getLogger(__name__)
 sim_app = typer.Typer(help="The simulator: virtual machine, positioning units, interferometer.")
 
 
@@ -36,6 +40,40 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     if not port.isdigit() or not 0 <= int(port) <= 65535 or (":" in text and not host):
         raise InputError(f"--modbus '{text}': expected PORT or HOST:PORT, e.g. 5020")
     return host or default_host, int(port)
+
+
+def _check_position_file(path: Path) -> None:
+    """An existing ``--position-file`` must be one: anything else would be overwritten."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    from firmware_iface.machine_position import parse_position
+
+    first = read_text(path).partition("\n")[0]
+    if parse_position(first) is None:
+        raise InputError(
+            located(
+                path,
+                "--position-file",
+                "holds something other than a machine position ('x y z'); the simulated"
+                " CNC would overwrite it: give a new file name",
+            )
+        )
+
+
+def _check_can_options(channel: str, interface: str, hop_limit: int) -> None:
+    from firmware_iface.can_bus import UDP_LOCAL, check_interface, multicast_group
+
+    try:
+        check_interface(interface)
+    except ValueError as error:
+        raise InputError(f"--can-interface {interface}: {error}") from error
+    if interface == UDP_LOCAL:
+        try:
+            multicast_group(channel)
+        except ValueError as error:
+            raise InputError(f"--canopen {channel}: {error}") from error
+    if not 0 <= hop_limit <= 255:
+        raise InputError(f"--can-hop-limit {hop_limit}: expected 0 to 255")
 
 
 @sim_app.command()
@@ -63,16 +101,24 @@ def serve(
     canopen: Annotated[
         str | None,
         typer.Option(
-            help="Serve every axis of both units as CiA 402 nodes on this python-can "
-            "channel (a multicast group for udp_multicast, a name for virtual)."
+            help="Serve every axis of both units as CiA 402 nodes on this CAN channel (an"
+            " IPv4 multicast group such as 239.74.163.2 for udp_local)."
         ),
     ] = None,
     can_interface: Annotated[
-        str, typer.Option(help="python-can interface of --canopen.")
-    ] = "udp_multicast",
+        str,
+        typer.Option(
+            help="CAN interface of --canopen: udp_local (the simulated bus between processes)"
+            " or a python-can interface (socketcan, virtual, ...)."
+        ),
+    ] = "udp_local",
+    can_host: Annotated[
+        str,
+        typer.Option(help="udp_local: address of the network interface the bus runs on."),
+    ] = "127.0.0.1",
     can_hop_limit: Annotated[
         int,
-        typer.Option(help="udp_multicast TTL / hop limit; 0 keeps the bus on this computer."),
+        typer.Option(help="udp_local TTL / hop limit; 0 keeps the bus on this computer."),
     ] = 0,
     interferometer_pty: Annotated[
         bool, typer.Option(help="Serve the interferometer on a new pty (path printed).")
@@ -103,6 +149,21 @@ def serve(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect of --program (default: controller's).")
     ] = None,
+    linuxcncrsh: Annotated[
+        str | None,
+        typer.Option(
+            help="Serve a simulated CNC as LinuxCNC's remote shell linuxcncrsh on PORT (or"
+            " HOST:PORT): units.yaml machine_position source: linuxcncrsh runs its program."
+        ),
+    ] = None,
+    follow_position_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="A file another CNC keeps its tool point in (last line 'x y z', mm; e.g. a"
+            " real LinuxCNC's actual position): the virtual machine carries the receiver"
+            " there. A line 'block-beam SECONDS' on standard input then interrupts the beam."
+        ),
+    ] = None,
 ) -> None:
     """Serve the simulated devices until interrupted (Ctrl-C stops cleanly)."""
     # imported here: the simulator is only loaded when serving
@@ -114,6 +175,12 @@ def serve(
         raise InputError("--modbus-receiver serves the receiver: --unit must be launch")
     if (position_file is None) != (program is None):
         raise InputError("--position-file and --program go together")
+    cncs = [follow_position_file, position_file, linuxcncrsh]
+    if sum(option is not None for option in cncs) > 1:
+        raise InputError(
+            "give one of --position-file, --follow-position-file and --linuxcncrsh:"
+            " the machine has one CNC"
+        )
     nothing = modbus is None and modbus_receiver is None and not rtu and canopen is None
     if nothing and not interferometer_pty and not station_pty and position_file is None:
         raise InputError(
@@ -121,8 +188,15 @@ def serve(
             " --interferometer-pty, --station-pty and/or --position-file"
         )
     check_seed(seed)
-    if can_hop_limit < 0:
-        raise InputError(f"--can-hop-limit {can_hop_limit}: expected 0 or more")
+    refuse_overwriting(
+        {"--machine": machine, "--program": program},
+        {"--position-file": position_file},
+        {"--log-file": log_file},
+    )
+    if position_file is not None:
+        _check_position_file(position_file)
+    if canopen is not None:
+        _check_can_options(canopen, can_interface, can_hop_limit)
     address = _host_port(modbus, host) if modbus is not None else None
     receiver_address = _host_port(modbus_receiver, host) if modbus_receiver is not None else None
     kind: Literal["launch", "receiver"] = "launch" if unit == "launch" else "receiver"
@@ -139,6 +213,7 @@ def serve(
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     with ExitStack() as servers:
         servers.callback(stop_log_file, log_handler)
+        died = servers.enter_context(stop_when_a_thread_dies(stopped))
         from sim.servers.modbus import ControllingHost
 
         controlling_host = ControllingHost()  # one per unit, whichever server it writes on
@@ -174,12 +249,16 @@ def serve(
             from sim.servers.canopen_node import CanopenUnitServer
 
             nodes = CanopenUnitServer(
-                [world.launch, world.receiver], canopen, can_interface, hop_limit=can_hop_limit
+                [world.launch, world.receiver],
+                canopen,
+                can_interface,
+                hop_limit=can_hop_limit,
+                host=can_host,
             )
-            nodes.start()
             servers.callback(nodes.stop)
+            nodes.start()
             console.print(
-                f"canopen nodes {nodes.node_ids} on {can_interface} channel {canopen}",
+                f"canopen nodes {nodes.node_ids} on {nodes.bus_info}",
                 highlight=False,
             )
         if interferometer_pty:
@@ -194,6 +273,12 @@ def serve(
 
             port = serve_station(world, servers)
             console.print(f"weather station on {port}", highlight=False)
+        if linuxcncrsh is not None:
+            where = _serve_linuxcncrsh(world, machine_model, _host_port(linuxcncrsh, host), servers)
+            console.print(f"linuxcncrsh on {where}", highlight=False)
+        if follow_position_file is not None:
+            _follow_position_file(world, follow_position_file, servers)
+            console.print(f"machine follows {follow_position_file}", highlight=False)
         if served_cnc is not None:
             served_cnc.start()
             servers.callback(served_cnc.stop)
@@ -202,7 +287,33 @@ def serve(
         console.print("serving; Ctrl-C to stop", highlight=False)
         while not stopped.wait(0.2):
             pass
+    if died:
+        raise DeviceError(f"sim serve stopped: {died[0]}")
     console.print("stopped")
+
+
+@contextmanager
+def stop_when_a_thread_dies(stopped: threading.Event) -> Iterator[list[str]]:
+    """While inside, an exception that ends any thread (a server's) sets ``stopped``.
+
+    Yields the list of what ended them (thread name and error), so that ``serve``
+    stops with one line instead of saying "serving" with a device gone. The
+    traceback goes to the log.
+    """
+    died: list[str] = []
+    previous = threading.excepthook
+
+    def thread_died(args: threading.ExceptHookArgs) -> None:
+        name = args.thread.name if args.thread is not None else "a thread"
+        died.append(f"{name}: {args.exc_type.__name__}: {args.exc_value}")
+        log.error("sim serve: thread %s died", name, exc_info=args.exc_value)
+        stopped.set()
+
+    threading.excepthook = thread_died
+    try:
+        yield died
+    finally:
+        threading.excepthook = previous
 
 
 def _served_cnc(
@@ -224,6 +335,42 @@ def _served_cnc(
         position_file,
         tell,
     )
+
+
+def _serve_linuxcncrsh(
+    world: World, machine: Machine, address: tuple[str, int], servers: ExitStack
+) -> str:
+    """A simulated CNC moving the world's machine, commanded over linuxcncrsh's protocol."""
+    from sim.cnc import SimulatedCnc
+    from sim.servers.linuxcncrsh import LinuxcncrshServer
+
+    cnc = SimulatedCnc(machine, world.clock)
+    world.interferometer.position = cnc
+    server = LinuxcncrshServer(cnc, machine, *address)
+    server.start()
+    servers.callback(server.stop)
+    return server.where
+
+
+def _follow_position_file(world: World, path: Path, servers: ExitStack) -> None:
+    """The world's receiver carried where the file says the CNC stands; 'block-beam S'
+    lines on standard input interrupt the beam for S seconds."""
+    from firmware_iface.machine_position import FilePositions
+    from sim.servers.followed_machine import FollowedMachine
+
+    followed = FollowedMachine(FilePositions(path))
+    world.interferometer.position = followed
+    followed.start()
+    servers.callback(followed.stop)
+
+    def read() -> None:
+        for line in sys.stdin:
+            words = line.split()
+            if len(words) == 2 and words[0] == "block-beam":
+                world.interferometer.interrupt(float(words[1]))
+                console.print(f"beam blocked for {words[1]} s", highlight=False)
+
+    threading.Thread(target=read, name="beam-commands", daemon=True).start()
 
 
 def _press_cycle_start_on_enter(served_cnc: ServedCnc) -> None:

@@ -1,7 +1,9 @@
 """Compensation tables for CNC controllers, one module per controller.
 
 Each module has ``NAME``, ``MODEL`` (a :class:`~xmalign.comp.fit.CompModel`: what
-its tables can apply) and ``render(fit, machine) -> {file name: text}``. The
+its tables can apply), ``render(fit, machine) -> {file name: text}`` and
+``loading(fit, machine) -> Loading`` (who carries the reversal, the one check on
+the machine, what the maker's manual left open). The
 tables are fitted once, here, by :func:`~xmalign.comp.fit.fit_compensation`
 over the machine's whole travel at its tool point; a writer only formats them.
 """
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 from types import ModuleType
 
 from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
+from xmalign.comp.common import Loading
 from xmalign.comp.fit import CompensationFit, fit_compensation
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
@@ -47,17 +50,19 @@ def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> Compens
 
 @dataclass(frozen=True)
 class Compensation:
-    """What ``xmalign comp`` produced: the fit (residuals) and the files."""
+    """What ``xmalign comp`` produced: the fit (residuals), the files and how to load them."""
 
     controller: str
     fit: CompensationFit
     files: dict[str, str]
+    loading: Loading
 
 
 def compensate(machine: Machine, tables: ErrorTableSet, controller: str) -> Compensation:
     """Fit the controller's model and format its files."""
     fit = fit_for(machine, tables, controller)
-    return Compensation(controller, fit, writer(controller).render(fit, machine))
+    module = writer(controller)
+    return Compensation(controller, fit, module.render(fit, machine), module.loading(fit, machine))
 
 
 def remaining_errors(tables: ErrorTableSet, controller: str, machine: Machine) -> ErrorModel:
@@ -68,6 +73,7 @@ def remaining_errors(tables: ErrorTableSet, controller: str, machine: Machine) -
 __all__ = [
     "WRITERS",
     "Compensation",
+    "Loading",
     "compensate",
     "fit_for",
     "remaining_errors",

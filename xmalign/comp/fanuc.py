@@ -8,23 +8,29 @@ report A-77810E "Bidirectional pitch error compensation":
   positive direction), 3623 magnification, 3624 interval (detection units);
   with bidirectional compensation (3605#0 = 1) also 3626 the most distant
   point on the - side for travel in the negative direction (that table has as
-  many points as the positive one) and 3627 the absolute compensation at the
-  reference position when it is approached from the negative side;
+  many points as the positive one) and 3627 the compensation (absolute value)
+  at the reference position when it is approached in the direction *opposite to
+  the reference-return direction* (A-77810E, table (a));
 - compensation points lie at multiples of the interval from the reference
   position; the value at point ``R + i`` is the *incremental* correction for
   the section from ``(i - 1)·interval`` to ``i·interval``, so the most distant
-  point on the - side is ``R - stroke/interval + 1`` (the manual's example);
-  values are detection units times the magnification, -127 .. 127 each;
+  point on the - side is ``R - stroke/interval + 1`` (the 0i-PB parameter
+  manual's example, B-63980EN/01 p. 100);
 - the point numbers 0 .. 1023 are shared by all axes;
-- parameter tape format ``N<param>A<axis>P<value>...;`` and pitch data
-  ``N1<point>P<value>;`` (``N10000`` is point 0), between ``%`` lines.
+- parameter tape format ``N<param>A<axis>P<value>...;`` (Series 30i/31i/32i:
+  ``N<param>Q1A<axis>P<value>...;``) and pitch data ``N1<point>P<value>;``
+  (``N10000`` is point 0), between ``%`` lines.
 
-The correction is minus the fitted positioning error, zero at the reference
-position (the machine file's ``cnc.reference_mm``, where the reference return
-is taken to be made in the positive direction). The detection unit is the
-machine file's ``cnc.detection_unit_um`` (1 um for IS-B, 0.1 um for IS-C).
-Bit parameter 3605#0 and the power cycle are left to the operator
-(``PITCH_README.TXT``): a tape would overwrite the other bits of 3605.
+The correction is minus the fitted positioning error. Each direction's table is
+zero at the reference position (the machine file's ``cnc.reference_mm``) when
+it is approached in that axis's reference-return direction (``cnc.reference_return``,
+else inferred from where the reference lies in the travel: at the lower end the
+return is made in ``-``), so 3627 is the reversal there, with its sign. The
+detection unit is the machine file's ``cnc.detection_unit_um`` (1 um for IS-B,
+0.1 um for IS-C). Bit parameter 3605#0 and the power cycle are left to the
+operator (``PITCH_README.TXT``): a tape would overwrite the other bits of 3605.
+Not settled from a manual (said in the README file and by ``xmalign comp``): the
+unit of 3624 on a 30i, the range of one pitch value, the pitch-data tape syntax.
 
 Straightness compensation is a Fanuc option with its own parameters, whose
 numbers and layout differ between series and could not be checked against a
@@ -41,7 +47,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from xmalign.comp.common import axis_number, check_count, has_reversal
+from xmalign.comp.common import (
+    Loading,
+    Reversal,
+    axis_number,
+    backlash_warnings,
+    check_count,
+    own_tables,
+    reversal_statement,
+)
 from xmalign.comp.fit import PITCH, STRAIGHTNESS, CompensationFit, CompModel
 from xmalign.errors import OutOfRangeError
 from xmalign.geometry import Vec
@@ -54,6 +68,10 @@ MAX_POINTS_PER_AXIS = 128
 MAX_POINTS_TOTAL = 1024
 MAX_VALUE = 127
 MAX_MAGNIFICATION = 100
+#: Series whose parameter tape carries ``Q1`` in every parameter block.
+SERIES_WITH_PATH = ("30i", "31i", "32i")
+#: The control's own backlash compensation (cutting feed; 1852 for rapid traverse).
+BACKLASH_PARAMETER = "parameters 1851 and 1852 (backlash compensation)"
 
 
 @dataclass(frozen=True)
@@ -67,9 +85,15 @@ class PitchTable:
     magnification: int
     interval_units: int
     values: np.ndarray
+    reversal: Reversal
     negative_first_number: int | None = None
     negative_values: np.ndarray | None = None
+    #: parameter 3627: the correction at the reference approached against the return
     reference_negative: int = 0
+
+    @property
+    def return_direction(self) -> str:
+        return self.reversal.return_direction
 
     @property
     def count(self) -> int:
@@ -97,30 +121,29 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
     """Fanuc pitch data for one axis, numbered from the first free point ``next_free``.
 
     The reference point number must not be negative, so an axis whose reference
-    lies at its negative end starts one number later.
+    lies at its negative end starts one number later. Corrections are zero at the
+    reference approached in the reference-return direction; 3627 is the correction
+    there approached the other way (A-77810E, table (a)).
     """
     unit_mm = machine.cnc.detection_unit_um * 1e-3
     reference = float(machine.cnc.reference[AXES.index(axis)])
-    positions, forward = fit.table(axis, axis, "+")
-    _, reverse = fit.table(axis, axis, "-")
+    own = own_tables(fit, axis, machine, "Fanuc")
+    positions = own.grid.positions_mm
     interval = _interval_units(positions, unit_mm)
     interval_mm = interval * unit_mm
     sections = _sections(positions, reference, interval_mm)
     at = reference + sections * interval_mm
-    datum = np.interp(reference, positions, forward)
-    correction = -(np.interp(at, positions, forward) - datum) / unit_mm
-    correction_neg = -(np.interp(at, positions, reverse) - datum) / unit_mm
-    bidirectional = has_reversal(fit, axis)
+    correction = -np.interp(at, positions, own.forward) / unit_mm
+    correction_neg = -np.interp(at, positions, own.reverse) / unit_mm
+    opposite = -np.interp(reference, positions, own.table(own.opposite_direction)) / unit_mm
     count = len(sections) - 1
     first_number = max(next_free, int(sections[0]) + 1)
     check_count(count, MAX_POINTS_PER_AXIS, f"{axis} (per axis)", "Fanuc")
     for magnification in range(1, MAX_MAGNIFICATION + 1):
         values = _increments(correction, magnification)
         negative = _increments(correction_neg, magnification)
-        if (
-            max(np.max(np.abs(values)), np.max(np.abs(negative)) if bidirectional else 0)
-            <= MAX_VALUE
-        ):
+        largest = max(np.max(np.abs(values)), np.max(np.abs(negative)) if own.bidirectional else 0)
+        if largest <= MAX_VALUE:
             reference_number = first_number - int(sections[0]) - 1
             return PitchTable(
                 axis=axis,
@@ -130,15 +153,10 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
                 magnification=magnification,
                 interval_units=interval,
                 values=values,
-                negative_first_number=first_number + count if bidirectional else None,
-                negative_values=negative if bidirectional else None,
-                reference_negative=int(
-                    round(
-                        -(np.interp(reference, positions, reverse) - datum)
-                        / unit_mm
-                        / magnification
-                    )
-                ),
+                negative_first_number=first_number + count if own.bidirectional else None,
+                negative_values=negative if own.bidirectional else None,
+                reference_negative=int(round(opposite / magnification)),
+                reversal=own.carrier,
             )
     raise OutOfRangeError(
         f"Fanuc: the {axis} correction changes by more than {MAX_VALUE} x {MAX_MAGNIFICATION}"
@@ -146,9 +164,14 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
     )
 
 
-def _parameter(number: int, values: list[int]) -> str:
+def _parameter(number: int, values: list[int], path: str) -> str:
     axes = "".join(f"A{i}P{v}" for i, v in enumerate(values, start=1))
-    return f"N{number:05d}{axes};"
+    return f"N{number:05d}{path}{axes};"
+
+
+def _path_word(machine: Machine) -> str:
+    """``Q1`` in every parameter block of a Series 30i/31i/32i tape, nothing before."""
+    return "Q1" if machine.series in SERIES_WITH_PATH else ""
 
 
 def pitch_tables(fit: CompensationFit, machine: Machine) -> list[PitchTable]:
@@ -163,7 +186,7 @@ def pitch_tables(fit: CompensationFit, machine: Machine) -> list[PitchTable]:
     return tables
 
 
-def render_tape(tables: list[PitchTable]) -> str:
+def render_tape(tables: list[PitchTable], machine: Machine) -> str:
     """The parameter and pitch-data tape."""
     bidirectional = any(t.negative_values is not None for t in tables)
     fields = [
@@ -179,7 +202,9 @@ def render_tape(tables: list[PitchTable]) -> str:
             (3627, lambda t: t.reference_negative),
         ]
     ordered = sorted(tables, key=lambda t: axis_number(t.axis))
-    lines = ["%", *(_parameter(number, [get(t) for t in ordered]) for number, get in fields)]
+    path = _path_word(machine)
+    lines = ["%"]
+    lines += [_parameter(number, [get(t) for t in ordered], path) for number, get in fields]
     for table in tables:
         lines += [
             f"N{10000 + table.first_number + i:05d}P{int(v)};" for i, v in enumerate(table.values)
@@ -193,15 +218,50 @@ def render_tape(tables: list[PitchTable]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def loading(fit: CompensationFit, machine: Machine) -> Loading:
+    """Reversal, the check on the machine and what the manuals left open."""
+    return _loading(pitch_tables(fit, machine), machine)
+
+
+def _loading(tables: list[PitchTable], machine: Machine) -> Loading:
+    own = [t.reversal for t in tables]
+    interval = ", ".join(
+        f"{t.axis} {t.interval_units * machine.cnc.detection_unit_um * 1e-3:g} mm" for t in tables
+    )
+    return Loading(
+        reversal=reversal_statement(own, BACKLASH_PARAMETER),
+        check=(
+            f"read parameter 3624 back on the parameter screen: the pitch points must lie"
+            f" {interval} apart; then move each axis to a table point away from the reference"
+            " and compare the position with the verification run (xmalign post --verify-data)"
+        ),
+        unconfirmed=(
+            "the unit of 3624 (written in detection units, as on the 0i/16i parameter"
+            " manuals; a 30i may take it in mm)",
+            "the range of one pitch value (written within -127..127 x 3623)",
+            "the tape syntax of the pitch data lines (N1xxxxP...;)"
+            + (" and the Q1 of a 30i tape in them" if machine.series in SERIES_WITH_PATH else ""),
+        ),
+        warnings=backlash_warnings(own, BACKLASH_PARAMETER),
+    )
+
+
 def render_readme(tables: list[PitchTable], machine: Machine) -> str:
     """What to set by hand before and after loading the tape."""
     unit = machine.cnc.detection_unit_um
     lines = [
-        "xmalign: FANUC pitch error compensation (PITCH.TXT)",
+        f"xmalign: FANUC Series {machine.series} pitch error compensation (PITCH.TXT)",
         f"Detection unit assumed: {unit:g} um (machine file cnc.detection_unit_um);"
         " parameter 3624 is in detection units.",
-        "Reference positions (machine coordinates, mm): "
-        + ", ".join(f"{t.axis} {machine.cnc.reference[AXES.index(t.axis)]:g}" for t in tables),
+        "Reference positions (machine coordinates, mm) and reference-return directions: "
+        + ", ".join(
+            f"{t.axis} {machine.cnc.reference[AXES.index(t.axis)]:g} ({t.return_direction})"
+            for t in tables
+        ),
+        "Each table is zero at the reference position approached in its reference-return"
+        " direction (parameter 1006#5 ZMI: 0 = +, 1 = -); 3627 holds the value there"
+        " approached the other way. If the machine returns the other way, change"
+        " cnc.reference_return and run xmalign comp again.",
     ]
     bidirectional = [t.axis for t in tables if t.negative_values is not None]
     if bidirectional:
@@ -216,6 +276,7 @@ def render_readme(tables: list[PitchTable], machine: Machine) -> str:
         "switch the CNC off and on, then make a reference position return on every axis.",
         "STRAIGHTNESS.TXT: for the straightness compensation option (if the machine has it),",
         "corrections to enter by hand; set up the option by the CNC's own manual.",
+        *_loading(tables, machine).lines(),
     ]
     return "\n".join(lines) + "\n"
 
@@ -255,7 +316,7 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the parameter tape and its instructions."""
     tables = pitch_tables(fit, machine)
     return {
-        "PITCH.TXT": render_tape(tables),
+        "PITCH.TXT": render_tape(tables, machine),
         "PITCH_README.TXT": render_readme(tables, machine),
         "STRAIGHTNESS.TXT": render_straightness(fit, machine),
     }

@@ -1,24 +1,37 @@
-"""HEIDENHAIN TNC: nonlinear axis error compensation, ``.COM`` tables and the ``.CMA`` assignment.
+"""HEIDENHAIN: nonlinear axis error compensation, ``.COM`` tables and the ``.CMA`` assignment.
 
-From the technical manuals (TNC 407 ... TNC 640, MANUALplus 620, "Nonlinear axis
-error compensation"):
+Two layouts, by the control's series (the machine file's ``cnc.series``):
 
-- a ``*.COM`` table holds, in column ``AXISPOS``, the compensation points of the
-  axis it depends on, *with respect to the machine datum*, and in the column of
-  each compensated axis (names from ``CfgAxes/axisList``) the compensation
-  values; the values measured in the negative direction of traverse go into
-  column ``BACKLASH``; at most 256 entries per table;
-- the ``*.CMA`` table assigns the ``*.COM`` tables: ``[axis column in .COM] =
-  F(axis column of .CMA in which the .COM is entered)``; a ``*`` in column
-  ``ACTIVE`` activates the line;
-- tables are Heidenhain table files: ``BEGIN <name> MM``, a header line of the
-  column names, the rows, ``[END]``.
+- **MANUALplus 620, TNC 620, TNC 640** (MANUALplus 620 Technical Manual,
+  "Nonlinear axis error compensation", "Entering compensation values", p. 716):
+  a ``*.COM`` table holds, in column ``AXISPOS``, the compensation points *with
+  respect to the machine datum*, in the column of each compensated axis (names
+  from ``CfgAxes/axisList``) the compensation values, and the values measured in
+  the negative direction of traverse in column ``BACKLASH``; at most 256 entries.
+  Every table is zero at the reference point (the axis's own table approached in
+  its reference-return direction).
+- **TNC 4xx** (TNC 407/415/425 Technical Manual, 01.98, pp. 4-28 to 4-31): the
+  compensation points lie at a power-of-two spacing (2^n um) from a datum, the
+  error curve starts at 0 at the datum, and the compensation acts only once MP730
+  selects nonlinear compensation for the axis and a valid ``.CMA`` file exists.
+  xmalign puts the datum at the start of the travel and, as that manual's example
+  does, the largest spacing 2^n x 0.1 um not above the measured one (coarser if 256
+  points would not span the travel); every column is zero at the datum (the axis's
+  own, approached in its reference-return direction).
+
+The ``*.CMA`` table assigns the ``*.COM`` tables: ``[axis column in .COM] =
+F(axis column of .CMA in which the .COM is entered)``; a ``*`` in column
+``ACTIVE`` activates the line (MANUALplus 620 manual, p. 718). The iTNC 530
+uses another layout (numbered columns) that could not be confirmed from a
+manual: it is refused. Tables are Heidenhain table files: ``BEGIN <name> MM``,
+a header line of the column names, the rows, ``[END]``; ``HEIDENHAIN.TXT``
+says which control the files are for and how to activate them.
 
 One table per axis (``X.COM`` = everything that depends on X): the fitted
 one-variable cross tables of that input axis (its own positioning, and the
 straightness, squareness and mean Abbe effect it causes in the other two
-axes), zero at the reference point, and with bidirectional data its own
-negative-direction values in ``BACKLASH``.
+axes), and with bidirectional data its own negative-direction values in
+``BACKLASH``.
 
 Values are the *errors* (mm, actual minus nominal), not corrections: the
 technical manuals enter "only the compensation points of the error curve" in a
@@ -31,10 +44,22 @@ Manual, 01.98, p. 4-26); the control takes them out.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from xmalign.comp.common import check_count, fitted, has_reversal
+from xmalign.comp.common import (
+    Grid,
+    Loading,
+    backlash_warnings,
+    check_count,
+    fitted,
+    own_tables,
+    reversal_statement,
+)
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
+from xmalign.errors import MachineKeyError
+from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXES
 
@@ -42,6 +67,12 @@ NAME = "heidenhain"
 MODEL = CompModel(pairs=CROSS, directional=True)
 MAX_ENTRIES = 256
 CMA_NAME = "CONFIG.CMA"
+README_NAME = "HEIDENHAIN.TXT"
+#: Series whose tables sit at a power-of-two spacing from a datum.
+POWER_OF_TWO_SERIES = ("TNC 4xx",)
+#: Series whose .COM layout xmalign cannot write.
+REFUSED_SERIES = ("iTNC 530",)
+BACKLASH_PARAMETER = "the backlash machine parameter (MP710 on a TNC 4xx)"
 _WIDTH = 12
 
 
@@ -54,19 +85,50 @@ def _row(cells: list[str]) -> str:
     return "".join(cell.ljust(_WIDTH) for cell in cells).rstrip()
 
 
-def _com_columns(fit: CompensationFit, axis: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def power_of_two_grid(start_mm: float, end_mm: float, wanted_mm: float) -> tuple[Grid, int]:
+    """Points from ``start`` at 2^n x 0.1 um: the largest such spacing not above ``wanted``.
+
+    The TNC 407/415/425 Technical Manual's rule and unit (01.98, p. 4-28: "required
+    distance of compensation points = 7 mm, possible power of two = 2^16 = 6.5536 mm");
+    coarser where 256 points would not span the travel. Returns the grid and ``n``.
+    """
+    length_mm = end_mm - start_mm
+    exponent = max(0, math.floor(math.log2(wanted_mm * 1e4)))
+    while math.ceil(length_mm / (2.0**exponent * 1e-4) - 1e-9) + 1 > MAX_ENTRIES:
+        exponent += 1
+    step_mm = 2.0**exponent * 1e-4
+    return Grid(start_mm, step_mm, math.ceil(length_mm / step_mm - 1e-9) + 1), exponent
+
+
+def _com_columns(fit: CompensationFit, machine: Machine, axis: str) -> tuple[Vec, dict[str, Vec]]:
     """Positions and column name -> errors (mm) of the table that depends on ``axis``."""
-    grid, _ = fitted(fit, axis, axis)
-    columns = {output: fitted(fit, output, axis)[1] for output in AXES}
-    if has_reversal(fit, axis):
-        columns[axis] = fitted(fit, axis, axis, "+")[1]
-        columns["BACKLASH"] = fitted(fit, axis, axis, "-")[1]
-    return grid.positions_mm, columns
+    own = own_tables(fit, axis, machine, "Heidenhain")
+    grid = own.grid
+    columns = {output: fitted(fit, output, axis)[1] for output in AXES if output != axis}
+    columns[axis] = own.forward if own.bidirectional else own.at_return
+    if own.bidirectional:
+        columns["BACKLASH"] = own.reverse
+    ordered = {name: columns[name] for name in (*AXES, "BACKLASH") if name in columns}
+    if machine.series not in POWER_OF_TWO_SERIES:
+        return grid.positions_mm, ordered
+    low, high = next(limits for a, limits in machine.travel_mm.items() if a == axis)
+    datum_grid, _ = power_of_two_grid(low, high, grid.step_mm)
+    at = datum_grid.positions_mm
+    moved = {name: np.interp(at, grid.positions_mm, values) for name, values in ordered.items()}
+    own_name = "BACKLASH" if own.bidirectional and own.return_direction == "-" else axis
+    datum = {name: values[0] for name, values in moved.items()}
+    datum[axis] = datum["BACKLASH"] = datum[own_name]  # the reversal at the datum stays
+    return at, {name: values - datum[name] for name, values in moved.items()}
 
 
-def render_com(fit: CompensationFit, axis: str) -> str:
+def render_positions(fit: CompensationFit, machine: Machine, axis: str) -> Vec:
+    """The compensation points of ``<axis>.COM``, mm."""
+    return _com_columns(fit, machine, axis)[0]
+
+
+def render_com(fit: CompensationFit, machine: Machine, axis: str) -> str:
     """The ``<axis>.COM`` table."""
-    positions, columns = _com_columns(fit, axis)
+    positions, columns = _com_columns(fit, machine, axis)
     check_count(len(positions), MAX_ENTRIES, f"{axis}.COM", "Heidenhain")
     lines = [f"BEGIN {axis}.COM MM", _row(["NR", "AXISPOS", *columns])]
     for n, position in enumerate(positions):
@@ -87,8 +149,63 @@ def render_cma() -> str:
     return "\n".join(lines) + "\n"
 
 
+def loading(fit: CompensationFit, machine: Machine) -> Loading:
+    """Reversal, the check on the machine and what the manuals left open."""
+    carriers = [own_tables(fit, axis, machine, "Heidenhain").carrier for axis in AXES]
+    unconfirmed = [
+        "the table file framing (BEGIN <name> MM, header line, [END]): not checked against a"
+        " published file",
+    ]
+    if machine.series in POWER_OF_TWO_SERIES:
+        unconfirmed.append("the TNC 4xx .COM layout (AXISPOS column at the 2^n spacing)")
+    return Loading(
+        reversal=reversal_statement(carriers, BACKLASH_PARAMETER)
+        + " (Heidenhain adds its backlash parameter at every reversal, tables or not)",
+        check=(
+            "with the CONFIG.CMA line active, move each axis to a compensation point away from"
+            " the reference, in both directions, and compare the position with the verification"
+            " run (xmalign post --verify-data): it must move by minus the table's value"
+        ),
+        unconfirmed=tuple(unconfirmed),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+    )
+
+
+def render_readme(fit: CompensationFit, machine: Machine) -> str:
+    """Which control the tables are for and how they are activated."""
+    lines = [f"xmalign: HEIDENHAIN {machine.series} nonlinear axis error compensation"]
+    if machine.series in POWER_OF_TWO_SERIES:
+        for axis in AXES:
+            positions = render_positions(fit, machine, axis)
+            exponent = round(math.log2((positions[1] - positions[0]) * 1e4))
+            lines.append(
+                f"{axis}.COM: datum {positions[0]:g} mm, spacing 2^{exponent} x 0.1 um ="
+                f" {positions[1] - positions[0]:g} mm, {len(positions)} points; every column"
+                " starts at 0 at the datum"
+            )
+        lines.append(
+            "Activation: MP730 bit per axis = 1 (nonlinear axis error compensation) and"
+            " CONFIG.CMA with its line selected (TNC 407/415/425 Technical Manual, p. 4-28)."
+        )
+    else:
+        lines.append(
+            "AXISPOS is the position from the machine datum; every table is zero at the"
+            " reference point. Activation: CONFIG.CMA with '*' in ACTIVE (MANUALplus 620"
+            " Technical Manual, p. 718)."
+        )
+    lines += loading(fit, machine).lines()
+    return "\n".join(lines) + "\n"
+
+
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
-    """File name -> text of the three ``.COM`` tables and the ``.CMA`` table."""
-    files = {f"{axis}.COM": render_com(fit, axis) for axis in AXES}
+    """File name -> text of the three ``.COM`` tables, the ``.CMA`` table and the notes."""
+    if machine.series in REFUSED_SERIES:
+        raise MachineKeyError(
+            "cnc.series",
+            f"Heidenhain {machine.series}: its .COM layout could not be confirmed from a"
+            " manual; xmalign writes MANUALplus 620 / TNC 620 / TNC 640 and TNC 4xx tables",
+        )
+    files = {f"{axis}.COM": render_com(fit, machine, axis) for axis in AXES}
     files[CMA_NAME] = render_cma()
+    files[README_NAME] = render_readme(fit, machine)
     return files

@@ -13,13 +13,14 @@ From the ISG / TF5280 "Volumetric compensation" documentation:
 The kernel builds the compensation from the ISO 230 error model itself, so the
 values are errors, not corrections. They are ISO 230-1 errors of each axis's
 own motion: a workpiece-side axis's tables are written with the sign reversed
-(CONVENTIONS.md states every error as tool relative to workpiece). The chain
+(docs/conventions.md states every error as tool relative to workpiece). The chain
 goes into the header comment; the start-up list (``vol_comp[i].file_name``,
 axis assignment, ``Chain``, ``max_records``) is configured in the CNC.
 """
 
 from __future__ import annotations
 
+from xmalign.comp.common import Loading
 from xmalign.comp.fit import CompensationFit, CompModel
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXES, ROTATION_NAMES, SQUARENESS_NAMES, TRANSLATION_NAMES, Chain
@@ -58,4 +59,20 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
             lines.append(" ".join([_number(position), *(_number(v) for v in values)]))
         records += len(positions)
     lines.insert(1, f"// records: {records} (vol_comp[i].max_records must be at least this)")
+    lines[2:2] = loading(fit, machine).lines("// ")
     return {FILE_NAME: "\n".join(lines) + "\n"}
+
+
+def loading(fit: CompensationFit, machine: Machine) -> Loading:
+    """Reversal, the check on the machine and what the documentation left open."""
+    return Loading(
+        reversal=(
+            "the volumetric model is direction-free: keep the control's backlash compensation"
+            " as it was during the measurement"
+        ),
+        check=(
+            "with vol_comp active, move to the two opposite corners of the travel and compare"
+            " the positions with the verification run (xmalign post --verify-data)"
+        ),
+        unconfirmed=("a complete published parameter file (only the format page's example)",),
+    )

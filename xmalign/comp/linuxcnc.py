@@ -29,7 +29,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from xmalign.comp.common import check_count
+from xmalign.comp.common import Loading, check_count, has_reversal
 from xmalign.comp.fit import PITCH, CompensationFit, CompModel
 from xmalign.errors import InputError
 from xmalign.machine import AXES, Machine
@@ -62,8 +62,30 @@ def render(
 ) -> dict[str, str]:
     """File name -> text of one comp file per axis and the keys for each joint."""
     files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
-    files["joints.ini"] = render_keys(list(joints or machine.cnc.joints or AXES))
+    keys = render_keys(list(joints or machine.cnc.joints or AXES))
+    notes = "\n".join(loading(fit, machine).lines("# "))
+    files["joints.ini"] = keys.replace("\n\n", f"\n{notes}\n\n", 1)
     return files
+
+
+def loading(fit: CompensationFit, machine: Machine) -> Loading:
+    """Reversal and the check on the machine (the format is LinuxCNC's own, tested live)."""
+    carried = [axis for axis in AXES if has_reversal(fit, axis)]
+    reversal = (
+        f"the COMP_FILE reverse column carries the reversal of {', '.join(carried)}: set"
+        " BACKLASH = 0 in their [JOINT_n] sections"
+        if carried
+        else "no direction data: forward and reverse columns are equal; keep BACKLASH as it was"
+        " during the measurement"
+    )
+    return Loading(
+        reversal=reversal,
+        check=(
+            "after homing, move each joint to a table point in both directions and read"
+            " joint.N.backlash-filt (halcmd getp): it must equal nominal minus actual of the"
+            " table for that direction"
+        ),
+    )
 
 
 def render_keys(joints: list[str]) -> str:

@@ -9,11 +9,13 @@ the user's INI and HAL files that loads and wires it:
 - each HAL file that names ``joint.N.motor-pos-cmd`` (the drive command),
   ``joint.N.motor-pos-fb`` (the drive feedback) or ``iocontrol.0.emc-enable-in``
   (the E-stop chain) is copied with those pins replaced by the component's
-  ``motor-pos-out-N``, ``motor-pos-fb-in-N`` and ``enable-in``; the component is
-  loaded and added to the servo thread right after ``motion-controller``;
+  ``motor-pos-out-N``, ``motor-pos-fb-in-N`` and ``enable-in``; the first copy
+  loads the component, its ``feedback`` function goes into the servo thread
+  right before ``motion-controller`` and its ``command`` function right after;
 - a last HAL file wires the motion controller's side: ``joint.N.pos-cmd``,
-  ``joint.N.motor-pos-cmd``, ``joint.N.motor-pos-fb``, ``motion.is-all-homed``
-  and ``iocontrol.0.emc-enable-in``;
+  ``joint.N.motor-pos-cmd``, ``joint.N.motor-pos-fb``, ``joint.N.homed``,
+  ``motion.is-all-homed``, ``motion.motion-enabled`` and
+  ``iocontrol.0.emc-enable-in``;
 - the INI copy names the copies and the new HAL file; its other relative
   paths that name an existing file are made absolute, so the copy may live in
   another folder.
@@ -220,7 +222,7 @@ class IniLine:
 def read_ini(path: Path) -> list[IniLine]:
     """The INI's lines with their sections; InputError when the file cannot be read."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read the INI file ({exc})") from exc
     section, result = "", []
@@ -289,12 +291,14 @@ def _rewrites(joints: int) -> dict[str, str]:
 def _sources(joints: int) -> dict[str, str]:
     """Motion controller output pins the component reads -> the component's input pin."""
     pins = {
-        "motion.is-all-homed": "homed",
+        "motion.is-all-homed": "all-homed",
+        "motion.motion-enabled": "motion-enabled",
         "iocontrol.0.user-request-enable": "reset",
     }
     for j in range(joints):
         pins[f"joint.{j}.pos-cmd"] = f"joint-pos-cmd-{j}"
         pins[f"joint.{j}.motor-pos-cmd"] = f"motor-pos-cmd-{j}"
+        pins[f"joint.{j}.homed"] = f"joint-homed-{j}"
     return pins
 
 
@@ -346,32 +350,40 @@ def _merged_name(path: str) -> str:
     return f"{Path(path).stem}_volcomp{Path(path).suffix}"
 
 
+_MOTION_CONTROLLER = re.compile(r"^\s*addf\s+motion-controller\s+servo-thread\b")
+
+
 def merge_hal(hal_files: dict[str, str], joints: int, table_path: Path) -> dict[str, str]:
-    """Copies of the user's HAL files (name -> text) rewired through the component."""
+    """Copies of the user's HAL files (name -> text) rewired through the component.
+
+    The first file loads the component (its pins stand where the drive pins
+    stood, so it must exist before any of them is named); its ``feedback``
+    function goes right before ``motion-controller`` (after the drives' reads)
+    and its ``command`` function right after it.
+    """
     rewrites = _rewrites(joints)
     seen = dict.fromkeys(rewrites, False)
-    loaded = False
-    merged = {}
+    placed = False
+    merged: dict[str, str] = {}
     for name, text in hal_files.items():
         if _pin_pattern(COMPONENT).search(text):
             raise InputError(f"{name}: loads {COMPONENT} already (merge the original files)")
-        out = []
+        out = [] if merged else [f"loadrt {COMPONENT} table={table_path}"]
         for line in text.splitlines():
             for pin, replacement in rewrites.items():
                 line, count = _pin_pattern(pin).subn(replacement, line)
                 seen[pin] = seen[pin] or count > 0
-            out.append(line)
-            if re.match(r"^\s*addf\s+motion-controller\s+servo-thread\b", line) and not loaded:
-                out += [
-                    f"loadrt {COMPONENT} table={table_path}",
-                    f"addf {INSTANCE} servo-thread",
-                ]
-                loaded = True
+            if _MOTION_CONTROLLER.match(line) and not placed:
+                out += [f"addf {INSTANCE}.feedback servo-thread", line]
+                out.append(f"addf {INSTANCE}.command servo-thread")
+                placed = True
+            else:
+                out.append(line)
         merged[name] = "\n".join(out) + "\n"
-    if not loaded:
+    if not placed:
         raise InputError(
-            f"{', '.join(hal_files)}: no 'addf motion-controller servo-thread' line to load the"
-            " component after"
+            f"{', '.join(hal_files)}: no 'addf motion-controller servo-thread' line to add the"
+            " component's functions around"
         )
     missing = [pin for pin, found in seen.items() if not found]
     if missing:
@@ -415,7 +427,7 @@ def merge_config(
     for name in halfiles:
         path = Path(name) if Path(name).is_absolute() else folder / name
         try:
-            sources[name] = path.read_text(encoding="utf-8")
+            sources[name] = path.read_text(encoding="utf-8-sig")
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(f"{ini_path}: [HAL] HALFILE = {name}: cannot read it ({exc})") from exc
     table_text = render_table(
@@ -429,7 +441,12 @@ def merge_config(
     if any(c.isspace() for c in str(table_path)):
         raise InputError(f"{table_path}: HAL's loadrt cannot take a path with spaces; use --out")
     merged = merge_hal(sources, len(coordinates), table_path)
-    signals = {pin: _signal_of(merged, pin) for pin in _sources(len(coordinates))}
+    # a pin the copies no longer name (the drive command) gets a signal of its own
+    rewritten = _rewrites(len(coordinates))
+    signals = {
+        pin: None if pin in rewritten else _signal_of(sources, pin)
+        for pin in _sources(len(coordinates))
+    }
     files = {_merged_name(name): text for name, text in merged.items()}
     files[WIRING_FILE] = wiring_hal(len(coordinates), signals)
     files[TABLE_FILE] = table_text

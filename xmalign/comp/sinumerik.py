@@ -20,17 +20,38 @@ From the function manual K3 "Compensations", interpolatory compensation (its
   ``$SN_CEC_TABLE_WEIGHT[t]``, once the axes are referenced. Up to MD18342
   ``$MN_MM_CEC_MAX_POINTS[t]`` points.
 
-xmalign writes the fitted per-axis tables as LEC, the fitted cross tables
-(straightness, squareness and the mean Abbe effect at the tool point) as CEC
-and, with bidirectional data, the reversal as one CEC table per direction on
-the axis itself. Every table is zero at the reference point. Machine axis
-names come from the machine file's ``cnc.axis_names`` (default ``AX1`` ..
-``AX3``).
+xmalign writes, per axis, the table of its reference-return direction as LEC
+(zero at the reference point, so nothing jumps when the axis is referenced), the
+fitted cross tables (straightness, squareness and the mean Abbe effect at the tool
+point) as CEC, and with bidirectional data the reversal as one CEC table on the
+axis itself that acts only in the other direction (``$AN_CEC_DIRECTION``, K3
+4.4.4 "direction-dependent leadscrew error compensation"). The control's own
+backlash compensation (MD32450 ``$MA_BACKLASH``) is then set to 0 on those axes.
+``STEP``, ``MIN`` and ``MAX`` are written with six decimals such that ``MIN +
+(points - 1)·STEP`` is ``MAX`` exactly. A SINUMERIK 828D has a fixed eight CEC
+tables of 200 points (K3 03/2013 p. 264): the reversal of the axes that do not
+fit goes into MD32450 as a constant. Machine axis names come from the machine
+file's ``cnc.axis_names`` (default ``AX1`` .. ``AX3``).
+
+Not settled from the manual: the sign of ``$AN_CEC`` (xmalign writes the
+correction, minus the error, as a set-point correction; the LEC convention is
+the opposite). ``xmalign comp`` prints the check that settles it on the machine.
 """
 
 from __future__ import annotations
 
-from xmalign.comp.common import Grid, check_count, fitted, has_reversal
+import numpy as np
+
+from xmalign.comp.common import (
+    Grid,
+    Loading,
+    OwnTables,
+    backlash_warnings,
+    check_count,
+    fitted,
+    own_tables,
+    reversal_statement,
+)
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
@@ -42,6 +63,11 @@ MODEL = CompModel(pairs=CROSS, directional=True)
 MAX_EEC_POINTS = 5000
 #: Upper input limit of MD18342 $MN_MM_CEC_MAX_POINTS.
 MAX_CEC_POINTS = 2000
+#: SINUMERIK 828D: eight CEC tables of 200 points, fixed (K3 03/2013 p. 264).
+MAX_828D_TABLES = 8
+MAX_828D_POINTS = 200
+BACKLASH_PARAMETER = "MD32450 $MA_BACKLASH"
+_MICRO = 1_000_000
 
 
 def _mm(value: float) -> str:
@@ -51,6 +77,22 @@ def _mm(value: float) -> str:
 def axis_name(machine: Machine, axis: str) -> str:
     """The machine axis identifier of ``axis`` (``AX1`` .. unless the machine file names it)."""
     return machine.cnc.axis_name(axis, f"AX{AXES.index(axis) + 1}")
+
+
+def exact_grid(grid: Grid) -> Grid:
+    """``grid`` with a six-decimal start and step (the step rounded up: it still spans it).
+
+    The control checks ``(MAX - MIN) / STEP`` against the number of points; with six
+    decimals for all three and ``MAX = MIN + (points - 1)·STEP`` that holds exactly.
+    """
+    start = round(grid.start_mm * _MICRO)
+    step = int(np.ceil(round(grid.step_mm * _MICRO, 3)))
+    return Grid(start / _MICRO, step / _MICRO, grid.count)
+
+
+def _on(grid: Grid, source: Grid, values_mm: Vec) -> tuple[Grid, Vec]:
+    exact = exact_grid(grid)
+    return exact, np.interp(exact.positions_mm, source.positions_mm, values_mm)
 
 
 def _eec_block(name: str, grid: Grid, values_mm: Vec) -> list[str]:
@@ -64,42 +106,78 @@ def _eec_block(name: str, grid: Grid, values_mm: Vec) -> list[str]:
     ]
 
 
+def _own(fit: CompensationFit, machine: Machine) -> list[OwnTables]:
+    return [own_tables(fit, axis, machine, "Sinumerik") for axis in AXES]
+
+
 def render_eec(fit: CompensationFit, machine: Machine) -> str:
-    """``%_N_AX_EEC_INI``: the fitted per-axis error as LEC tables (value = error, mm)."""
+    """``%_N_AX_EEC_INI``: each axis's reference-direction error as LEC (value = error, mm)."""
     out = [
         "%_N_AX_EEC_INI",
-        "; xmalign: leadscrew error compensation; value = positioning error in mm",
-        "; (a positive value moves the axis negative), zero at the reference point.",
+        f"; xmalign: SINUMERIK {machine.series} leadscrew error compensation; value ="
+        " positioning error in mm",
+        "; (a positive value moves the axis negative), zero at the reference point approached",
+        "; in the axis's reference-return direction (the reversal is in NC_CEC.INI).",
         "; Activation: MD32700 $MA_ENC_COMP_ENABLE[0]=0 while loading this program,",
         "; then 1 on each axis below, reset (NewConfig); acts after referencing.",
         "CHANDATA(1)",
     ]
-    for axis in AXES:
-        grid, values = fitted(fit, axis, axis)
-        name = axis_name(machine, axis)
-        check_count(grid.count, MAX_EEC_POINTS, f"{axis} (MD38000)", "Sinumerik")
-        out.append(f"; {axis} = {name}: MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0] >= {grid.count}")
+    for own in _own(fit, machine):
+        grid, values = _on(own.grid, own.grid, own.at_return)
+        name = axis_name(machine, own.axis)
+        check_count(grid.count, MAX_EEC_POINTS, f"{own.axis} (MD38000)", "Sinumerik")
+        out.append(
+            f"; {own.axis} = {name}, reference return {own.return_direction}:"
+            f" MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0] >= {grid.count}"
+        )
         out.extend(_eec_block(name, grid, values))
     out.append("M17")
     return "\n".join(out) + "\n"
 
 
-def _cec_tables(fit: CompensationFit) -> list[tuple[str, str, str, Grid, Vec, int]]:
-    """(description, input, output, grid, correction mm, direction) of every CEC table."""
+CecTable = tuple[str, str, str, Grid, Vec, int]
+
+
+def _reversal_tables(
+    owns: list[OwnTables], room: int | None
+) -> tuple[list[CecTable], dict[str, float]]:
+    """The reversal CEC tables that fit in ``room`` (None: all), and the rest's mean, mm.
+
+    Where tables are short, the axes whose reversal varies least along the travel
+    give way: their mean reversal goes into MD32450.
+    """
+    carried = sorted(
+        (own for own in owns if own.bidirectional), key=lambda own: -float(np.std(own.reversal))
+    )
+    kept = carried if room is None else carried[: max(room, 0)]
+    tables = []
+    for own in kept:
+        grid, correction = _on(own.grid, own.grid, -own.reversal)
+        direction = 1 if own.opposite_direction == "+" else -1
+        what = f"E{own.axis}{own.axis} reversal ({own.opposite_direction} only)"
+        tables.append((what, own.axis, own.axis, grid, correction, direction))
+    constant = {own.axis: float(np.mean(own.reversal)) for own in carried if own not in kept}
+    return tables, constant
+
+
+def _cross_tables(fit: CompensationFit) -> list[CecTable]:
     entries = []
     for output, axis in MODEL.pairs:
         if output == axis:
             continue
         grid, error = fitted(fit, output, axis)
-        entries.append((f"E{output}{axis} fitted", axis, output, grid, -error, 0))
-    for axis in AXES:
-        if not has_reversal(fit, axis):
-            continue
-        grid, mean = fitted(fit, axis, axis)
-        for direction, sign in (("+", 1), ("-", -1)):
-            _, own = fitted(fit, axis, axis, direction)
-            entries.append((f"E{axis}{axis} reversal", axis, axis, grid, -(own - mean), sign))
+        exact, correction = _on(grid, grid, -error)
+        entries.append((f"E{output}{axis} fitted", axis, output, exact, correction, 0))
     return entries
+
+
+def _cec_tables(fit: CompensationFit, machine: Machine) -> tuple[list[CecTable], dict[str, float]]:
+    """Every CEC table (description, input, output, grid, correction mm, direction), and the
+    reversals left to MD32450 (axis -> mean reversal, mm)."""
+    cross = _cross_tables(fit)
+    room = MAX_828D_TABLES - len(cross) if machine.series == "828D" else None
+    reversal, constant = _reversal_tables(_own(fit, machine), room)
+    return cross + reversal, constant
 
 
 def _cec_block(
@@ -120,19 +198,34 @@ def _cec_block(
     ]
 
 
+def _point_limit(machine: Machine) -> tuple[int, str]:
+    if machine.series == "828D":
+        return MAX_828D_POINTS, "828D: 200 points per table"
+    return MAX_CEC_POINTS, "MD18342"
+
+
 def render_cec(fit: CompensationFit, machine: Machine) -> str:
     """``%_N_NC_CEC_INI``: cross tables and reversal as CEC tables (corrections), enabled."""
-    tables = _cec_tables(fit)
+    tables, constant = _cec_tables(fit, machine)
+    limit, limit_name = _point_limit(machine)
     out = [
         "%_N_NC_CEC_INI",
-        "; xmalign: sag/angularity compensation; value = correction (minus the error) in mm,",
-        "; zero at the reference point. Activation: MD18342 $MN_MM_CEC_MAX_POINTS[t] as below,",
+        f"; xmalign: SINUMERIK {machine.series} sag/angularity compensation; value = correction"
+        " (minus the error) in mm,",
+        "; cross tables zero at the reference point. Activation: MD18342 $MN_MM_CEC_MAX_POINTS[t]"
+        " as below,",
         "; MD32710 $MA_CEC_ENABLE=1 on every output axis, reset (NewConfig); the tables are",
         "; switched on at the end (SD41300 $SN_CEC_TABLE_ENABLE, SD41310 $SN_CEC_TABLE_WEIGHT).",
+        *loading(fit, machine).lines("; "),
         "CHANDATA(1)",
     ]
+    for axis, mean in constant.items():
+        out.append(
+            f"; {axis}: no table left for its reversal: MD32450 $MA_BACKLASH[0] ="
+            f" {_mm(mean)} on {axis_name(machine, axis)}"
+        )
     for index, (what, axis, output, grid, values, direction) in enumerate(tables):
-        check_count(grid.count, MAX_CEC_POINTS, f"{what} (MD18342)", "Sinumerik")
+        check_count(grid.count, limit, f"{what} ({limit_name})", "Sinumerik")
         names = (axis_name(machine, axis), axis_name(machine, output))
         out.append(
             f"; table {index}: {what}, {output} = f({axis}); MD18342[{index}] >= {grid.count}"
@@ -142,6 +235,34 @@ def render_cec(fit: CompensationFit, machine: Machine) -> str:
         out += [f"$SN_CEC_TABLE_ENABLE[{index}]=TRUE", f"$SN_CEC_TABLE_WEIGHT[{index}]=1.0"]
     out.append("M17")
     return "\n".join(out) + "\n"
+
+
+def loading(fit: CompensationFit, machine: Machine) -> Loading:
+    """Reversal, the check on the machine and what the manual left open."""
+    owns = _own(fit, machine)
+    _, constant = _cec_tables(fit, machine)
+    carriers = [own.carrier for own in owns if own.axis not in constant]
+    reversal = reversal_statement(carriers, BACKLASH_PARAMETER)
+    if constant:
+        reversal += (
+            f"; {machine.series} has no CEC table left for the reversal of"
+            f" {', '.join(constant)}: MD32450 carries it as a constant (values in NC_CEC.INI)"
+        )
+    return Loading(
+        reversal=reversal,
+        check=(
+            "switch on one cross table only (SD41300), move its input axis to where the table's"
+            " correction is largest and read the output axis's 'Sag/temperature' compensation value"
+            " (System > Service display > Service axes): it must equal the table's value (a"
+            " correction, minus the error); if it has the opposite sign, do not use NC_CEC.INI"
+        ),
+        unconfirmed=(
+            "the sign of $AN_CEC: written as a set-point correction (minus the error), the"
+            " opposite of the LEC values in AX_EEC.INI (K3: a positive LEC value moves the"
+            " axis negative)",
+        ),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+    )
 
 
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:

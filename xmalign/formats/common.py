@@ -9,7 +9,12 @@ PROBLEM`` (:func:`located`), WHERE being a key or a line.
 
 Writers go through :func:`atomic_write_bytes`: a temporary file in the same
 folder, fsync, then ``os.replace``, with the mode a plain ``open`` would give
-(``0666 & ~umask``). A failed write leaves the old file as it was.
+(``0666 & ~umask``). A failed write leaves the old file as it was, and a path
+that is not a regular file (a device such as ``/dev/null``, a FIFO, a socket)
+is never replaced. Commands check their outputs first, before any work, with
+:func:`refuse_overwriting` (an output that is one of the inputs or another
+output, or not a regular file) and :func:`refuse_replacing` (an existing file
+replaced only when the user says ``--force``); see docs/formats.md, "Outputs".
 
 The bounds below are what a real machine and instrument can have; a value
 outside them is a typing or unit mistake, refused before it reaches a
@@ -23,11 +28,13 @@ import errno
 import json
 import math
 import os
+import stat
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -161,13 +168,44 @@ def describe_validation_error(error: ValidationError, source: str) -> str:
     return located(source, f"key '{key}'", describe_problem(first))
 
 
+def _yes_no_read_as_number(value: object, raw: object, key: str) -> str | None:
+    """The key of the first ``true``/``false`` in ``raw`` that validated into a number."""
+    if isinstance(raw, bool):
+        return None if isinstance(value, bool) else key
+    pairs: Iterable[tuple[object, object, object]] = ()
+    if isinstance(value, BaseModel) and isinstance(raw, dict):
+        pairs = (
+            (field.alias or name, getattr(value, name), raw.get(field.alias or name))
+            for name, field in type(value).model_fields.items()
+        )
+    elif isinstance(value, dict) and isinstance(raw, dict):
+        pairs = ((name, value.get(name), item) for name, item in raw.items())
+    elif isinstance(raw, list) and isinstance(value, list | tuple | np.ndarray):
+        pairs = ((index, *pair) for index, pair in enumerate(zip(value, raw, strict=False)))
+    for name, item, raw_item in pairs:
+        found = _yes_no_read_as_number(item, raw_item, f"{key}.{name}" if key else str(name))
+        if found is not None:
+            return found
+    return None
+
+
 def validate(model: type[M], data: object, source: str, context: dict | None = None) -> M:
-    """``model.model_validate(data)`` with an InputError naming ``source`` and the key."""
+    """``model.model_validate(data)`` with an InputError naming ``source`` and the key.
+
+    A yes/no value (JSON ``true``, YAML ``yes``) where a number is expected is refused:
+    pydantic would read it as 1.0.
+    """
     check_finite(data, source)
     try:
-        return model.model_validate(data, context=context)
+        validated = model.model_validate(data, context=context)
     except ValidationError as error:
         raise InputError(describe_validation_error(error, source)) from error
+    key = _yes_no_read_as_number(validated, data, "")
+    if key is not None:
+        raise key_error(
+            source, key, "a yes/no value (true/false, yes/no) where a number is expected"
+        )
+    return validated
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -236,7 +274,7 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
         The file cannot be read, is not JSON (with line and column), repeats a
         key or holds a non-finite number.
     FormatError
-        The format name or version is not ``expected_format``.
+        Not the format of ``expected_format`` or a newer version of it.
     """
     path = Path(path)
     text = read_text(path)
@@ -259,25 +297,34 @@ def read_json(path: str | Path, expected_format: str) -> dict[str, Any]:
     return data
 
 
-def check_format(found: object, expected_format: str, source: str) -> None:
-    """Refuse a missing, foreign or newer ``format`` value with a clear message."""
-    name, _, version = expected_format.partition("/")
+def format_problem(found: str, expected_format: str) -> str | None:
+    """What keeps a reader of ``expected_format`` (``name/N``) from reading ``found``.
+
+    Versions 1 to N are read (each reader migrates the older ones); a foreign
+    name, a version that is not a whole number or a newer one is a problem.
+    """
+    name, _, newest = expected_format.partition("/")
+    found_name, _, found_version = found.partition("/")
+    if found_name != name:
+        return f"'{found}' is not a {name} file"
+    if not found_version.isdigit() or int(found_version) < 1:
+        return f"'{found}': the version is not a whole number"
+    if int(found_version) > int(newest):
+        return f"written by a newer xmalign: format {found}, this one reads up to /{newest}"
+    return None
+
+
+def check_format(found: object, expected_format: str, source: str) -> int:
+    """The version of a ``format`` value; refuse a missing, foreign or newer one
+    (:func:`format_problem`) with one line naming the file."""
     if found is None:
         raise FormatError(
             located(source, "key 'format'", f"missing (expected '{expected_format}')")
         )
-    found_name, _, found_version = str(found).partition("/")
-    if found_name != name:
-        raise FormatError(located(source, "key 'format'", f"'{found}' is not a {name} file"))
-    if found_version != version:
-        raise FormatError(
-            located(
-                source,
-                "key 'format'",
-                f"version '{found_version}' of {name} is not supported"
-                f" (this xmalign reads version {version})",
-            )
-        )
+    problem = format_problem(str(found), expected_format)
+    if problem is not None:
+        raise FormatError(located(source, "key 'format'", problem))
+    return int(str(found).partition("/")[2])
 
 
 def _new_file_mode() -> int:
@@ -301,10 +348,158 @@ def sync_folder(folder: Path) -> None:
         os.close(fd)
 
 
+#: Paths given to one option: none, one, or several (a repeated option).
+PathsOf = Path | Sequence[Path] | None
+
+_KINDS = (
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def special_kind(path: Path) -> str | None:
+    """What ``path`` is when it exists and is not a regular file ("a character device"...).
+
+    Links are followed: a link to ``/dev/null`` is a character device.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    return next((kind for test, kind in _KINDS if test(mode)), None)
+
+
+def refuse_special(path: Path, where: str, appended: bool = False) -> None:
+    """Refuse an output that exists and is not a regular file (``where``: the option).
+
+    ``appended`` (a log): a character device such as ``/dev/null`` or
+    ``/dev/stderr`` is written to in place, as a shell's ``>>`` would; it is
+    never replaced. A FIFO would block the command until something reads it.
+
+    Raises
+    ------
+    OutputError
+        Naming the file, ``where`` and what the path is.
+    """
+    kind = special_kind(path)
+    if kind is None or (appended and kind == "a character device"):
+        return
+    if kind == "a folder":
+        raise OutputError(located(path, where, "is a folder; give a file name"))
+    raise OutputError(
+        located(
+            path,
+            where,
+            f"is {kind}, not a regular file; xmalign writes its files only as regular"
+            " files (give a file name)",
+        )
+    )
+
+
+def _each(paths: PathsOf) -> Iterable[Path]:
+    if paths is None:
+        return ()
+    if isinstance(paths, Path | str):
+        return (Path(paths),)
+    return (Path(p) for p in paths)
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """True when two paths name one file (links followed; a missing file by its full path)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a.resolve() == b.resolve()
+
+
+def refuse_overwriting(
+    inputs: Mapping[str, PathsOf],
+    outputs: Mapping[str, PathsOf],
+    appended: Mapping[str, PathsOf] | None = None,
+) -> None:
+    """Refuse outputs that would destroy something: call it before any work is done.
+
+    ``inputs``, ``outputs`` (files written whole) and ``appended`` (files
+    appended to, such as ``--log-file``) map an option name (``"--data"``) to
+    the path(s) given, None for an option left out. Refused: an output that is
+    the same file (same inode, or the same path once resolved) as an input or
+    another output, and an output that exists and is not a regular file
+    (:func:`refuse_special`).
+
+    Raises
+    ------
+    InputError
+        Naming the file and both options.
+    OutputError
+        Naming the file, its option and what it is.
+    """
+    written: list[tuple[str, Path]] = []
+    groups = ((outputs, False), (appended or {}, True))
+    for group, is_appended in groups:
+        for out_option, out_paths in group.items():
+            for out_path in _each(out_paths):
+                refuse_special(out_path, out_option, is_appended)
+                _refuse_same(out_option, out_path, inputs, written, is_appended)
+                written.append((out_option, out_path))
+
+
+def _refuse_same(
+    out_option: str,
+    out_path: Path,
+    inputs: Mapping[str, PathsOf],
+    written: list[tuple[str, Path]],
+    appended: bool,
+) -> None:
+    harm = "written into" if appended else "replaced"
+    for in_option, in_paths in inputs.items():
+        if any(same_file(out_path, in_path) for in_path in _each(in_paths)):
+            raise InputError(
+                located(
+                    out_path,
+                    out_option,
+                    f"is also the {in_option} file; it would be {harm} (write to another file)",
+                )
+            )
+    for other_option, other in written:
+        if same_file(out_path, other):
+            raise InputError(located(out_path, out_option, f"is also the {other_option} file"))
+
+
+def refuse_replacing(outputs: Mapping[str, PathsOf], force: bool) -> None:
+    """Refuse to replace an existing file unless the user said ``--force``.
+
+    For the files a later step was made with (a plan, a pose) or that a user
+    may have put there (a controller's tables in ``comp --out``).
+
+    Raises
+    ------
+    InputError
+        Naming the first existing file and its option.
+    """
+    if force:
+        return
+    for option, paths in outputs.items():
+        for path in _each(paths):
+            if path.is_file():
+                raise InputError(
+                    located(
+                        path,
+                        option,
+                        "already exists and is not replaced; add --force to replace it,"
+                        " or give another file name",
+                    )
+                )
+
+
 def _write_temporary(path: Path, data: bytes) -> Path:
     """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
-    if path.is_dir():
-        raise OutputError(located(path, "cannot write", "is a folder; give a file name"))
+    refuse_special(path, "cannot write")
+    folder = next((p for p in path.parents if p.exists()), None)
+    if folder is not None and not folder.is_dir():
+        raise OutputError(located(path, "cannot write", f"{folder} is a file, not a folder"))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

@@ -1,18 +1,26 @@
-"""Measurement CSV of FORMATS.md (output of ``run``, input of ``post``).
+"""Measurement CSV of docs/formats.md (output of ``run``, input of ``post``).
 
 Rows are appended, flushed and synced one at a time, so an interrupted run
 loses nothing; the reader names the line of any row it cannot use. Besides the
-columns of FORMATS.md a file written by ``xmalign run`` carries (see
+columns of docs/formats.md a file written by ``xmalign run`` carries (see
 docs/measurement-files.md):
 
 - a first comment line ``# xmalign measurements plan_sha256=<hex>``, the
   identity of the plan the points were measured for (``--resume`` refuses a
-  file from another plan);
+  file from another plan), followed by ``sim_seed=<n>`` for a run on the
+  virtual machine (``--resume`` refuses another ``--seed``);
 - a ``segment`` column: 0 for a line's first setup, 1, 2, ... for the rows
   measured after the units had to be re-aligned on a resume (``post`` fits
   each segment with its own setup terms);
 - one ``# setup`` comment line per alignment of a line, with the locked unit
   angles (a resume keeps the setup when the units still stand there).
+
+Version 2 (:data:`MEASUREMENTS_FORMAT`) adds, after that first line, the
+history preamble of :mod:`xmalign.formats.provenance` (format, software,
+``created_utc``, the plan file's SHA-256), a ``time_s`` column (seconds on the
+run's clock since the run, or its resumption, started: each start writes a
+``# run started_utc=...`` line) and nothing else; version 1 files (no
+``# format:`` line, no ``time_s``) are read as they are.
 
 Lines starting with ``#`` are comments for every reader of the file.
 """
@@ -20,6 +28,8 @@ Lines starting with ``#`` are comments for every reader of the file.
 from __future__ import annotations
 
 import csv
+import errno
+import fcntl
 import hashlib
 import io
 import json
@@ -27,15 +37,21 @@ import logging
 import math
 import os
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from xmalign.errors import FormatError, InputError
-from xmalign.formats.common import sync_folder
+from xmalign.formats.common import os_problem, refuse_special, sync_folder
 from xmalign.formats.plan import Plan, plan_to_dict
+from xmalign.formats.provenance import (
+    FileSource,
+    Provenance,
+    csv_preamble,
+    now_utc,
+    read_csv_preamble,
+)
 from xmalign.geometry import Vec
 from xmalign.roles import CHANNELS
 
@@ -52,8 +68,13 @@ HEADER = (
     "z_mm",
     *CHANNELS,
 )
+MEASUREMENTS_FORMAT = "xmalign.measurements/2"
+#: What a file without a ``# format:`` line is (written before files carried history).
+FIRST_FORMAT = "xmalign.measurements/1"
 SEGMENT_COLUMN = "segment"
-#: Optional environment columns of FORMATS.md with the range a workshop can have.
+#: Seconds on the run's clock since the run (or its resumption) started.
+TIME_COLUMN = "time_s"
+#: Optional environment columns of docs/formats.md with the range a workshop can have.
 ENVIRONMENT_LIMITS = {
     "air_temp_c": (-20.0, 60.0),
     "air_pressure_hpa": (500.0, 1200.0),
@@ -63,16 +84,18 @@ ENVIRONMENT_LIMITS = {
 #: xmalign's own: which environment values of the row were held at their last good
 #: reading, and why (empty when all were fresh); written with the environment columns.
 FLAGS_COLUMN = "environment_flags"
-OPTIONAL_COLUMNS = (SEGMENT_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
+OPTIONAL_COLUMNS = (SEGMENT_COLUMN, TIME_COLUMN, *ENVIRONMENT_LIMITS, FLAGS_COLUMN)
 #: What ``xmalign run`` writes.
-WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN)
+WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN, TIME_COLUMN)
 #: The largest travel a machine can have, mm (commanded points and targets).
 MAX_COORDINATE_MM = 100_000.0
 #: A recorded point farther than this from its plan target belongs to another plan, mm.
 POINT_TOLERANCE_MM = 0.01
 PLAN_KEY = "plan_sha256"
+SEED_KEY = "sim_seed"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
+RUN_START_TAG = "# run started_utc="
 
 
 @dataclass(frozen=True)
@@ -100,7 +123,8 @@ class MeasurementRow:
 
     ``segment`` numbers the line's setup (0 unless the units were re-aligned on
     a resume); ``environment`` holds the optional environment columns present and
-    ``environment_flags`` says which of them were held at their last good value.
+    ``environment_flags`` says which of them were held at their last good value;
+    ``time_s`` when the point was captured, s since the run started (None: not recorded).
     """
 
     line: str
@@ -113,6 +137,9 @@ class MeasurementRow:
     segment: int = 0
     environment: Mapping[str, float] = field(default_factory=dict)
     environment_flags: str = ""
+    time_s: float | None = None
+    #: Line of the file the row was read from (0: not read from a file), for messages.
+    file_line: int = field(default=0, compare=False)
 
     def key(self) -> tuple[str, int, str, int]:
         """What identifies a point of a plan (for resuming)."""
@@ -136,6 +163,7 @@ class MeasurementRow:
             )
         )
         values[SEGMENT_COLUMN] = str(self.segment)
+        values[TIME_COLUMN] = "" if self.time_s is None else f"{self.time_s:.3f}"
         values.update({name: repr(float(v)) for name, v in self.environment.items()})
         values[FLAGS_COLUMN] = self.environment_flags
         missing = [name for name in columns if name not in values]
@@ -182,6 +210,9 @@ class MeasurementFile:
     plan_sha256: str | None = None
     setups: list[LineSetup] = field(default_factory=list)
     torn: TornRow | None = None
+    #: The ``--seed`` of a run on the virtual machine (None: a live run, or not recorded).
+    sim_seed: int | None = None
+    history: Provenance | None = None
 
     @property
     def environment_columns(self) -> tuple[str, ...]:
@@ -225,8 +256,9 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def _decode(data: bytes, path: Path) -> str:
+    """UTF-8 text; a byte-order mark at the start (spreadsheet programs write one) is dropped."""
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as error:
         line = data[: error.start].count(b"\n") + 1
         raise InputError(
@@ -242,6 +274,7 @@ class _Reader:
         self.limits = limits
         self.file = MeasurementFile(path, [], columns=())
         self.seen: dict[tuple[str, int, str, int], int] = {}
+        self.preamble: list[str] = []
 
     def where(self, number: int) -> str:
         return f"{self.path}: line {number}"
@@ -252,8 +285,17 @@ class _Reader:
                 key, _, value = item.partition("=")
                 if key == PLAN_KEY:
                     self.file.plan_sha256 = value
+                elif key == SEED_KEY:
+                    self.file.sim_seed = self._seed(value, number)
         elif text.startswith(SETUP_TAG + " "):
             self.file.setups.append(self._setup(text, number))
+        if not self.file.columns:
+            self.preamble.append(text)
+
+    def _seed(self, value: str, number: int) -> int:
+        if not value.isdigit():
+            raise InputError(f"{self.where(number)}: {SEED_KEY} '{value}' is not a seed")
+        return int(value)
 
     def _setup(self, text: str, number: int) -> LineSetup:
         items = dict(item.partition("=")[::2] for item in text[len(SETUP_TAG) :].split())
@@ -284,6 +326,9 @@ class _Reader:
                 f"{self.where(number)}: {what}; the header must be {','.join(HEADER)}"
                 f" (optionally followed by {', '.join(OPTIONAL_COLUMNS)})"
             )
+        self.file.history = read_csv_preamble(
+            self.preamble, MEASUREMENTS_FORMAT, str(self.path), FIRST_FORMAT
+        )
         self.file.columns = columns
 
     def row(self, fields: list[str], number: int) -> MeasurementRow:
@@ -292,7 +337,7 @@ class _Reader:
         if len(fields) != len(columns):
             raise InputError(f"{where}: expected {len(columns)} fields, found {len(fields)}")
         values = dict(zip(columns, (f.strip() for f in fields), strict=True))
-        row = _parse_row(values, where)
+        row = replace(_parse_row(values, where), file_line=number)
         _check_magnitudes(row, self.limits, where)
         first = self.seen.setdefault(row.key(), number)
         if first != number:
@@ -357,6 +402,7 @@ def _parse_row(values: Mapping[str, str], where: str) -> MeasurementRow:
             name: _number(values, name, where) for name in ENVIRONMENT_LIMITS if name in values
         },
         environment_flags=values.get(FLAGS_COLUMN, ""),
+        time_s=_number(values, TIME_COLUMN, where) if values.get(TIME_COLUMN) else None,
     )
 
 
@@ -424,21 +470,57 @@ def read_measurements(
 
 
 def _write_error(path: Path, error: OSError) -> InputError:
-    return InputError(f"{path}: cannot write ({error.strerror})")
+    return InputError(f"{path}: cannot write ({os_problem(error)})")
+
+
+class RunLock:
+    """An exclusive lock on a measurement file for the whole of one run.
+
+    Two runs appending to one file (two ``run --resume`` at once) would record
+    points twice; the second is refused while the first holds the lock. The
+    lock is ``fcntl.flock`` on the file itself: it ends with the process, even
+    a killed one. Opening it creates a missing file and its folders (an empty
+    file counts as new).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd: int | None = os.open(self.path, os.O_RDONLY | os.O_CREAT, 0o666)
+        except OSError as error:
+            raise _write_error(self.path, error) from error
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            self.release()
+            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise _write_error(self.path, error) from error
+            raise InputError(
+                f"{self.path}: in use by another run (another xmalign run is writing it);"
+                " wait until it ends, or give another --out"
+            ) from error
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class MeasurementWriter:
     """Appends rows and setup comments to a measurement CSV, syncing each one to disk.
 
     Use :meth:`create` for a new file and :meth:`resume` to go on with one.
-    ``saved`` counts the rows in the file.
+    ``saved`` counts the rows in the file. Writes are unbuffered (``os.write``):
+    after a failed write (disk full) nothing is left pending, and the file ends
+    in at most one row cut short, which ``--resume`` drops.
     """
 
-    def __init__(self, path: Path, handle: TextIO, columns: tuple[str, ...], saved: int) -> None:
+    def __init__(self, path: Path, fd: int, columns: tuple[str, ...], saved: int) -> None:
         self.path = path
         self.columns = columns
         self.saved = saved
-        self._handle = handle
+        self._fd: int | None = fd
 
     @classmethod
     def create(
@@ -446,11 +528,16 @@ class MeasurementWriter:
         path: str | Path,
         plan_sha256: str | None = None,
         environment_columns: tuple[str, ...] = (),
+        *,
+        sim_seed: int | None = None,
+        inputs: Iterable[FileSource] = (),
     ) -> MeasurementWriter:
         """Start a new file (an existing empty file counts as new, nothing else does).
 
         ``environment_columns`` (names of :data:`ENVIRONMENT_LIMITS`) are written
-        after the channels, with the flags column, when the run samples the environment.
+        after the channels, with the flags column, when the run samples the environment;
+        ``sim_seed`` is the virtual machine's seed of a simulated run.
+        ``inputs`` (the plan file) go into the history preamble.
         """
         path = Path(path)
         unknown = [name for name in environment_columns if name not in ENVIRONMENT_LIMITS]
@@ -461,18 +548,22 @@ class MeasurementWriter:
         )
         if path.is_dir():
             raise InputError(f"{path}: is a folder; give a file name for the measurements")
+        refuse_special(path, "cannot write")  # a FIFO would block, a device lose the rows
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT
-            empty = path.exists() and path.stat().st_size == 0
+            empty = path.is_file() and path.stat().st_size == 0
             fd = os.open(path, flags | (0 if empty else os.O_EXCL), 0o666)
         except FileExistsError as error:
             raise InputError(f"{path}: already exists; measurements are never replaced") from error
         except OSError as error:
             raise _write_error(path, error) from error
-        writer = cls(path, os.fdopen(fd, "a", newline="", encoding="utf-8"), columns, 0)
+        writer = cls(path, fd, columns, 0)
         preamble = PREAMBLE + (f" {PLAN_KEY}={plan_sha256}" if plan_sha256 else "")
-        writer._put(preamble + "\n" + ",".join(columns) + "\n")
+        preamble += f" {SEED_KEY}={sim_seed}" if sim_seed is not None else ""
+        history = csv_preamble(MEASUREMENTS_FORMAT, inputs)
+        writer._put(preamble + "\n" + history + ",".join(columns) + "\n")
+        writer.note_start()
         sync_folder(path.parent)
         return writer
 
@@ -481,19 +572,28 @@ class MeasurementWriter:
         """Go on appending to a file read with ``torn_ok``; a torn last row is cut off first."""
         path = recorded.path
         try:
-            handle = path.open("a", newline="", encoding="utf-8")
-            if recorded.torn is not None:
-                handle.truncate(recorded.torn.offset)
-                os.fsync(handle.fileno())
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         except OSError as error:
             raise _write_error(path, error) from error
-        return cls(path, handle, recorded.columns, len(recorded.rows))
+        writer = cls(path, fd, recorded.columns, len(recorded.rows))
+        if recorded.torn is not None:
+            try:
+                os.ftruncate(fd, recorded.torn.offset)
+                os.fsync(fd)
+            except OSError as error:
+                writer.close()
+                raise _write_error(path, error) from error
+        writer.note_start()
+        return writer
 
     def _put(self, text: str) -> None:
+        if self._fd is None:
+            raise InputError(f"{self.path}: closed; measurements can no longer be written")
+        data = memoryview(text.encode("utf-8"))
         try:
-            self._handle.write(text)
-            self._handle.flush()
-            os.fsync(self._handle.fileno())
+            while data:
+                data = data[os.write(self._fd, data) :]
+            os.fsync(self._fd)
         except OSError as error:
             raise _write_error(self.path, error) from error
         for line in text.splitlines():
@@ -509,12 +609,18 @@ class MeasurementWriter:
         self._put(_csv_line(row.fields(self.columns)))
         self.saved += 1
 
+    def note_start(self) -> None:
+        """Mark where a run (or its resumption) starts: ``time_s`` counts from here."""
+        self._put(f"{RUN_START_TAG}{now_utc()}\n")
+
     def note_setup(self, setup: LineSetup) -> None:
         """Record a line's alignment (the locked unit angles) before its rows."""
         self._put(setup.comment() + "\n")
 
     def close(self) -> None:
-        self._handle.close()
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
     def __enter__(self) -> MeasurementWriter:
         return self
@@ -530,7 +636,10 @@ def _csv_line(fields: list[str]) -> str:
 
 
 def write_measurements(
-    path: str | Path, rows: Iterable[MeasurementRow], plan_sha256: str | None = None
+    path: str | Path,
+    rows: Iterable[MeasurementRow],
+    plan_sha256: str | None = None,
+    inputs: Iterable[FileSource] = (),
 ) -> None:
     """Write a new measurement CSV (refused where a non-empty file exists).
 
@@ -539,7 +648,7 @@ def write_measurements(
     rows = list(rows)
     present = rows[0].environment if rows else {}
     columns = tuple(name for name in ENVIRONMENT_LIMITS if name in present)
-    with MeasurementWriter.create(path, plan_sha256, columns) as writer:
+    with MeasurementWriter.create(path, plan_sha256, columns, inputs=inputs) as writer:
         for row in rows:
             writer.append(row)
 

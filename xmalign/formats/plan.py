@@ -1,8 +1,14 @@
-"""Measurement plan (``xmalign.plan/1``) of FORMATS.md."""
+"""Measurement plan (``xmalign.plan/1``) of docs/formats.md.
+
+The history keys (:mod:`xmalign.formats.provenance`) are kept apart from the
+plan's content: they are not part of its identity (``plan_sha256``).
+"""
 
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -10,15 +16,24 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from xmalign.errors import OutputError
 from xmalign.formats.common import (
     Angle_deg,
     FileModel,
     Finite,
     Length_mm,
     Vector3_mm,
+    located,
     read_json,
     validate,
     write_json,
+)
+from xmalign.formats.provenance import (
+    FileSource,
+    Provenance,
+    json_history,
+    read_json_history,
+    without_history,
 )
 from xmalign.geometry import Vec
 
@@ -28,6 +43,24 @@ FRAME_TOLERANCE = 1e-6
 #: How far the targets may reach beyond the line's end (rounding), mm.
 TARGET_TOLERANCE_MM = 1e-3
 _V3 = Vector3_mm
+#: A line id: letters, digits and ``_ . + -`` (it is a field of every measurement row and
+#: a word of the CSV's setup comments: a comma, a quote, a space or a newline would break them).
+LINE_ID = re.compile(r"[\w.+-]+")
+
+
+def line_id_problem(line_id: str) -> str | None:
+    """What makes ``line_id`` unusable as a line id, or None."""
+    if not line_id:
+        return "a line id must not be empty"
+    if LINE_ID.fullmatch(line_id) is None or not line_id.isprintable():
+        bad = next(c for c in line_id if LINE_ID.fullmatch(c) is None or not c.isprintable())
+        return (
+            f"line id {line_id!r} holds {bad!r}; a line id is letters, digits and _ . + -"
+            " (it is a field of every measurement row)"
+        )
+    return None
+
+
 _KNOWN_LINE_KEYS = {
     "id",
     "start_mm",
@@ -69,6 +102,14 @@ class _LineModel(FileModel):
     runs: Annotated[int, Field(ge=1, le=5)] = 1
     bidirectional: bool = False
     dwell_s: Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)] = 0.0
+
+    @field_validator("id")
+    @classmethod
+    def _usable_id(cls, line_id: str) -> str:
+        problem = line_id_problem(line_id)
+        if problem is not None:
+            raise ValueError(problem)
+        return line_id
 
     @field_validator("targets_mm")
     @classmethod
@@ -132,11 +173,15 @@ class PlanLine:
 
 @dataclass
 class Plan:
+    """A measurement plan; ``source`` and ``history`` are set when it was read from a file."""
+
     machine: str
     receiver_offset_mm: Vec
     spindle_angle_rad: float
     lines: list[PlanLine]
     extra: dict[str, Any] = field(default_factory=dict)
+    source: FileSource | None = field(default=None, compare=False)
+    history: Provenance | None = field(default=None, compare=False)
 
     def line(self, line_id: str) -> PlanLine:
         for line in self.lines:
@@ -146,7 +191,9 @@ class Plan:
 
 
 def parse_plan(data: dict, source: str) -> Plan:
-    model = validate(_PlanModel, data, source)
+    """A Plan from a decoded document (format checked); history keys kept apart."""
+    history = read_json_history(data, source)
+    model = validate(_PlanModel, without_history(data), source)
     lines = [
         PlanLine(
             id=m.id,
@@ -169,11 +216,15 @@ def parse_plan(data: dict, source: str) -> Plan:
         spindle_angle_rad=math.radians(model.spindle_angle_deg),
         lines=lines,
         extra=dict(model.model_extra or {}),
+        history=history,
     )
 
 
 def read_plan(path: str | Path) -> Plan:
-    return parse_plan(read_json(path, PLAN_FORMAT), str(path))
+    """Read and validate a plan file; ``source`` records its SHA-256."""
+    plan = parse_plan(read_json(path, PLAN_FORMAT), str(path))
+    plan.source = FileSource.of("plan", path)
+    return plan
 
 
 def _floats(values: Vec) -> list[float]:
@@ -181,6 +232,7 @@ def _floats(values: Vec) -> list[float]:
 
 
 def plan_to_dict(plan: Plan) -> dict:
+    """The plan's content as JSON (no history: this is what its identity is made of)."""
     return {
         "format": PLAN_FORMAT,
         "machine": plan.machine,
@@ -206,5 +258,11 @@ def plan_to_dict(plan: Plan) -> dict:
     }
 
 
-def write_plan(path: str | Path, plan: Plan) -> None:
-    write_json(path, plan_to_dict(plan))
+def write_plan(path: str | Path, plan: Plan, inputs: Iterable[FileSource] = ()) -> None:
+    """Write the plan with its history (``inputs``: the pose and machine files); a line id
+    the reader would refuse (:func:`line_id_problem`) is refused."""
+    for number, line in enumerate(plan.lines):
+        problem = line_id_problem(line.id)
+        if problem is not None:
+            raise OutputError(located(path, f"key 'lines.{number}.id'", problem))
+    write_json(path, json_history(PLAN_FORMAT, inputs) | plan_to_dict(plan))

@@ -1,8 +1,9 @@
-"""Launch-unit pose (``xmalign.launch-pose/1``) of FORMATS.md."""
+"""Launch-unit pose (``xmalign.launch-pose/1``) of docs/formats.md."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -20,6 +21,7 @@ from xmalign.formats.common import (
     validate,
     write_json,
 )
+from xmalign.formats.provenance import FileSource, json_history
 from xmalign.geometry import Vec
 from xmalign.kinematics import EncoderOffsets
 
@@ -113,5 +115,6 @@ def pose_to_dict(pose: LaunchPose) -> dict:
     }
 
 
-def write_pose(path: str | Path, pose: LaunchPose) -> None:
-    write_json(path, pose_to_dict(pose))
+def write_pose(path: str | Path, pose: LaunchPose, inputs: Iterable[FileSource] = ()) -> None:
+    """Write the pose with its history (``inputs``: the session and machine files)."""
+    write_json(path, json_history(POSE_FORMAT, inputs) | pose_to_dict(pose))

@@ -1,8 +1,9 @@
-"""Identification session (``xmalign.identify-session/1``) of FORMATS.md."""
+"""Identification session (``xmalign.identify-session/1``) of docs/formats.md."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -20,6 +21,7 @@ from xmalign.formats.common import (
     validate,
     write_json,
 )
+from xmalign.formats.provenance import FileSource, json_history
 from xmalign.geometry import Vec
 
 SESSION_FORMAT = "xmalign.identify-session/1"
@@ -131,6 +133,7 @@ def session_to_dict(session: Session) -> dict:
     }
 
 
-def write_session(path: str | Path, session: Session) -> None:
-    """Write a session file atomically (safe to call after every alignment)."""
-    write_json(path, session_to_dict(session))
+def write_session(path: str | Path, session: Session, inputs: Iterable[FileSource] = ()) -> None:
+    """Write a session file atomically (safe to call after every alignment), with its
+    history (``inputs``: the machine file)."""
+    write_json(path, json_history(SESSION_FORMAT, inputs) | session_to_dict(session))

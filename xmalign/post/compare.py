@@ -22,6 +22,15 @@ from xmalign.rigid_body import (
 )
 
 
+def rigid_motion_design(points_mm: Vec) -> Vec:
+    """Columns of a rigid motion ``a + w x p`` at points (rows 3 i + c), shape (3N, 6)."""
+    centred = points_mm - points_mm.mean(axis=0)
+    return np.concatenate(
+        [np.tile(np.eye(3), (len(points_mm), 1)), np.concatenate([-skew(p) for p in centred])],
+        axis=1,
+    )
+
+
 def remove_rigid_motion(points_mm: Vec, difference_mm: Vec) -> Vec:
     """``difference`` minus its least-squares rigid motion ``a + w x p``, shape (N, 3).
 
@@ -30,11 +39,7 @@ def remove_rigid_motion(points_mm: Vec, difference_mm: Vec) -> Vec:
     points_mm : ndarray, shape (N, 3)
     difference_mm : ndarray, shape (N, 3)
     """
-    centred = points_mm - points_mm.mean(axis=0)
-    design = np.concatenate(
-        [np.tile(np.eye(3), (len(points_mm), 1)), np.concatenate([-skew(p) for p in centred])],
-        axis=1,
-    )
+    design = rigid_motion_design(points_mm)
     solution, *_ = np.linalg.lstsq(design, difference_mm.ravel(), rcond=None)
     return (difference_mm.ravel() - design @ solution).reshape(-1, 3)
 
@@ -46,14 +51,21 @@ def grid_points(low_mm: Vec, high_mm: Vec, n: int = 6) -> Vec:
 
 
 def volumetric_rms_um(
-    chain: Chain, points_mm: Vec, model: ErrorModel, reference: ErrorModel
+    chain: Chain,
+    points_mm: Vec,
+    model: ErrorModel,
+    reference: ErrorModel,
+    reference_offset_mm: Vec | None = None,
 ) -> float:
     """RMS length of the volumetric difference of two models after removing a rigid motion, um.
 
-    Both are evaluated for the tool point (``t = 0``).
+    Both are evaluated for the tool point (``t = 0``), or the reference at
+    ``reference_offset_mm`` (tables fitted for another functional point, such as
+    an SMR's, compared with the truth there).
     """
     dp_model, _ = deviation(chain, points_mm, np.zeros(3), model)
-    dp_reference, _ = deviation(chain, points_mm, np.zeros(3), reference)
+    offset = np.zeros(3) if reference_offset_mm is None else reference_offset_mm
+    dp_reference, _ = deviation(chain, points_mm, offset, reference)
     residual = remove_rigid_motion(points_mm, dp_model - dp_reference)
     return float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1e3)
 

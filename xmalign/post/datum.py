@@ -1,4 +1,4 @@
-"""Recognise ``-`` passes whose linear datum was re-zeroed (CONVENTIONS.md, linear channel).
+"""Recognise ``-`` passes whose linear datum was re-zeroed (docs/conventions.md, linear channel).
 
 The interferometer counts on through both passes of a run, so at the target
 where the ``-`` pass starts (the ``+`` pass's last) both passes read about the

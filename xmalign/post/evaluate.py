@@ -7,15 +7,19 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from xmalign.environment import StationCompensation, compensate_station
+from xmalign.errors import InputError
+from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.formats.measurements import MeasurementRow
 from xmalign.formats.plan import Plan
-from xmalign.geometry import Vec
+from xmalign.geometry import Vec, rot_z
 from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
+from xmalign.post.instruments import JointFit, fit_joint, tracer_places, tracker_stations
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
-from xmalign.post.lines import UM_PER_MM, LineData, group_by_line
+from xmalign.post.lines import CHANNEL_TO_SI, UM_PER_MM, LineData, group_by_line
 from xmalign.post.solve import TableFit, fit_error_tables
 from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, RemainingErrors, deviation
+from xmalign.roles import CHANNELS
 
 
 @dataclass
@@ -31,7 +35,8 @@ class PostResult:
     lines : list of LineData
         The measurement, grouped by line (mm / rad).
     warnings : list of str
-        What the user should know about the data (e.g. a re-zeroed linear datum).
+        What the user should know about the data (e.g. a re-zeroed linear datum, a
+        reading left out as a gross outlier: ``fit.outliers``).
     compensation : list of StationCompensation
         Per station, how its readings were compensated for the air, the dead
         path and the material, and the drift of each line.
@@ -39,6 +44,9 @@ class PostResult:
         The compensation the controller applied during the measurement (a
         verification run): ``fit`` is then the machine's own geometry and
         :meth:`tool_point_errors` what remains with the compensation.
+    instruments : JointFit, optional
+        With tracker points or tracer lengths: the joint fit (its ``fit`` is ``fit``),
+        with each station's and place's setup and residuals.
     """
 
     fit: TableFit
@@ -47,6 +55,7 @@ class PostResult:
     warnings: list[str] = field(default_factory=list)
     compensation: list[StationCompensation] = field(default_factory=list)
     applied: ErrorTables | None = None
+    instruments: JointFit | None = None
 
     def tool_point_errors(self, direction: str = "") -> ErrorModel:
         """The errors the machine shows with its controller's compensation (if any) in."""
@@ -75,6 +84,14 @@ def channel_sigma(machine: Machine) -> Vec:
 
 
 @dataclass(frozen=True)
+class Instruments:
+    """Tracker-point and tracer-length files for the same fit as the lines."""
+
+    trackers: tuple[TrackerFile, ...] = ()
+    tracers: tuple[TracerFile, ...] = ()
+
+
+@dataclass(frozen=True)
 class Station:
     """The measurement from one launch-unit station: its plan, rows and file name."""
 
@@ -84,7 +101,10 @@ class Station:
 
 
 def post_stations(
-    machine: Machine, stations: list[Station], applied: ErrorTables | None = None
+    machine: Machine,
+    stations: list[Station],
+    applied: ErrorTables | None = None,
+    instruments: Instruments | None = None,
 ) -> PostResult:
     """Fit one set of error tables to the measurements of one or more stations.
 
@@ -97,7 +117,13 @@ def post_stations(
     readings before the fit: a volumetric compensation moves the tool point by
     tilts times lever arms, which leaves no rigid-body chain to fit; the ISO
     230-2 figures stay those of the readings (as left).
+
+    ``instruments``: tracker points and tracer lengths fitted together with the
+    lines (:func:`xmalign.post.instruments.fit_joint`); ``stations`` may then be empty.
     """
+    for index, station in enumerate(stations):  # the rows as read: checked before any use
+        for data in group_by_line(station.plan, station.rows, station.source, index):
+            refuse_dead_channels(data, station.source)
     compensation = [compensate(machine, station) for station in stations]
     lines = [
         data
@@ -109,16 +135,33 @@ def post_stations(
             index,
         )
     ]
+    sources = [station.source for station in stations]
     chain = Chain.parse(machine.chain)
     fitted = lines
     if applied is not None:
         fitted = [_without(data, chain, applied, machine.cnc.tool_offset) for data in lines]
-    fit = fit_error_tables(
-        fitted,
-        chain,
-        channel_sigma(machine),
-        (machine.travel_min_mm, machine.travel_max_mm),
-    )
+    travel = (machine.travel_min_mm, machine.travel_max_mm)
+    joint = None
+    if instruments is not None and (instruments.trackers or instruments.tracers):
+        if applied is not None:
+            raise InputError(
+                "--applied (a verification run) takes interferometer lines only, not tracker"
+                " points or tracer lengths"
+            )
+        joint = fit_joint(
+            fitted,
+            tracker_stations(list(instruments.trackers)),
+            tracer_places(list(instruments.tracers)),
+            chain,
+            channel_sigma(machine),
+            rot_z(machine.spindle_angle_rad) @ machine.smr_offset,
+            machine.tracker,
+            machine.tracer,
+            travel,
+        )
+        fit = joint.fit
+    else:
+        fit = fit_error_tables(fitted, chain, channel_sigma(machine), travel)
     positioning = [
         positioning_figures(
             data.label, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
@@ -131,10 +174,50 @@ def post_stations(
         fit=fit,
         positioning=positioning,
         lines=lines,
-        warnings=datum_warnings(lines) + drift,
+        warnings=datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
         compensation=compensation,
         applied=applied,
+        instruments=joint,
     )
+
+
+def refuse_dead_channels(data: LineData, source: str) -> None:
+    """Refuse a line whose channel reads exactly zero at every point.
+
+    No working channel does (its noise alone moves the last digit): a dead or
+    unplugged instrument, or a channel its software left out. Its zeros would
+    enter the fit as a perfect machine; measure the line again.
+
+    Raises
+    ------
+    InputError
+        Naming the file, the line and the dead channels.
+    """
+    dead = [
+        name for name, column in zip(CHANNELS, data.channels.T, strict=True) if not column.any()
+    ]
+    if dead and len(data.run) > 1:
+        raise InputError(
+            f"{source}: line {data.line.id}: {', '.join(dead)} read exactly 0 at all"
+            f" {len(data.run)} points (a dead or unplugged instrument channel); measure the line"
+            " again"
+        )
+
+
+def outlier_warnings(fit: TableFit, lines: list[LineData], sources: list[str]) -> list[str]:
+    """One warning per reading the fit left out as a gross outlier, naming the point."""
+    warnings = []
+    for outlier in fit.outliers:
+        data = lines[outlier.line]
+        k = outlier.point
+        reading = data.channels[k, outlier.channel] / CHANNEL_TO_SI[outlier.channel]
+        warnings.append(
+            f"{sources[data.station]}: line {data.line.id} run {data.run[k]} direction"
+            f" {'+' if data.sign[k] > 0 else '-'} index {data.index[k]}:"
+            f" {CHANNELS[outlier.channel]} {reading:g} is {outlier.sigmas:.0f} standard"
+            " deviations off the fit, a gross outlier: left out of the fit"
+        )
+    return warnings
 
 
 def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: Vec) -> LineData:
@@ -152,7 +235,7 @@ def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: 
 
 
 def compensate(machine: Machine, station: Station) -> StationCompensation:
-    """The station's readings compensated for air, dead path and material (FORMATS.md).
+    """The station's readings compensated for air, dead path and material (docs/formats.md).
 
     A file without environment columns is taken as already compensated, at
     20 °C. Drift-check rows are taken out of the rows and checked.

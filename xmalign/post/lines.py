@@ -90,6 +90,11 @@ def tool_offset_mm(plan: Plan) -> Vec:
     return rot_z(plan.spindle_angle_rad) @ plan.receiver_offset_mm
 
 
+def _at(source: str, row: MeasurementRow) -> str:
+    """The file and, for a row read from it, its line: where a row's problem is."""
+    return f"{source}: line {row.file_line}" if row.file_line else source
+
+
 def _line_data(
     plan: Plan, line: PlanLine, rows: list[MeasurementRow], source: str, station: int
 ) -> LineData:
@@ -97,8 +102,15 @@ def _line_data(
     if np.any((index < 0) | (index >= len(line.targets_mm))):
         bad = rows[int(np.argmax((index < 0) | (index >= len(line.targets_mm))))]
         raise InputError(
-            f"{source}: line {line.id} run {bad.run}: target index {bad.index} is not in the"
-            f" plan ({len(line.targets_mm)} targets)"
+            f"{_at(source, bad)}: line {line.id} run {bad.run}: target index {bad.index} is not"
+            f" in the plan ({len(line.targets_mm)} targets)"
+        )
+    runs = np.array([row.run for row in rows])
+    if np.any((runs < 0) | (runs > line.runs)):
+        bad = rows[int(np.argmax((runs < 0) | (runs > line.runs)))]
+        raise InputError(
+            f"{_at(source, bad)}: line {line.id} run {bad.run} index {bad.index}: the plan has runs"
+            f" 1..{line.runs} of this line (run 0 is its drift check)"
         )
     machine = np.array([row.machine_mm for row in rows])
     expected = line.target_points_mm()[index]
@@ -106,12 +118,12 @@ def _line_data(
     if np.any(off > POINT_TOLERANCE_MM):
         bad = rows[int(np.argmax(off))]
         raise InputError(
-            f"{source}: line {line.id} run {bad.run} index {bad.index}: commanded point"
+            f"{_at(source, bad)}: line {line.id} run {bad.run} index {bad.index}: commanded point"
             f" {np.round(bad.machine_mm, 3).tolist()} is {off.max():.3f} mm off the plan target"
         )
     return LineData(
         line=line,
-        run=np.array([row.run for row in rows]),
+        run=runs,
         sign=np.array([1.0 if row.direction == "+" else -1.0 for row in rows]),
         index=index,
         distance_mm=line.targets_mm[index],
@@ -131,16 +143,16 @@ def group_by_line(
     Raises
     ------
     InputError
-        A row names a line the plan does not have, a target index outside the
-        plan, or a commanded point off its plan target; or no row at all.
+        A row names a line the plan does not have, a run or a target index outside
+        the plan, or a commanded point off its plan target; or no row at all.
     """
     known = {line.id for line in plan.lines}
     by_line: dict[str, list[MeasurementRow]] = {line.id: [] for line in plan.lines}
     for row in rows:
         if row.line not in known:
             raise InputError(
-                f"{source}: line '{row.line}' (run {row.run}, index {row.index}) is not in the"
-                f" plan (lines {', '.join(sorted(known))})"
+                f"{_at(source, row)}: line '{row.line}' (run {row.run}, index {row.index}) is not"
+                f" in the plan (lines {', '.join(sorted(known))})"
             )
         by_line[row.line].append(row)
     if not rows:

@@ -1,6 +1,6 @@
 """What the setup puts into the channels, as nuisance parameters of the fit.
 
-Per line (CONVENTIONS.md, "Raw readings carry the setup"):
+Per line (docs/conventions.md, "Raw readings carry the setup"):
 
 - straightness v and w: an offset and a slope along the line (the beam is not
   parallel to the line: the alignment slope);

@@ -3,14 +3,14 @@
 Follows seed 000 (Montavon et al.): every error motion is a linear B-spline
 (triangular basis functions, its Eq. 8-10) over the compensation points, so the
 channels are linear in the table values (its Eq. 12-14). The sensitivities come
-from the rigid-body model of CONVENTIONS.md through
+from the rigid-body model of docs/conventions.md through
 :meth:`xmalign.rigid_body.Chain.lever_arms` (``d(dp)/d(eps_K) = -[r_K]x``) and
 :func:`xmalign.rigid_body.squareness_deviation`. The setup terms of
 :mod:`xmalign.post.setup_terms` are nuisance columns of the same system. The
 system is weighted with the channel standard uncertainties (its Eq. 19-21) and
 the covariance of the table values propagated from them (its Eq. 22, GUM).
 
-Table conventions (CONVENTIONS.md) are imposed by leaving columns out: the
+Table conventions (docs/conventions.md) are imposed by leaving columns out: the
 positioning and angular tables have no value at their first compensation point,
 the straightness tables none at their first and last; these are exactly the
 directions the six lines cannot see (a rigid motion of the whole machine and
@@ -24,7 +24,7 @@ half reversal ``h``: an axis moving forward sees ``mean + h``, moving backward
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
@@ -62,6 +62,13 @@ _KNOT_DECIMALS = 6
 _SIGMA_FLOOR = 1e-2
 #: Re-weightings with the channels' estimated variance components (they settle in two).
 _VARIANCE_ITERATIONS = 2
+#: A reading whose residual exceeds this many standard deviations (the larger of the
+#: channel's robust scatter, 1.4826 MAD, and the machine file's channel uncertainty) is a
+#: gross outlier (a glitch, a bumped reflector), left out of the fit: ten is far beyond
+#: any Gaussian tail of a few thousand readings, and far below a wrong reading of tens of um.
+OUTLIER_SIGMAS = 10.0
+#: More gross outliers than this and the measurement is refused, not patched.
+MAX_OUTLIERS = 10
 #: Knots whose polynomial gives the slope at a knot (fourth order).
 _SLOPE_POINTS = 5
 #: Table points per knot interval: a controller interpolates linearly between them,
@@ -208,7 +215,7 @@ def _slope_matrix(knots_mm: Vec) -> Vec:
 
 
 def _gauge_free(axis: str, error: int, n_knots: int) -> np.ndarray:
-    """Knots of one mean table that get a column (table conventions of CONVENTIONS.md)."""
+    """Knots of one mean table that get a column (table conventions of docs/conventions.md)."""
     free = np.ones(n_knots, dtype=bool)
     free[0] = False
     if error < 3 and error != AXIS_INDEX[axis]:
@@ -310,6 +317,21 @@ def _add_squareness_columns(
             out.add(rows + channel, int(column), dp[:, channel])
 
 
+@dataclass(frozen=True)
+class Outlier:
+    """A reading left out of the fit as a gross outlier.
+
+    ``line`` indexes the fitted lines, ``point`` the line's points, ``channel`` the six
+    channels (linear, straightness v, w, angle u, v, w); ``sigmas`` is its residual in
+    standard deviations when it was found.
+    """
+
+    line: int
+    point: int
+    channel: int
+    sigmas: float
+
+
 @dataclass
 class TableFit:
     """Result of the fit.
@@ -330,6 +352,8 @@ class TableFit:
     channel_scatter : ndarray, shape (6,)
         The channels' standard deviations estimated from the residuals (type A),
         with which the final fit is weighted, mm / rad.
+    outliers : list of Outlier
+        Readings left out as gross outliers (:data:`OUTLIER_SIGMAS`), in the order found.
     """
 
     tables: ErrorTableSet
@@ -339,6 +363,7 @@ class TableFit:
     n_observations: int
     n_parameters: int
     channel_scatter: Vec
+    outliers: list[Outlier] = field(default_factory=list)
 
 
 def _undetermined(normal: Vec, layout: ParameterLayout, setup: SetupLayout) -> GeometryError:
@@ -408,10 +433,12 @@ class _WeightedSystem:
         sigma: Vec,
         layout: ParameterLayout,
         setup: SetupLayout,
+        kept: np.ndarray,
     ) -> None:
         n_rows, n_columns = design.shape
         self.sigma = sigma
-        self.weights = np.tile(1.0 / sigma, n_rows // N_CHANNELS)
+        self.kept = kept
+        self.weights = np.tile(1.0 / sigma, n_rows // N_CHANNELS) * kept
         weighted = scipy.sparse.diags(self.weights) @ design
         self.norms = np.sqrt(np.asarray(weighted.multiply(weighted).sum(axis=0))).ravel()
         if np.any(self.norms == 0):
@@ -426,7 +453,7 @@ class _WeightedSystem:
         solution_scaled = self.inverse @ (self.scaled.T @ (observed * self.weights))
         self.residual = observed * self.weights - self.scaled @ solution_scaled
         self.solution = solution_scaled / self.norms
-        dof = max(n_rows - n_columns, 1)
+        dof = max(int(np.count_nonzero(kept)) - n_columns, 1)
         self.sigma0 = float(np.sqrt(self.residual @ self.residual / dof))
 
     def channel_factors(self) -> Vec:
@@ -436,7 +463,7 @@ class _WeightedSystem:
         ``1 - h_ii`` of its rows, ``h`` the hat matrix): a type A evaluation of
         the channel's standard deviation.
         """
-        redundancy = (1.0 - self._leverage()).reshape(-1, N_CHANNELS).sum(axis=0)
+        redundancy = ((1.0 - self._leverage()) * self.kept).reshape(-1, N_CHANNELS).sum(axis=0)
         squares = (self.residual**2).reshape(-1, N_CHANNELS).sum(axis=0)
         return np.sqrt(squares / np.maximum(redundancy, 1.0))
 
@@ -468,6 +495,33 @@ class _WeightedSystem:
         return self.inverse @ middle @ self.inverse / np.outer(self.norms, self.norms)
 
 
+def bidirectional_axes(lines: list[LineData]) -> set[str]:
+    """The axes some line measured in both directions (they get reversal tables)."""
+    return {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
+
+
+def add_line_rows(
+    lines: list[LineData],
+    chain: Chain,
+    layout: ParameterLayout,
+    setup: SetupLayout,
+    out: Triplets,
+) -> list[int]:
+    """Add the six channel rows of every line's points (tables, squareness, setup).
+
+    Returns the first row of each line; the rows are numbered from 0.
+    """
+    sizes = [N_CHANNELS * len(d.run) for d in lines]
+    first_rows = [int(r) for r in np.cumsum([0, *sizes])[: len(lines)]]
+    for data, first_row in zip(lines, first_rows, strict=True):
+        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
+        for axis in AXES:
+            _add_axis_columns(data, first_row, axis, arms[axis], layout, out)
+        _add_squareness_columns(data, first_row, layout, out)
+    setup.add_columns(lines, first_rows, out)
+    return first_rows
+
+
 def fit_error_tables(
     lines: list[LineData],
     chain: Chain,
@@ -492,30 +546,38 @@ def fit_error_tables(
         False), with the u95 the extrapolation propagates.
     """
     knots = compensation_points(lines)
-    bidirectional = {axis for data in lines if data.bidirectional for axis in data.moving_axes()}
-    layout = ParameterLayout(knots, bidirectional)
+    layout = ParameterLayout(knots, bidirectional_axes(lines))
     setup = SetupLayout(lines, layout.n_columns)
-    first_rows = list(np.cumsum([0] + [N_CHANNELS * len(d.run) for d in lines[:-1]]))
-    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
     triplets = Triplets()
-    for data, first_row in zip(lines, first_rows, strict=True):
-        arms = chain.lever_arms(data.machine_mm, data.tool_offset_mm)
-        for axis in AXES:
-            _add_axis_columns(data, first_row, axis, arms[axis], layout, triplets)
-        _add_squareness_columns(data, first_row, layout, triplets)
-    setup.add_columns(lines, first_rows, triplets)
+    first_rows = add_line_rows(lines, chain, layout, setup, triplets)
+    n_rows = N_CHANNELS * sum(len(d.run) for d in lines)
 
     n_columns = layout.n_columns + setup.n_columns
     rows, cols, vals = triplets.arrays()
     design = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_rows, n_columns))
     observed = np.concatenate([d.channels.ravel() for d in lines])
     prior = np.asarray(channel_sigma, dtype=float)
-    system = _WeightedSystem(design, observed, prior, layout, setup)
+    kept = np.ones(n_rows, dtype=bool)
+    system = _WeightedSystem(design, observed, prior, layout, setup, kept)
+    outliers: list[Outlier] = []
+    while (worst := _worst_outlier(system.residual, kept)) is not None:
+        row, sigmas = worst
+        line = int(np.searchsorted(first_rows, row, side="right")) - 1
+        point, channel = divmod(row - int(first_rows[line]), N_CHANNELS)
+        outliers.append(Outlier(line, point, channel, sigmas))
+        if len(outliers) > MAX_OUTLIERS:
+            raise InputError(
+                f"more than {MAX_OUTLIERS} readings are gross outliers (over"
+                f" {OUTLIER_SIGMAS:g} standard deviations off the fit): the measurement is not"
+                " usable; check the setup and measure again"
+            )
+        kept[row] = False
+        system = _WeightedSystem(design, observed, prior, layout, setup, kept)
     sigma0 = system.sigma0
     sigma = prior
     for _ in range(_VARIANCE_ITERATIONS):
         sigma = np.maximum(sigma * system.channel_factors(), prior * _SIGMA_FLOOR)
-        system = _WeightedSystem(design, observed, sigma, layout, setup)
+        system = _WeightedSystem(design, observed, sigma, layout, setup, kept)
     solution = system.solution
     covariance = system.covariance(np.maximum(prior, sigma))
     residual = system.residual
@@ -523,12 +585,25 @@ def fit_error_tables(
     return TableFit(
         tables=_tables(layout, solution, covariance, travel_mm),
         setup=setup.unpack(solution),
-        residual_rms=_residual_rms(lines, first_rows, residual / weights),
+        residual_rms=_residual_rms(
+            lines, first_rows, np.divide(residual, weights, out=np.full(n_rows, np.nan), where=kept)
+        ),
         sigma0=sigma0,
         n_observations=n_rows,
         n_parameters=n_columns,
         channel_scatter=sigma,
+        outliers=outliers,
     )
+
+
+def _worst_outlier(residual: Vec, kept: np.ndarray) -> tuple[int, float] | None:
+    """The row of the largest gross outlier among the kept readings and its size in
+    standard deviations, or None (``residual`` weighted with the channel uncertainties)."""
+    by_channel = np.where(kept, np.abs(residual), np.nan).reshape(-1, N_CHANNELS)
+    scatter = np.maximum(1.4826 * np.nanmedian(by_channel, axis=0), 1.0)
+    sigmas = np.nan_to_num(by_channel / scatter, nan=0.0).ravel()
+    row = int(np.argmax(sigmas))
+    return (row, float(sigmas[row])) if sigmas[row] > OUTLIER_SIGMAS else None
 
 
 def _output_positions(knots_mm: Vec, low_mm: float, high_mm: float) -> tuple[Vec, np.ndarray]:
@@ -563,18 +638,23 @@ def _evaluate(
     return values, K_EXPANSION * np.sqrt(np.maximum(variance, 0.0))
 
 
+def rms_curvature(knots_mm: Vec, positions_mm: Vec, values: Vec) -> float:
+    """RMS second difference of a table over its knots (M >= 3), value per mm squared."""
+    at_knots = np.interp(knots_mm, positions_mm, values)
+    slopes = np.diff(at_knots) / np.diff(knots_mm)
+    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
+    return float(np.sqrt(np.mean(curvature**2)))
+
+
 def _extrapolation_u(knots_mm: Vec, positions_mm: Vec, values: Vec) -> Vec:
     """Standard uncertainty of the linear continuation beyond the knots, shape (P,).
 
     The table's RMS curvature over the knots, kept up over the distance ``d``
     from the nearest knot: ``kappa * d**2 / 2`` (0 between the knots).
     """
-    at_knots = np.interp(knots_mm, positions_mm, values)
     if len(knots_mm) < 3:
         return np.zeros(len(positions_mm))
-    slopes = np.diff(at_knots) / np.diff(knots_mm)
-    curvature = np.diff(slopes) / (0.5 * (knots_mm[2:] - knots_mm[:-2]))
-    kappa = float(np.sqrt(np.mean(curvature**2)))
+    kappa = rms_curvature(knots_mm, positions_mm, values)
     distance = np.maximum(knots_mm[0] - positions_mm, 0) + np.maximum(
         positions_mm - knots_mm[-1], 0
     )
@@ -619,5 +699,5 @@ def _residual_rms(lines: list[LineData], first_rows: list[int], residual: Vec) -
     out = {}
     for data, first_row in zip(lines, first_rows, strict=True):
         part = residual[first_row : first_row + N_CHANNELS * len(data.run)].reshape(-1, 6)
-        out[data.label] = np.sqrt(np.mean(part**2, axis=0)) * scale
+        out[data.label] = np.sqrt(np.nanmean(part**2, axis=0)) * scale  # outliers: NaN
     return out

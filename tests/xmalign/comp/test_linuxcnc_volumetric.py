@@ -153,12 +153,11 @@ def test_merge_rewires_the_drives_through_the_component(tmp_path):
     ini = _config(tmp_path)
     merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path / "out")
     hal = merged.files["machine_volcomp.hal"].splitlines()
+    # loaded before its pins are named; feedback in before motion reads it, command after
+    assert hal[0] == f"loadrt xmalign_volcomp table={(tmp_path / 'out').resolve()}/{TABLE_FILE}"
     motion = hal.index("addf motion-controller servo-thread")
-    assert (
-        hal[motion + 1]
-        == f"loadrt xmalign_volcomp table={(tmp_path / 'out').resolve()}/{TABLE_FILE}"
-    )
-    assert hal[motion + 2] == f"addf {INSTANCE} servo-thread"
+    assert hal[motion - 1] == f"addf {INSTANCE}.feedback servo-thread"
+    assert hal[motion + 1] == f"addf {INSTANCE}.command servo-thread"
     assert f"net j3 {INSTANCE}.motor-pos-out-3 => {INSTANCE}.motor-pos-fb-in-3" in hal
     assert f"net estop-loop iocontrol.0.user-enable-out {INSTANCE}.enable-in" in hal
     wiring = merged.files[WIRING_FILE].splitlines()
@@ -167,6 +166,13 @@ def test_merge_rewires_the_drives_through_the_component(tmp_path):
     )
     assert f"net xmalign-fb-2 {INSTANCE}.motor-pos-fb-out-2 => joint.2.motor-pos-fb" in wiring
     assert f"net xmalign-enable {INSTANCE}.enable-out => iocontrol.0.emc-enable-in" in wiring
+    for pin, component_pin in [
+        ("joint.3.homed", "joint-homed-3"),
+        ("motion.is-all-homed", "all-homed"),
+        ("motion.motion-enabled", "motion-enabled"),
+    ]:
+        own = f"xmalign-{component_pin}"
+        assert f"net {own} {pin} => {INSTANCE}.{component_pin}" in wiring
     lines = merged.files["machine_volcomp.ini"].splitlines()
     halfiles = [line for line in lines if line.startswith("HALFILE")]
     assert halfiles == ["HALFILE = machine_volcomp.hal", f"HALFILE = {WIRING_FILE}"]
@@ -217,7 +223,7 @@ def test_merge_warns_where_the_joint_limits_pass_the_tables(tmp_path):
         ),
         (lambda ini, hal: (ini, hal.replace("joint.3.motor-pos-fb", "x")), "joint.3.motor-pos-fb"),
         (lambda ini, hal: (ini, hal + "loadrt xmalign_volcomp table=x\n"), "already"),
-        (lambda ini, hal: (ini, hal + "linkps motion.is-all-homed s\n"), "line 12: motion.is-all"),
+        (lambda ini, hal: (ini, hal + "linkps motion.is-all-homed s\n"), "line 10: motion.is-all"),
     ],
 )
 def test_merge_refuses_what_it_cannot_wire(tmp_path, edit, message):

@@ -198,3 +198,45 @@ def test_our_heidenhain_table_holds_the_manuals_error_curve():
     np.testing.assert_allclose(positions, z, atol=1e-4)
     y = [float(row[header.index("Y")]) for row in rows]
     np.testing.assert_allclose(y, HEIDENHAIN_Y_OF_Z_MM, atol=1e-5)  # the error, not minus it
+
+
+#: SINUMERIK 840D sl Function Manual K3 "Compensations" (6FC5397-1BP40-3BA1, 03/2013),
+#: 4.4.4.3 "Example", p. 264: the direction-dependent compensation of axis X in two CEC
+#: tables of 11 interpolation points at X = -585, -527, ..., -5 (MD18342[0] = MD18342[1]
+#: = 11), one table for each traversing direction.
+K3_DIRECTION_POSITIONS_MM = np.arange(-585.0, -4.0, 58.0)
+
+
+def test_our_direction_table_sits_on_the_k3_examples_interpolation_points():
+    machine = parse_machine(
+        {
+            "name": "K3 example",
+            "chain": "FYXZ",
+            "travel_mm": {"X": [-585, -5], "Y": [0, 300], "Z": [-200, 0]},
+            "feed_mm_min": {"rapid": 6000, "measure": 1000},
+            "controller": "sinumerik",
+            "receiver_offset_mm": [0, 0, -100],
+            "cnc": {"reference_mm": [-5.0, 0.0, 0.0]},
+        },
+        "test",
+    )
+    tables = make_tables()
+    for name in ("EXX", "EYX", "EZX", "EAX", "EBX", "ECX"):
+        n = len(K3_DIRECTION_POSITIONS_MM)
+        tables.tables[name] = Table(K3_DIRECTION_POSITIONS_MM, np.zeros(n), np.zeros(n))
+    tables = with_reversal(tables, "EXX", 2.0)
+    cec = compensate(machine, tables, "sinumerik").files["NC_CEC.INI"]
+    statements = {(v, i): value for v, i, value in _statements(cec)}
+    directional = [
+        index
+        for (name, index), value in statements.items()
+        if name == "AN_CEC_DIRECTION" and value != "0"
+    ]
+    assert len(directional) == 1  # one table carries the reversal
+    (table,) = directional[0]
+    assert statements[("AN_CEC_MIN", (table,))] == "-585.000000"
+    assert statements[("AN_CEC_STEP", (table,))] == "58.000000"
+    assert statements[("AN_CEC_MAX", (table,))] == "-5.000000"
+    assert sum(1 for v, i in statements if v == "AN_CEC" and i[0] == table) == 11
+    # X references at its upper end (-5) moving '+': the table acts in '-' only
+    assert statements[("AN_CEC_DIRECTION", (table,))] == "-1"

@@ -49,13 +49,17 @@ def test_sinumerik_cec_cross_tables_reversal_and_activation():
     index = next(i for i, line in enumerate(lines) if "EXY fitted" in line)
     table = lines[index].split()[2].rstrip(":")
     assert f"$AN_CEC[{table},4]=0.003000" in lines
-    # reversal: one table per direction on X itself (6 cross tables come first)
-    assert "$AN_CEC_DIRECTION[6]=1" in lines and "$AN_CEC_DIRECTION[7]=-1" in lines
-    assert "$AN_CEC[6,0]=0.002000" in lines and "$AN_CEC[7,0]=-0.002000" in lines
+    # reversal: X returns to its reference (x = 0, the lower end) moving '-', so the LEC is
+    # the '-' table (zero there) and one CEC table on X itself, acting in '+' only, carries
+    # the reversal: E+ - E- = -4 um, correction +4 um (6 cross tables come first)
+    assert "$AN_CEC_DIRECTION[6]=1" in lines and "$AN_CEC[6,0]=0.004000" in lines
+    assert not any(line.startswith("$AN_CEC[7,") for line in lines)
     # SD41300 / SD41310 switch every table on
-    for t in range(8):
+    for t in range(7):
         assert f"$SN_CEC_TABLE_ENABLE[{t}]=TRUE" in lines
         assert f"$SN_CEC_TABLE_WEIGHT[{t}]=1.0" in lines
+    # the tables carry the reversal: the control's backlash goes to 0, said in the file
+    assert any("set MD32450 $MA_BACKLASH to 0 on X" in line for line in lines)
 
 
 def test_sinumerik_refuses_more_points_than_md38000(monkeypatch):
@@ -96,13 +100,22 @@ def test_fanuc_bidirectional_pitch_and_detection_unit():
     files = _files("fanuc", tables, machine)
     lines = files["PITCH.TXT"].splitlines()
     assert "N03624A1P1000000A2P750000A3P500000;" in lines  # 100 mm in 0.1 um units
-    # negative-direction table follows the positive one; 3627: reverse at the reference
+    # negative-direction table follows the positive one. X returns to its reference (x = 0,
+    # the lower end of its travel) moving '-' (A-77810E: 3627 is the value at the reference
+    # approached against the return direction), so the '-' table is zero there and 3627
+    # holds the '+' correction there: -(e+ - e-) = -(-1 - 1) um = +2 um = +20 units
     assert "N03626A1P5A2P0A3P0;" in lines
-    assert "N03627A1P-20A2P0A3P0;" in lines  # -(+1 - (-1)) um = -2 um = -20 units
-    assert "3605#0" in files["PITCH_README.TXT"] and "0.1 um" in files["PITCH_README.TXT"]
+    assert "N03627A1P20A2P0A3P0;" in lines
+    readme = files["PITCH_README.TXT"]
+    assert "3605#0" in readme and "0.1 um" in readme and "X 0 (-)" in readme
     pitch = fanuc.pitch_tables(compensate(machine, tables, "fanuc").fit, machine)[0]
     assert pitch.negative_values is not None
     np.testing.assert_array_equal(pitch.values, [-50, 50, 0, 0])  # forward -(e+ - e+(0))
+    # returning '+' instead, the '+' table is the zero one and 3627 the '-' correction
+    returning_up = make_machine(
+        controller="fanuc", detection_unit_um=0.1, reference_return={"X": "+"}
+    )
+    assert "N03627A1P-20A2P0A3P0;" in _files("fanuc", tables, returning_up)["PITCH.TXT"]
 
 
 def test_fanuc_straightness_is_optional_and_leaves_the_pitch_tables_alone():
@@ -134,8 +147,10 @@ def test_heidenhain_com_and_cma():
     com = files["X.COM"].splitlines()
     assert com[0] == "BEGIN X.COM MM" and com[-1] == "[END]"
     assert com[1].split() == ["NR", "AXISPOS", "X", "Y", "Z", "BACKLASH"]
-    # the error itself (the manuals' error curve); forward in X, negative direction in BACKLASH
-    assert com[3].split() == ["1", "+100.0000", "+0.00400", "+0.00000", "+0.00000", "+0.00600"]
+    # the error itself (the manuals' error curve); forward in X, negative direction in BACKLASH;
+    # X returns to its reference (x = 0) moving '-', so BACKLASH is zero there: e- - e-(0)
+    assert com[2].split() == ["0", "+0.0000", "-0.00200", "+0.00000", "+0.00000", "+0.00000"]
+    assert com[3].split() == ["1", "+100.0000", "+0.00300", "+0.00000", "+0.00000", "+0.00500"]
     assert com[4].split()[4] == "+0.00400"
     assert files["Y.COM"].splitlines()[1].split() == ["NR", "AXISPOS", "X", "Y", "Z"]
     cma = files["CONFIG.CMA"].splitlines()
@@ -169,7 +184,9 @@ def test_isg_volumetric_csv():
     tables = make_tables({"EAX": [0, 7, 0, 0, 0], "EXY": [0, 3, 0, 0, 0]}, EC0Y=12.5)
     text = _files("isg", tables)[isg.FILE_NAME]
     lines = text.splitlines()
-    assert lines[3:5] == ["C0Y A0Z B0Z", "1.25e-05 0 0"]
+    start = lines.index("C0Y A0Z B0Z")
+    assert lines[start : start + 2] == ["C0Y A0Z B0Z", "1.25e-05 0 0"]
+    assert all(line.startswith("//") for line in lines[:start])  # notes are comments
     x_header = lines.index("X EXX EYX EZX EAX EBX ECX")
     assert lines[x_header + 2].split()[:5] == ["100", "0", "0", "0", "7e-06"]
     table_side = _files("isg", tables, make_machine("YFXZ", "isg"))[isg.FILE_NAME].splitlines()

@@ -56,14 +56,18 @@ def test_tables_reach_the_travel_ends_with_growing_u95(short_lines, reference_ma
 def test_the_range_column_round_trips(short_lines, tmp_path):
     path = tmp_path / "errors.csv"
     write_error_tables(path, short_lines.fit.tables)
-    assert path.read_text().splitlines()[0].endswith(",u95,range")
+    header = [line for line in path.read_text().splitlines() if not line.startswith("#")][0]
+    assert header.endswith(",u95,range")
     again = read_error_tables(path).tables["EXX"]
     assert np.array_equal(again.measured_mask(), short_lines.fit.tables.tables["EXX"].measured)
 
 
 def test_a_file_without_the_range_column_is_all_measured(tmp_path):
     path = tmp_path / "old.csv"
-    path.write_text("name,position_mm,value,unit,u95\nEXX,0,0,um,0\nEXX,100,2.5,um,0.4\n")
+    squareness = "EC0Y,,0,urad,1\nEA0Z,,0,urad,1\nEB0Z,,0,urad,1\n"
+    path.write_text(
+        "name,position_mm,value,unit,u95\nEXX,0,0,um,0\nEXX,100,2.5,um,0.4\n" + squareness
+    )
     assert read_error_tables(path).tables["EXX"].measured_mask().all()
 
 

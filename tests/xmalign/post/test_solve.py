@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.stats
 
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.synthetic import SetupDisturbance, measure, six_line_plan
@@ -114,15 +115,62 @@ def test_expanded_uncertainty_follows_the_channel_uncertainties(reference_machin
     assert "EXX+" not in base.fit.tables.tables
 
 
-def test_u95_covers_the_scatter_of_repeated_measurements(reference_machine, truth):
-    """GUM check: the spread of EXX over repeated noisy measurements matches u95 / 2."""
-    fits = [
-        _fit(reference_machine, truth, seed=s, n=15, runs=1, bidirectional=False) for s in range(8)
+#: Repeated measurements of the u95 check: the scatter's degrees of freedom are one fewer.
+_REPEATS = 16
+
+
+def _scatter_over_predicted(machine: Machine, truth: VirtualMachine, inflate: float) -> float:
+    """RMS over EXX's points of (scatter of repeated measurements) / (u95 / 2).
+
+    The synthetic noise is the machine file's channel uncertainty and the machine
+    repeats perfectly, so u95 / 2 should be the scatter itself; ``inflate`` scales the
+    reported u95 (a check that the test fails for a u95 that overstates it).
+    """
+    u = machine.uncertainty
+    matched = SetupDisturbance(
+        noise=(
+            u.channel_linear_um,
+            u.channel_straightness_um,
+            u.channel_straightness_um,
+            u.channel_roll_urad,
+            u.channel_angle_urad,
+            u.channel_angle_urad,
+        ),
+        repeatability_um=0.0,
+    )
+    layout = six_line_plan(machine, 15, runs=1, bidirectional=False)
+    chain = Chain.parse(machine.chain)
+    tables = [
+        post_process(
+            machine,
+            layout,
+            measure(layout, chain, truth, np.random.default_rng(s), setup=matched),
+            "synthetic.csv",
+        ).fit.tables.tables["EXX"]
+        for s in range(_REPEATS)
     ]
-    values = np.array([f.fit.tables.tables["EXX"].values[1:] for f in fits])
-    predicted = fits[0].fit.tables.tables["EXX"].u95[1:] / 2
-    # the synthetic noise is below the assumed channel uncertainty: spread < predicted
-    assert np.median(values.std(axis=0, ddof=1) / predicted) < 1.0
+    values = np.array([t.values[1:] for t in tables])
+    predicted = np.mean([t.u95[1:] for t in tables], axis=0) * inflate / 2
+    return float(np.sqrt(np.mean(values.var(axis=0, ddof=1) / predicted**2)))
+
+
+def _chi_interval(probability: float) -> tuple[float, float]:
+    """Where scatter / sigma lies with ``probability`` for _REPEATS repeats, taking the
+    points as one (fully correlated: the widest interval the pooling can have)."""
+    dof = _REPEATS - 1
+    tail = (1 - probability) / 2
+    low, high = scipy.stats.chi2.ppf([tail, 1 - tail], dof)
+    return float(np.sqrt(low / dof)), float(np.sqrt(high / dof))
+
+
+@pytest.mark.parametrize("inflate", [1.0, 3.0])
+def test_u95_covers_the_scatter_of_repeated_measurements(reference_machine, truth, inflate):
+    """GUM check from both sides: the scatter of EXX over repeated measurements is u95 / 2
+    within the chi-square interval of the repeats (99.8 %), neither above (u95 too small)
+    nor below (u95 overstating it); a u95 three times too large falls outside."""
+    ratio = _scatter_over_predicted(reference_machine, truth, inflate)
+    low, high = _chi_interval(0.998)
+    assert (low <= ratio <= high) == (inflate == 1.0), (ratio, low, high)
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,323 @@
+"""LinuxCNC over its remote shell ``linuxcncrsh`` (TCP, plain text; docs/hardware.md).
+
+Two layers, as for every device:
+
+* :class:`LinuxcncrshLink` carries lines over TCP: one request, one reply
+  line (the session is set up so that every request has exactly one), with a
+  timeout; every line crossing the connection is logged at DEBUG with the
+  passwords replaced by ``****``.
+* :class:`LinuxCnc` speaks the commands of ``man linuxcncrsh`` (LinuxCNC 2.9)
+  on such a link: the actual position in machine coordinates
+  (``get abs_act_pos``), standstill, the program state
+  (``get program_status``), and program control (``set open``, ``set run``,
+  ``set pause``, ``set resume``, ``set abort``). It is a
+  ``MachinePositionSource`` and a ``ProgramControl`` (:mod:`xmalign.roles`).
+  It never writes an axis position: no MDI, no jog, no homing.
+
+Replies as LinuxCNC 2.9 sends them (seen on a headless ``linuxcnc-uspace``):
+``get`` replies end with ``\\r\\n`` and start with the subcommand in capitals
+(``ABS_ACT_POS 1.000000 2.000000 ...``, one value per axis of XYZABC);
+``set`` replies (with ``set verbose on``) are ``SET <CMD> ACK`` or
+``SET <CMD> NAK`` ending with ``\\n\\r``; a session echoes every request until
+``set echo off``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import socket
+from typing import Protocol
+
+import numpy as np
+
+from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, TransportError
+from xmalign.geometry import Vec
+from xmalign.roles import Clock, ProgramState, WallClock
+
+log = logging.getLogger(__name__)
+
+#: linuxcncrsh's defaults (``-p``, ``-w``, ``-e``; man linuxcncrsh).
+DEFAULT_PORT = 5007
+DEFAULT_CONNECT_PASSWORD = "EMC"
+DEFAULT_ENABLE_PASSWORD = "EMCTOO"
+#: What xmalign calls itself in ``hello``.
+CLIENT = "xmalign"
+PROTOCOL_VERSION = "1.0"
+#: Time between the two reads of the commanded position that tell a standstill, s.
+STANDSTILL_PROBE_S = 0.02
+_MASK = "****"
+_LINE_END = re.compile(rb"[\r\n]")
+
+
+def masked(line: str) -> str:
+    """A request with its password replaced by ``****`` (``hello PW ...``, ``set enable PW``)."""
+    words = line.split(" ")
+    lowered = [word.lower() for word in words]
+    if lowered[:1] == ["hello"] and len(words) > 1:
+        words[1] = _MASK
+    elif lowered[:2] == ["set", "enable"] and len(words) > 2 and lowered[2] != "off":
+        words[2] = _MASK
+    return " ".join(words)
+
+
+class LineLink(Protocol):
+    """A request/reply line connection (:class:`LinuxcncrshLink`, or a scripted double)."""
+
+    name: str
+
+    def ask(self, line: str) -> str:
+        """Send one request line, return its one reply line (without line ends)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class LinuxcncrshLink:
+    """One TCP session with linuxcncrsh: :meth:`ask` sends a line and reads one reply line.
+
+    Parameters
+    ----------
+    host, port : str, int
+    timeout_s : float
+        For the connection and for each reply.
+    """
+
+    def __init__(self, host: str, port: int, timeout_s: float) -> None:
+        self.name = f"LinuxCNC at {host}:{port}"
+        self.timeout_s = timeout_s
+        self._buffer = b""
+        try:
+            self._socket: socket.socket | None = socket.create_connection(
+                (host, port), timeout=timeout_s
+            )
+        except OSError as error:
+            raise TransportError(
+                f"cannot connect to {self.name} (linuxcncrsh): {error.strerror or error}"
+            ) from error
+        log.debug("%s: connected", self.name)
+
+    def ask(self, line: str) -> str:
+        if self._socket is None:
+            raise TransportError(f"the connection to {self.name} is closed")
+        log.debug("%s > %r", self.name, masked(line))
+        try:
+            self._socket.sendall(line.encode("ascii") + b"\r\n")
+            reply = self._read_line()
+        except TimeoutError as error:
+            self.close()  # a late reply would be taken for the next request's
+            raise DeviceTimeoutError(
+                f"{self.name} did not answer '{masked(line)}' within {self.timeout_s:g} s"
+            ) from error
+        except OSError as error:
+            self.close()
+            raise TransportError(
+                f"the connection to {self.name} failed ({error.strerror or error})"
+            ) from error
+        log.debug("%s < %r", self.name, reply)
+        return reply
+
+    def _read_line(self) -> str:
+        """The next non-empty line (replies end with ``\\r\\n`` or ``\\n\\r``)."""
+        assert self._socket is not None
+        while True:
+            self._buffer = self._buffer.lstrip(b"\r\n")
+            end = _LINE_END.search(self._buffer)
+            if end is not None:
+                line, self._buffer = self._buffer[: end.start()], self._buffer[end.start() :]
+                return line.decode("ascii", errors="replace")
+            chunk = self._socket.recv(4096)
+            if not chunk:
+                self.close()
+                raise TransportError(f"{self.name} closed the connection")
+            self._buffer += chunk
+
+    def close(self) -> None:
+        if self._socket is not None:
+            self._socket.close()
+            self._socket = None
+            log.debug("%s: closed", self.name)
+
+
+class LinuxCnc:
+    """A LinuxCNC seen through linuxcncrsh: position, standstill, program state and control.
+
+    Positions are ``abs_act_pos``: the actual position of the controlled point
+    in machine coordinates (what ``G53`` addresses; no work offset, no G92
+    offset; the tool length offset is what the program sets, and xmalign's
+    program cancels it with ``G49``), the coordinates of the plan.
+
+    Parameters
+    ----------
+    link : LineLink
+        A fresh session (:meth:`open` says hello).
+    joints : int
+        How many joints must be homed and free of faults.
+    in_position_mm : float
+        Largest distance between the actual and the commanded position at a standstill.
+    """
+
+    def __init__(
+        self,
+        link: LineLink,
+        joints: int = 3,
+        in_position_mm: float = 0.002,
+        clock: Clock | None = None,
+    ) -> None:
+        self.link = link
+        self.name = link.name
+        self.joints = joints
+        self.in_position_mm = in_position_mm
+        self.clock = clock or WallClock()
+
+    def open(self, connect_password: str, enable_password: str | None) -> None:
+        """Say hello; without echo, with a reply to every ``set``; enable control if asked."""
+        reply = self.link.ask(f"hello {connect_password} {CLIENT} {PROTOCOL_VERSION}")
+        if not reply.upper().startswith("HELLO ACK"):
+            raise DeviceError(f"{self.name} refused the connect password (hello: {reply})")
+        self.link.ask("set echo off")  # the reply is the echo of this very request
+        self._set("verbose on")
+        if enable_password is not None:
+            reply = self.link.ask(f"set enable {enable_password}")
+            if reply.upper() != "SET ENABLE ACK":
+                raise DeviceError(f"{self.name} refused the enable password (set enable)")
+
+    def close(self) -> None:
+        self.link.close()
+
+    # -- reading ------------------------------------------------------------------
+    def _get(self, what: str) -> list[str]:
+        """The words of the reply to ``get <what>`` after its name."""
+        reply = self.link.ask(f"get {what}")
+        words = reply.split()
+        head = what.split()[0].upper()
+        if not words or words[0].upper() != head:
+            raise DeviceError(f"{self.name} refused 'get {what}' ({reply})")
+        return words[1:]
+
+    def _axes_mm(self, what: str) -> Vec:
+        words = self._get(what)
+        try:
+            values = np.array([float(word) for word in words[:3]])
+        except ValueError as error:
+            raise DeviceError(f"{self.name}: unexpected reply to 'get {what}': {words}") from error
+        if values.shape != (3,):
+            raise DeviceError(f"{self.name}: 'get {what}' gave {len(words)} values, not X Y Z")
+        return values
+
+    def position_mm(self) -> Vec:
+        """Actual X Y Z in machine coordinates (``abs_act_pos``), mm, shape (3,)."""
+        return self._axes_mm("abs_act_pos")
+
+    def commanded_mm(self) -> Vec:
+        """Commanded X Y Z in machine coordinates (``abs_cmd_pos``), mm, shape (3,)."""
+        return self._axes_mm("abs_cmd_pos")
+
+    def is_standstill(self) -> bool:
+        """The commanded position did not change over ``STANDSTILL_PROBE_S`` and the actual
+        position is within ``in_position_mm`` of it (linuxcncrsh has no in-position flag)."""
+        before = self.commanded_mm()
+        self.clock.sleep(STANDSTILL_PROBE_S)
+        commanded = self.commanded_mm()
+        if not np.array_equal(before, commanded):
+            return False
+        miss = float(np.linalg.norm(self.position_mm() - commanded))
+        return miss <= self.in_position_mm
+
+    def program_state(self) -> ProgramState:
+        """``idle``, ``running`` or ``paused`` (an M0, or a feed hold)."""
+        (state,) = self._get("program_status")[:1] or ["?"]
+        state = state.lower()
+        if state not in ("idle", "running", "paused"):
+            raise DeviceError(f"{self.name}: unknown program status '{state}'")
+        return state  # type: ignore[return-value]
+
+    def loaded_program(self) -> str | None:
+        """The path of the open program, None when there is none."""
+        words = self._get("program")
+        return None if not words or words[0].lower() == "none" else " ".join(words)
+
+    def check_ready(self) -> None:
+        """Out of E-stop, machine on, the first ``joints`` joints homed and without fault.
+
+        xmalign does none of this itself: the operator brings the machine up.
+        """
+        if self._get("estop")[:1] != ["OFF"] or self._get("machine")[:1] != ["ON"]:
+            raise DriveFaultError(
+                f"{self.name}: the machine is in E-stop or off; switch it on and home it first"
+            )
+        homed = self._get("joint_homed")[: self.joints]
+        if len(homed) < self.joints or any(word.upper() != "YES" for word in homed):
+            raise DriveFaultError(
+                f"{self.name}: not every joint is homed ({' '.join(homed)}); home the machine first"
+            )
+        faults = self._get("joint_fault")[: self.joints]
+        if any(word.upper() != "OK" for word in faults):
+            raise DriveFaultError(f"{self.name}: joint fault ({' '.join(faults)})")
+
+    # -- program control ------------------------------------------------------------
+    def _set(self, what: str) -> None:
+        reply = self.link.ask(f"set {what}")
+        head = what.split()[0].upper()
+        if reply.upper() == f"SET {head} ACK":
+            return
+        reason = self._error_text()
+        raise DeviceError(
+            f"{self.name} refused 'set {what}' ({reply}{'; ' + reason if reason else ''})"
+        )
+
+    def _error_text(self) -> str:
+        """LinuxCNC's last error message, '' when it has none."""
+        try:
+            text = " ".join(self._get("error"))
+        except DeviceError:
+            return ""
+        return "" if text.upper() == "OK" else text
+
+    def start_program(self, path: str, timeout_s: float = 5.0) -> None:
+        """Auto mode, open ``path`` (as the LinuxCNC computer sees it), run from the top.
+
+        Returns once LinuxCNC reports the program running (its status lags the
+        command); DeviceError with LinuxCNC's own message when it does not start.
+        """
+        self._set("mode auto")
+        self._set(f"open {path}")
+        self._set("run")
+        deadline = self.clock.now() + timeout_s
+        while self.program_state() == "idle":
+            if self.clock.now() >= deadline:
+                reason = self._error_text() or "no message"
+                raise DeviceError(f"{self.name} did not start {path} ({reason})")
+            self.clock.sleep(0.02)
+
+    def hold(self) -> None:
+        """Feed hold (``set pause``)."""
+        self._set("pause")
+
+    def resume(self) -> None:
+        """Go on after an M0 or a feed hold (``set resume``)."""
+        self._set("resume")
+
+    def stop_program(self) -> None:
+        """Abort the program (``set abort``)."""
+        self._set("abort")
+
+
+def open_linuxcnc(
+    host: str,
+    port: int,
+    timeout_s: float,
+    connect_password: str = DEFAULT_CONNECT_PASSWORD,
+    enable_password: str | None = DEFAULT_ENABLE_PASSWORD,
+    joints: int = 3,
+    in_position_mm: float = 0.002,
+) -> LinuxCnc:
+    """Connect to linuxcncrsh and open a session (enabled for control with a password)."""
+    link = LinuxcncrshLink(host, port, timeout_s)
+    cnc = LinuxCnc(link, joints, in_position_mm)
+    try:
+        cnc.open(connect_password, enable_password)
+    except BaseException:
+        link.close()
+        raise
+    return cnc

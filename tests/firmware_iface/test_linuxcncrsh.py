@@ -1,0 +1,241 @@
+"""The linuxcncrsh driver against scripted sessions and a TCP server of our own.
+
+The replies are those of LinuxCNC 2.9 (Debian ``linuxcnc-uspace``) as seen on a
+headless instance (``man linuxcncrsh`` for the commands; the line ends ``\\r\\n``
+after ``get`` and ``\\n\\r`` after ``set`` are LinuxCNC's own). The real
+LinuxCNC runs in tests/linuxcnc/test_unattended_run.py.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from scripted import ExpectedRshLines
+
+from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, masked, open_linuxcnc
+from sim.clock import SimClock
+from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, TransportError
+from xmalign.roles import ProgramControl
+
+HELLO = [
+    ("hello EMC xmalign 1.0", "HELLO ACK EMCNETSVR 1.1"),
+    ("set echo off", "set echo off"),
+    ("set verbose on", "SET VERBOSE ACK"),
+    ("set enable EMCTOO", "SET ENABLE ACK"),
+]
+
+
+def _cnc(link: ExpectedRshLines) -> LinuxCnc:
+    return LinuxCnc(link, joints=3, in_position_mm=0.002, clock=SimClock())
+
+
+def test_a_session_says_hello_turns_echo_off_and_enables_control() -> None:
+    with ExpectedRshLines(HELLO) as link:
+        cnc = _cnc(link)
+        cnc.open("EMC", "EMCTOO")
+    assert isinstance(cnc, ProgramControl)
+
+
+def test_a_wrong_password_is_one_clear_error() -> None:
+    with (
+        ExpectedRshLines([("hello nope xmalign 1.0", "HELLO NAK")]) as link,
+        pytest.raises(DeviceError, match="refused the connect password"),
+    ):
+        _cnc(link).open("nope", None)
+    steps = [*HELLO[:3], ("set enable WRONG", "SET ENABLE NAK")]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="refused the enable password") as error,
+    ):
+        _cnc(link).open("EMC", "WRONG")
+    assert "WRONG" not in str(error.value)
+
+
+def test_position_is_abs_act_pos_and_standstill_needs_a_still_command_and_in_position() -> None:
+    values = "100.000000 200.000000 -50.000000 0.000000 0.000000 0.000000"
+    moving = "100.100000 200.000000 -50.000000 0.000000 0.000000 0.000000"
+    off = "100.003000 200.000000 -50.000000 0.000000 0.000000 0.000000"
+    steps = [
+        ("get abs_act_pos", f"ABS_ACT_POS {values}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {values}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {moving}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {values}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {values}"),
+        ("get abs_act_pos", f"ABS_ACT_POS {off}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {values}"),
+        ("get abs_cmd_pos", f"ABS_CMD_POS {values}"),
+        ("get abs_act_pos", f"ABS_ACT_POS {values}"),
+    ]
+    with ExpectedRshLines(steps) as link:
+        cnc = _cnc(link)
+        assert np.array_equal(cnc.position_mm(), [100.0, 200.0, -50.0])
+        assert not cnc.is_standstill()  # the command moved
+        assert not cnc.is_standstill()  # 3 µm from the command: not in position
+        assert cnc.is_standstill()
+
+
+def test_program_control_and_state() -> None:
+    steps = [
+        ("set mode auto", "SET MODE ACK"),
+        ("set open /cnc/run.ngc", "SET OPEN ACK"),
+        ("set run", "SET RUN ACK"),
+        ("get program_status", "PROGRAM_STATUS IDLE"),  # the status lags the command
+        ("get program_status", "PROGRAM_STATUS RUNNING"),
+        ("set pause", "SET PAUSE ACK"),
+        ("get program_status", "PROGRAM_STATUS PAUSED"),
+        ("set resume", "SET RESUME ACK"),
+        ("set abort", "SET ABORT ACK"),
+        ("get program", "PROGRAM /cnc/run.ngc"),
+    ]
+    with ExpectedRshLines(steps) as link:
+        cnc = _cnc(link)
+        cnc.start_program("/cnc/run.ngc")
+        cnc.hold()
+        assert cnc.program_state() == "paused"
+        cnc.resume()
+        cnc.stop_program()
+        assert cnc.loaded_program() == "/cnc/run.ngc"
+
+
+def test_a_refused_command_says_linuxcncs_own_reason() -> None:
+    steps = [
+        ("set mode auto", "SET MODE NAK"),
+        ("get error", "ERROR can't do that in estop"),
+    ]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="refused 'set mode auto'.*can't do that in estop"),
+    ):
+        _cnc(link).start_program("/x.ngc")
+
+
+def test_a_program_that_does_not_start_is_one_error() -> None:
+    steps = [
+        ("set mode auto", "SET MODE ACK"),
+        ("set open /x.ngc", "SET OPEN ACK"),
+        ("set run", "SET RUN ACK"),
+        *[("get program_status", "PROGRAM_STATUS IDLE")] * 2,
+        ("get error", "ERROR Unable to open file </x.ngc>"),
+    ]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="did not start /x.ngc .Unable to open file"),
+    ):
+        _cnc(link).start_program("/x.ngc", timeout_s=0.02)
+
+
+@pytest.mark.parametrize(
+    ("replies", "fragment"),
+    [
+        (["ESTOP ON"], "E-stop or off"),
+        (["ESTOP OFF", "MACHINE OFF"], "E-stop or off"),
+        (["ESTOP OFF", "MACHINE ON", "JOINT_HOMED YES NO YES NO NO NO"], "not every joint"),
+        (
+            [
+                "ESTOP OFF",
+                "MACHINE ON",
+                "JOINT_HOMED YES YES YES NO NO NO",
+                "JOINT_FAULT OK FAULT OK",
+            ],
+            "joint fault",
+        ),
+    ],
+)
+def test_a_machine_not_ready_is_refused(replies: list[str], fragment: str) -> None:
+    requests = ["get estop", "get machine", "get joint_homed", "get joint_fault"]
+    with (
+        ExpectedRshLines(list(zip(requests, replies, strict=False))) as link,
+        pytest.raises(DriveFaultError, match=fragment),
+    ):
+        _cnc(link).check_ready()
+
+
+def test_a_reply_to_another_question_is_refused() -> None:
+    """linuxcncrsh 2.9 can garble a command when two sessions talk at once (seen)."""
+    with (
+        ExpectedRshLines(
+            [("set resume", "SET ABS_ACT_POS NAK"), ("get error", "ERROR OK")]
+        ) as link,
+        pytest.raises(DeviceError, match="refused 'set resume' .SET ABS_ACT_POS NAK"),
+    ):
+        _cnc(link).resume()
+
+
+@pytest.mark.parametrize(
+    ("line", "shown"),
+    [
+        ("hello s3cret xmalign 1.0", "hello **** xmalign 1.0"),
+        ("set enable s3cret", "set enable ****"),
+        ("SET ENABLE s3cret", "SET ENABLE ****"),
+        ("set enable off", "set enable off"),
+        ("get abs_act_pos", "get abs_act_pos"),
+    ],
+)
+def test_passwords_are_masked(line: str, shown: str) -> None:
+    assert masked(line) == shown
+
+
+class Server:
+    """A one-connection TCP server answering each request line from a table (as
+    linuxcncrsh ends its lines: ``\\r\\n`` for get, ``\\n\\r`` for set)."""
+
+    def __init__(self, answers: dict[str, bytes]) -> None:
+        self.answers = answers
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        connection, _ = self.listener.accept()
+        with connection, connection.makefile("rb") as lines:
+            for raw in lines:
+                answer = self.answers.get(raw.decode().strip())
+                if answer is None:
+                    return  # an unknown request: the cable is pulled
+                if answer:
+                    connection.sendall(answer)
+
+
+@pytest.fixture
+def server() -> Iterator[Server]:
+    served = Server(
+        {
+            "hello pw1 xmalign 1.0": b"HELLO ACK EMCNETSVR 1.1\r\n",
+            "set echo off": b"set echo off\r\n",
+            "set verbose on": b"SET VERBOSE ACK\n\r",
+            "set enable pw2": b"SET ENABLE ACK\n\r",
+            "get abs_act_pos": b"ABS_ACT_POS 1.5 2.5 -3.5 0 0 0\r\n",
+            "get program_status": b"",  # never answered
+        }
+    )
+    yield served
+    served.listener.close()
+
+
+def test_over_tcp_with_linuxcncrsh_line_ends_and_passwords_never_logged(
+    server: Server, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG, logger="firmware_iface")
+    cnc = open_linuxcnc("127.0.0.1", server.port, 0.5, "pw1", "pw2")
+    assert np.array_equal(cnc.position_mm(), [1.5, 2.5, -3.5])
+    with pytest.raises(DeviceTimeoutError, match="did not answer 'get program_status'"):
+        cnc.program_state()
+    with pytest.raises(TransportError, match="closed"):
+        cnc.position_mm()
+    log = caplog.text
+    assert "pw1" not in log and "pw2" not in log
+    assert "> 'hello **** xmalign 1.0'" in log and "> 'set enable ****'" in log
+    assert "< 'ABS_ACT_POS 1.5 2.5 -3.5 0 0 0'" in log
+
+
+def test_a_refused_connection_is_one_line() -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    with pytest.raises(TransportError, match=f"cannot connect to LinuxCNC at 127.0.0.1:{port}"):
+        LinuxcncrshLink("127.0.0.1", port, 0.5)

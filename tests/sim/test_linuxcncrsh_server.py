@@ -1,0 +1,69 @@
+"""The simulated CNC behind linuxcncrsh's protocol, driven by xmalign's own LinuxCNC driver.
+
+The replies the server gives are those LinuxCNC 2.9 gave in
+tests/linuxcnc/test_unattended_run.py (the driver passes against both).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
+from sim.cnc import SimulatedCnc
+from sim.servers.linuxcncrsh import LinuxcncrshServer
+from xmalign.errors import DeviceError
+from xmalign.machine import Machine
+from xmalign.roles import ProgramControl, WallClock
+
+
+@pytest.fixture
+def cnc(reference_machine: Machine) -> Iterator[tuple[LinuxCnc, LinuxcncrshServer]]:
+    server = LinuxcncrshServer(SimulatedCnc(reference_machine, WallClock()), reference_machine)
+    server.start()
+    client = open_linuxcnc("127.0.0.1", server.port, 2.0)
+    yield client, server
+    client.close()
+    server.stop()
+
+
+def _wait(condition, timeout_s: float = 10.0) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> None:  # noqa: ANN001
+    client, _ = cnc
+    assert isinstance(client, ProgramControl)
+    client.check_ready()
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90\nG53 G1 X100 Y50 Z-10 F6000\nM0\nG53 G1 X300 F600\nM2\n")
+    client.start_program(str(program))
+    assert client.loaded_program() == str(program)
+    _wait(lambda: client.program_state() == "paused")  # the M0
+    assert np.allclose(client.position_mm(), [100, 50, -10]) and client.is_standstill()
+    client.resume()
+    _wait(lambda: client.position_mm()[0] > 110)
+    client.hold()  # feed hold mid-move: the machine stops where it is
+    held = client.position_mm()
+    assert client.program_state() == "paused" and client.is_standstill()
+    time.sleep(0.1)
+    assert np.array_equal(client.position_mm(), held)
+    client.resume()
+    _wait(lambda: client.position_mm()[0] > held[0])
+    client.stop_program()
+    assert client.program_state() == "idle"
+
+
+def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # noqa: ANN001
+    client, server = cnc
+    with pytest.raises(DeviceError, match="did not start /nowhere.ngc .Unable to open file"):
+        client.start_program("/nowhere.ngc", timeout_s=0.2)
+    with pytest.raises(DeviceError, match="refused the enable password"):
+        open_linuxcnc("127.0.0.1", server.port, 2.0, enable_password="WRONG")

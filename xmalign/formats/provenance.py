@@ -1,0 +1,193 @@
+"""Where a file came from: format and version, software, time, and its inputs' SHA-256.
+
+Every file xmalign writes carries its history (docs/formats.md, "Versions and
+history"), written and read here and nowhere else:
+
+- JSON files get the keys ``format`` (``name/version``), ``software``
+  (``xmalign 0.1.0``), ``created_utc`` (ISO 8601, seconds, ``Z``) and
+  ``inputs``: one ``{"role", "path", "sha256"}`` per file it was made from;
+- CSV files get a preamble of ``#`` comment lines before their header::
+
+      # format: xmalign.error-tables/2
+      # software: xmalign 0.1.0
+      # created_utc: 2026-11-26T01:02:03Z
+      # input measurements: 9f86d081...  m.csv
+
+  an ``input`` line ends with exactly what ``sha256sum FILE`` prints, so anyone
+  can check the chain without xmalign; other ``# key: value`` lines carry
+  what a format adds (the error table's ``machine``).
+
+The SHA-256 is that of the file's bytes. A reader accepts every version up to
+the one it knows (``common.check_format``) and refuses a newer one with one line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from xmalign import __version__
+from xmalign.errors import InputError
+from xmalign.formats.common import check_format, located, os_problem
+
+SOFTWARE = f"xmalign {__version__}"
+#: The JSON keys of a file's history (besides ``format``).
+HISTORY_KEYS = ("software", "created_utc", "inputs")
+_INPUT_LINE = re.compile(r"^input (?P<role>[\w.-]+): (?P<sha256>[0-9a-f]{64})  (?P<path>.+)$")
+
+
+@dataclass(frozen=True)
+class FileSource:
+    """A file something was made from: its role (``plan``), path and SHA-256 (hex)."""
+
+    role: str
+    path: str
+    sha256: str
+
+    @classmethod
+    def of(cls, role: str, path: str | Path) -> FileSource:
+        """The source as the file is now (its bytes hashed).
+
+        Raises
+        ------
+        InputError
+            The file cannot be read.
+        """
+        return cls(role, str(path), file_sha256(path))
+
+    def sha256sum_line(self) -> str:
+        """The line ``sha256sum`` prints for the file: ``HEX  PATH``."""
+        return f"{self.sha256}  {self.path}"
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """The history a file carries; ``version`` 1 files written before it have none."""
+
+    format: str
+    software: str | None = None
+    created_utc: str | None = None
+    inputs: tuple[FileSource, ...] = ()
+    extra: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def version(self) -> int:
+        return int(self.format.rpartition("/")[2])
+
+    def input(self, role: str) -> FileSource | None:
+        """The first input of ``role``, or None."""
+        return next((source for source in self.inputs if source.role == role), None)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, hex (what ``sha256sum`` prints)."""
+    digest = hashlib.sha256()
+    try:
+        with Path(path).open("rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as error:
+        raise InputError(located(path, "cannot read", os_problem(error))) from error
+    return digest.hexdigest()
+
+
+def now_utc() -> str:
+    """The present UTC time, ISO 8601 to the second (``2026-11-26T01:02:03Z``)."""
+    return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def sources(**paths: str | Path | None) -> list[FileSource]:
+    """``FileSource`` of every named path that is given (``plan=..., machine=None``)."""
+    return [FileSource.of(role, path) for role, path in paths.items() if path is not None]
+
+
+def json_history(format_name: str, inputs: Iterable[FileSource] = ()) -> dict[str, Any]:
+    """The keys a JSON file starts with: ``format``, ``software``, ``created_utc``, ``inputs``."""
+    return {
+        "format": format_name,
+        "software": SOFTWARE,
+        "created_utc": now_utc(),
+        "inputs": [{"role": s.role, "path": s.path, "sha256": s.sha256} for s in inputs],
+    }
+
+
+def read_json_history(data: Mapping[str, Any], source: str) -> Provenance:
+    """The history of a decoded JSON file (format already checked); keys absent in /1 files."""
+    inputs: list[FileSource] = []
+    for index, item in enumerate(data.get("inputs") or []):
+        try:
+            inputs.append(FileSource(str(item["role"]), str(item["path"]), str(item["sha256"])))
+        except (KeyError, TypeError) as error:
+            raise InputError(
+                located(source, f"key 'inputs.{index}'", "needs role, path and sha256")
+            ) from error
+    return Provenance(
+        format=str(data["format"]),
+        software=data.get("software"),
+        created_utc=data.get("created_utc"),
+        inputs=tuple(inputs),
+    )
+
+
+def without_history(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A decoded JSON document without its history keys (what the content is)."""
+    return {key: value for key, value in data.items() if key not in HISTORY_KEYS}
+
+
+def csv_preamble(
+    format_name: str, inputs: Iterable[FileSource] = (), extra: Mapping[str, str] | None = None
+) -> str:
+    """The ``#`` lines a CSV file starts with (each ends with a line end)."""
+    lines = [
+        f"# format: {format_name}",
+        f"# software: {SOFTWARE}",
+        f"# created_utc: {now_utc()}",
+        *(f"# input {s.role}: {s.sha256sum_line()}" for s in inputs),
+        *(f"# {key}: {value}" for key, value in (extra or {}).items()),
+    ]
+    return "".join(line + "\n" for line in lines)
+
+
+def read_csv_preamble(
+    comments: Iterable[str], expected_format: str, source: str, first_format: str
+) -> Provenance:
+    """The history in a CSV file's leading ``#`` lines (the ``#`` included).
+
+    A file without a ``# format:`` line is ``first_format`` (version 1, written
+    before files carried their history). A newer version is refused.
+    """
+    values: dict[str, str] = {}
+    inputs: list[FileSource] = []
+    for text in comments:
+        key, separator, value = text.lstrip("#").strip().partition(": ")
+        match = _INPUT_LINE.match(text.lstrip("#").strip())
+        if match:
+            inputs.append(FileSource(match["role"], match["path"], match["sha256"]))
+        elif separator and " " not in key:
+            values.setdefault(key, value.strip())
+    format_name = values.pop("format", first_format)
+    check_format(format_name, expected_format, source)
+    return Provenance(
+        format=format_name,
+        software=values.pop("software", None),
+        created_utc=values.pop("created_utc", None),
+        inputs=tuple(inputs),
+        extra=values,
+    )
+
+
+def json_value(provenance: Provenance, key: str, source: str) -> Any:
+    """A preamble value written as JSON (the error table's ``machine``), or None."""
+    text = provenance.extra.get(key)
+    if text is None:
+        return None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as error:
+        raise InputError(located(source, f"'# {key}' line", "not valid JSON")) from error
