@@ -21,12 +21,16 @@
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it), file, linuxcncrsh or mtconnect
+      source: prompt               # prompt (operator types it), file, linuxcncrsh, mtconnect
+      #                              or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
       # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
       #                            (source: linuxcncrsh; xmalign runs the program itself)
       # mtconnect: {url: http://192.168.10.30:5000, device: VMC}
-      #                            (source: mtconnect; read-only, the operator runs it)
+      # sinumerik: {endpoint: opc.tcp://192.168.214.241:4840, user: xmalign,
+      #             password_env: XMALIGN_OPCUA_PASSWORD}
+      #   (mtconnect, sinumerik: read-only, the operator runs the program; every key
+      #   in firmware_iface/controller_config.py)
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
@@ -61,6 +65,13 @@ from firmware_iface.can_bus import (
     open_can_bus,
 )
 from firmware_iface.canopen_axis import CanopenUnit
+from firmware_iface.controller_config import (
+    MTConnectConfig,
+    SinumerikConfig,
+    open_mtconnect_source,
+    open_sinumerik_source,
+    resolve_paths,
+)
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
 from firmware_iface.linuxcncrsh import (
     DEFAULT_CONNECT_PASSWORD,
@@ -71,7 +82,6 @@ from firmware_iface.linuxcncrsh import (
 )
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.modbus import ModbusUnit, rtu_transport, tcp_transport
-from firmware_iface.mtconnect import MTConnectAgent
 from firmware_iface.weather_station import (
     EnvironmentConfig,
     open_environment,
@@ -180,34 +190,24 @@ class LinuxcncrshConfig(_Strict):
         return self.program_on_cnc or str(self.program.resolve())
 
 
-class MTConnectConfig(_Strict):
-    """An MTConnect agent xmalign reads the position from (read-only; docs/hardware.md)."""
-
-    url: str
-    #: The device's name in the agent (default: its first device).
-    device: str | None = None
-
-
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect"] = "prompt"
+    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect", "sinumerik"] = "prompt"
     file: Path | None = None
     linuxcncrsh: LinuxcncrshConfig | None = None
     mtconnect: MTConnectConfig | None = None
+    sinumerik: SinumerikConfig | None = None
 
     @model_validator(mode="after")
     def _source_given(self) -> MachinePositionConfig:
-        if (self.source == "file") != (self.file is not None):
-            raise ValueError("'file' is required with source: file, and only then")
-        if (self.source == "linuxcncrsh") != (self.linuxcncrsh is not None):
-            raise ValueError("'linuxcncrsh' is required with source: linuxcncrsh, and only then")
-        if (self.source == "mtconnect") != (self.mtconnect is not None):
-            raise ValueError("'mtconnect' is required with source: mtconnect, and only then")
+        for source in ("file", "linuxcncrsh", "mtconnect", "sinumerik"):
+            if (self.source == source) != (getattr(self, source) is not None):
+                raise ValueError(f"'{source}' is required with source: {source}, and only then")
         return self
 
     @property
     def follows_the_machine(self) -> bool:
         """The operator runs the program; xmalign follows the machine's position."""
-        return self.source in ("file", "mtconnect")
+        return self.source in ("file", "mtconnect", "sinumerik")
 
 
 class Timeouts(_Strict):
@@ -259,6 +259,7 @@ def _resolve_machine_position(
             "linuxcncrsh": None
             if rsh is None
             else rsh.model_copy(update={"program": base_dir / rsh.program}),
+            "sinumerik": resolve_paths(config.sinumerik, base_dir),
         }
     )
 
@@ -371,7 +372,7 @@ def open_devices(
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
         controller = _open_controller(config, closers)
-        position = controller or _position_source(config)
+        position = controller or _position_source(config, closers)
     except BaseException:
         for close in reversed(closers):
             close()
@@ -380,14 +381,17 @@ def open_devices(
     return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
 
 
-def _position_source(config: UnitsConfig) -> MachinePositionSource | None:
-    """Where an operator-run machine's position is read: a file, an MTConnect agent."""
+def _position_source(
+    config: UnitsConfig, closers: list[Callable[[], None]]
+) -> MachinePositionSource | None:
+    """Where an operator-run machine's position is read: a file, or a controller followed."""
     source = config.machine_position
     if source.file is not None:
         return FilePositions(source.file)
     if source.mtconnect is not None:
-        agent = source.mtconnect
-        return MTConnectAgent(agent.url, config.timeouts.io_s, agent.device)
+        return open_mtconnect_source(source.mtconnect, config.timeouts.io_s, closers)
+    if source.sinumerik is not None:
+        return open_sinumerik_source(source.sinumerik, config.timeouts.io_s, closers)
     return None
 
 

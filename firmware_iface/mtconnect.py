@@ -1,182 +1,395 @@
-"""A machine's position and program state read from an MTConnect agent (read-only, HTTP).
+"""A machine followed through its MTConnect agent (HTTP, read-only; docs/hardware.md).
 
-MTConnect (ANSI/MTC1.4) agents serve XML over HTTP: ``/probe`` describes the
-device (``MTConnectDevices``: components such as ``Linear`` X/Y/Z with their
-``DataItem`` elements), ``/current`` gives the latest value of every data item
-(``MTConnectStreams``: observations named by element, keyed by
-``dataItemId``). :class:`MTConnectAgent` is a ``MachinePositionSource``:
+Two layers, as for every device:
 
-* the position: per ``Linear`` axis X, Y, Z the data item of ``type="POSITION"``,
-  ``subType="ACTUAL"`` in machine coordinates (``coordinateSystem="MACHINE"``, or
-  none given: machine coordinates are an axis position's default), in
-  ``MILLIMETER``; ``UNAVAILABLE`` is refused;
-* the program state from ``EXECUTION`` (``ACTIVE`` running; ``INTERRUPTED``,
-  ``FEED_HOLD``, ``OPTIONAL_STOP``, ``PROGRAM_STOPPED`` paused; else idle) and the
-  ``CONTROLLER_MODE``;
-* standstill: the position unchanged over ``STANDSTILL_PROBE_S`` (MTConnect has
-  no in-position item; an agent samples at its own rate).
+* :class:`AgentLink` sends one HTTP GET to the agent (standard library
+  ``urllib``) with a timeout and logs each request and the size of its answer.
+* :class:`MTConnectMachine` reads the agent's documents: ``/probe`` once, to
+  find the data items, then ``/current`` on every call. It is a
+  ``MachinePositionSource`` (:mod:`xmalign.roles`) and reports the program
+  state; it never writes anything (MTConnect is read-only).
 
-Nothing is ever written: with MTConnect the operator runs the program and xmalign
-follows the machine, as with a position file (docs/hardware.md).
+Which data items (MTConnect Part 2, Devices; Part 3, Streams):
+
+* position: per linear axis (a ``Linear`` component named ``X``, ``Y``, ``Z``
+  or as configured), the ``DataItem`` of ``type="POSITION"``, ``subType="ACTUAL"``
+  in machine coordinates: ``coordinateSystem="MACHINE"`` (version 1.1 on), or
+  ``coordinateSystemIdRef`` naming a ``CoordinateSystem`` of ``type="MACHINE"``
+  (2.0 on), or no coordinate system at all (version 1.0 documents have none;
+  taken as machine coordinates). ``WORK`` positions are never used.
+  Values are converted to mm from the item's ``units`` (what the agent
+  reports), or ``nativeUnits`` when the agent declares no ``units`` (it then
+  passes the controller's values on unconverted): ``MILLIMETER``, ``INCH``, ``FOOT``.
+* program state: the ``EXECUTION`` event (READY, ACTIVE, INTERRUPTED,
+  FEED_HOLD, STOPPED, OPTIONAL_STOP, PROGRAM_STOPPED, PROGRAM_COMPLETED, WAIT);
+  operating mode: ``CONTROLLER_MODE``. The first of each in the device is used.
+
+Standstill: every axis's last change is at least ``settle_s`` older than the
+document (the agent records an observation only when a value changes, so this
+is the agent's own evidence), or the positions read on successive calls stayed
+within ``standstill_tolerance_mm`` for ``settle_s`` (:class:`StandstillWindow`;
+for adapters that repeat unchanged or jittering values).
 """
 
 from __future__ import annotations
 
+import http.client
 import logging
+import math
+import socket
 import urllib.error
+import urllib.parse
 import urllib.request
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Protocol
 
 import numpy as np
 
+from firmware_iface.controller_status import ControllerStatus
+from firmware_iface.standstill import StandstillWindow
 from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, ProgramState, WallClock
+from xmalign.roles import Clock, ClosesOnExit, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
 
-AXES = ("X", "Y", "Z")
-#: Time between the two reads of the position that tell a standstill, s.
-STANDSTILL_PROBE_S = 0.2
-_PAUSED = ("INTERRUPTED", "FEED_HOLD", "OPTIONAL_STOP", "PROGRAM_STOPPED")
+#: mm per unit of the MTConnect vocabulary (units and nativeUnits of a POSITION).
+MM_PER_UNIT = {"MILLIMETER": 1.0, "INCH": 25.4, "FOOT": 304.8}
+
+#: MTConnect Execution values (Part 3) as program states.
+EXECUTION_STATES: dict[str, ProgramState] = {
+    "READY": "idle",
+    "STOPPED": "idle",
+    "PROGRAM_COMPLETED": "idle",
+    "ACTIVE": "running",
+    "WAIT": "running",
+    "INTERRUPTED": "paused",
+    "FEED_HOLD": "paused",
+    "OPTIONAL_STOP": "paused",
+    "PROGRAM_STOPPED": "paused",
+}
+UNAVAILABLE = "UNAVAILABLE"
 
 
-def _local(tag: str) -> str:
-    """An element's name without its namespace (agents use MTConnectStreams:1.x URNs)."""
-    return tag.rsplit("}", 1)[-1]
+class AgentTransport(Protocol):
+    """What the driver needs of the HTTP side (:class:`AgentLink`, or a test double)."""
+
+    name: str
+
+    def get(self, path: str) -> tuple[int, bytes]: ...
+
+    def close(self) -> None: ...
+
+
+class AgentLink:
+    """HTTP GETs to one MTConnect agent.
+
+    Parameters
+    ----------
+    url : str
+        The agent's base address, e.g. ``http://192.168.10.30:5000``.
+    timeout_s : float
+        Largest wait for the connection and for each read of the answer.
+    """
+
+    def __init__(self, url: str, timeout_s: float) -> None:
+        self.url = url.rstrip("/")
+        self.timeout_s = timeout_s
+        self.name = f"the MTConnect agent at {self.url}"
+
+    def get(self, path: str) -> tuple[int, bytes]:
+        """GET ``path`` (relative to the base address); the HTTP status and the body."""
+        url = f"{self.url}/{path}"
+        log.debug("%s > GET %s", self.name, url)
+        try:
+            with urllib.request.urlopen(url, timeout=self.timeout_s) as reply:
+                status, body = int(reply.status), reply.read()
+        except urllib.error.HTTPError as error:  # an MTConnectError document comes with it
+            status, body = error.code, error.read()
+        except TimeoutError as error:
+            raise DeviceTimeoutError(
+                f"{self.name} did not answer {path} within {self.timeout_s:g} s"
+            ) from error
+        except urllib.error.URLError as error:
+            if isinstance(error.reason, TimeoutError | socket.timeout):
+                raise DeviceTimeoutError(
+                    f"{self.name} did not answer {path} within {self.timeout_s:g} s"
+                ) from error
+            raise TransportError(f"cannot reach {self.name} ({error.reason})") from error
+        except (http.client.HTTPException, OSError) as error:
+            raise TransportError(f"lost the connection to {self.name} ({error!r})") from error
+        log.debug("%s < HTTP %d, %d bytes", self.name, status, len(body))
+        return status, body
+
+    def close(self) -> None:
+        """Nothing to release: every request opens and closes its own connection."""
 
 
 @dataclass(frozen=True)
-class DataItems:
-    """The ``dataItemId`` of each item xmalign reads."""
+class _Item:
+    """A data item found in /probe."""
 
-    position: dict[str, str]
-    execution: str | None
-    controller_mode: str | None
+    id: str
+    mm_per_unit: float = 1.0
 
 
-class MTConnectAgent:
-    """The device ``device`` (default: the first) of the agent at ``url``."""
+def _local(tag: str) -> str:
+    """An element's name without its namespace (MTConnect versions differ in namespace)."""
+    return tag.rsplit("}", 1)[-1]
+
+
+class MTConnectMachine(ClosesOnExit):
+    """The machine as its MTConnect agent reports it (``MachinePositionSource``, read-only).
+
+    Parameters
+    ----------
+    link : AgentTransport
+        Usually an :class:`AgentLink`.
+    device : str, optional
+        The ``Device`` name or uuid; needed when the agent serves several.
+    axes : sequence of 3 str
+        Names of the ``Linear`` components giving x, y, z of the plan.
+    clock : Clock, optional
+        For the standstill window (default the wall clock).
+    settle_s, standstill_tolerance_mm : float
+        Standstill: position unchanged within the tolerance for the settle time.
+    """
 
     def __init__(
         self,
-        url: str,
-        timeout_s: float,
+        link: AgentTransport,
         device: str | None = None,
+        axes: Sequence[str] = ("X", "Y", "Z"),
         clock: Clock | None = None,
+        settle_s: float = 0.2,
+        standstill_tolerance_mm: float = 0.002,
     ) -> None:
-        self.url = url.rstrip("/")
-        self.timeout_s = timeout_s
+        if len(axes) != 3:
+            raise ValueError("axes: expected three names (x, y, z)")
+        self.link = link
         self.device = device
-        self.name = f"MTConnect agent at {self.url}"
-        self.clock = clock or WallClock()
-        self.items = self._probe()
+        self.axes = tuple(axes)
+        self.settle_s = settle_s
+        self._window = StandstillWindow(clock or WallClock(), settle_s, standstill_tolerance_mm)
+        self._positions: tuple[_Item, ...] = ()
+        self._execution: _Item | None = None
+        self._mode: _Item | None = None
+        where = f" (device {device})" if device else ""
+        self.name = f"{link.name}{where}"
 
-    def _get(self, request: str) -> ET.Element:
-        path = f"/{self.device}/{request}" if self.device else f"/{request}"
-        url = self.url + path
-        log.debug("%s > GET %s", self.name, path)
-        try:
-            with urllib.request.urlopen(url, timeout=self.timeout_s) as response:
-                body = response.read()
-        except TimeoutError as error:
-            raise DeviceTimeoutError(
-                f"{self.name} did not answer GET {path} within {self.timeout_s:g} s"
-            ) from error
-        except urllib.error.HTTPError as error:
-            raise DeviceError(f"{self.name}: GET {path} answered HTTP {error.code}") from error
-        except (urllib.error.URLError, OSError) as error:
-            reason = getattr(error, "reason", error)
-            raise TransportError(f"cannot reach the {self.name} ({reason})") from error
-        log.debug("%s < %d bytes", self.name, len(body))
-        try:
-            return ET.fromstring(body)
-        except ET.ParseError as error:
-            raise DeviceError(f"{self.name}: GET {path} is not XML ({error})") from error
+    # -- opening ---------------------------------------------------------------
+    def open(self) -> MTConnectMachine:
+        """Read ``/probe`` and find the data items; DeviceError when an axis is missing."""
+        device = self._device(self._document("probe", "MTConnectDevices"))
+        self._positions = tuple(self._position_item(device, axis) for axis in self.axes)
+        self._execution = self._first_item(device, "EXECUTION")
+        self._mode = self._first_item(device, "CONTROLLER_MODE")
+        self._window.reset()
+        return self
 
-    def _device(self, root: ET.Element) -> ET.Element:
-        for element in root.iter():
-            if _local(element.tag) in ("Device", "DeviceStream") and (
-                self.device is None or element.get("name") == self.device
-            ):
-                return element
-        raise DeviceError(f"{self.name}: no device {self.device or ''} in the answer".strip())
+    def close(self) -> None:
+        self.link.close()
 
-    def _probe(self) -> DataItems:
-        device = self._device(self._get("probe"))
-        position: dict[str, str] = {}
-        for component in device.iter():
-            name = component.get("name", "").upper()
-            if _local(component.tag) != "Linear" or name not in AXES:
-                continue
-            position[name] = self._position_item(component, name)
-        missing = [axis for axis in AXES if axis not in position]
-        if missing:
-            raise DeviceError(f"{self.name}: no Linear axis {', '.join(missing)} in /probe")
-        by_type = {
-            item.get("type"): item.get("id", "")
-            for item in device.iter()
-            if _local(item.tag) == "DataItem"
-        }
-        return DataItems(position, by_type.get("EXECUTION"), by_type.get("CONTROLLER_MODE"))
+    def __enter__(self) -> MTConnectMachine:
+        return self if self._positions else self.open()
 
-    def _position_item(self, axis: ET.Element, name: str) -> str:
-        """The id of the axis' actual position in machine coordinates, in mm."""
-        for item in axis.iter():
-            if (
-                _local(item.tag) == "DataItem"
-                and item.get("type") == "POSITION"
-                and item.get("subType") == "ACTUAL"
-                and item.get("coordinateSystem", "MACHINE") == "MACHINE"
-            ):
-                if item.get("units", "MILLIMETER") != "MILLIMETER":
-                    raise DeviceError(f"{self.name}: axis {name} reports {item.get('units')}")
-                return item.get("id", "")
-        raise DeviceError(
-            f"{self.name}: axis {name} has no actual position in machine coordinates"
-            " (DataItem type POSITION, subType ACTUAL, coordinateSystem MACHINE)"
-        )
-
-    def current(self) -> dict[str, str]:
-        """The latest value of every data item of the device, by ``dataItemId``."""
-        device = self._device(self._get("current"))
-        return {
-            element.get("dataItemId", ""): (element.text or "").strip()
-            for element in device.iter()
-            if element.get("dataItemId")
-        }
-
+    # -- the role ----------------------------------------------------------------
     def position_mm(self) -> Vec:
-        """Actual X Y Z in machine coordinates, mm, shape (3,)."""
-        return self._position(self.current())
-
-    def _position(self, values: dict[str, str]) -> Vec:
-        texts = [values.get(self.items.position[axis], "UNAVAILABLE") for axis in AXES]
-        try:
-            return np.array([float(text) for text in texts])
-        except ValueError as error:
-            raise DeviceError(f"{self.name}: position X Y Z is {' '.join(texts)}") from error
+        """Actual position in machine coordinates, shape (3,), mm."""
+        return self._position(self._current())
 
     def is_standstill(self) -> bool:
-        before = self.position_mm()
-        self.clock.sleep(STANDSTILL_PROBE_S)
-        return bool(np.array_equal(before, self.position_mm()))
-
-    def execution(self) -> str:
-        """The ``EXECUTION`` value (``UNAVAILABLE`` when the device has none)."""
-        if self.items.execution is None:
-            return "UNAVAILABLE"
-        return self.current().get(self.items.execution, "UNAVAILABLE")
+        current = self._current()
+        position = self._position(current)
+        window_says = self._window.add(position)
+        return window_says or self._unchanged_for_settle_time(current)
 
     def program_state(self) -> ProgramState:
-        execution = self.execution()
-        if execution == "ACTIVE":
-            return "running"
-        return "paused" if execution in _PAUSED else "idle"
+        return self.status().program_state
 
-    def controller_mode(self) -> str:
-        """The ``CONTROLLER_MODE`` value (``AUTOMATIC``, ``MANUAL``, ...)."""
-        if self.items.controller_mode is None:
-            return "UNAVAILABLE"
-        return self.current().get(self.items.controller_mode, "UNAVAILABLE")
+    def status(self) -> ControllerStatus:
+        """Position, program state and mode from one ``/current`` document."""
+        current = self._current()
+        position = self._position(current)
+        if self._execution is None:
+            raise DeviceError(f"{self.name} reports no Execution (no EXECUTION data item)")
+        execution = self._value(current, self._execution, "Execution")
+        if execution not in EXECUTION_STATES:
+            raise DeviceError(f"{self.name} reports an unknown Execution '{execution}'")
+        mode = None if self._mode is None else current.get(self._mode.id, (None, None))[0]
+        return ControllerStatus(position, EXECUTION_STATES[execution], execution, mode)
+
+    # -- documents ---------------------------------------------------------------
+    def _path(self, request: str) -> str:
+        if self.device is None:
+            return request
+        return f"{urllib.parse.quote(self.device, safe='')}/{request}"
+
+    def _document(self, request: str, root_name: str) -> ET.Element:
+        status, body = self.link.get(self._path(request))
+        try:
+            root = ET.fromstring(body)
+        except ET.ParseError as error:
+            line, column = error.position
+            raise TransportError(
+                f"{self.name} sent a damaged /{request} document"
+                f" (not XML at line {line}, column {column})"
+            ) from error
+        except (LookupError, ValueError) as error:  # e.g. a damaged encoding declaration
+            raise TransportError(
+                f"{self.name} sent a damaged /{request} document ({error})"
+            ) from error
+        if _local(root.tag) == "MTConnectError":
+            errors = [
+                f"{e.get('errorCode', '?')}: {(e.text or '').strip()}"
+                for e in root.iter()
+                if _local(e.tag) == "Error"
+            ]
+            raise DeviceError(f"{self.name} refused /{request}: {'; '.join(errors) or 'error'}")
+        if status != 200:
+            raise TransportError(f"{self.name} answered /{request} with HTTP {status}")
+        if _local(root.tag) != root_name:
+            raise TransportError(
+                f"{self.name} answered /{request} with <{_local(root.tag)}>, not <{root_name}>"
+            )
+        return root
+
+    def _device(self, probe: ET.Element) -> ET.Element:
+        devices = [e for e in probe.iter() if _local(e.tag) == "Device"]
+        if self.device is not None:
+            devices = [d for d in devices if self.device in (d.get("name"), d.get("uuid"))]
+        if len(devices) != 1:
+            names = ", ".join(str(d.get("name")) for d in probe.iter() if _local(d.tag) == "Device")
+            wanted = f"device '{self.device}'" if self.device else "one device"
+            raise DeviceError(f"{self.name}: expected {wanted}, the agent has: {names or 'none'}")
+        return devices[0]
+
+    def _position_item(self, device: ET.Element, axis: str) -> _Item:
+        machine_frames = {
+            e.get("id")
+            for e in device.iter()
+            if _local(e.tag) == "CoordinateSystem" and e.get("type") == "MACHINE"
+        }
+        candidates: list[tuple[int, ET.Element]] = []
+        for component in device.iter():
+            if _local(component.tag) != "Linear" or (component.get("name") or "").upper() != (
+                axis.upper()
+            ):
+                continue
+            for item in component.iter():
+                if (
+                    _local(item.tag) == "DataItem"
+                    and item.get("type") == "POSITION"
+                    and item.get("category", "SAMPLE") == "SAMPLE"
+                    and item.get("subType", "ACTUAL") == "ACTUAL"
+                ):
+                    rank = _machine_rank(item, machine_frames)
+                    if rank is not None:
+                        candidates.append((rank, item))
+        if not candidates:
+            raise DeviceError(
+                f"{self.name} has no actual machine POSITION of a linear axis {axis}"
+                f" (linear axes: {', '.join(_linear_names(device)) or 'none'})"
+            )
+        item = min(candidates, key=lambda c: c[0])[1]
+        unit = item.get("units") or item.get("nativeUnits")
+        if unit not in MM_PER_UNIT:
+            raise DeviceError(
+                f"{self.name}: the {axis} position {item.get('id')} is in"
+                f" {unit or 'no declared unit'} (expected one of {', '.join(MM_PER_UNIT)})"
+            )
+        return _Item(str(item.get("id")), MM_PER_UNIT[unit])
+
+    @staticmethod
+    def _first_item(device: ET.Element, kind: str) -> _Item | None:
+        for item in device.iter():
+            if _local(item.tag) == "DataItem" and item.get("type") == kind:
+                return _Item(str(item.get("id")))
+        return None
+
+    def _current(self) -> dict[str, tuple[str, str | None]]:
+        """``dataItemId -> (value, timestamp)``; the header's creationTime under ``""``."""
+        root = self._document("current", "MTConnectStreams")
+        values: dict[str, tuple[str, str | None]] = {}
+        for element in root.iter():
+            if _local(element.tag) == "Header":
+                values[""] = ("", element.get("creationTime"))
+            item_id = element.get("dataItemId")
+            if item_id is not None:
+                values[item_id] = ((element.text or "").strip(), element.get("timestamp"))
+        return values
+
+    def _value(self, current: dict[str, tuple[str, str | None]], item: _Item, what: str) -> str:
+        if item.id not in current:
+            raise DeviceError(f"{self.name}: /current has no {what} (data item {item.id})")
+        value = current[item.id][0]
+        if value == UNAVAILABLE:
+            raise DeviceError(f"{self.name} reports the {what} UNAVAILABLE (controller offline?)")
+        return value
+
+    def _position(self, current: dict[str, tuple[str, str | None]]) -> Vec:
+        values = []
+        for axis, item in zip(self.axes, self._positions, strict=True):
+            text = self._value(current, item, f"{axis} position")
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not math.isfinite(value):
+                raise DeviceError(f"{self.name}: the {axis} position '{text}' is not a number")
+            values.append(value * item.mm_per_unit)
+        position = np.array(values)
+        log.debug("%s: machine position %s mm", self.name, np.array2string(position))
+        return position
+
+    def _unchanged_for_settle_time(self, current: dict[str, tuple[str, str | None]]) -> bool:
+        now = _time(current.get("", ("", None))[1])
+        changes = [_time(current[item.id][1]) for item in self._positions]
+        if now is None or any(t is None for t in changes):
+            return False
+        return all((now - t).total_seconds() >= self.settle_s for t in changes if t is not None)
+
+
+def _machine_rank(item: ET.Element, machine_frames: set[str | None]) -> int | None:
+    """0 for an explicit machine position, 1 for one without a frame, None for another frame."""
+    reference = item.get("coordinateSystemIdRef")
+    if reference is not None:
+        return 0 if reference in machine_frames else None
+    frame = item.get("coordinateSystem")
+    if frame is None:
+        return 1
+    return 0 if frame == "MACHINE" else None
+
+
+def _linear_names(device: ET.Element) -> list[str]:
+    return [str(e.get("name")) for e in device.iter() if _local(e.tag) == "Linear"]
+
+
+def _time(text: str | None) -> datetime | None:
+    """An MTConnect timestamp (ISO 8601, UTC), or None when absent or unreadable."""
+    if not text:
+        return None
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError:
+        return None
+    return moment if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
+
+
+def open_mtconnect(
+    url: str,
+    timeout_s: float,
+    device: str | None = None,
+    axes: Sequence[str] = ("X", "Y", "Z"),
+    settle_s: float = 0.2,
+    standstill_tolerance_mm: float = 0.002,
+    clock: Clock | None = None,
+) -> MTConnectMachine:
+    """Connect to an agent and read its ``/probe`` (one line naming the agent on failure)."""
+    machine = MTConnectMachine(
+        AgentLink(url, timeout_s), device, axes, clock, settle_s, standstill_tolerance_mm
+    )
+    return machine.open()

@@ -1,119 +1,242 @@
-"""The MTConnect position source against agent documents served on 127.0.0.1.
+"""MTConnect: the agent's documents as the reference agent sends them, served on 127.0.0.1.
 
-The documents (``mtconnect/probe.xml``, ``mtconnect/current.xml``) follow the
-form of the MTConnect Institute's reference agent (github.com/mtconnect/cppagent,
-``samples/test_probe.xml`` and ``samples/test_current.xml``: a device with
-``Linear`` X, Y, Z carrying ``POSITION`` ``ACTUAL``/``COMMANDED`` data items and
-a ``Controller`` with ``EXECUTION`` and ``CONTROLLER_MODE``), written anew with
-the ``coordinateSystem`` attribute of the MTConnect standard's ``DataItem`` and
-values of our own.
+The documents are mtconnect/cppagent's sample responses (samples/test_probe.xml,
+test_current.xml, test_error.xml; simulator/VMC-3Axis.xml and the coordinate
+systems of test_package/resources/samples/kinematics.xml), each file in
+tests/firmware_iface/data/mtconnect/ says where it comes from and what was changed.
 """
 
 from __future__ import annotations
 
-import threading
+import logging
+import re
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import free_port
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mtconnect_agent import TestAgent
 
-from firmware_iface.mtconnect import MTConnectAgent
+from firmware_iface.mtconnect import AgentLink, MTConnectMachine, open_mtconnect
 from sim.clock import SimClock
-from xmalign.errors import DeviceError, TransportError
-from xmalign.roles import MachinePositionSource
-
-DOCUMENTS = Path(__file__).resolve().parent / "mtconnect"
-PROBE = (DOCUMENTS / "probe.xml").read_text(encoding="utf-8")
-#: ``str.format`` fields: x, y, z (mm) and execution.
-CURRENT = (DOCUMENTS / "current.xml").read_text(encoding="utf-8")
-
-
-class Agent:
-    """An HTTP server answering /probe and /current (also under /VMC/) from ``state``."""
-
-    def __init__(self, probe: str = PROBE) -> None:
-        self.probe = probe
-        self.state = {"x": "100.5", "y": "200.25", "z": "-50.0", "execution": "READY"}
-        self.requests: list[str] = []
-        agent = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 - the http.server name
-                agent.requests.append(self.path)
-                pages = {"probe": agent.probe, "current": CURRENT.format(**agent.state)}
-                pages |= {f"VMC/{name}": page for name, page in pages.items()}
-                request = self.path.lstrip("/")
-                if request not in pages:
-                    self.send_error(404)
-                    return
-                body = pages[request].encode()
-                self.send_response(200)
-                self.send_header("Content-Type", "text/xml")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
 
 
 @pytest.fixture
-def agent() -> Iterator[Agent]:
-    served = Agent()
-    yield served
-    served.server.shutdown()
+def linuxcnc_agent() -> Iterator[TestAgent]:
+    agent = TestAgent("linuxcnc", "LinuxCNC", "000").start()
+    yield agent
+    agent.stop()
 
 
-def test_the_machine_coordinate_actual_position_and_the_program_state(agent: Agent) -> None:
-    source = MTConnectAgent(agent.url, 2.0, clock=SimClock())
-    assert isinstance(source, MachinePositionSource)
-    assert np.array_equal(source.position_mm(), [100.5, 200.25, -50.0])  # not the WORK item
-    assert source.is_standstill()
-    expected = {
-        "ACTIVE": "running",
-        "FEED_HOLD": "paused",
-        "PROGRAM_STOPPED": "paused",
-        "INTERRUPTED": "paused",
-        "READY": "idle",
-        "STOPPED": "idle",
-    }
-    for execution, state in expected.items():
-        agent.state["execution"] = execution
-        assert source.program_state() == state
-    assert source.controller_mode() == "AUTOMATIC"
+@pytest.fixture
+def vmc_agent() -> Iterator[TestAgent]:
+    agent = TestAgent("vmc_inch", "VMC-3Axis", "000", "Lathe", "001").start()
+    yield agent
+    agent.stop()
 
 
-def test_a_named_device_is_asked_under_its_name(agent: Agent) -> None:
-    MTConnectAgent(agent.url, 2.0, device="VMC").position_mm()
-    assert agent.requests == ["/VMC/probe", "/VMC/current"]
+def test_position_program_state_and_mode_from_the_reference_agents_documents(
+    linuxcnc_agent: TestAgent,
+) -> None:
+    linuxcnc_agent.set(X=0.00199, Y=0.0002, Z=1.0)  # the sample's own values
+    with open_mtconnect(linuxcnc_agent.url, 2.0) as machine:
+        assert np.allclose(machine.position_mm(), [0.00199, 0.0002, 1.0])
+        status = machine.status()
+        assert (status.program_state, status.state, status.mode) == ("idle", "READY", "AUTOMATIC")
+        for execution, state in [
+            ("ACTIVE", "running"),
+            ("FEED_HOLD", "paused"),
+            ("INTERRUPTED", "paused"),
+            ("PROGRAM_STOPPED", "paused"),
+            ("OPTIONAL_STOP", "paused"),
+            ("STOPPED", "idle"),
+            ("PROGRAM_COMPLETED", "idle"),
+            ("WAIT", "running"),
+        ]:
+            linuxcnc_agent.execution = execution
+            assert machine.program_state() == state, execution
+    assert linuxcnc_agent.requests[0] == "/probe"
 
 
-def test_an_unavailable_position_is_refused(agent: Agent) -> None:
-    source = MTConnectAgent(agent.url, 2.0)
-    agent.state["y"] = "UNAVAILABLE"
-    with pytest.raises(DeviceError, match="position X Y Z is 100.5 UNAVAILABLE -50.0"):
-        source.position_mm()
+def test_machine_positions_in_inches_are_converted_and_work_positions_never_used(
+    vmc_agent: TestAgent,
+) -> None:
+    vmc_agent.set(X=10.0, Y=-2.5, Z=0.125)
+    with open_mtconnect(vmc_agent.url, 2.0, device="VMC-3Axis") as machine:
+        assert np.allclose(machine.position_mm(), [254.0, -63.5, 3.175])
+    assert vmc_agent.requests == ["/VMC-3Axis/probe", "/VMC-3Axis/current"]
 
 
-def test_an_axis_with_only_work_coordinates_is_refused() -> None:
-    served = Agent(PROBE.replace('coordinateSystem="MACHINE"', 'coordinateSystem="WORK"'))
+def test_units_declared_by_the_agent_win_over_native_units(vmc_agent: TestAgent) -> None:
+    # units="MILLIMETER" nativeUnits="INCH": the agent converted already
+    vmc_agent.probe = vmc_agent.probe.replace(
+        'nativeUnits="INCH" subType', 'nativeUnits="INCH" units="MILLIMETER" subType'
+    )
+    vmc_agent.set(X=10.0)
+    with open_mtconnect(vmc_agent.url, 2.0, device="000") as machine:  # by uuid
+        assert machine.position_mm()[0] == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize(
+    ("device", "axes", "message"),
+    [
+        (None, ("X", "Y", "Z"), "expected one device, the agent has: VMC-3Axis, Lathe"),
+        (
+            "Lathe",
+            ("X", "Y", "Z"),
+            "no actual machine POSITION of a linear axis Y (linear axes: X, Z)",
+        ),
+        ("VMC-3Axis", ("X", "Y", "W"), "linear axis W (linear axes: X, Y, Z)"),
+    ],
+)
+def test_missing_devices_and_axes_are_one_line_naming_the_agent(
+    vmc_agent: TestAgent, device: str | None, axes: tuple[str, str, str], message: str
+) -> None:
+    with pytest.raises(DeviceError, match=re.escape(message)) as caught:
+        open_mtconnect(vmc_agent.url, 2.0, device=device, axes=axes)
+    assert vmc_agent.url in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_an_unknown_device_is_the_agents_error_document(vmc_agent: TestAgent) -> None:
+    machine = open_mtconnect(vmc_agent.url, 2.0, device="VMC-3Axis")
+    vmc_agent.devices.discard("VMC-3Axis")  # e.g. the agent restarted with another device file
+    with pytest.raises(DeviceError, match=r"refused /current: NO_DEVICE: Could not find the dev"):
+        machine.position_mm()
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        (b"<MTConnectStreams><Header", "damaged /current document \\(not XML at line 1"),
+        (b"", "damaged /current document"),
+        (b"<html><body>proxy error</body></html>", "with <html>, not <MTConnectStreams>"),
+    ],
+)
+def test_a_damaged_document_is_one_transport_error(
+    linuxcnc_agent: TestAgent, body: bytes, message: str
+) -> None:
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0)
+    linuxcnc_agent.replaced["/current"] = body
+    with pytest.raises(TransportError, match=message) as caught:
+        machine.position_mm()
+    assert linuxcnc_agent.url in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("text", ["NaN", "INF", "1.5mm", ""])
+def test_a_position_that_is_not_a_finite_number_is_a_device_fault(
+    linuxcnc_agent: TestAgent, text: str
+) -> None:
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0)
+    linuxcnc_agent.current = linuxcnc_agent.current.replace("{Y}", text, 1)
+    with pytest.raises(DeviceError, match=f"the Y position '{text}' is not a number"):
+        machine.position_mm()
+
+
+@pytest.mark.parametrize(("field", "what"), [("X", "X position"), ("execution", "Execution")])
+def test_unavailable_values_are_a_device_fault(
+    linuxcnc_agent: TestAgent, field: str, what: str
+) -> None:
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0)
+    linuxcnc_agent.current = linuxcnc_agent.current.replace("{" + field + "}", "UNAVAILABLE", 1)
+    with pytest.raises(DeviceError, match=f"reports the {what} UNAVAILABLE"):
+        machine.status()
+
+
+def test_an_unreachable_agent_is_a_transport_error_naming_it() -> None:
+    url = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(TransportError, match=f"cannot reach the MTConnect agent at {url}"):
+        open_mtconnect(url, 1.0)
+
+
+def test_an_agent_that_does_not_answer_in_time_is_a_timeout(linuxcnc_agent: TestAgent) -> None:
+    linuxcnc_agent.delay_s = 1.0
+    with pytest.raises(DeviceTimeoutError, match=r"did not answer probe within 0.2 s"):
+        open_mtconnect(linuxcnc_agent.url, 0.2)
+
+
+def test_standstill_from_the_agents_timestamps_in_one_request(linuxcnc_agent: TestAgent) -> None:
+    linuxcnc_agent.set(X=5.0, Y=6.0, Z=7.0)
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0, settle_s=0.5, clock=SimClock())
+    assert not machine.is_standstill()  # changed just now, and nothing seen before
+    linuxcnc_agent.age(0.6)
+    assert machine.is_standstill()
+
+
+def test_standstill_from_successive_positions_within_the_tolerance(
+    linuxcnc_agent: TestAgent,
+) -> None:
+    linuxcnc_agent.repeat_unchanged = True  # the timestamps say nothing
+    clock = SimClock()
+    machine = open_mtconnect(
+        linuxcnc_agent.url, 2.0, settle_s=0.5, standstill_tolerance_mm=0.002, clock=clock
+    )
+    jitter = iter([0.0, 0.0008, -0.0008, 0.0005, 0.0, 0.0008])
+    seen = []
+    for _ in range(6):
+        linuxcnc_agent.set(X=100.0 + next(jitter))
+        seen.append(machine.is_standstill())
+        clock.sleep(0.2)
+    assert seen == [False, False, False, True, True, True]
+    linuxcnc_agent.set(X=100.1)  # moves on
+    assert not machine.is_standstill()
+
+
+def test_requests_are_logged_without_anything_else(
+    linuxcnc_agent: TestAgent, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG, logger="firmware_iface.mtconnect")
+    with MTConnectMachine(AgentLink(linuxcnc_agent.url, 2.0)) as machine:
+        machine.position_mm()
+    lines = [r.getMessage() for r in caplog.records]
+    assert f"the MTConnect agent at {linuxcnc_agent.url} > GET {linuxcnc_agent.url}/probe" in lines
+    assert any(re.search(r"< HTTP 200, \d+ bytes$", line) for line in lines)
+    assert any("machine position" in line for line in lines)
+
+
+class DocumentsLink:
+    """The agent's documents without HTTP: for many damaged variants, fast."""
+
+    name = "the MTConnect agent at test://documents"
+
+    def __init__(self, probe: bytes, current: bytes) -> None:
+        self.bodies = {"probe": probe, "current": current}
+
+    def get(self, path: str) -> tuple[int, bytes]:
+        return 200, self.bodies[path]
+
+    def close(self) -> None:
+        pass
+
+
+def _documents() -> tuple[bytes, bytes]:
+    agent = TestAgent("linuxcnc", "LinuxCNC")
+    agent.stop()  # only its documents are wanted
+    agent.set(X=1.5, Y=2.5, Z=-3.5)
+    return agent.probe.encode(), agent.render("/current")[1]
+
+
+PROBE, CURRENT = _documents()
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    cut=st.integers(min_value=0, max_value=len(CURRENT)),
+    flips=st.lists(st.tuples(st.integers(0, len(CURRENT) - 1), st.integers(0, 255)), max_size=4),
+)
+def test_damaged_current_documents_give_a_position_or_one_project_error(
+    cut: int, flips: list[tuple[int, int]]
+) -> None:
+    damaged = bytearray(CURRENT[:cut] if not flips else CURRENT)
+    for at, byte in flips:
+        if at < len(damaged):
+            damaged[at] = byte
+    machine = MTConnectMachine(DocumentsLink(PROBE, bytes(damaged))).open()
     try:
-        with pytest.raises(DeviceError, match="axis X has no actual position in machine"):
-            MTConnectAgent(served.url, 2.0)
-    finally:
-        served.server.shutdown()
-
-
-def test_an_unknown_device_and_an_unreachable_agent_are_one_line(agent: Agent) -> None:
-    with pytest.raises(DeviceError, match="GET /HMC/probe answered HTTP 404"):
-        MTConnectAgent(agent.url, 2.0, device="HMC")
-    agent.server.shutdown()
-    agent.server.server_close()
-    with pytest.raises(TransportError, match="cannot reach the MTConnect agent"):
-        MTConnectAgent(agent.url, 1.0)
+        status = machine.status()
+    except (TransportError, DeviceError) as error:
+        assert "test://documents" in str(error) and "\n" not in str(error)
+    else:
+        assert status.position_mm.shape == (3,) and np.isfinite(status.position_mm).all()

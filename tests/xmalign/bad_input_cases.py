@@ -347,6 +347,22 @@ _UNITS_CASES = [
     ("no-format", replace(U, "format: xmalign.units/1", "formt: xmalign.units/1"), "format"),
     ("format-2", replace(U, "format: xmalign.units/1", "format: xmalign.units/2"), "newer xmalign"),
     ("rate-nan", replace(U, "rate_hz: 50", "rate_hz: .nan"), "rate_hz"),
+    ("mtconnect-missing", replace(U, "source: prompt", "source: mtconnect"), "mtconnect"),
+    (
+        "mtconnect-ftp",
+        replace(U, "source: prompt", "source: mtconnect\n  mtconnect: {url: 'ftp://a'}"),
+        "mtconnect.url",
+    ),
+    (
+        "sinumerik-policy-no-certificate",
+        replace(
+            U,
+            "source: prompt",
+            "source: sinumerik\n  sinumerik: {endpoint: 'opc.tcp://a:4840', "
+            "security_policy: Basic256Sha256}",
+        ),
+        "certificate",
+    ),
 ]
 
 S = "session.json"

@@ -1,0 +1,187 @@
+"""``units.yaml``: the controllers a run follows (``machine_position: source: mtconnect`` or
+``sinumerik``), and opening them (docs/hardware.md, "Following the controller").
+
+    machine_position:
+      source: mtconnect
+      mtconnect:
+        url: http://192.168.10.30:5000
+        device: VMC-3Axis          # default: the agent's only device
+        axes: [X, Y, Z]            # the Linear components giving x, y, z
+        timeout_s: 2.0             # default: timeouts.io_s
+        settle_s: 0.2              # standstill: unchanged this long ...
+        standstill_mm: 0.002       # ... within this
+
+    machine_position:
+      source: sinumerik
+      sinumerik:
+        endpoint: opc.tcp://192.168.214.241:4840
+        user: xmalign
+        password_env: XMALIGN_OPCUA_PASSWORD   # or password: ...
+        security_policy: Basic256Sha256        # None, Basic256Sha256, Aes128_Sha256_RsaOaep, ...
+        certificate: xmalign-cert.der
+        private_key: xmalign-key.pem
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, SecretStr, model_validator
+
+from xmalign.errors import InputError
+from xmalign.formats.common import StrictFileModel
+from xmalign.roles import Clock, MachinePositionSource
+
+Seconds = Annotated[float, Field(gt=0, le=600)]
+SettleSeconds = Annotated[float, Field(gt=0, le=60)]
+StandstillMm = Annotated[float, Field(gt=0, le=1)]
+
+
+class MTConnectConfig(StrictFileModel):
+    """An MTConnect agent xmalign reads the position from (read-only)."""
+
+    url: Annotated[str, Field(pattern=r"^https?://\S+$")]
+    #: The device's name or uuid in the agent (default: its only device).
+    device: str | None = None
+    axes: Annotated[list[str], Field(min_length=3, max_length=3)] = ["X", "Y", "Z"]
+    timeout_s: Seconds | None = None
+    settle_s: SettleSeconds = 0.2
+    standstill_mm: StandstillMm = 0.002
+
+
+class SinumerikConfig(StrictFileModel):
+    """A SINUMERIK 840D sl / ONE whose OPC UA server xmalign reads the position from."""
+
+    endpoint: Annotated[str, Field(pattern=r"^opc\.tcp://\S+$")]
+    channel: Annotated[int, Field(ge=1, le=30)] = 1
+    #: The channel's machine axes giving x, y, z (1-based).
+    axes: Annotated[list[Annotated[int, Field(ge=1, le=31)]], Field(min_length=3, max_length=3)] = [
+        1,
+        2,
+        3,
+    ]
+    mode_group: Annotated[int, Field(ge=1, le=10)] = 1
+    length_unit: Literal["mm", "inch"] = "mm"
+    user: str | None = None
+    password: SecretStr | None = None
+    #: The name of an environment variable holding the password (keeps it out of the file).
+    password_env: str | None = None
+    security_policy: Literal[
+        "None", "Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss"
+    ] = "None"
+    security_mode: Literal["Sign", "SignAndEncrypt"] = "SignAndEncrypt"
+    certificate: Path | None = None
+    private_key: Path | None = None
+    server_certificate: Path | None = None
+    #: user (user and password), certificate (the client certificate), anonymous.
+    identity: Literal["user", "certificate", "anonymous"] | None = None
+    timeout_s: Seconds | None = None
+    settle_s: SettleSeconds = 0.2
+    standstill_mm: StandstillMm = 0.002
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SinumerikConfig:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("give both 'certificate' and 'private_key', or neither")
+        if self.security_policy != "None" and self.certificate is None:
+            raise ValueError(f"security_policy {self.security_policy} needs 'certificate'")
+        if self.password is not None and self.password_env is not None:
+            raise ValueError("give 'password' or 'password_env', not both")
+        if self.login == "user" and self.user is None:
+            raise ValueError("identity: user needs 'user'")
+        if self.login == "certificate" and self.certificate is None:
+            raise ValueError("identity: certificate needs 'certificate'")
+        return self
+
+    @property
+    def login(self) -> Literal["user", "certificate", "anonymous"]:
+        """The identity: as given, else user when a user is named, else anonymous."""
+        return self.identity or ("user" if self.user is not None else "anonymous")
+
+
+def resolve_paths(config: SinumerikConfig | None, base_dir: Path) -> SinumerikConfig | None:
+    """Certificate paths relative to the ``units.yaml``'s folder."""
+    if config is None:
+        return None
+    keys = ("certificate", "private_key", "server_certificate")
+    update = {key: base_dir / path for key in keys if (path := getattr(config, key)) is not None}
+    return config.model_copy(update=update)
+
+
+def open_mtconnect_source(
+    config: MTConnectConfig,
+    io_s: float,
+    closers: list[Callable[[], None]],
+    clock: Clock | None = None,
+) -> MachinePositionSource:
+    """The agent of ``config``, probed; its closer appended to ``closers``."""
+    from firmware_iface.mtconnect import open_mtconnect
+
+    machine = open_mtconnect(
+        config.url,
+        config.timeout_s or io_s,
+        config.device,
+        config.axes,
+        config.settle_s,
+        config.standstill_mm,
+        clock,
+    )
+    closers.append(machine.close)
+    return machine
+
+
+def open_sinumerik_source(
+    config: SinumerikConfig,
+    io_s: float,
+    closers: list[Callable[[], None]],
+    clock: Clock | None = None,
+) -> MachinePositionSource:
+    """A session with the SINUMERIK of ``config``; its closer appended to ``closers``."""
+    try:
+        from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
+    except ImportError as error:
+        raise InputError(
+            "machine_position: source sinumerik needs the asyncua package"
+            " (pip install 'xmalign[opcua]')"
+        ) from error
+    security = OpcUaSecurity(
+        policy=config.security_policy,
+        mode=config.security_mode,
+        certificate=config.certificate,
+        private_key=config.private_key,
+        server_certificate=config.server_certificate,
+        identity=config.login,
+        user=config.user,
+        password=_password(config),
+    )
+    machine = open_sinumerik(
+        config.endpoint,
+        config.timeout_s or io_s,
+        security,
+        channel=config.channel,
+        axis_indices=config.axes,
+        length_unit=config.length_unit,
+        settle_s=config.settle_s,
+        standstill_tolerance_mm=config.standstill_mm,
+        clock=clock,
+        mode_group=config.mode_group,
+    )
+    closers.append(machine.close)
+    return machine
+
+
+def _password(config: SinumerikConfig) -> str | None:
+    if config.password is not None:
+        return config.password.get_secret_value()
+    if config.password_env is None:
+        return None
+    value = os.environ.get(config.password_env)
+    if value is None:
+        raise InputError(
+            f"machine_position.sinumerik.password_env: the environment variable"
+            f" {config.password_env} is not set"
+        )
+    return value

@@ -1,0 +1,158 @@
+"""The contract every machine-position source passes (``xmalign.roles.MachinePositionSource``).
+
+Run against each implementation as a live run meets it: the position file a CNC
+keeps up to date, an MTConnect agent (the reference agent's documents served on
+127.0.0.1) and a SINUMERIK's OPC UA server (asyncua's server carrying the
+documented nodes). A source gives the actual position in machine coordinates as
+mm, shape (3,); says whether the machine stands still; raises a TransportError
+naming where it reads from when that is gone; and plugs into OperatorPrompt as
+the position a confirmed move is checked against.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mtconnect_agent import TestAgent
+from sinumerik_server import SinumerikServer
+
+from firmware_iface.machine_position import FilePositions, OperatorPrompt
+from firmware_iface.mtconnect import open_mtconnect
+from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
+from sim.clock import SimClock
+from xmalign.errors import TransportError
+from xmalign.roles import MachinePositionSource
+
+SETTLE_S = 0.5
+
+
+@dataclass
+class Stand:
+    """One implementation, served: its source, how to move the machine, how to cut it off."""
+
+    source: MachinePositionSource
+    place: Callable[[float, float, float], None]
+    cut: Callable[[], None]
+    #: Where the source reads from, as its errors name it.
+    address: str
+    clock: SimClock
+    #: False for a source that only ever sees a machine at rest (a position file).
+    sees_motion: bool = True
+
+
+def _file_stand(tmp_path: Path) -> Iterator[Stand]:
+    path = tmp_path / "position.txt"
+
+    def place(x: float, y: float, z: float) -> None:
+        path.write_text(f"# written by the CNC\n{x} {y} {z}\n", encoding="utf-8")
+
+    place(0.0, 0.0, 0.0)
+    yield Stand(FilePositions(path), place, path.unlink, str(path), SimClock(), sees_motion=False)
+
+
+def _mtconnect_stand(tmp_path: Path) -> Iterator[Stand]:
+    agent = TestAgent("linuxcnc", "LinuxCNC").start()
+    clock = SimClock()
+    machine = open_mtconnect(agent.url, 2.0, settle_s=SETTLE_S, clock=clock)
+    try:
+        yield Stand(machine, lambda x, y, z: agent.set(X=x, Y=y, Z=z), agent.stop, agent.url, clock)
+    finally:
+        machine.close()
+        agent.stop()
+
+
+def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
+    server = SinumerikServer(users={"xmalign": "pw"}).start()
+    clock = SimClock()
+    security = OpcUaSecurity(identity="user", user="xmalign", password="pw")
+    machine = open_sinumerik(server.endpoint, 2.0, security, settle_s=SETTLE_S, clock=clock)
+    stopped = []
+
+    def cut() -> None:
+        server.stop()
+        stopped.append(True)
+
+    try:
+        yield Stand(machine, server.set_position, cut, server.endpoint, clock)
+    finally:
+        machine.close()
+        if not stopped:
+            server.stop()
+
+
+STANDS = {"file": _file_stand, "mtconnect": _mtconnect_stand, "sinumerik": _sinumerik_stand}
+
+
+@pytest.fixture(params=sorted(STANDS))
+def stand(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Stand]:
+    yield from STANDS[request.param](tmp_path)
+
+
+def _settled(stand: Stand, reads: int = 10) -> bool:
+    """Read the standstill on the virtual clock until it says yes (at most ``reads`` times)."""
+    for _ in range(reads):
+        if stand.source.is_standstill():
+            return True
+        stand.clock.sleep(SETTLE_S / 4)
+    return False
+
+
+def test_is_a_machine_position_source(stand: Stand) -> None:
+    assert isinstance(stand.source, MachinePositionSource)
+
+
+def test_gives_the_actual_position_in_mm_as_three_floats(stand: Stand) -> None:
+    stand.place(1250.125, -300.5, 42.0)
+    position = stand.source.position_mm()
+    assert isinstance(position, np.ndarray) and position.shape == (3,)
+    assert position.dtype == np.float64
+    assert np.allclose(position, [1250.125, -300.5, 42.0], atol=1e-9)
+
+
+def test_stands_still_once_the_position_stays_put(stand: Stand) -> None:
+    stand.place(10.0, 20.0, 30.0)
+    assert _settled(stand)
+    assert isinstance(stand.source.is_standstill(), bool)
+
+
+def test_a_moving_machine_does_not_stand_still(stand: Stand) -> None:
+    if not stand.sees_motion:
+        pytest.skip("a position file is written only with the machine at rest")
+    stand.place(10.0, 20.0, 30.0)
+    assert _settled(stand)
+    for step in range(1, 6):
+        stand.place(10.0 + step, 20.0, 30.0)  # 1 mm per read: moving
+        assert not stand.source.is_standstill()
+        stand.clock.sleep(SETTLE_S)
+    assert _settled(stand)
+
+
+def test_a_lost_source_is_a_transport_error_naming_it(stand: Stand) -> None:
+    stand.cut()
+    with pytest.raises(TransportError) as caught:
+        stand.source.position_mm()
+    assert stand.address in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_an_operator_prompt_checks_the_confirmed_move_against_it(
+    stand: Stand,
+    reference_machine,  # noqa: ANN001
+) -> None:
+    target = np.array([1000.0, 750.0, -250.0])
+    stand.place(100.0, 100.0, -100.0)
+    presses: list[str] = []
+
+    def press_enter(prompt: str) -> str:  # the machine arrives after the first Enter
+        if presses:
+            stand.place(*target)
+        presses.append(prompt)
+        return ""
+
+    told: list[str] = []
+    OperatorPrompt(reference_machine, press_enter, told.append, stand.source).move_to(target, 5e3)
+    assert len(presses) == 2 and "move it there first" in told[-1]
+    assert np.allclose(stand.source.position_mm(), target)
