@@ -26,13 +26,11 @@ from xmalign.cli.common import (
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import refuse_overwriting, refuse_replacing
-from xmalign.formats.pose import write_pose
-from xmalign.formats.provenance import sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import MAX_UNCERTAINTY_UM, MAX_UNCERTAINTY_URAD, Machine
-from xmalign.steps import IdentifyStepResult, design_step, identify_step
+from xmalign.steps import IdentifyStepResult, design_step, identify_step, write_pose_step
 
 
 def _uncertainty(
@@ -341,7 +339,7 @@ def identify_command(
     print_result(result, session, truth)
     if out is not None:
         session_used = input or (session_path if sim else session_file)
-        write_pose(out, result.to_pose(), sources(session=session_used, machine=machine))
+        write_pose_step(out, result, session_used, machine)
         console.print(f"pose written to {out}", markup=False)
     else:
         console.print(
