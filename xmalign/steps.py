@@ -217,13 +217,21 @@ def program_step(
     ``write_program_file`` False: the program is only returned (stdout). The
     program is named after its file (``XMALIGN`` without one). The plan records
     the SHA-256 of ``pose_path`` (the file the pose was written to or read from)
-    and of ``machine_path``. ``check_plan(measurement)`` may refuse the plan
-    (raise) before anything is written, ``check_outputs(paths)`` the files about
-    to be written.
+    and of ``machine_path``. ``check_outputs(paths)`` may refuse the files about
+    to be written (raise) before the planning, ``check_plan(measurement)`` the
+    plan before anything is written.
     """
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
     dialect_name = resolve_dialect(machine, dialect)
+    if write_program_file and program_path is None:
+        if plan_path is None:
+            raise ValueError("program_step: a program file needs program_path or plan_path")
+        program_path = program_file(plan_path, machine, dialect_name)
+    if not write_program_file:
+        program_path = None
+    if check_outputs is not None:
+        check_outputs([path for path in (plan_path, program_path) if path is not None])
     measurement = (
         plan_measurement(machine, pose)
         if line_ids is None
@@ -231,15 +239,6 @@ def program_step(
     )
     if check_plan is not None:
         check_plan(measurement)
-    if write_program_file and program_path is None:
-        if plan_path is None:
-            raise ValueError("program_step: a program file needs program_path or plan_path")
-        program_path = program_file(plan_path, machine, dialect_name)
-    if not write_program_file:
-        program_path = None
-    outputs = [path for path in (plan_path, program_path) if path is not None]
-    if check_outputs is not None:
-        check_outputs(outputs)
     files: dict[str, Path] = {}
     plan = measurement.plan
     if plan_path is not None:
