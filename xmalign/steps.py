@@ -1,12 +1,17 @@
-"""The five calibration steps as functions on role objects and files.
+"""The five calibration steps as functions on role objects and files: the one pipeline.
 
-identify, program, run, post and comp are wired here once; the CLI commands,
-the dry run (``sim/dry_run.py``, ``sim/two_stations.py``) and the Monte Carlo
-study call these functions with real devices or the simulator's behind the
-same roles (:mod:`xmalign.roles`). Only what differs between a controller
-running the program and an operator stepping the machine is given by the
-caller: the *drive* of :func:`run_step` (:func:`program_drive`,
-:func:`stepping_drive`, :func:`following_drive`, :func:`controlled_drive`).
+identify, program, run, post and comp are wired here once; every CLI command,
+the dry run (``sim/dry_run.py``, ``sim/two_stations.py``, served and
+in-process) and the Monte Carlo study call these functions with real devices
+or the simulator's behind the same roles (:mod:`xmalign.roles`). The step layer
+writes every pose (:func:`write_pose_step`), opens every measurement file
+(:func:`open_measurements_step`), posts one or more stations with the plan check
+(:func:`post_step`) and writes every controller's files (:func:`comp_step`,
+:func:`volumetric_comp_step`); a command adds only its output checks and what it
+shows, by hooks. Only what differs between a controller running the program and
+an operator stepping the machine is given by the caller: the *drive* of
+:func:`run_step` (:func:`program_drive`, :func:`stepping_drive`,
+:func:`following_drive`, :func:`controlled_drive`).
 """
 
 from __future__ import annotations
