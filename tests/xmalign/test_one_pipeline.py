@@ -146,3 +146,15 @@ def test_the_dry_run_calls_every_step(reference_machine, tmp_path, monkeypatch):
         "comp_step": 1,
     }
     assert [args[0] for args, _ in poses] == [tmp_path / "dry" / "pose.json"]
+
+
+def test_the_instrument_dry_run_posts_through_the_post_step(
+    reference_machine, tmp_path, monkeypatch
+):
+    import sim.instrument_dry_run as instrument_dry_run
+
+    calls = _spy(monkeypatch, instrument_dry_run, "post_step")
+    instrument_dry_run.simulate_instruments(reference_machine, tmp_path / "tracer", "tracer", 3)
+    assert len(calls) == 1
+    errors = (tmp_path / "tracer" / "errors-instruments.csv").read_text()
+    assert "tracer.csv" in errors  # the tables name the readings they came from
