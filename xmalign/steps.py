@@ -46,7 +46,7 @@ from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, loa
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
 from xmalign.formats.provenance import FileSource, sources
-from xmalign.formats.session import Session
+from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.studies import write_design
 from xmalign.identification_routine import (
     PoseGuess,
@@ -167,6 +167,24 @@ def identify_step(
     result = identify(session, method, uncertainty, str(session_path))
     if pose_path is not None:
         write_pose_step(pose_path, result, Path(session_path), machine_path)
+    return IdentifyStepResult(result, session, Path(session_path))
+
+
+def solve_step(
+    session_path: Path,
+    uncertainty: IdentificationUncertainty,
+    method: str = "joint",
+    machine: Machine | None = None,
+) -> IdentifyStepResult:
+    """The pose from a recorded session (``xmalign identify --input``), read with the
+    machine's straightness range (the nominal one without a machine file)."""
+    range_um = (
+        machine.interferometer.straightness_range_um
+        if machine is not None
+        else NOMINAL_STRAIGHTNESS_RANGE_UM
+    )
+    session = read_session(session_path, range_um)
+    result = identify(session, method, uncertainty, str(session_path))
     return IdentifyStepResult(result, session, Path(session_path))
 
 

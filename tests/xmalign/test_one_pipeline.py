@@ -72,13 +72,15 @@ def test_plan_identify_calls_the_design_step(tmp_path, monkeypatch):
     assert read_design(out).machine_mm.shape == (4, 3)
 
 
-def test_identify_writes_the_pose_through_the_step(dry, tmp_path, monkeypatch):
+def test_identify_solves_and_writes_the_pose_through_the_steps(dry, tmp_path, monkeypatch):
     import xmalign.cli.identify as command
 
     calls = _spy(monkeypatch, command, "write_pose_step")
+    solved = _spy(monkeypatch, command, "solve_step")
     out = tmp_path / "pose.json"
     result = run_in_process("identify", "--input", str(dry / "session.json"), "--out", str(out))
     assert result.returncode == 0, result.stderr
+    assert [args[0] for args, _ in solved] == [dry / "session.json"]
     assert [args[0] for args, _ in calls] == [out]
     assert read_pose(out).n_alignments > 0
     roles = [source["role"] for source in json.loads(out.read_text())["inputs"]]
