@@ -27,13 +27,11 @@ from xmalign.calibration import (
     UNIT_MOVE_TIMEOUT_S,
     CalibrationRun,
     RunOutput,
-    open_run_output,
     pre_position_mm,
 )
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec, wrap_angle
 from xmalign.identification_routine import (
@@ -54,6 +52,7 @@ from xmalign.steps import (
     design_step,
     following_drive,
     identify_step,
+    open_measurements_step,
     post_step,
     program_drive,
     program_step,
@@ -310,11 +309,13 @@ def identify_virtually(
     seed: int = 0,
     on_event: Callable[[RoutineEvent], None] | None = None,
     uncertainty: IdentificationUncertainty | None = None,
+    pose_path: Path | None = None,
 ) -> IdentificationResult:
     """:func:`~xmalign.steps.identify_step` on the virtual setup, a simulated technician
     aligning by hand where needed (seeded by ``seed``).
 
-    ``uncertainty`` defaults to the machine file's ``uncertainty`` section.
+    ``uncertainty`` defaults to the machine file's ``uncertainty`` section; with
+    ``pose_path`` the pose is written there.
     """
     return identify_step(
         positions_mm,
@@ -325,6 +326,7 @@ def identify_virtually(
         uncertainty,
         manual_align=_operator(setup, machine, np.random.default_rng(seed)),
         on_event=on_event,
+        pose_path=pose_path,
     ).result
 
 
@@ -451,7 +453,13 @@ def simulate_calibration(
     # only now, with the options found good, is the folder made
     workdir.mkdir(parents=True, exist_ok=True)
     result = identify_virtually(
-        setup, machine, positions, workdir / "session.json", options.method, options.seed
+        setup,
+        machine,
+        positions,
+        workdir / "session.json",
+        options.method,
+        options.seed,
+        pose_path=workdir / "pose.json",
     )
     identification_s = clock.now()
 
@@ -476,17 +484,17 @@ def simulate_calibration(
     started = clock.now()
     csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
-    with open_run_output(
-        csv_path, plan, resume=False, environment=monitor, sim_seed=options.seed
+    with open_measurements_step(
+        csv_path, plan, machine, environment=monitor, sim_seed=options.seed
     ) as output:
         output.on_saved = on_point or (lambda saved: None)
         run = measure(output)
     run_s = clock.now() - started
 
     stage("post")
-    posted = post_step(machine, plan, csv_path, workdir / "errors.csv")
+    posted = post_step(machine, [(plan, csv_path)], workdir / "errors.csv")
     tables: ErrorTableSet = posted.tables
-    rows = read_measurements(csv_path)
+    rows = posted.stations[0].rows
     setup.world.machine.write_truth_tables(str(workdir / "truth.csv"), 50.0)
 
     stage("comp")
@@ -502,7 +510,7 @@ def simulate_calibration(
         applied = compensation.fit.mean
         setup.world.machine.load_compensation(applied)
         verification = workdir / "verification.csv"
-        with open_run_output(verification, plan, resume=False, environment=monitor) as output:
+        with open_measurements_step(verification, plan, machine, environment=monitor) as output:
             measure(output)
         left = as_left_step(machine, plan, verification, applied)
         remaining = RemainingErrors(truth, applied)

@@ -31,7 +31,6 @@ from trajectories.instruments import (
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
-from xmalign.formats.error_tables import write_error_tables
 from xmalign.formats.instruments import (
     TracerFile,
     TrackerFile,
@@ -40,12 +39,13 @@ from xmalign.formats.instruments import (
     write_tracer_lengths,
     write_tracker_points,
 )
-from xmalign.formats.measurements import load_measurements
-from xmalign.formats.plan import read_plan
+from xmalign.formats.plan import Plan, read_plan
+from xmalign.formats.provenance import FileSource
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.evaluate import Instruments, PostResult, post_stations
 from xmalign.rigid_body import Chain, ErrorTables
+from xmalign.steps import post_step
 
 INSTRUMENTS = ("xm60", "tracker", "tracer", "xm60+tracker")
 #: The tracker stands turned and tilted: the fit's start must not need it level.
@@ -134,24 +134,30 @@ def simulate_instruments(
         raise InputError(f"{folder}/ already holds {', '.join(found)}; give another --out")
     folder.mkdir(parents=True, exist_ok=True)
     dialect_name = resolve_dialect(machine, dialect)
-    stations: list[Station] = []
+    pairs: list[tuple[Plan, Path]] = []
     xm60_min, xm60_after = 0.0, None
     if instrument == "xm60+tracker":
         options = DryRunOptions(seed=seed, dialect=dialect, served=False)
         report = simulate_calibration(machine, folder, options)
         xm60_min = report.measuring_s / 60
-        plan = read_plan(folder / "plan.json")
-        rows = load_measurements(folder / "measurements.csv").rows
-        stations = [Station(plan, rows, "measurements.csv")]
+        pairs = [(read_plan(folder / "plan.json"), folder / "measurements.csv")]
     truth = virtual_setup(machine, seed).world.machine
     if "tracker" in instrument:
         tracker_file, minutes = _tracker(machine, truth, folder, seed, dialect_name)
         instruments = Instruments(trackers=(tracker_file,))
+        files = [FileSource.of("tracker", folder / "tracker.csv")]
     else:
         tracer_file, minutes = _tracers(machine, truth, folder, seed, dialect_name)
         instruments = Instruments(tracers=(tracer_file,))
-    result = post_stations(machine, stations, instruments=instruments)
-    write_error_tables(folder / "errors-instruments.csv", result.fit.tables)
+        files = [FileSource.of("tracer", folder / "tracer.csv")]
+    posted = post_step(
+        machine,
+        pairs,
+        folder / "errors-instruments.csv",
+        instruments=instruments,
+        instrument_files=files,
+    )
+    result, stations = posted.post, posted.stations
     chain = Chain.parse(machine.chain)
     grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
     offset = None if stations else machine.smr_offset

@@ -22,23 +22,29 @@ from sim.dry_run import (
     DryRunOptions,
     VirtualSetup,
     identify_virtually,
+    measure_served,
     measure_virtually,
     measured_strokes,
     virtual_setup,
 )
-from trajectories.gcode import resolve_dialect
+from sim.environment import SHOPS, attach_shop
+from sim.units import SimPositioningUnit
 from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan
 from trajectories.stations import StationProposal, propose_second_station
-from xmalign.calibration import open_run_output
-from xmalign.formats.error_tables import write_error_tables
-from xmalign.formats.measurements import read_measurements
-from xmalign.formats.provenance import sources
+from xmalign.environment import EnvironmentMonitor
+from xmalign.formats.plan import read_plan
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.post.evaluate import PostResult
 from xmalign.rigid_body import Chain
-from xmalign.steps import PROGRAM_SUFFIX, design_step, program_step
+from xmalign.steps import (
+    design_step,
+    open_measurements_step,
+    post_step,
+    program_file,
+    program_step,
+)
 
 
 @dataclass
@@ -73,30 +79,41 @@ def _measure_station(
     workdir: Path,
     name: str,
     options: DryRunOptions,
+    monitor: EnvironmentMonitor,
     line_ids: tuple[str, ...] | None = None,
 ) -> StationRun:
+    """Identify, program and run one station through the step layer (served or in-process)."""
     clock = setup.world.clock
     started = clock.now()
     design = design_step(machine, options.identification_positions)
     session = workdir / f"{name}-session.json"
     session.unlink(missing_ok=True)
+    pose = workdir / f"{name}-pose.json"
     result = identify_virtually(
-        setup, machine, design.machine_mm, session, options.method, options.seed
+        setup, machine, design.machine_mm, session, options.method, options.seed, pose_path=pose
     )
+    plan_path = workdir / f"{name}-plan.json"
     programmed = program_step(
         machine,
         result,
-        workdir / f"{name}-plan.json",
-        workdir / f"{name}-run{PROGRAM_SUFFIX[resolve_dialect(machine, options.dialect)]}",
+        plan_path,
+        plan_path.with_name(f"{name}-{program_file(plan_path, machine, options.dialect).name}"),
         options.dialect,
-        workdir / f"{name}-pose.json",
+        pose,
         line_ids or LINE_IDS,
     )
-    plan = programmed.measurement
     csv_path = workdir / f"{name}-measurements.csv"
-    with open_run_output(csv_path, programmed.plan, resume=False) as output:
-        measure_virtually(setup, programmed.plan, programmed.program, programmed.dialect, output)
-    return StationRun(plan, csv_path, clock.now() - started, list(design.warnings))
+    plan, program, dialect = programmed.plan, programmed.program, programmed.dialect
+    with open_measurements_step(
+        csv_path, plan, machine, environment=monitor, sim_seed=options.seed
+    ) as output:
+        if options.served:
+            measure_served(setup, machine, plan, program, dialect, output)
+        else:
+            measure_virtually(setup, plan, program, dialect, output)
+    return StationRun(
+        programmed.measurement, csv_path, clock.now() - started, list(design.warnings)
+    )
 
 
 def _move_launch_unit(setup: VirtualSetup, position_mm: np.ndarray, seed: int) -> VirtualSetup:
@@ -111,7 +128,9 @@ def _move_launch_unit(setup: VirtualSetup, position_mm: np.ndarray, seed: int) -
     world = dataclasses.replace(
         setup.world, launch2mcs_mm=interferometer.launch2mcs_mm, gamma_rad=gamma
     )
-    return dataclasses.replace(setup, world=world)
+    # the technician's host connects again: a served run stopped the in-process heartbeat
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    return dataclasses.replace(setup, world=world, launch=launch, receiver=receiver)
 
 
 def simulate_two_stations(
@@ -124,8 +143,10 @@ def simulate_two_stations(
     """
     options = options or DryRunOptions()
     workdir.mkdir(parents=True, exist_ok=True)
-    setup = virtual_setup(machine, options.seed, options.amplitudes)
-    first = _measure_station(setup, machine, workdir, "station1", options)
+    setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
+    station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
+    monitor = EnvironmentMonitor(station, "simulated weather station")
+    first = _measure_station(setup, machine, workdir, "station1", options, monitor)
     launch = first.plan.plan.extra["launch_position_mm"]
     proposal = propose_second_station(machine, np.asarray(launch, dtype=float))
     placed = machine.model_copy(
@@ -134,20 +155,12 @@ def simulate_two_stations(
         }
     )
     setup = _move_launch_unit(setup, proposal.position_mm, options.seed)
-    second = _measure_station(setup, placed, workdir, "station2", options, proposal.line_ids)
-    stations = [
-        Station(run.plan.plan, read_measurements(run.measurements), str(run.measurements))
-        for run in (first, second)
-    ]
-    post = post_stations(machine, stations)
-    inputs = [
-        source
-        for name in ("station1", "station2")
-        for source in sources(
-            measurements=workdir / f"{name}-measurements.csv", plan=workdir / f"{name}-plan.json"
-        )
-    ]
-    write_error_tables(workdir / "errors.csv", post.fit.tables, inputs, machine)
+    second = _measure_station(
+        setup, placed, workdir, "station2", options, monitor, proposal.line_ids
+    )
+    plans = [read_plan(workdir / f"{name}-plan.json") for name in ("station1", "station2")]
+    measured = [run.measurements for run in (first, second)]
+    post = post_step(machine, list(zip(plans, measured, strict=True)), workdir / "errors.csv").post
     chain = Chain.parse(machine.chain)
     truth = setup.world.machine
     model = post.fit.tables.model()

@@ -35,11 +35,14 @@ from xmalign.steps import (
     design_step,
     following_drive,
     identify_step,
+    open_measurements_step,
     post_step,
     program_drive,
     program_step,
     run_step,
     stepping_drive,
+    volumetric_comp_step,
+    write_pose_step,
 )
 
 if TYPE_CHECKING:
@@ -73,6 +76,7 @@ __all__ = [
     "load_machine",
     "load_measurements",
     "measurements_frame",
+    "open_measurements_step",
     "open_run_output",
     "post_step",
     "program_drive",
@@ -86,6 +90,8 @@ __all__ = [
     "run_step",
     "squareness_frame",
     "stepping_drive",
+    "volumetric_comp_step",
+    "write_pose_step",
 ]
 
 #: The file names the steps write in a calibration's folder (as ``xmalign dry-run`` does).

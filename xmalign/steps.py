@@ -1,17 +1,22 @@
-"""The five calibration steps as functions on role objects and files.
+"""The five calibration steps as functions on role objects and files: the one pipeline.
 
-identify, program, run, post and comp are wired here once; the CLI commands,
-the dry run (``sim/dry_run.py``, ``sim/two_stations.py``) and the Monte Carlo
-study call these functions with real devices or the simulator's behind the
-same roles (:mod:`xmalign.roles`). Only what differs between a controller
-running the program and an operator stepping the machine is given by the
-caller: the *drive* of :func:`run_step` (:func:`program_drive`,
-:func:`stepping_drive`, :func:`following_drive`, :func:`controlled_drive`).
+identify, program, run, post and comp are wired here once; every CLI command,
+the dry run (``sim/dry_run.py``, ``sim/two_stations.py``, served and
+in-process) and the Monte Carlo study call these functions with real devices
+or the simulator's behind the same roles (:mod:`xmalign.roles`). The step layer
+writes every pose (:func:`write_pose_step`), opens every measurement file
+(:func:`open_measurements_step`), posts one or more stations with the plan check
+(:func:`post_step`) and writes every controller's files (:func:`comp_step`,
+:func:`volumetric_comp_step`); a command adds only its output checks and what it
+shows, by hooks. Only what differs between a controller running the program and
+an operator stepping the machine is given by the caller: the *drive* of
+:func:`run_step` (:func:`program_drive`, :func:`stepping_drive`,
+:func:`following_drive`, :func:`controlled_drive`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,21 +34,20 @@ from xmalign.calibration import (
     capture_program,
     control_program,
     follow_machine,
+    open_run_output,
     step_through,
 )
 from xmalign.comp import Compensation, compensate
+from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
+from xmalign.environment import EnvironmentMonitor
 from xmalign.formats.common import atomic_write_files
-from xmalign.formats.error_tables import ErrorTableSet, write_error_tables
-from xmalign.formats.measurements import (
-    ChannelLimits,
-    check_recorded_plan,
-    load_measurements,
-    read_measurements,
-)
+from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
-from xmalign.formats.pose import write_pose
-from xmalign.formats.provenance import sources
-from xmalign.formats.session import Session
+from xmalign.formats.pose import LaunchPose, write_pose
+from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
+from xmalign.formats.studies import write_design
 from xmalign.identification_routine import (
     PoseGuess,
     RoutineDevices,
@@ -52,7 +56,7 @@ from xmalign.identification_routine import (
 )
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
-from xmalign.post.evaluate import PostResult, Station, post_process, post_stations
+from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -85,9 +89,33 @@ def machine_guess(machine: Machine) -> PoseGuess | None:
     return PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
 
 
-def design_step(machine: Machine, count: int) -> IdentificationDesign:
-    """The identification positions for ``count`` alignments (``warnings`` to be shown)."""
-    return design_identification(machine, count)
+def design_step(
+    machine: Machine, count: int, out: Path | None = None, machine_path: Path | None = None
+) -> IdentificationDesign:
+    """The identification positions for ``count`` alignments (``warnings`` to be shown);
+    written to ``out`` (with the SHA-256 of ``machine_path``) when given."""
+    design = design_identification(machine, count)
+    if out is not None:
+        write_design(
+            out,
+            machine.name,
+            design.machine_mm,
+            design.pose_covariance,
+            sources(machine=machine_path),
+        )
+    return design
+
+
+def write_pose_step(
+    path: Path,
+    result: IdentificationResult,
+    session_path: Path | None = None,
+    machine_path: Path | None = None,
+) -> Path:
+    """Write the identified pose (``xmalign program`` reads it) with the SHA-256 of the
+    session it was solved from and of the machine file. Every pose file is written here."""
+    write_pose(path, result.to_pose(), sources(session=session_path, machine=machine_path))
+    return path
 
 
 @dataclass
@@ -113,11 +141,14 @@ def identify_step(
     manual_align: Callable[[], None] | None = None,
     on_event: Callable[[RoutineEvent], None] | None = None,
     unit_timeout_s: float = 30.0,
+    pose_path: Path | None = None,
+    machine_path: Path | None = None,
 ) -> IdentifyStepResult:
     """Align at each position (session written as it goes, resumed), then solve the pose.
 
     The units are locked on every exit. ``uncertainty`` defaults to the
-    machine file's ``uncertainty`` section.
+    machine file's ``uncertainty`` section. With ``pose_path`` the pose is
+    written there (:func:`write_pose_step`).
     """
     with units_locked_on_exit(devices.launch, devices.receiver):
         session = run_identification(
@@ -133,6 +164,26 @@ def identify_step(
         )
     if uncertainty is None:
         uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
+    result = identify(session, method, uncertainty, str(session_path))
+    if pose_path is not None:
+        write_pose_step(pose_path, result, Path(session_path), machine_path)
+    return IdentifyStepResult(result, session, Path(session_path))
+
+
+def solve_step(
+    session_path: Path,
+    uncertainty: IdentificationUncertainty,
+    method: str = "joint",
+    machine: Machine | None = None,
+) -> IdentifyStepResult:
+    """The pose from a recorded session (``xmalign identify --input``), read with the
+    machine's straightness range (the nominal one without a machine file)."""
+    range_um = (
+        machine.interferometer.straightness_range_um
+        if machine is not None
+        else NOMINAL_STRAIGHTNESS_RANGE_UM
+    )
+    session = read_session(session_path, range_um)
     result = identify(session, method, uncertainty, str(session_path))
     return IdentifyStepResult(result, session, Path(session_path))
 
@@ -152,41 +203,76 @@ class ProgramStepResult:
         return list(self.measurement.warnings)
 
 
+def program_gcode(
+    plan: Plan, machine: Machine, dialect: str | None = None, name: str = "XMALIGN"
+) -> tuple[str, str]:
+    """The G-code of ``plan`` (dialect name, program text): the dialect asked for or the
+    controller's, the program named ``name`` (Heidenhain wants the file's name)."""
+    dialect_name = resolve_dialect(machine, dialect)
+    return dialect_name, write_program(plan, machine, make_dialect(dialect_name, machine, name))
+
+
+def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) -> Path:
+    """Where :func:`program_step` writes the program by default: ``run<suffix>`` of the
+    dialect next to the plan."""
+    return plan_path.with_name(f"run{PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]}")
+
+
 def program_step(
     machine: Machine,
-    result: IdentificationResult,
-    plan_path: Path,
+    pose: LaunchPose | IdentificationResult,
+    plan_path: Path | None,
     program_path: Path | None = None,
     dialect: str | None = None,
     pose_path: Path | None = None,
     line_ids: tuple[str, ...] | None = None,
     machine_path: Path | None = None,
+    write_program_file: bool = True,
+    check_plan: Callable[[MeasurementPlan], None] | None = None,
+    check_outputs: Callable[[list[Path]], None] | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
     The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
-    (the same plan identity). ``program_path`` None: the suffix of the dialect
-    next to the plan as ``run<suffix>``. The plan records the SHA-256 of the pose
-    file and of ``machine_path`` (the machine file, when there is one).
+    (the same plan identity); with ``plan_path`` None it is not written and the
+    program is made from the plan as planned. ``program_path`` None: the suffix
+    of the dialect next to the plan as ``run<suffix>`` (:func:`program_file`);
+    ``write_program_file`` False: the program is only returned (stdout). The
+    program is named after its file (``XMALIGN`` without one). The plan records
+    the SHA-256 of ``pose_path`` (the file the pose was written to or read from)
+    and of ``machine_path``. ``check_outputs(paths)`` may refuse the files about
+    to be written (raise) before the planning, ``check_plan(measurement)`` the
+    plan before anything is written.
     """
-    pose = result.to_pose()
-    files: dict[str, Path] = {}
-    if pose_path is not None:
-        write_pose(pose_path, pose, sources(machine=machine_path))
-        files["pose"] = pose_path
+    if isinstance(pose, IdentificationResult):
+        pose = pose.to_pose()
+    dialect_name = resolve_dialect(machine, dialect)
+    if write_program_file and program_path is None:
+        if plan_path is None:
+            raise ValueError("program_step: a program file needs program_path or plan_path")
+        program_path = program_file(plan_path, machine, dialect_name)
+    if not write_program_file:
+        program_path = None
+    if check_outputs is not None:
+        check_outputs([path for path in (plan_path, program_path) if path is not None])
     measurement = (
         plan_measurement(machine, pose)
         if line_ids is None
         else plan_measurement(machine, pose, line_ids)
     )
-    write_plan(plan_path, measurement.plan, sources(pose=pose_path, machine=machine_path))
-    plan = read_plan(plan_path)
-    dialect_name = resolve_dialect(machine, dialect)
-    program = write_program(plan, machine, make_dialect(dialect_name, machine, "run"))
-    if program_path is None:
-        program_path = plan_path.with_name(f"run{PROGRAM_SUFFIX[dialect_name]}")
-    atomic_write_files({program_path: program.encode("utf-8")})
-    files |= {"plan": plan_path, "program": program_path}
+    if check_plan is not None:
+        check_plan(measurement)
+    files: dict[str, Path] = {}
+    plan = measurement.plan
+    if plan_path is not None:
+        write_plan(plan_path, plan, sources(pose=pose_path, machine=machine_path))
+        plan = read_plan(plan_path)
+        files["plan"] = plan_path
+    name = program_path.stem if program_path is not None else "XMALIGN"
+    _, program = program_gcode(plan, machine, dialect_name, name)
+    if program_path is not None:
+        atomic_write_files({program_path: program.encode("utf-8")})
+        files["program"] = program_path
     return ProgramStepResult(measurement, plan, dialect_name, program, files)
 
 
@@ -263,6 +349,24 @@ class RunStepDevices:
     clock: Clock
 
 
+def open_measurements_step(
+    path: Path,
+    plan: Plan,
+    machine: Machine,
+    resume: bool = False,
+    environment: EnvironmentMonitor | None = None,
+    sim_seed: int | None = None,
+) -> RunOutput:
+    """Open the measurement file of a run (new, or ``resume``: the one to go on with).
+
+    Locked until closed, recorded for ``plan`` (its SHA-256 and file), with the
+    virtual machine's ``sim_seed`` and ``environment``'s columns; a resumed file
+    is read with the machine's interferometer ranges. Every run opens its file here.
+    """
+    limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
+    return open_run_output(path, plan, resume, limits, environment, sim_seed)
+
+
 def run_step(
     plan: Plan, devices: RunStepDevices, output: RunOutput, drive: Drive
 ) -> CalibrationRun:
@@ -280,34 +384,60 @@ def run_step(
 
 @dataclass
 class PostStepResult:
-    """The fitted error tables and where they were written."""
+    """The fitted error tables, the stations they were fitted to, where they were written."""
 
     post: PostResult
     errors_path: Path
+    stations: list[Station] = field(default_factory=list)
 
     @property
     def tables(self) -> ErrorTableSet:
         return self.post.fit.tables
 
 
+def read_station(machine: Machine, plan: Plan, measurements_path: Path) -> Station:
+    """One station's measurement, read with the machine's interferometer ranges; the file
+    must have been recorded for ``plan``."""
+    limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
+    recorded = load_measurements(measurements_path, limits)
+    check_recorded_plan(recorded, plan, check_points=False)
+    return Station(plan, recorded.rows, str(measurements_path))
+
+
 def post_step(
     machine: Machine,
-    plan: Plan,
-    measurements_path: Path,
+    stations: Sequence[tuple[Plan, Path]],
     errors_path: Path,
     machine_path: Path | None = None,
+    instruments: Instruments | None = None,
+    instrument_files: Sequence[FileSource] = (),
+    on_fit: Callable[[list[Station]], None] | None = None,
+    more_files: Callable[[PostResult], dict[Path, bytes]] | None = None,
 ) -> PostStepResult:
-    """Fit the 21 errors to one station's measurement file and write the error tables.
+    """Fit the 21 errors to every station's measurement (and ``instruments``' readings) and
+    write the error tables.
 
-    The tables name ``machine`` and the SHA-256 of the measurements, the plan
-    file (when ``plan`` was read from one) and ``machine_path``.
+    ``stations``: each station's plan (read from its file) and measurement file, in order;
+    each file must have been recorded for its plan (:func:`read_station`). The tables name
+    ``machine`` and the SHA-256 of each station's measurements and plan, ``machine_path``
+    and ``instrument_files``. ``on_fit(stations)`` is told before the fit;
+    ``more_files(result)`` adds files written together with the tables (the report): all
+    of them, or none.
     """
-    rows = read_measurements(measurements_path)
-    post = post_process(machine, plan, rows, measurements_path.name)
-    inputs = sources(measurements=measurements_path, machine=machine_path)
-    inputs[1:1] = [plan.source] if plan.source is not None else []
-    write_error_tables(errors_path, post.fit.tables, inputs, machine)
-    return PostStepResult(post, errors_path)
+    read = [read_station(machine, plan, path) for plan, path in stations]
+    if on_fit is not None:
+        on_fit(read)
+    post = post_stations(machine, read, instruments=instruments)
+    inputs: list[FileSource] = []
+    for plan, path in stations:
+        inputs += sources(measurements=path)
+        inputs += [plan.source] if plan.source is not None else []
+    inputs += sources(machine=machine_path) + list(instrument_files)
+    files = {errors_path: error_tables_text(post.fit.tables, inputs, machine).encode("utf-8")}
+    if more_files is not None:
+        files |= more_files(post)
+    atomic_write_files(files)
+    return PostStepResult(post, errors_path, read)
 
 
 def as_left_step(
@@ -322,11 +452,7 @@ def as_left_step(
     compensation leaves (as left). ``xmalign post --verify-data`` and the dry run's
     ``--verify`` call this one function.
     """
-    limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
-    recorded = load_measurements(verification_path, limits)
-    check_recorded_plan(recorded, plan, check_points=False)
-    station = Station(plan, recorded.rows, str(verification_path))
-    return post_stations(machine, [station], applied)
+    return post_stations(machine, [read_station(machine, plan, verification_path)], applied)
 
 
 def comp_step(
@@ -341,13 +467,35 @@ def comp_step(
 
     ``more_files(compensation)`` adds files made from the fit (a merged LinuxCNC INI);
     ``check_outputs(paths)`` may refuse the paths about to be written (raise). The
-    returned compensation's ``files`` are all that was written.
+    returned compensation's ``files`` are all that was written. LinuxCNC's volumetric
+    component has no fitted tables: :func:`volumetric_comp_step`.
     """
     compensation = compensate(machine, tables, controller or machine.controller)
     if more_files is not None:
         compensation.files.update(more_files(compensation))
-    paths = {out_dir / name: text.encode("utf-8") for name, text in compensation.files.items()}
+    _write_controller_files(out_dir, compensation.files, check_outputs)
+    return compensation
+
+
+def volumetric_comp_step(
+    machine: Machine,
+    tables: ErrorTableSet,
+    out_dir: Path,
+    ini: Path,
+    check_outputs: Callable[[list[Path]], None] | None = None,
+) -> MergedConfig:
+    """``linuxcnc-volumetric``: the component's table file and the merged copies of the
+    machine's INI and HAL files, written into ``out_dir`` (all or none) as
+    :func:`comp_step` writes a controller's tables."""
+    merged = merge_config(ini, tables, machine, out_dir)
+    _write_controller_files(out_dir, dict(merged.files), check_outputs)
+    return merged
+
+
+def _write_controller_files(
+    out_dir: Path, files: dict[str, str], check_outputs: Callable[[list[Path]], None] | None
+) -> None:
+    paths = {out_dir / name: text.encode("utf-8") for name, text in files.items()}
     if check_outputs is not None:
         check_outputs(list(paths))
     atomic_write_files(paths)
-    return compensation

@@ -19,3 +19,45 @@ def test_two_stations_cover_the_travel(reference_machine, tmp_path):
     assert tables.tables["EZZ"].positions_mm[0] == reference_machine.travel_min_mm[2]
     # issue 13: <= 1.0 um over the whole travel with two stations
     assert report.travel_um <= 1.0
+
+
+def test_two_stations_call_the_steps_in_the_shop_and_mode_asked_for(
+    reference_machine, tmp_path, monkeypatch
+):
+    """``dry-run --stations 2`` runs, opens, programs and posts through the step layer, in
+    the shop given, and measures over the served devices unless in-process is asked for."""
+    import sim.two_stations as two
+    from xmalign import steps
+    from xmalign.formats.measurements import load_measurements
+
+    calls: dict[str, list] = {}
+
+    def spy(name, real):
+        calls[name] = []
+
+        def call(*args, **kwargs):
+            calls[name].append(args)
+            return real(*args, **kwargs)
+
+        return call
+
+    for name in ("program_step", "open_measurements_step", "post_step"):
+        monkeypatch.setattr(two, name, spy(name, getattr(steps, name)))
+
+    def served_here(setup, machine, plan, program, dialect, output):
+        return two.measure_virtually(setup, plan, program, dialect, output)
+
+    # served: measure_served is called (measured in-process here, the served path has its
+    # own tests in tests/sim/test_served_world.py and the CLI's served dry run)
+    monkeypatch.setattr(two, "measure_served", spy("measure_served", served_here))
+    options = DryRunOptions(seed=2, shop="reference", served=True)
+    simulate_two_stations(reference_machine, tmp_path, options)
+    assert {name: len(made) for name, made in calls.items()} == {
+        "program_step": 2,
+        "open_measurements_step": 2,
+        "post_step": 1,
+        "measure_served": 2,
+    }
+    recorded = load_measurements(tmp_path / "station2-measurements.csv")
+    air = [row.environment["air_temp_c"] for row in recorded.rows]
+    assert recorded.environment_columns and max(abs(t - 20.0) for t in air) < 0.5  # drifting: 22-25

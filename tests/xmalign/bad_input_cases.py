@@ -711,7 +711,7 @@ _CLI_CASES = [
         "ctrl-c-identify",
         SESSION,
         ("stopped by Ctrl-C",),
-        patch=ctrl_c_in("xmalign.cli.identify", "identify"),
+        patch=ctrl_c_in("xmalign.cli.identify", "solve_step"),
         code=130,
     ),  # noqa: E501
     Case(

@@ -347,7 +347,7 @@ def test_bad_run_options_are_one_line_and_create_no_file(
 
 def test_dry_run_with_two_stations_reports_both_stations_and_the_residuals(tmp_path):
     out = tmp_path / "two"
-    result = run_cli("dry-run", "--stations", "2", "--out", str(out), "--seed", "2")
+    result = run_cli("dry-run", "--stations", "2", "--in-process", "--out", str(out), "--seed", "2")
     assert result.returncode == 0, result.stderr
     text = " ".join(result.stdout.split())
     assert "second station: launch cp at [" in text

@@ -62,7 +62,7 @@ def test_version_1_files_are_read_as_they_are():
 def test_version_1_measurements_post_to_version_2_tables(tmp_path, reference_machine):
     plan = read_plan(V1 / "plan.json")
     errors = tmp_path / "errors.csv"
-    post_step(reference_machine, plan, V1 / "measurements.csv", errors)
+    post_step(reference_machine, [(plan, V1 / "measurements.csv")], errors)
     tables = read_error_tables(errors)
     assert tables.history is not None and tables.history.format == "xmalign.error-tables/2"
     assert tables.machine is not None and tables.machine.chain == reference_machine.chain

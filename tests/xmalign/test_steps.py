@@ -76,7 +76,7 @@ def test_units_are_locked_after_a_run_step_however_it_ends(
 def test_post_and_comp_steps_write_their_files(dry_run_folder, reference_machine, tmp_path):
     plan = read_plan(dry_run_folder / "plan.json")
     posted = post_step(
-        reference_machine, plan, dry_run_folder / "measurements.csv", tmp_path / "errors.csv"
+        reference_machine, [(plan, dry_run_folder / "measurements.csv")], tmp_path / "errors.csv"
     )
     assert (tmp_path / "errors.csv").exists()
     compensation = comp_step(reference_machine, posted.tables, tmp_path / "comp")

@@ -26,13 +26,17 @@ from xmalign.cli.common import (
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import refuse_overwriting, refuse_replacing
-from xmalign.formats.pose import write_pose
-from xmalign.formats.provenance import sources
-from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
+from xmalign.formats.session import Session, read_session
 from xmalign.identification_routine import RoutineEvent
-from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty, identify
+from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty
 from xmalign.machine import MAX_UNCERTAINTY_UM, MAX_UNCERTAINTY_URAD, Machine
-from xmalign.steps import IdentifyStepResult, design_step, identify_step
+from xmalign.steps import (
+    IdentifyStepResult,
+    design_step,
+    identify_step,
+    solve_step,
+    write_pose_step,
+)
 
 
 def _uncertainty(
@@ -330,18 +334,13 @@ def identify_command(
             stop_log_file(log_handler)
         result, session = identified.result, identified.session
     else:
-        range_um = (
-            machine_model.interferometer.straightness_range_um
-            if machine_model is not None
-            else NOMINAL_STRAIGHTNESS_RANGE_UM
-        )
         assert input is not None  # one of --input, --sim, --live (checked above)
-        session = read_session(input, range_um)
-        result = identify(session, method, uncertainty, str(input))
+        solved = solve_step(input, uncertainty, method, machine_model)
+        result, session = solved.result, solved.session
     print_result(result, session, truth)
     if out is not None:
         session_used = input or (session_path if sim else session_file)
-        write_pose(out, result.to_pose(), sources(session=session_used, machine=machine))
+        write_pose_step(out, result, session_used, machine)
         console.print(f"pose written to {out}", markup=False)
     else:
         console.print(

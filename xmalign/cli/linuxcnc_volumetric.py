@@ -2,27 +2,34 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
-from xmalign.cli.common import error_console
-from xmalign.comp.linuxcnc_volumetric import merge_config
+from xmalign.cli.common import console, error_console, output_folder
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.machine import Machine
+from xmalign.steps import volumetric_comp_step
 
 
-def volumetric_files(
-    tables: ErrorTableSet, machine: Machine, ini: Path | None, out: Path
-) -> tuple[dict[str, str], str]:
-    """The component's table file and the merged INI/HAL copies (name -> text), and what to do."""
+def volumetric_comp(
+    tables: ErrorTableSet,
+    machine: Machine,
+    ini: Path | None,
+    out: Path,
+    check_outputs: Callable[[list[Path]], None],
+) -> None:
+    """The component's table file and the merged INI/HAL copies written into ``out`` by
+    the step layer (:func:`~xmalign.steps.volumetric_comp_step`), and what to do next."""
     if ini is None:
         raise InputError("--controller linuxcnc-volumetric needs --ini MACHINE.ini")
-    merged = merge_config(ini, tables, machine, out)
+    output_folder(out, "--out")
+    merged = volumetric_comp_step(machine, tables, out, ini, check_outputs)
     for warning in merged.warnings:
         error_console.print(f"xmalign: warning: {warning}", highlight=False)
-    done = (
+    console.print(
         f"linuxcnc-volumetric: wrote {', '.join(sorted(merged.files))} in {out}; build the"
         f" component once with 'halcompile --install linuxcnc/xmalign_volcomp.comp', then start"
-        f" 'linuxcnc {out / merged.ini_name}'"
+        f" 'linuxcnc {out / merged.ini_name}'",
+        highlight=False,
     )
-    return dict(merged.files), done

@@ -25,21 +25,19 @@ from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError, MachineKeyError
 from xmalign.formats.common import (
     PathsOf,
-    atomic_write_files,
     read_text,
     refuse_overwriting,
     refuse_replacing,
     same_file,
 )
-from xmalign.formats.error_tables import error_tables_text, read_error_tables
-from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
-from xmalign.formats.plan import read_plan
-from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.error_tables import read_error_tables
+from xmalign.formats.plan import Plan, read_plan
+from xmalign.formats.provenance import FileSource
 from xmalign.machine import Machine, default_machine_path
-from xmalign.post.evaluate import PostResult, Station, post_stations
+from xmalign.post.evaluate import PostResult, Station
 from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
-from xmalign.steps import as_left_step, comp_step
+from xmalign.steps import as_left_step, comp_step, post_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -74,10 +72,11 @@ def _summary(result: PostResult) -> RichTable:
 
 def _stations(
     plans: list[Path], data: list[Path], machine: Path | None
-) -> tuple[Machine, list[Station]]:
-    """The machine and one station per ``--plan``/``--data`` pair, in the order given.
+) -> tuple[Machine, list[tuple[Plan, Path]]]:
+    """The machine and one plan/data pair per station, in the order given.
 
-    Every plan must be for the machine given; every data file recorded for its plan.
+    Every plan must be for the machine given (the step checks each data file
+    against its plan).
     """
     if len(plans) != len(data):
         raise InputError(
@@ -95,13 +94,7 @@ def _stations(
     if not read:
         return machine_or_default(machine), []
     machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
-    limits = ChannelLimits.of_ranges(**machine_.interferometer.ranges())
-    stations = []
-    for (plan_, _), path in zip(read, data, strict=True):
-        recorded = load_measurements(path, limits)
-        check_recorded_plan(recorded, plan_, check_points=False)
-        stations.append(Station(plan_, recorded.rows, str(path)))
-    return machine_, stations
+    return machine_, [(plan_, path) for (plan_, _), path in zip(read, data, strict=True)]
 
 
 def post(
@@ -196,21 +189,24 @@ def post(
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = _stations(plan, data, machine)
         readings = read_instruments(tracker, tracer)
-        points = sum(len(station.rows) for station in stations)
-        extra = count_readings(readings)
-        fitting = ([f"{points} points"] if stations else []) + ([extra] if extra else [])
-        progress.update(task, description=f"fitting {', '.join(fitting)}")
-        result = post_stations(machine_, stations, instruments=readings)
-        verification = None
-        if verify_data is not None:
-            progress.update(task, description="fitting the verification run")
-            applied = fit_for(machine_, result.fit.tables, verify_controller or machine_.controller)
-            verification = _post_verification(
-                verify_plan or plan[0], verify_data, machine, applied.mean
-            )
-        inputs = _inputs(plan, data, machine) + _instrument_inputs(tracker, tracer)
-        files = {out: error_tables_text(result.fit.tables, inputs, machine_).encode("utf-8")}
-        if report is not None:
+        verification: list[PostResult] = []
+
+        def on_fit(read: list[Station]) -> None:
+            points = sum(len(station.rows) for station in read)
+            extra = count_readings(readings)
+            fitting = ([f"{points} points"] if read else []) + ([extra] if extra else [])
+            progress.update(task, description=f"fitting {', '.join(fitting)}")
+
+        def more_files(result: PostResult) -> dict[Path, bytes]:
+            if verify_data is not None:
+                progress.update(task, description="fitting the verification run")
+                controller = verify_controller or machine_.controller
+                applied = fit_for(machine_, result.fit.tables, controller)
+                verification.append(
+                    _post_verification(verify_plan or plan[0], verify_data, machine, applied.mean)
+                )
+            if report is None:
+                return {}
             progress.update(task, description="drawing the report")
             # imported here: matplotlib is only loaded when a report is asked for
             from xmalign.report import RecordInfo, report_bytes
@@ -220,17 +216,27 @@ def post(
                 operator=operator,
                 instruments=instruments,
                 vdi3441=vdi3441,
-                verification=verification,
+                verification=verification[0] if verification else None,
             )
-            files[report] = report_bytes(report, machine_, result, machine_.controller, info)
+            return {report: report_bytes(report, machine_, result, machine_.controller, info)}
+
         # the tables and the report together, or neither (a failed report leaves no tables)
-        atomic_write_files(files)
+        result = post_step(
+            machine_,
+            stations,
+            out,
+            machine,
+            readings,
+            _instrument_inputs(tracker, tracer),
+            on_fit=on_fit,
+            more_files=more_files,
+        ).post
     console.print(_summary(result))
     if result.instruments is not None:
         for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
             console.print(note, markup=False, soft_wrap=True)
-    if verification is not None:
-        console.print(_as_left(machine_, result, verification))
+    if verification:
+        console.print(_as_left(machine_, result, verification[0]))
     for note in dict.fromkeys(result.notes):
         console.print(note, markup=False, soft_wrap=True)
     drift = [check for c in result.compensation for check in c.drift]
@@ -246,12 +252,6 @@ def post(
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
     )
-
-
-def _inputs(plans: list[Path], data: list[Path], machine: Path | None) -> list[FileSource]:
-    """The files error tables are made from: each station's measurements and plan, the machine."""
-    stations = [sources(measurements=d, plan=p) for p, d in zip(plans, data, strict=True)]
-    return [source for pair in stations for source in pair] + sources(machine=machine)
 
 
 def _instrument_inputs(tracker: list[Path], tracer: list[Path]) -> list[FileSource]:
@@ -314,15 +314,13 @@ def comp(
     tables = read_error_tables(errors)
     tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
     machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
+    inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     if name == "linuxcnc-volumetric":
-        from xmalign.cli.linuxcnc_volumetric import volumetric_files
+        from xmalign.cli.linuxcnc_volumetric import volumetric_comp
 
-        files, done = volumetric_files(tables, machine_, ini, out)
-        _write_outputs(out, files, {"--errors": errors, "--machine": machine, "--ini": ini}, force)
-        console.print(done, highlight=False)
+        volumetric_comp(tables, machine_, ini, out, partial(_check_outputs, inputs, force=force))
         _warn(machine_notes)
         return
-    inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
     output_folder(out, "--out")
     try:
         result = comp_step(
@@ -377,15 +375,6 @@ def _check_outputs(inputs: Mapping[str, PathsOf], paths: list[Path], force: bool
     """A controller's files never replace an input, nor (without --force) a file in --out."""
     refuse_overwriting(inputs, {"--out": paths})
     refuse_replacing({"--out": paths}, force)
-
-
-def _write_outputs(
-    out: Path, files: dict[str, str], inputs: Mapping[str, PathsOf], force: bool
-) -> None:
-    """All of a controller\x27s files into ``out``, or none; never over one of the inputs."""
-    output_folder(out, "--out")
-    _check_outputs(inputs, [out / name for name in files], force)
-    atomic_write_files({out / name: text.encode("utf-8") for name, text in files.items()})
 
 
 def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, out: Path) -> dict:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import Annotated
 
@@ -10,12 +12,12 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from trajectories.gcode import DIALECTS, make_dialect, resolve_dialect
+from trajectories.gcode import DIALECTS
 from trajectories.gcode.machine_time import MachineTime
-from trajectories.gcode.program import estimate_machine_time, write_program
-from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.gcode.program import estimate_machine_time
+from trajectories.identification_design import IdentificationDesign
 from trajectories.lines import LINE_IDS
-from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.planner import MeasurementPlan
 from trajectories.stations import propose_second_station
 from xmalign.cli.common import (
     ForceOption,
@@ -30,16 +32,10 @@ from xmalign.cli.instruments import (
     program_instrument,
 )
 from xmalign.errors import GeometryError, InputError
-from xmalign.formats.common import (
-    atomic_write_text,
-    refuse_overwriting,
-    refuse_replacing,
-)
-from xmalign.formats.plan import write_plan
+from xmalign.formats.common import PathsOf, refuse_overwriting, refuse_replacing
 from xmalign.formats.pose import read_pose
-from xmalign.formats.provenance import sources
-from xmalign.formats.studies import write_design
 from xmalign.machine import Machine
+from xmalign.steps import design_step, program_step
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -123,25 +119,51 @@ def program(
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request)
         return
-    refuse_overwriting(
-        {"--pose": pose, "--machine": machine}, {"--plan-out": plan_out, "--out": out}
-    )
-    refuse_replacing({"--plan-out": plan_out, "--out": out}, force)
     if not pose.exists():
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"
             f" (xmalign identify ... --out {pose}) or give --pose POSE.json"
         )
     machine_model = machine_or_default(machine)
-    dialect_name = resolve_dialect(machine_model, dialect)
     line_ids = _line_ids(lines)
     launch_pose = read_pose(pose)
-    measurement = plan_measurement(machine_model, launch_pose, line_ids)
+    programmed = program_step(
+        machine_model,
+        launch_pose,
+        plan_out,
+        out,
+        dialect,
+        pose_path=pose,
+        line_ids=line_ids,
+        machine_path=machine,
+        write_program_file=out is not None,
+        check_plan=partial(
+            _show_plan, machine_model, launch_pose.position_mm, line_ids == LINE_IDS, strict=strict
+        ),
+        check_outputs=partial(
+            _check_outputs, {"--pose": pose, "--machine": machine}, plan_out, force=force
+        ),
+    )
+    error_console.print(
+        _machine_time_text(estimate_machine_time(programmed.plan, machine_model)),
+        highlight=False,
+    )
+    if out is None:
+        sys.stdout.write(programmed.program)
+
+
+def _show_plan(
+    machine: Machine,
+    launch_mm: np.ndarray,
+    all_lines: bool,
+    measurement: MeasurementPlan,
+    strict: bool,
+) -> None:
+    """The planned lines, the second station (``all_lines``), the notes and the warnings
+    (--strict: refused)."""
     error_console.print(_plan_table(measurement))
-    if line_ids == LINE_IDS:
-        error_console.print(
-            _second_station(machine_model, launch_pose.position_mm), highlight=False
-        )
+    if all_lines:
+        error_console.print(_second_station(machine, launch_mm), highlight=False)
     for planned in measurement.lines:
         if "note" in planned.line.extra:
             error_console.print(f"note: line {planned.line.id}: {planned.line.extra['note']}")
@@ -149,21 +171,19 @@ def program(
         raise GeometryError(measurement.warnings[0])
     for warning in measurement.warnings:
         error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
-    # Heidenhain requires the program name to be the file name
-    name = out.stem if out is not None else "XMALIGN"
-    text = write_program(
-        measurement.plan, machine_model, make_dialect(dialect_name, machine_model, name)
-    )
-    error_console.print(
-        _machine_time_text(estimate_machine_time(measurement.plan, machine_model)),
-        highlight=False,
-    )
-    if plan_out is not None:
-        write_plan(plan_out, measurement.plan, sources(pose=pose, machine=machine))
-    if out is not None:
-        atomic_write_text(out, text)
-    else:
-        sys.stdout.write(text)
+
+
+def _check_outputs(
+    inputs: Mapping[str, PathsOf], plan_out: Path | None, paths: list[Path], force: bool
+) -> None:
+    """The plan (--plan-out) and the program (--out) never replace an input, nor (without
+    --force) a file."""
+    outputs = {
+        "--plan-out": [path for path in paths if path == plan_out],
+        "--out": [path for path in paths if path != plan_out],
+    }
+    refuse_overwriting(inputs, outputs)
+    refuse_replacing(outputs, force)
 
 
 def _machine_time_text(time: MachineTime) -> str:
@@ -224,7 +244,7 @@ def plan_identify(
     refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
     with error_console.status("optimising the identification positions"):
-        design = design_identification(machine_model, count)
+        design = design_step(machine_model, count, out, machine)
     std = design.std
     console.print(_design_table(design))
     for warning in design.warnings:
@@ -233,14 +253,6 @@ def plan_identify(
         f"predicted standard uncertainty: x {1e3 * std[0]:.1f} um, y {1e3 * std[1]:.1f} um,"
         f" z {1e3 * std[2]:.1f} um, gamma {1e6 * std[3]:.1f} urad"
     )
-    if out is not None:
-        write_design(
-            out,
-            machine_model.name,
-            design.machine_mm,
-            design.pose_covariance,
-            sources(machine=machine),
-        )
 
 
 def register(app: typer.Typer) -> None:

@@ -20,7 +20,6 @@ from xmalign.calibration import (
     RunStatistics,
     capture_sequence,
     check_run_output,
-    open_run_output,
 )
 from xmalign.cli.common import (
     LogFileOption,
@@ -37,10 +36,11 @@ from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.common import refuse_overwriting
-from xmalign.formats.measurements import ChannelLimits, load_measurements
+from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
 from xmalign.safety import like
+from xmalign.steps import open_measurements_step
 
 if TYPE_CHECKING:
     from sim.dry_run import DryRunOptions
@@ -146,16 +146,15 @@ def _sim_measurement(
     """Check the --sim options; the measurement on the virtual machine in a simulated shop."""
     from sim.dry_run import measure_served, measure_virtually, virtual_setup
     from sim.environment import SHOPS, attach_shop
-    from trajectories.gcode import make_dialect, resolve_dialect
-    from trajectories.gcode.program import write_program
+    from trajectories.gcode import resolve_dialect
+    from xmalign.steps import program_gcode
 
     _check_shop(shop)
-    dialect_name = resolve_dialect(machine, dialect)
-    text = (
-        read_text(program, "G-code program")
-        if program is not None
-        else write_program(plan, machine, make_dialect(dialect_name, machine))
-    )
+    if program is not None:
+        dialect_name = resolve_dialect(machine, dialect)
+        text = read_text(program, "G-code program")
+    else:  # the program step's G-code of the plan
+        dialect_name, text = program_gcode(plan, machine, dialect)
     setup = virtual_setup(machine, seed, lockstep=not in_process)
     station = attach_shop(setup.world, SHOPS[shop](), seed)
 
@@ -300,7 +299,6 @@ def run_command(
     check_run_output(out, resume)
     plan_model = read_plan(plan)
     machine_model = machine_for_plan(machine, plan_model, plan)
-    limits = ChannelLimits.of_ranges(**machine_model.interferometer.ranges())
     # the options are checked: only now are devices opened and --out created or opened
     log_handler = start_log_file(log_file)
     try:
@@ -308,8 +306,13 @@ def run_command(
             _measurement(
                 machine_model, plan_model, sim, config, seed, program, dialect, shop, in_process
             ) as measurement,
-            open_run_output(
-                out, plan_model, resume, limits, measurement.environment, seed if sim else None
+            open_measurements_step(
+                out,
+                plan_model,
+                machine_model,
+                resume,
+                measurement.environment,
+                seed if sim else None,
             ) as output,
         ):
             try:

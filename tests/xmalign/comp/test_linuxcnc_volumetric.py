@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -262,6 +262,29 @@ def test_cli_writes_the_merged_configuration(tmp_path):
     assert written == sorted(
         ["machine_volcomp.hal", "machine_volcomp.ini", TABLE_FILE, WIRING_FILE]
     )
+
+
+def test_cli_writes_through_the_comp_step(tmp_path, monkeypatch):
+    """``comp --controller linuxcnc-volumetric`` writes through the step layer's
+    volumetric_comp_step (a spy in its place sees the call), with --force checked there."""
+    import xmalign.cli.linuxcnc_volumetric as command
+    from xmalign import steps
+
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(args[2])
+        return steps.volumetric_comp_step(*args, **kwargs)
+
+    monkeypatch.setattr(command, "volumetric_comp_step", spy)
+    ini = _config(tmp_path)
+    write_error_tables(tmp_path / "errors.csv", _tables(np.random.default_rng(6)))
+    args = ("comp", "--errors", str(tmp_path / "errors.csv"), "--out", str(tmp_path / "out"))
+    result = run_in_process(*args, "--controller", "linuxcnc-volumetric", "--ini", str(ini))
+    assert result.returncode == 0, result.stderr
+    assert calls == [tmp_path / "out"]
+    again = run_in_process(*args, "--controller", "linuxcnc-volumetric", "--ini", str(ini))
+    assert again.returncode == 2 and "--force" in again.stderr
 
 
 def test_cli_without_ini_is_one_line_error(tmp_path):
