@@ -329,22 +329,35 @@ class LinuxCnc:
             raise DeviceError(f"{self.name}: a program is {state}; it moves the machine only idle")
         x, y, z = np.asarray(target_mm, dtype=float)
         self._set("mode mdi")
+        self._error_text()  # reading LinuxCNC's last error clears it: only this move's is left
         self._set(f"mdi G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{feed_mm_min:.1f}")
+        target = f"{np.round(target_mm, 4).tolist()} mm"
         deadline = self.clock.now() + timeout_s
-        while not self._rests_at(target_mm, tolerance_mm):
+        while True:
+            miss_mm = self._miss_at_rest_mm(target_mm)
+            if miss_mm is not None and miss_mm <= tolerance_mm:
+                return
+            # at rest elsewhere: not started yet, or refused (a soft limit): LinuxCNC says which
+            reason = self._error_text() if miss_mm is not None else ""
+            if reason:
+                where = np.round(self.position_mm(), 4).tolist()
+                raise DeviceError(
+                    f"{self.name} did not move to {target} ({reason}); the machine is at {where} mm"
+                )
             if self.clock.now() >= deadline:
                 where = np.round(self.position_mm(), 4).tolist()
-                reason = self._error_text() or "no message"
                 raise DeviceTimeoutError(
-                    f"{self.name}: the machine is not at {np.round(target_mm, 4).tolist()} mm"
-                    f" within {timeout_s:g} s of the MDI move (at {where} mm; {reason})"
+                    f"{self.name}: the machine is not at {target} {timeout_s:g} s after the"
+                    f" MDI move; it is at {where} mm"
                 )
             self.clock.sleep(0.05)
 
-    def _rests_at(self, target_mm: Vec, tolerance_mm: float) -> bool:
+    def _miss_at_rest_mm(self, target_mm: Vec) -> float | None:
+        """Distance of the machine from ``target_mm`` once no command runs and it is at
+        rest, mm; None while it is not."""
         if self.program_state() != "idle" or not self.is_standstill():
-            return False
-        return float(np.linalg.norm(self.position_mm() - target_mm)) <= tolerance_mm
+            return None
+        return float(np.linalg.norm(self.position_mm() - target_mm))
 
 
 class MdiMover:

@@ -221,6 +221,8 @@ class LinuxcncrshServer:
             "joint_fault": "JOINT_FAULT OK OK OK OK OK OK",
             "error": f"ERROR {self.error}",
         }
+        if name == "error":
+            self.error = "OK"  # as LinuxCNC's: a message is read once
         return answers.get(name)
 
     def _set(self, name: str, args: list[str], session: dict[str, bool]) -> bool:

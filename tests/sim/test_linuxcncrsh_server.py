@@ -81,6 +81,11 @@ def test_an_mdi_move_to_a_point_and_what_is_refused(cnc, reference_machine, tmp_
     assert client.program_state() == "idle" and server.mode == "mdi"
     with pytest.raises(OutOfRangeError, match="outside the machine's travel"):
         mover.move_to(np.array([1e6, 0.0, 0.0]), 30000.0)
+    # past the mover's check (a machine file wider than the CNC's limits): the CNC refuses
+    # and says why at once, as LinuxCNC's error channel does
+    with pytest.raises(DeviceError, match=r"did not move to \[1000000.0, 0.0, 0.0\] mm .Unable"):
+        client.move_mdi(np.array([1e6, 0.0, 0.0]), 30000.0, 0.005, 10.0)
+    assert np.allclose(client.position_mm(), target, atol=1e-6)
     program = tmp_path / "p.ngc"
     program.write_text("G21 G90\nG53 G1 X100 F600\nM0\nM2\n")
     client.start_program(str(program))
