@@ -6,7 +6,9 @@ own (E-stop reset, machine on, home), then :class:`~firmware_iface.linuxcncrsh.M
 moves it with ``set mode mdi`` and ``set mdi G53 G1 ...`` (``man linuxcncrsh``).
 LinuxCNC's travel (X 0..400, Y 0..300, Z -200..0) is smaller than the machine
 file's, so a target inside the file's travel can lie beyond LinuxCNC's soft limits:
-LinuxCNC refuses it, and the move stops with LinuxCNC's own message.
+LinuxCNC refuses it, and the move stops with LinuxCNC's own message (seen: ``LinuxCNC
+at 127.0.0.1:P did not move to [600.0, 100.0, -50.0] mm (Linear move on line 0 would
+exceed X's positive limit); the machine is at [10.0, 250.0, -5.0] mm``).
 """
 
 from __future__ import annotations
