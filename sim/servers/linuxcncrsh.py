@@ -4,13 +4,19 @@
 linuxcncrsh``, LinuxCNC 2.9) that :mod:`firmware_iface.linuxcncrsh` uses, with
 LinuxCNC's own replies (``get`` replies ``NAME value...`` ending ``\\r\\n``;
 ``set`` replies ``SET NAME ACK``/``NAK`` ending ``\\n\\r`` in verbose mode; the
-echo until ``set echo off``), in front of a :class:`~sim.cnc.SimulatedCnc` on
-the wall clock: ``set open``/``set run`` run a program file (LinuxCNC dialect)
-in a thread; ``M0`` pauses it until ``set resume``; ``set pause`` is a feed hold
-(the simulated machine stops where it is at once and goes on to the same
+echo until ``set echo off``; ``get error`` gives the last error once), in front
+of a :class:`~sim.cnc.SimulatedCnc`: ``set mode auto`` + ``set open``/``set run``
+run a program file (LinuxCNC dialect); ``set mode mdi`` + ``set mdi LINE`` runs
+one line; ``M0`` pauses a program until ``set resume``; ``set pause`` is a feed
+hold (the simulated machine stops where it is at once and goes on to the same
 target on ``set resume``); ``set abort`` ends it. The machine is always out of
 E-stop, on and homed. Each session is served in a thread of its own; unlike
 LinuxCNC 2.9, concurrent sessions do not disturb each other.
+
+The program runs on the wall clock (``xmalign sim serve --linuxcncrsh``) or,
+with ``lockstep``, as a follower of a :class:`~sim.clock.LockstepClock` (the
+served dry run): then every request is answered at the present virtual time,
+and a hold, a resume or an abort acts at the virtual time it arrives.
 """
 
 from __future__ import annotations

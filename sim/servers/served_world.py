@@ -2,10 +2,13 @@
 
 :func:`serve_world` starts, on 127.0.0.1 and new ptys, what ``xmalign sim
 serve`` serves to another process: both positioning units as Modbus TCP
-servers (ephemeral ports), the interferometer's line protocol on a pty, and a
-CNC running the G-code program that keeps a position file up to date. It
-writes the ``units.yaml`` a technician would write for them, so the host opens
-them with :func:`firmware_iface.config.open_devices` exactly as in a live run.
+servers (ephemeral ports), the interferometer's line protocol on a pty, and the
+CNC: a simulated LinuxCNC over linuxcncrsh that runs the program the host
+starts (:func:`serve_world_with_linuxcnc`, the dry run), or a CNC running a
+given G-code program that keeps a position file up to date (:func:`serve_world`,
+``run --sim``). It writes the ``units.yaml`` a technician would write for
+them, so the host opens them with :func:`firmware_iface.config.open_devices`
+exactly as in a live run.
 
 Host and servers share one :class:`~sim.clock.LockstepClock` (the world's):
 virtual time advances only when the host sleeps or the interferometer streams
