@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_iface.config import _mover, load_units_config
 from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.machine_position import OperatorPrompt
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
@@ -127,3 +129,21 @@ def test_a_controlled_program_on_the_lockstep_clock(reference_machine, tmp_path)
     finally:
         client.close()
         server.stop()
+
+
+@pytest.mark.parametrize(("allowed", "mover_type"), [(False, OperatorPrompt), (True, MdiMover)])
+def test_xmalign_moves_the_machine_only_where_units_yaml_allows_it(
+    cnc, reference_machine, tmp_path, allowed: bool, mover_type: type
+) -> None:  # noqa: ANN001
+    client, server = cnc
+    path = tmp_path / "units.yaml"
+    path.write_text(
+        "format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
+        "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {port: /dev/null}\n"
+        "machine_position:\n  source: linuxcncrsh\n"
+        f"  linuxcncrsh: {{host: 127.0.0.1, port: {server.port}, program: p.ngc,"
+        f" allow_mdi_moves: {str(allowed).lower()}}}\n"
+    )
+    config = load_units_config(path)
+    mover = _mover(config, reference_machine, client, input, print, client)
+    assert type(mover) is mover_type
