@@ -66,9 +66,9 @@ from xmalign.steps import (
 #: anywhere within this horizontally, and up to this much higher (the reference
 #: guess sits at the lowest height the receiver reaches, so lower is infeasible).
 PLACEMENT_SCATTER_MM = 25.0
-#: How often the served run reads the position file, s: the served CNC writes it at every
-#: step of virtual time, so a short poll finds the machine at a target at once (the live
-#: default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
+#: How often ``run --sim``'s served run reads the position file, s: the served CNC writes
+#: it at every step of virtual time, so a short poll finds the machine at a target at once
+#: (the live default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
 FOLLOW_POLL_S = 0.01
 #: How well a technician aligns the units by hand (standard deviation per axis), rad.
 HAND_RAD = 20e-6
@@ -115,7 +115,7 @@ class DryRunOptions:
     shop: str = "drifting"
     #: Measure again with the controller's tables loaded (as left).
     verify: bool = False
-    #: Run the measurement through the real protocol servers (:func:`measure_served`)
+    #: Run the measurement through the real protocol servers (:func:`measure_controlled`)
     #: rather than in-process (:func:`measure_virtually`, the faster shortcut).
     served: bool = False
 
