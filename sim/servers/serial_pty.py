@@ -133,8 +133,6 @@ class PtyInterferometerServer:
         if command.name == "ZERO":
             self.interferometer.zero()
         elif command.name == "STREAM":
-            if command.argument != "ON":
-                self._reach_the_sample_taken()
             self.streaming = command.argument == "ON"
             self._ahead_s = None
             return f"STREAM {command.argument}"
@@ -191,22 +189,6 @@ class PtyInterferometerServer:
             return False
         sent_s, seen = self._sent
         return seen or time.monotonic() - sent_s > _PUSH_WAIT_S
-
-    def _reach_the_sample_taken(self) -> None:
-        """Lockstep, at STREAM OFF: a sample sent ahead that the host has read is reached.
-
-        Whether the stream thread advanced to it before the STREAM OFF came is a
-        race of threads; reaching it here makes the time after every average the
-        same (its last sample's), so a run does not depend on the computer's load.
-        """
-        if self.lockstep is None or self._ahead_s is None:
-            return
-        pushed_s = self._sent[0] + _PUSH_WAIT_S
-        while not self._unread_bytes():
-            if self._sent[1] or time.monotonic() > pushed_s:
-                self.lockstep.sleep(self._ahead_s - self.lockstep.now())
-                return
-            time.sleep(_LOCKSTEP_POLL_S)
 
     def _host_has_written(self) -> bool:
         ready, _, _ = select.select([self._master], [], [], 0)
