@@ -78,6 +78,7 @@ from firmware_iface.linuxcncrsh import (
     DEFAULT_ENABLE_PASSWORD,
     DEFAULT_PORT,
     LinuxCnc,
+    MdiMover,
     open_linuxcnc,
 )
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
@@ -183,6 +184,8 @@ class LinuxcncrshConfig(_Strict):
     in_position_mm: Annotated[float, Field(gt=0, le=1)] = 0.002
     #: Largest distance from the plan's point at which a point is captured, mm.
     tolerance_mm: Annotated[float, Field(gt=0, le=1)] = 0.005
+    #: xmalign may move the axes itself with MDI (``identify --live``); default: never.
+    allow_mdi_moves: bool = False
 
     @property
     def cnc_program_path(self) -> str:
@@ -371,14 +374,30 @@ def open_devices(
             if config.environment is None
             else open_environment(config.environment, config.timeouts.io_s, closers)
         )
-        controller = _open_controller(config, closers)
+        controller = _open_controller(config, closers, clock)
         position = controller or _position_source(config, closers)
     except BaseException:
         for close in reversed(closers):
             close()
         raise
-    mover = OperatorPrompt(machine, ask, tell, position)
+    mover = _mover(config, machine, controller, ask, tell, position)
     return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
+
+
+def _mover(
+    config: UnitsConfig,
+    machine: Machine,
+    controller: LinuxCnc | None,
+    ask: Callable[[str], str],
+    tell: Callable[[str], None],
+    position: MachinePositionSource | None,
+) -> MachineMover:
+    """Who moves the machine: xmalign over MDI where ``units.yaml`` allows it, otherwise
+    the operator (asked to; the position read from ``position`` where there is one)."""
+    rsh = config.machine_position.linuxcncrsh
+    if controller is not None and rsh is not None and rsh.allow_mdi_moves:
+        return MdiMover(controller, machine, rsh.tolerance_mm, config.timeouts.machine_s)
+    return OperatorPrompt(machine, ask, tell, position)
 
 
 def _position_source(
@@ -395,7 +414,9 @@ def _position_source(
     return None
 
 
-def _open_controller(config: UnitsConfig, closers: list[Callable[[], None]]) -> LinuxCnc | None:
+def _open_controller(
+    config: UnitsConfig, closers: list[Callable[[], None]], clock: Clock | None
+) -> LinuxCnc | None:
     """The LinuxCNC of ``source: linuxcncrsh``, connected and enabled for control."""
     rsh = config.machine_position.linuxcncrsh
     if rsh is None:
@@ -408,6 +429,7 @@ def _open_controller(config: UnitsConfig, closers: list[Callable[[], None]]) -> 
         rsh.enable_password,
         rsh.joints,
         rsh.in_position_mm,
+        clock,
     )
     closers.append(cnc.close)
     return cnc

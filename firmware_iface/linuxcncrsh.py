@@ -12,7 +12,9 @@ Two layers, as for every device:
   (``get program_status``), and program control (``set open``, ``set run``,
   ``set pause``, ``set resume``, ``set abort``). It is a
   ``MachinePositionSource`` and a ``ProgramControl`` (:mod:`xmalign.roles`).
-  It never writes an axis position: no MDI, no jog, no homing.
+  It writes an axis position only in :meth:`LinuxCnc.move_mdi` (``set mode
+  mdi``, ``set mdi G53 G1 ...``), which :class:`MdiMover` uses, and only where
+  ``units.yaml`` allows it (``allow_mdi_moves: true``); no jog, no homing.
 
 Replies as LinuxCNC 2.9 sends them (seen on a headless ``linuxcnc-uspace``):
 ``get`` replies end with ``\\r\\n`` and start with the subcommand in capitals
@@ -31,8 +33,15 @@ from typing import Protocol
 
 import numpy as np
 
-from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, TransportError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    DriveFaultError,
+    OutOfRangeError,
+    TransportError,
+)
 from xmalign.geometry import Vec
+from xmalign.machine import Machine
 from xmalign.roles import Clock, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
@@ -302,6 +311,85 @@ class LinuxCnc:
         """Abort the program (``set abort``)."""
         self._set("abort")
 
+    # -- MDI moves (only where units.yaml allows them) ---------------------------------
+    def move_mdi(
+        self, target_mm: Vec, feed_mm_min: float, tolerance_mm: float, timeout_s: float
+    ) -> None:
+        """Move the tool point to ``target_mm`` (3,), machine coordinates, with one MDI line.
+
+        ``set mode mdi``, ``set mdi G53 G1 X.. Y.. Z.. F..``; returns once no
+        command runs and the machine is at rest within ``tolerance_mm`` of the
+        target (as LinuxCNC reports its actual position). The controller's
+        soft limits stay in force: a target beyond them is refused there.
+        DeviceError when a program runs, DeviceTimeoutError (with LinuxCNC's
+        last error) when the machine is not there within ``timeout_s``.
+        """
+        state = self.program_state()
+        if state != "idle":
+            raise DeviceError(f"{self.name}: a program is {state}; it moves the machine only idle")
+        x, y, z = np.asarray(target_mm, dtype=float)
+        self._set("mode mdi")
+        self._error_text()  # reading LinuxCNC's last error clears it: only this move's is left
+        self._set(f"mdi G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{feed_mm_min:.1f}")
+        target = f"{np.round(target_mm, 4).tolist()} mm"
+        deadline = self.clock.now() + timeout_s
+        while True:
+            miss_mm = self._miss_at_rest_mm(target_mm)
+            if miss_mm is not None and miss_mm <= tolerance_mm:
+                return
+            # at rest elsewhere: not started yet, or refused (a soft limit): LinuxCNC says which
+            reason = self._error_text() if miss_mm is not None else ""
+            if reason:
+                where = np.round(self.position_mm(), 4).tolist()
+                raise DeviceError(
+                    f"{self.name} did not move to {target} ({reason}); the machine is at {where} mm"
+                )
+            if self.clock.now() >= deadline:
+                where = np.round(self.position_mm(), 4).tolist()
+                raise DeviceTimeoutError(
+                    f"{self.name}: the machine is not at {target} {timeout_s:g} s after the"
+                    f" MDI move; it is at {where} mm"
+                )
+            self.clock.sleep(0.05)
+
+    def _miss_at_rest_mm(self, target_mm: Vec) -> float | None:
+        """Distance of the machine from ``target_mm`` once no command runs and it is at
+        rest, mm; None while it is not."""
+        if self.program_state() != "idle" or not self.is_standstill():
+            return None
+        return float(np.linalg.norm(self.position_mm() - target_mm))
+
+
+class MdiMover:
+    """The ``MachineMover`` of a LinuxCNC that xmalign may move (``allow_mdi_moves: true``).
+
+    :meth:`move_to` checks the target against the machine file's travel and
+    the machine's readiness, then moves there with :meth:`LinuxCnc.move_mdi`.
+    """
+
+    def __init__(
+        self, cnc: LinuxCnc, machine: Machine, tolerance_mm: float, timeout_s: float
+    ) -> None:
+        self.cnc = cnc
+        self.machine = machine
+        self.tolerance_mm = tolerance_mm
+        self.timeout_s = timeout_s
+
+    def position_mm(self) -> Vec:
+        return self.cnc.position_mm()
+
+    def is_standstill(self) -> bool:
+        return self.cnc.is_standstill()
+
+    def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
+        target = np.asarray(position_mm, dtype=float)
+        if not self.machine.within_travel(target):
+            raise OutOfRangeError(
+                f"{np.round(target, 3).tolist()} mm is outside the machine's travel"
+            )
+        self.cnc.check_ready()
+        self.cnc.move_mdi(target, feed_mm_min, self.tolerance_mm, self.timeout_s)
+
 
 def open_linuxcnc(
     host: str,
@@ -311,10 +399,12 @@ def open_linuxcnc(
     enable_password: str | None = DEFAULT_ENABLE_PASSWORD,
     joints: int = 3,
     in_position_mm: float = 0.002,
+    clock: Clock | None = None,
 ) -> LinuxCnc:
-    """Connect to linuxcncrsh and open a session (enabled for control with a password)."""
+    """Connect to linuxcncrsh and open a session (enabled for control with a password);
+    ``clock``: what it waits on (default the wall clock)."""
     link = LinuxcncrshLink(host, port, timeout_s)
-    cnc = LinuxCnc(link, joints, in_position_mm)
+    cnc = LinuxCnc(link, joints, in_position_mm, clock)
     try:
         cnc.open(connect_password, enable_password)
     except BaseException:

@@ -169,6 +169,18 @@ class LockstepClock(SimClock):
             self._state.notify_all()
         self._wait_blocked(follower)
 
+    def wake(self, follower: Follower) -> None:
+        """Let a follower run now, whether it sleeps or waits for a resume, until it blocks
+        again (its ``sleep`` ends early, at the current time: a feed hold, an abort)."""
+        with self._advancing:
+            with self._state:
+                if follower.done or follower.running:
+                    return
+                follower.wake_s = None
+                follower.running = True
+                self._state.notify_all()
+            self._wait_blocked(follower)
+
     def sleep(self, seconds: float) -> None:
         follower = self._followers.get(threading.get_ident())
         if follower is None:

@@ -49,6 +49,7 @@ from xmalign.steps import (
     RunStepDevices,
     as_left_step,
     comp_step,
+    controlled_drive,
     design_step,
     following_drive,
     identify_step,
@@ -57,15 +58,16 @@ from xmalign.steps import (
     program_drive,
     program_step,
     run_step,
+    write_controller_program,
 )
 
 #: How far the simulated launch unit stands from the machine file's coarse guess, mm:
 #: anywhere within this horizontally, and up to this much higher (the reference
 #: guess sits at the lowest height the receiver reaches, so lower is infeasible).
 PLACEMENT_SCATTER_MM = 25.0
-#: How often the served run reads the position file, s: the served CNC writes it at every
-#: step of virtual time, so a short poll finds the machine at a target at once (the live
-#: default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
+#: How often ``run --sim``'s served run reads the position file, s: the served CNC writes
+#: it at every step of virtual time, so a short poll finds the machine at a target at once
+#: (the live default, 50 ms, would start a 0.5 s dwell's capture up to a tenth of it late).
 FOLLOW_POLL_S = 0.01
 #: How well a technician aligns the units by hand (standard deviation per axis), rad.
 HAND_RAD = 20e-6
@@ -112,7 +114,7 @@ class DryRunOptions:
     shop: str = "drifting"
     #: Measure again with the controller's tables loaded (as left).
     verify: bool = False
-    #: Run the measurement through the real protocol servers (:func:`measure_served`)
+    #: Run the measurement through the real protocol servers (:func:`measure_controlled`)
     #: rather than in-process (:func:`measure_virtually`, the faster shortcut).
     served: bool = False
 
@@ -383,6 +385,53 @@ def measure_served(
         return run_step(plan, roles, output, drive)
 
 
+def measure_controlled(
+    setup: VirtualSetup, machine: Machine, plan: Plan, output: RunOutput
+) -> CalibrationRun:
+    """:func:`~xmalign.steps.run_step` with xmalign running its program on a LinuxCNC.
+
+    As ``xmalign run --config`` does with ``source: linuxcncrsh``: the setup
+    (on a :class:`~sim.clock.LockstepClock`) is served on 127.0.0.1
+    (:func:`sim.servers.served_world.serve_world_with_linuxcnc`: Modbus TCP
+    units, the interferometer on a pty, the CNC as a LinuxCNC over
+    linuxcncrsh, all on the world's virtual clock); the host opens the
+    generated ``units.yaml`` with :func:`~firmware_iface.config.open_devices`,
+    writes the controller's program (a stop at each point) and starts, holds
+    and resumes it over linuxcncrsh (:func:`~xmalign.steps.controlled_drive`).
+    """
+    from firmware_iface.config import open_devices
+    from sim.servers.served_world import serve_world_with_linuxcnc
+
+    for unit in (setup.world.launch, setup.world.receiver):
+        unit.keep_heartbeat(False)  # the in-process host of the identification is gone
+    with (
+        serve_world_with_linuxcnc(setup.world, machine, setup.cnc) as served,
+        open_devices(
+            served.config, machine, ask=_no_operator, tell=_quiet, clock=served.clock
+        ) as devices,
+    ):
+        config = served.config
+        rsh = config.machine_position.linuxcncrsh
+        assert devices.controller is not None and rsh is not None
+        write_controller_program(plan, machine, "linuxcnc", rsh.program)
+        drive = controlled_drive(
+            devices.controller,
+            rsh.cnc_program_path,
+            _quiet,
+            machine,
+            rsh.tolerance_mm,
+            config.timeouts.machine_s,
+        )
+        roles = RunStepDevices(
+            devices.launch, devices.receiver, devices.interferometer, served.clock
+        )
+        return run_step(plan, roles, output, drive)
+
+
+def _quiet(message: str) -> None:
+    """What a run tells the technician: nobody reads it in a dry run."""
+
+
 def _no_operator(prompt: str) -> str:
     raise EOFError(prompt)
 
@@ -475,9 +524,7 @@ def simulate_calibration(
 
     def measure(output: RunOutput) -> CalibrationRun:
         if options.served:
-            return measure_served(
-                setup, machine, plan, programmed.program, programmed.dialect, output
-            )
+            return measure_controlled(setup, machine, plan, output)
         return measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
 
     stage("run")

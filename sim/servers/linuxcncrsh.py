@@ -4,13 +4,19 @@
 linuxcncrsh``, LinuxCNC 2.9) that :mod:`firmware_iface.linuxcncrsh` uses, with
 LinuxCNC's own replies (``get`` replies ``NAME value...`` ending ``\\r\\n``;
 ``set`` replies ``SET NAME ACK``/``NAK`` ending ``\\n\\r`` in verbose mode; the
-echo until ``set echo off``), in front of a :class:`~sim.cnc.SimulatedCnc` on
-the wall clock: ``set open``/``set run`` run a program file (LinuxCNC dialect)
-in a thread; ``M0`` pauses it until ``set resume``; ``set pause`` is a feed hold
-(the simulated machine stops where it is at once and goes on to the same
+echo until ``set echo off``; ``get error`` gives the last error once), in front
+of a :class:`~sim.cnc.SimulatedCnc`: ``set mode auto`` + ``set open``/``set run``
+run a program file (LinuxCNC dialect); ``set mode mdi`` + ``set mdi LINE`` runs
+one line; ``M0`` pauses a program until ``set resume``; ``set pause`` is a feed
+hold (the simulated machine stops where it is at once and goes on to the same
 target on ``set resume``); ``set abort`` ends it. The machine is always out of
 E-stop, on and homed. Each session is served in a thread of its own; unlike
 LinuxCNC 2.9, concurrent sessions do not disturb each other.
+
+The program runs on the wall clock (``xmalign sim serve --linuxcncrsh``) or,
+with ``lockstep``, as a follower of a :class:`~sim.clock.LockstepClock` (the
+served dry run): then every request is answered at the present virtual time,
+and a hold, a resume or an abort acts at the virtual time it arrives.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.clock import Follower, LockstepClock
 from sim.cnc import SimulatedCnc, read_program
 from sim.cnc import _Dwell as Dwell
 from sim.cnc import _End as End
@@ -34,35 +41,50 @@ logger = logging.getLogger(__name__)
 
 
 class _Program:
-    """A program running on the simulated CNC in a thread: M0, feed hold, abort."""
+    """A program running on the simulated CNC: M0, feed hold, abort.
 
-    def __init__(self, cnc: SimulatedCnc, machine: Machine, text: str) -> None:
+    On the wall clock it runs in a thread of its own; on a
+    :class:`~sim.clock.LockstepClock` as a follower of it (a move takes its
+    time in virtual seconds; a hold, a resume or an abort lets it run at once,
+    at the current virtual time).
+    """
+
+    def __init__(self, cnc: SimulatedCnc, steps: list, lockstep: LockstepClock | None) -> None:
         self.cnc = cnc
-        rapid = machine.feed_mm_min.rapid
-        self.steps = read_program(text, "linuxcnc", machine, cnc.position_mm(), rapid)
+        self.steps = steps
         self.state = "running"
+        self.lockstep = lockstep
         self._wake = threading.Condition()
         self._hold = False
         self._resume = False
         self._abort = False
-        self.thread = threading.Thread(target=self._run, name="linuxcncrsh-program", daemon=True)
-        self.thread.start()
+        self._follower: Follower | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        if self.lockstep is not None:
+            self._follower = self.lockstep.start_follower(self._run, "linuxcncrsh-program")
+            return
+        self._thread = threading.Thread(target=self._run, name="linuxcncrsh-program", daemon=True)
+        self._thread.start()
+
+    def _signal(self, flag: str) -> None:
+        with self._wake:
+            setattr(self, flag, True)
+            self._wake.notify_all()
+        if self.lockstep is not None and self._follower is not None:
+            self.lockstep.wake(self._follower)
 
     def hold(self) -> None:
-        with self._wake:
-            self._hold = True
-            self._wake.notify_all()
+        self._signal("_hold")
 
     def resume(self) -> None:
-        with self._wake:
-            self._resume = True
-            self._wake.notify_all()
+        self._signal("_resume")
 
     def abort(self) -> None:
-        with self._wake:
-            self._abort = True
-            self._wake.notify_all()
-        self.thread.join(5.0)
+        self._signal("_abort")
+        if self._thread is not None:
+            self._thread.join(5.0)
 
     def _run(self) -> None:
         try:
@@ -85,7 +107,10 @@ class _Program:
             self.state = "idle"
 
     def _wait(self, seconds: float) -> bool:
-        """Sleep ``seconds`` unless a hold or an abort comes first (True: it came)."""
+        """Let ``seconds`` pass unless a hold or an abort comes first (True: it came)."""
+        if self.lockstep is not None:
+            self.lockstep.sleep(seconds)
+            return self._hold or self._abort
         with self._wake:
             return self._wake.wait_for(lambda: self._hold or self._abort, seconds)
 
@@ -93,7 +118,11 @@ class _Program:
         with self._wake:
             self.state = "paused"
             self._resume = False
-            self._wake.wait_for(lambda: self._resume or self._abort)
+            if self.lockstep is None:
+                self._wake.wait_for(lambda: self._resume or self._abort)
+        while self.lockstep is not None and not (self._resume or self._abort):
+            self.lockstep.wait_for_resume()
+        with self._wake:
             self._hold = self._resume = False
             self.state = "running"
 
@@ -119,13 +148,17 @@ class LinuxcncrshServer:
         port: int = 0,
         connect_password: str = "EMC",
         enable_password: str = "EMCTOO",
+        lockstep: LockstepClock | None = None,
     ) -> None:
         self.cnc = cnc
+        self.lockstep = lockstep
+        self.mode = "manual"
         self.machine = machine
         self.passwords = (connect_password, enable_password)
         self.listener = socket.create_server((host, port))
         self.port = self.listener.getsockname()[1]
         self.where = f"{host}:{self.port}"
+        self.rapid_mm_min = machine.feed_mm_min.rapid
         self.program: _Program | None = None
         self.opened: str | None = None
         self.error = "OK"
@@ -194,6 +227,8 @@ class LinuxcncrshServer:
             "joint_fault": "JOINT_FAULT OK OK OK OK OK OK",
             "error": f"ERROR {self.error}",
         }
+        if name == "error":
+            self.error = "OK"  # as LinuxCNC's: a message is read once
         return answers.get(name)
 
     def _set(self, name: str, args: list[str], session: dict[str, bool]) -> bool:
@@ -208,23 +243,36 @@ class LinuxcncrshServer:
         program = self.program
         running = program is not None and program.state != "idle"
         if name == "mode":
-            return not running
+            if running or args[:1] not in (["manual"], ["auto"], ["mdi"]):
+                return False
+            self.mode = args[0]
+            return True
         if name == "open" and args and not running:
             self.opened = " ".join(args)
             return True
-        if name == "run" and self.opened is not None and not running:
-            return self._run(self.opened)
+        if name == "run" and self.opened is not None and not running and self.mode == "auto":
+            try:
+                text = Path(self.opened).read_text(encoding="utf-8")
+            except OSError as error:
+                self.error = f"Unable to open file <{self.opened}>: {error}"
+                return True  # LinuxCNC acknowledges the run and reports the error after
+            return self._run(text, f"file <{self.opened}>")
+        if name == "mdi" and args and not running and self.mode == "mdi":
+            return self._run(f"G21 G90\n{' '.join(args)}\nM2\n", "MDI command")
         if name in ("pause", "resume", "abort") and program is not None:
             getattr(program, {"pause": "hold"}.get(name, name))()
             return True
         return False
 
-    def _run(self, path: str) -> bool:
+    def _run(self, text: str, what: str) -> bool:
+        """Run a program (a file's, or one MDI command); a bad one sets LinuxCNC's error."""
         try:
-            text = Path(path).read_text(encoding="utf-8")
-            self.program = _Program(self.cnc, self.machine, text)
-        except (OSError, XmalignError) as error:
-            self.error = f"Unable to open file <{path}>: {error}"
-            return True  # LinuxCNC acknowledges the run and reports the error after
+            position_mm = self.cnc.position_mm()
+            steps = read_program(text, "linuxcnc", self.machine, position_mm, self.rapid_mm_min)
+        except XmalignError as error:
+            self.error = f"Unable to run {what}: {error}"
+            return True
         self.error = "OK"
+        self.program = _Program(self.cnc, steps, self.lockstep)
+        self.program.start()
         return True

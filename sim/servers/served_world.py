@@ -2,10 +2,13 @@
 
 :func:`serve_world` starts, on 127.0.0.1 and new ptys, what ``xmalign sim
 serve`` serves to another process: both positioning units as Modbus TCP
-servers (ephemeral ports), the interferometer's line protocol on a pty, and a
-CNC running the G-code program that keeps a position file up to date. It
-writes the ``units.yaml`` a technician would write for them, so the host opens
-them with :func:`firmware_iface.config.open_devices` exactly as in a live run.
+servers (ephemeral ports), the interferometer's line protocol on a pty, and the
+CNC: a simulated LinuxCNC over linuxcncrsh that runs the program the host
+starts (:func:`serve_world_with_linuxcnc`, the dry run), or a CNC running a
+given G-code program that keeps a position file up to date (:func:`serve_world`,
+``run --sim``). It writes the ``units.yaml`` a technician would write for
+them, so the host opens them with :func:`firmware_iface.config.open_devices`
+exactly as in a live run.
 
 Host and servers share one :class:`~sim.clock.LockstepClock` (the world's):
 virtual time advances only when the host sleeps or the interferometer streams
@@ -28,6 +31,7 @@ import numpy as np
 from firmware_iface.config import UnitsConfig, load_units_config
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
+from sim.servers.linuxcncrsh import LinuxcncrshServer
 from sim.servers.modbus import ModbusUnitServer
 from sim.servers.serial_pty import PtyInterferometerServer
 from sim.servers.served_cnc import PROGRAM_END, WAITING, ServedCnc
@@ -67,15 +71,16 @@ def served_cnc(
 
 
 def units_yaml(
-    launch_port: int, receiver_port: int, interferometer_port: str, position_file: Path
+    launch_port: int, receiver_port: int, interferometer_port: str, machine_position: str
 ) -> str:
-    """The ``units.yaml`` of the served devices (docs/hardware.md)."""
+    """The ``units.yaml`` of the served devices (docs/hardware.md); ``machine_position``
+    is its ``machine_position`` block in flow style."""
     return (
         "format: xmalign.units/1\n"
         f"launch: {{transport: modbus-tcp, host: {LOOPBACK}, port: {launch_port}}}\n"
         f"receiver: {{transport: modbus-tcp, host: {LOOPBACK}, port: {receiver_port}}}\n"
         f"interferometer: {{port: {interferometer_port}, rate_hz: 50}}\n"
-        f"machine_position: {{source: file, file: {position_file}}}\n"
+        f"machine_position: {machine_position}\n"
     )
 
 
@@ -131,6 +136,16 @@ class ServedWorld:
             self.press_cycle_start()
 
 
+@dataclass
+class ServedController:
+    """The served devices of a world whose CNC is a simulated LinuxCNC (linuxcncrsh)."""
+
+    clock: LockstepClock
+    server: LinuxcncrshServer
+    config_path: Path
+    config: UnitsConfig
+
+
 @contextmanager
 def serve_world(
     world: World, machine: Machine, program: str, dialect: str, cnc: SimulatedCnc | None = None
@@ -140,19 +155,9 @@ def serve_world(
     Everything is stopped again on exit; the ``units.yaml`` and the position
     file live in a temporary folder until then.
     """
-    if not isinstance(world.clock, LockstepClock):
-        raise TypeError("serve_world needs a world built on a LockstepClock")
-    clock = world.clock
     with ExitStack() as stack:
-        folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="xmalign-served-")))
+        clock, folder, ports = _serve_devices(world, stack)
         messages: list[str] = []
-        servers = [ModbusUnitServer(unit, LOOPBACK, 0) for unit in (world.launch, world.receiver)]
-        for server in servers:
-            server.start()
-            stack.callback(server.stop)
-        pty = PtyInterferometerServer(world.interferometer, lockstep=clock)
-        pty.start()
-        stack.callback(pty.stop)
         position_file = folder / "position.txt"
         cnc_server = served_cnc(
             world, machine, program, dialect, position_file, messages.append, cnc
@@ -160,8 +165,52 @@ def serve_world(
         cnc_server.start()
         stack.callback(cnc_server.stop)
         config_path = folder / "units.yaml"
-        config_path.write_text(
-            units_yaml(servers[0].port, servers[1].port, pty.port, position_file),
-            encoding="utf-8",
-        )
+        source = f"{{source: file, file: {position_file}}}"
+        config_path.write_text(units_yaml(*ports, source), encoding="utf-8")
         yield ServedWorld(clock, cnc_server, config_path, load_units_config(config_path), messages)
+
+
+@contextmanager
+def serve_world_with_linuxcnc(
+    world: World, machine: Machine, cnc: SimulatedCnc
+) -> Iterator[ServedController]:
+    """Serve ``world`` (on a :class:`LockstepClock`) with ``cnc`` as a LinuxCNC: linuxcncrsh.
+
+    The simulated LinuxCNC follows the world's clock: a program the host
+    opens and runs over linuxcncrsh moves ``cnc`` in virtual time, and a hold,
+    resume or abort acts at the virtual time it arrives. The ``units.yaml``
+    (``source: linuxcncrsh``) names a program file in the temporary folder,
+    which the host writes as it does for a real LinuxCNC.
+    """
+    with ExitStack() as stack:
+        clock, folder, ports = _serve_devices(world, stack)
+        server = LinuxcncrshServer(cnc, machine, LOOPBACK, 0, lockstep=clock)
+        server.start()
+        stack.callback(server.stop)
+        config_path = folder / "units.yaml"
+        program = folder / "xmalign-run.ngc"
+        source = (
+            f"{{source: linuxcncrsh, linuxcncrsh: {{host: {LOOPBACK}, port: {server.port},"
+            f" program: {program}}}}}"
+        )
+        config_path.write_text(units_yaml(*ports, source), encoding="utf-8")
+        yield ServedController(clock, server, config_path, load_units_config(config_path))
+
+
+def _serve_devices(
+    world: World, stack: ExitStack
+) -> tuple[LockstepClock, Path, tuple[int, int, str]]:
+    """Both units on Modbus TCP and the interferometer on a pty, stopped when ``stack``
+    closes; the world's clock, a temporary folder and (launch port, receiver port, pty)."""
+    if not isinstance(world.clock, LockstepClock):
+        raise TypeError("serving a world in-process needs a world built on a LockstepClock")
+    clock = world.clock
+    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="xmalign-served-")))
+    servers = [ModbusUnitServer(unit, LOOPBACK, 0) for unit in (world.launch, world.receiver)]
+    for server in servers:
+        server.start()
+        stack.callback(server.stop)
+    pty = PtyInterferometerServer(world.interferometer, lockstep=clock)
+    pty.start()
+    stack.callback(pty.stop)
+    return clock, folder, (servers[0].port, servers[1].port, pty.port)

@@ -291,6 +291,7 @@ def test_linuxcncrsh_source_with_defaults_and_its_program_path(tmp_path) -> None
     assert (rsh.port, rsh.connect_password, rsh.enable_password) == (5007, "EMC", "EMCTOO")
     assert rsh.cnc_program_path == str((tmp_path / "shared" / "run.ngc").resolve())
     assert load_units_config(path).timeouts.machine_s == 600.0
+    assert rsh.allow_mdi_moves is False  # xmalign moves no axis unless told to
 
 
 @pytest.mark.parametrize(
@@ -303,6 +304,10 @@ def test_linuxcncrsh_source_with_defaults_and_its_program_path(tmp_path) -> None
             "linuxcncrsh.tolerance_mm",
         ),
         ("{source: prompt, linuxcncrsh: {host: h, program: p}}", "and only then"),
+        (
+            "{source: linuxcncrsh, linuxcncrsh: {host: h, program: p, allow_mdi_moves: maybe}}",
+            "linuxcncrsh.allow_mdi_moves",
+        ),
     ],
 )
 def test_bad_linuxcncrsh_source_names_the_key(tmp_path, position: str, fragment: str) -> None:  # noqa: ANN001

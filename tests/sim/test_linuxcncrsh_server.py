@@ -13,10 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
+from firmware_iface.config import _mover, load_units_config
+from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.machine_position import OperatorPrompt
+from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
-from xmalign.errors import DeviceError
+from xmalign.errors import DeviceError, OutOfRangeError
 from xmalign.machine import Machine
 from xmalign.roles import ProgramControl, WallClock
 
@@ -68,3 +71,80 @@ def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # n
         client.start_program("/nowhere.ngc", timeout_s=0.2)
     with pytest.raises(DeviceError, match="refused the enable password"):
         open_linuxcnc("127.0.0.1", server.port, 2.0, enable_password="WRONG")
+
+
+def test_an_mdi_move_to_a_point_and_what_is_refused(cnc, reference_machine, tmp_path) -> None:  # noqa: ANN001
+    """``set mode mdi`` + ``set mdi G53 G1 ...`` as :class:`MdiMover` sends them (the
+    commands of ``man linuxcncrsh``); back at rest at the point, the program idle."""
+    client, server = cnc
+    mover = MdiMover(client, reference_machine, 0.005, 10.0)
+    target = np.array([120.0, 80.0, -20.0])
+    mover.move_to(target, 30000.0)
+    assert np.allclose(client.position_mm(), target, atol=1e-6)
+    assert client.program_state() == "idle" and server.mode == "mdi"
+    with pytest.raises(OutOfRangeError, match="outside the machine's travel"):
+        mover.move_to(np.array([1e6, 0.0, 0.0]), 30000.0)
+    # past the mover's check (a machine file wider than the CNC's limits): the CNC refuses
+    # and says why at once, as LinuxCNC's error channel does
+    with pytest.raises(DeviceError, match=r"did not move to \[1000000.0, 0.0, 0.0\] mm .Unable"):
+        client.move_mdi(np.array([1e6, 0.0, 0.0]), 30000.0, 0.005, 10.0)
+    assert np.allclose(client.position_mm(), target, atol=1e-6)
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90\nG53 G1 X100 F600\nM0\nM2\n")
+    client.start_program(str(program))
+    with pytest.raises(DeviceError, match="a program is running"):
+        mover.move_to(target, 30000.0)
+    client.stop_program()
+
+
+def test_a_controlled_program_on_the_lockstep_clock(reference_machine, tmp_path) -> None:  # noqa: ANN001
+    """On a LockstepClock the program moves in virtual time only: a feed hold acts at the
+    virtual time it arrives, and nothing moves while the host does not let time pass."""
+    clock = LockstepClock()
+    server = LinuxcncrshServer(
+        SimulatedCnc(reference_machine, clock), reference_machine, lockstep=clock
+    )
+    server.start()
+    client = open_linuxcnc("127.0.0.1", server.port, 2.0, clock=clock)
+    try:
+        program = tmp_path / "p.ngc"
+        program.write_text("G21 G90\nG53 G1 X0 Y0 Z0 F6000\nM0\nG53 G1 X100 F600\nM2\n")
+        client.start_program(str(program))
+        while client.program_state() != "paused":
+            clock.sleep(0.5)
+        assert np.allclose(client.position_mm(), 0.0) and client.is_standstill()
+        client.resume()
+        clock.sleep(2.0)  # 10 mm/s after the acceleration: short of 20 mm
+        moved = client.position_mm()[0]
+        time.sleep(0.2)
+        assert 19.0 < moved < 20.0 and client.position_mm()[0] == moved  # wall time: nothing
+        client.hold()
+        clock.sleep(5.0)
+        assert client.program_state() == "paused" and client.position_mm()[0] == moved
+        client.resume()
+        clock.sleep(7.0)  # 80 mm at 10 mm/s and the acceleration: not quite there yet
+        assert client.program_state() == "running"
+        clock.sleep(2.0)
+        assert client.program_state() == "idle"
+        assert client.position_mm()[0] == pytest.approx(100.0, abs=1e-6)
+    finally:
+        client.close()
+        server.stop()
+
+
+@pytest.mark.parametrize(("allowed", "mover_type"), [(False, OperatorPrompt), (True, MdiMover)])
+def test_xmalign_moves_the_machine_only_where_units_yaml_allows_it(
+    cnc, reference_machine, tmp_path, allowed: bool, mover_type: type
+) -> None:  # noqa: ANN001
+    client, server = cnc
+    path = tmp_path / "units.yaml"
+    path.write_text(
+        "format: xmalign.units/1\nlaunch: {transport: modbus-tcp, host: a}\n"
+        "receiver: {transport: modbus-tcp, host: b}\ninterferometer: {port: /dev/null}\n"
+        "machine_position:\n  source: linuxcncrsh\n"
+        f"  linuxcncrsh: {{host: 127.0.0.1, port: {server.port}, program: p.ngc,"
+        f" allow_mdi_moves: {str(allowed).lower()}}}\n"
+    )
+    config = load_units_config(path)
+    mover = _mover(config, reference_machine, client, input, print, client)
+    assert type(mover) is mover_type

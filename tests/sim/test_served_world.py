@@ -8,7 +8,7 @@ import pytest
 from cli_helpers import run_cli
 
 from sim.clock import LockstepClock
-from sim.dry_run import measure_served, measure_virtually, virtual_setup
+from sim.dry_run import measure_controlled, measure_served, measure_virtually, virtual_setup
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence, open_run_output
@@ -146,3 +146,19 @@ def test_run_sim_is_served_by_default(short_plan, tmp_path):
     logged = wire.read_text()
     assert "write axis1.control" in logged and "STREAM ON" in logged
     assert len(read_measurements(out)) == 14
+
+
+def test_a_controlled_run_over_linuxcncrsh_captures_what_the_in_process_run_captures(
+    reference_machine, short_plan, tmp_path
+):
+    """The dry run's path: xmalign starts, resumes (and would hold) the program on a
+    simulated LinuxCNC over linuxcncrsh, all on the world's virtual clock."""
+    plan = read_plan(short_plan)
+    setup = virtual_setup(reference_machine, SEED, lockstep=True)
+    with open_run_output(tmp_path / "c.csv", plan, resume=False) as output:
+        run = measure_controlled(setup, reference_machine, plan, output)
+    controlled = read_measurements(tmp_path / "c.csv")
+    _, in_process = _measure(reference_machine, short_plan, tmp_path / "i.csv", False)
+    _assert_close(controlled, in_process)
+    assert run.statistics.points == 14 and not run.statistics.missed
+    assert run.statistics.program_s is not None and run.statistics.program_s > 0

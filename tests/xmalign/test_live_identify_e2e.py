@@ -80,12 +80,14 @@ class Operator:
         stdin.write(text + "\n")
         stdin.flush()
 
+    def cnc_position_mm(self) -> np.ndarray:
+        """Where the CNC stands (its position file)."""
+        return FilePositions(self.served.position_file).position_mm()
+
     def _jogs(self) -> str:
         angles_rad, moving = _read_units(self.served)
         assert not any(moving), f"the jog prompt came before the units stood still: {moving}"
-        self.truth.interferometer.position = FixedPosition(
-            FilePositions(self.served.position_file).position_mm()
-        )
+        self.truth.interferometer.position = FixedPosition(self.cnc_position_mm())
         launch, receiver = self.units
         point_by_truth(self.truth, self.machine, launch, receiver)
         aligned_rad = np.concatenate([launch.angles_rad(), receiver.angles_rad()])

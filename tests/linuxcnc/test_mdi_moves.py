@@ -1,0 +1,62 @@
+"""MDI moves of ``identify --live`` (``allow_mdi_moves: true``) on a real headless LinuxCNC.
+
+LinuxCNC 2.9 (Debian ``linuxcnc-uspace``) runs with ``linuxcncrsh`` as its display
+(tests/linuxcnc/harness.py); the test brings the machine up over a session of its
+own (E-stop reset, machine on, home), then :class:`~firmware_iface.linuxcncrsh.MdiMover`
+moves it with ``set mode mdi`` and ``set mdi G53 G1 ...`` (``man linuxcncrsh``).
+LinuxCNC's travel (X 0..400, Y 0..300, Z -200..0) is smaller than the machine
+file's, so a target inside the file's travel can lie beyond LinuxCNC's soft limits:
+LinuxCNC refuses it, and the move stops with LinuxCNC's own message (seen: ``LinuxCNC
+at 127.0.0.1:P did not move to [600.0, 100.0, -50.0] mm (Linear move on line 0 would
+exceed X's positive limit); the machine is at [10.0, 250.0, -5.0] mm``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_helpers import free_port
+from harness import SimMachine, linuxcnc_serving, write_sim_config
+
+from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from xmalign.errors import DeviceError
+from xmalign.machine import Machine
+
+pytestmark = pytest.mark.linuxcnc
+
+
+@pytest.fixture
+def linuxcnc(linuxcnc_dir: Path) -> Iterator[LinuxCnc]:
+    port = free_port()
+    cnc = SimMachine(max_velocity_mm_s=200.0, max_acceleration_mm_s2=2000.0)
+    ini = write_sim_config(linuxcnc_dir / "cnc", cnc, f"linuxcncrsh --port {port}")
+    with linuxcnc_serving(ini, port):
+        client = open_linuxcnc("127.0.0.1", port, 5.0)
+        try:
+            for command in ("estop off", "machine on", "mode manual", "home -1"):
+                client._set(command)
+            deadline = time.monotonic() + 30
+            while client._get("joint_homed")[:3] != ["YES"] * 3:
+                assert time.monotonic() < deadline, "LinuxCNC did not home"
+                time.sleep(0.1)
+            yield client
+        finally:
+            client.close()
+
+
+def test_mdi_moves_reach_each_point_and_linuxcnc_limits_stay(
+    linuxcnc: LinuxCnc, reference_machine: Machine
+) -> None:
+    mover = MdiMover(linuxcnc, reference_machine, 0.005, 60.0)
+    for target in ([150.0, 100.0, -50.0], [320.0, 40.0, -150.0], [10.0, 250.0, -5.0]):
+        mover.move_to(np.array(target), 6000.0)
+        assert np.linalg.norm(linuxcnc.position_mm() - target) <= 0.005
+        assert linuxcnc.program_state() == "idle" and linuxcnc.is_standstill()
+    # inside the machine file's travel, beyond LinuxCNC's soft limit on X (400 mm)
+    with pytest.raises(DeviceError, match=r"did not move to \[600.0, 100.0, -50.0\] mm \(.+\)"):
+        mover.move_to(np.array([600.0, 100.0, -50.0]), 6000.0)
+    assert np.linalg.norm(linuxcnc.position_mm() - [10.0, 250.0, -5.0]) <= 0.005
