@@ -25,7 +25,6 @@ import dataclasses
 import re
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -35,18 +34,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
-from cli_helpers import PROCESS_ENV, Process, free_port
+from cli_helpers import Process, free_port
 from harness import SimMachine, linuxcnc_serving, write_sim_config
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
-from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, _truth_pose
+from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, cut_plan
 from trajectories.gcode import make_dialect
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
-from xmalign.formats.plan import read_plan, write_plan
-from xmalign.formats.pose import write_pose
+from xmalign.formats.plan import read_plan
 from xmalign.machine import load_machine
 
 pytestmark = pytest.mark.linuxcnc
@@ -54,49 +51,16 @@ pytestmark = pytest.mark.linuxcnc
 LINES = ("Z", "X")
 
 
-def _cut_plan(workdir: Path, reference_machine_path: Path, lines: tuple[str, ...]) -> Path:
-    """The reference machine at 20 m/min, and a plan of ``lines`` (all six: ``()``), each cut
-    to 20 mm (targets 0, 10, 20 mm, one run each way)."""
-    quick = yaml.safe_load(reference_machine_path.read_text())
-    quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
-    quick["cnc"] = {"acceleration_mm_s2": 5000}
-    (workdir / "machine.yaml").write_text(yaml.safe_dump(quick))
-    machine = load_machine(workdir / "machine.yaml")
-    write_pose(workdir / "pose.json", _truth_pose(machine))
-    subprocess.run(
-        [sys.executable, "-m", "xmalign", "program", "--machine", "machine.yaml"]
-        + (["--lines", ",".join(lines)] if lines else [])
-        + ["--plan-out", "full.json"],
-        cwd=workdir,
-        env=PROCESS_ENV,
-        check=True,
-        capture_output=True,
-    )
-    plan = read_plan(workdir / "full.json")
-    short = [
-        dataclasses.replace(
-            line,
-            targets_mm=np.array([0.0, 10.0, 20.0]),
-            end_mm=line.start_mm + 20.0 * line.frame[0],
-            runs=1,
-            extra={**line.extra, "length_mm": 20.0},
-        )
-        for line in plan.lines
-    ]
-    write_plan(workdir / "plan.json", dataclasses.replace(plan, lines=short))
-    return workdir
-
-
 @pytest.fixture(scope="module")
 def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
-    """Lines Z and X (see :func:`_cut_plan`)."""
-    return _cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
+    """Lines Z and X (see :func:`cut_plan`)."""
+    return cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
 
 
 @pytest.fixture(scope="module")
 def six_line_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
-    """All six lines: the three axes and the three face diagonals (see :func:`_cut_plan`)."""
-    return _cut_plan(tmp_path_factory.mktemp("six"), reference_machine_path, ())
+    """All six lines: the three axes and the three face diagonals (see :func:`cut_plan`)."""
+    return cut_plan(tmp_path_factory.mktemp("six"), reference_machine_path, ())
 
 
 class CablePuller:

@@ -103,11 +103,9 @@ def _truth_pose(machine: Machine) -> LaunchPose:
     )
 
 
-@pytest.fixture(scope="module")
-def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
-    """A quick machine (the reference one at 20 m/min) and its plan and program for line Z
-    from the true pose, the line cut to 20 mm: machine.yaml, plan.json and run.nc."""
-    workdir = tmp_path_factory.mktemp("plan")
+def cut_plan(workdir: Path, reference_machine_path: Path, lines: tuple[str, ...]) -> Path:
+    """The reference machine at 20 m/min, and a plan of ``lines`` (all six: ``()``), each cut
+    to 20 mm (targets 0, 10, 20 mm, one run each way)."""
     quick = yaml.safe_load(reference_machine_path.read_text())
     quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
     quick["cnc"] = {"acceleration_mm_s2": 5000}
@@ -116,23 +114,35 @@ def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path:
     write_pose(workdir / "pose.json", _truth_pose(machine))
     subprocess.run(
         [sys.executable, "-m", "xmalign", "program", "--machine", "machine.yaml"]
-        + ["--lines", "Z", "--plan-out", "full.json"],
+        + (["--lines", ",".join(lines)] if lines else [])
+        + ["--plan-out", "full.json"],
         cwd=workdir,
         env=ENV,
         check=True,
         capture_output=True,
     )
     plan = read_plan(workdir / "full.json")
-    line = plan.lines[0]
-    short = dataclasses.replace(
-        line,
-        targets_mm=np.array([0.0, 10.0, 20.0]),
-        end_mm=line.start_mm + 20.0 * line.frame[0],
-        runs=1,
-        extra={**line.extra, "length_mm": 20.0},
-    )
-    plan = dataclasses.replace(plan, lines=[short])
-    write_plan(workdir / "plan.json", plan)
+    short = [
+        dataclasses.replace(
+            line,
+            targets_mm=np.array([0.0, 10.0, 20.0]),
+            end_mm=line.start_mm + 20.0 * line.frame[0],
+            runs=1,
+            extra={**line.extra, "length_mm": 20.0},
+        )
+        for line in plan.lines
+    ]
+    write_plan(workdir / "plan.json", dataclasses.replace(plan, lines=short))
+    return workdir
+
+
+@pytest.fixture(scope="module")
+def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
+    """A quick machine (the reference one at 20 m/min) and its plan and program for line Z
+    from the true pose, the line cut to 20 mm: machine.yaml, plan.json and run.nc."""
+    workdir = cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, ("Z",))
+    machine = load_machine(workdir / "machine.yaml")
+    plan = read_plan(workdir / "plan.json")
     (workdir / "run.nc").write_text(
         write_program(plan, machine, make_dialect("sinumerik", machine))
     )
