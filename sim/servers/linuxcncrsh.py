@@ -21,6 +21,7 @@ and a hold, a resume or an abort acts at the virtual time it arrives.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import threading
@@ -162,14 +163,19 @@ class LinuxcncrshServer:
         self.program: _Program | None = None
         self.opened: str | None = None
         self.error = "OK"
+        self._connections: set[socket.socket] = set()
 
     def start(self) -> None:
         threading.Thread(target=self._accept, name="linuxcncrsh", daemon=True).start()
 
     def stop(self) -> None:
+        """Stop as LinuxCNC going down does: the program aborted, every session closed."""
         if self.program is not None:
             self.program.abort()
         self.listener.close()
+        for connection in list(self._connections):
+            with contextlib.suppress(OSError):
+                connection.shutdown(socket.SHUT_RDWR)
 
     def _accept(self) -> None:
         while True:
@@ -177,10 +183,17 @@ class LinuxcncrshServer:
                 connection, _ = self.listener.accept()
             except OSError:
                 return
+            self._connections.add(connection)
             threading.Thread(target=self._session, args=(connection,), daemon=True).start()
 
     def _session(self, connection: socket.socket) -> None:
         session = {"hello": False, "echo": True, "verbose": False, "enabled": False}
+        with contextlib.ExitStack() as closing:
+            closing.callback(self._connections.discard, connection)
+            closing.enter_context(contextlib.suppress(OSError))  # the client went away
+            self._serve(connection, session)
+
+    def _serve(self, connection: socket.socket, session: dict[str, bool]) -> None:
         with connection, connection.makefile("rb") as lines:
             for raw in lines:
                 line = raw.decode("ascii", errors="replace").strip()

@@ -2,11 +2,13 @@
 
 Run against each implementation as a live run meets it: the position file a CNC
 keeps up to date, an MTConnect agent (the reference agent's documents served on
-127.0.0.1) and a SINUMERIK's OPC UA server (asyncua's server carrying the
-documented nodes). A source gives the actual position in machine coordinates as
-mm, shape (3,); says whether the machine stands still; raises a TransportError
-naming where it reads from when that is gone; and plugs into OperatorPrompt as
-the position a confirmed move is checked against.
+127.0.0.1), a SINUMERIK's OPC UA server (asyncua's server carrying the
+documented nodes) and a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
+protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc). A source gives
+the actual position in machine coordinates as mm, shape (3,); says whether the
+machine stands still; raises a TransportError naming where it reads from when that
+is gone; and plugs into OperatorPrompt as the position a confirmed move is checked
+against.
 """
 
 from __future__ import annotations
@@ -20,11 +22,15 @@ import pytest
 from mtconnect_agent import TestAgent
 from sinumerik_server import SinumerikServer
 
+from firmware_iface.linuxcncrsh import open_linuxcnc
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.mtconnect import open_mtconnect
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
+from sim.cnc import SimulatedCnc
+from sim.servers.linuxcncrsh import LinuxcncrshServer
 from xmalign.errors import TransportError
+from xmalign.machine import Machine
 from xmalign.roles import MachinePositionSource
 
 SETTLE_S = 0.5
@@ -84,12 +90,43 @@ def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
             server.stop()
 
 
-STANDS = {"file": _file_stand, "mtconnect": _mtconnect_stand, "sinumerik": _sinumerik_stand}
+def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
+    clock = SimClock()
+    roomy = {axis: [-5000.0, 5000.0] for axis in "XYZ"}  # the contract's points anywhere
+    machine_model = reference_machine.model_copy(update={"travel_mm": roomy})
+    cnc = SimulatedCnc(machine_model, clock)
+    server = LinuxcncrshServer(cnc, machine_model)
+    server.start()
+    machine = open_linuxcnc("127.0.0.1", server.port, 2.0, clock=clock)
+
+    def place(x: float, y: float, z: float) -> None:  # a rapid move, waited out
+        clock.sleep(cnc.start_move([x, y, z], reference_machine.feed_mm_min.rapid))
+
+    try:
+        # placed at rest, as a position file is; a moving CNC: test_linuxcncrsh_server.py
+        yield Stand(machine, place, server.stop, server.where, clock, sees_motion=False)
+    finally:
+        machine.close()
+        server.stop()
+
+
+STANDS = {
+    "file": _file_stand,
+    "mtconnect": _mtconnect_stand,
+    "sinumerik": _sinumerik_stand,
+    "linuxcncrsh": _linuxcncrsh_stand,
+}
 
 
 @pytest.fixture(params=sorted(STANDS))
-def stand(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Stand]:
-    yield from STANDS[request.param](tmp_path)
+def stand(
+    request: pytest.FixtureRequest, tmp_path: Path, reference_machine: Machine
+) -> Iterator[Stand]:
+    make = STANDS[request.param]
+    if make is _linuxcncrsh_stand:
+        yield from _linuxcncrsh_stand(tmp_path, reference_machine)
+    else:
+        yield from make(tmp_path)
 
 
 def _settled(stand: Stand, reads: int = 10) -> bool:
