@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, Literal, Protocol
 
@@ -43,6 +44,11 @@ from xmalign.roles import Clock, ClosesOnExit, WallClock
 ILLEGAL_DATA_VALUE = 3
 #: Modbus exception code "server device busy": another host controls the unit.
 SERVER_DEVICE_BUSY = 6
+#: After its own reconnect the host may still be the unit's owner on the connection it
+#: dropped, until the unit sees that one closed (or 500 ms without a heartbeat change): a
+#: "busy" answer in this time is asked again, not taken as another host's.
+BUSY_AFTER_RECONNECT_S = 0.7
+BUSY_RETRY_S = 0.05
 #: Modbus exception code "illegal data address": no such (writable, whole) register.
 ILLEGAL_DATA_ADDRESS = 2
 #: Modbus exception code "gateway target device failed to respond": no unit with that id.
@@ -108,6 +114,7 @@ class ModbusTransport(ClosesOnExit):
         self.device_id = device_id
         self.retries = retries
         self._lock = threading.Lock()
+        self._dropped_s: float | None = None  # when this transport last dropped its connection
 
     def read_registers(self, address: int, count: int) -> list[int]:
         response = self._call(
@@ -130,25 +137,40 @@ class ModbusTransport(ClosesOnExit):
 
     def _call(self, verb: str, address: int, request: Callable[[Any], Any]) -> Any:
         with self._lock:
-            last: Exception | None = None
-            for _ in range(self.retries + 1):
-                try:
-                    if not self.client.connected and not self.client.connect():
-                        raise TransportError(f"cannot connect to the {self.device_name}")
-                    response = request(self.client)
-                except (ModbusException, OSError, TransportError) as error:
-                    last = error
-                    log.warning(
-                        "%s: %s at register %d failed: %s", self.device_name, verb, address, error
-                    )
-                    self.client.close()
-                    continue
-                if response.isError():
+            while True:
+                response = self._attempts(verb, address, request)
+                if not response.isError():
+                    return response
+                if not self._busy_with_itself(response):
                     raise self._refusal(verb, address, response)
-                return response
+                time.sleep(BUSY_RETRY_S)
+
+    def _attempts(self, verb: str, address: int, request: Callable[[Any], Any]) -> Any:
+        """The response to ``request``, reconnecting after a drop (``retries`` times)."""
+        last: Exception | None = None
+        for _ in range(self.retries + 1):
+            try:
+                if not self.client.connected and not self.client.connect():
+                    raise TransportError(f"cannot connect to the {self.device_name}")
+                return request(self.client)
+            except (ModbusException, OSError, TransportError) as error:
+                last = error
+                log.warning(
+                    "%s: %s at register %d failed: %s", self.device_name, verb, address, error
+                )
+                self.client.close()
+                self._dropped_s = time.monotonic()
         raise TransportError(
             f"lost the connection to the {self.device_name} ({verb} at register {address}: {last})"
         ) from last
+
+    def _busy_with_itself(self, response: object) -> bool:
+        """A "busy" answer shortly after this transport dropped its own connection."""
+        return (
+            getattr(response, "exception_code", None) == SERVER_DEVICE_BUSY
+            and self._dropped_s is not None
+            and time.monotonic() - self._dropped_s < BUSY_AFTER_RECONNECT_S
+        )
 
     def _refusal(self, verb: str, address: int, response: object) -> XmalignError:
         code = getattr(response, "exception_code", None)

@@ -188,6 +188,63 @@ def test_exception_codes_are_named(code: int, message: str) -> None:
         transport.read_registers(99, 1)
 
 
+class _Answer:
+    def __init__(self, code: int | None) -> None:
+        self.exception_code = code
+
+    def isError(self) -> bool:  # noqa: N802 (pymodbus's name)
+        return self.exception_code is not None
+
+
+class _Scripted:
+    """A client answering writes from a script: an OSError (a timeout), or an exception code
+    (None: done); it counts connects."""
+
+    def __init__(self, script: list[object]) -> None:
+        self.script, self.connected, self.connects = script, True, 0
+
+    def connect(self) -> bool:
+        self.connects += 1
+        self.connected = True
+        return True
+
+    def close(self) -> None:
+        self.connected = False
+
+    def write_registers(self, *args: object, **kwargs: object) -> _Answer:
+        step = self.script.pop(0)
+        if isinstance(step, OSError):
+            raise step
+        assert step is None or isinstance(step, int)
+        return _Answer(step)
+
+
+def test_busy_right_after_its_own_reconnect_is_asked_again() -> None:
+    """A write timed out, the transport reconnected, and the unit still holds the dropped
+    connection as its owner: "busy" then is the host itself, asked again until it is free."""
+    client = _Scripted([TimeoutError("no response"), 6, 6, None])
+    transport = ModbusTransport(client, "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
+    transport.write_registers(3, [7])
+    assert client.script == [] and client.connects == 1
+
+
+def test_busy_without_a_reconnect_is_another_host() -> None:
+    client = _Scripted([6, None])
+    transport = ModbusTransport(client, "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
+    with pytest.raises(DeviceError, match="another host controls it"):
+        transport.write_registers(3, [7])
+    assert client.script == [None]
+
+
+def test_busy_long_after_a_reconnect_is_another_host(monkeypatch: pytest.MonkeyPatch) -> None:
+    client = _Scripted([TimeoutError("no response"), *[6] * 100])
+    transport = ModbusTransport(client, "launch unit at 10.0.0.5:502")  # type: ignore[arg-type]
+    monkeypatch.setattr("firmware_iface.modbus.BUSY_AFTER_RECONNECT_S", 0.12)
+    with pytest.raises(DeviceError, match="another host controls it"):
+        transport.write_registers(3, [7])
+    assert 1 <= 100 - len(client.script) <= 5  # asked again for 0.12 s, every 0.05 s
+
+
 class Unplugged:
     """The simulated unit's registers until ``unplugged`` is set; then every write fails."""
 
