@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import math
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -97,20 +99,20 @@ class Operator:
         )
 
 
-def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
-    tmp_path: Path, reference_machine_path: Path
-) -> None:
-    """``identify --live``: the operator runs the CNC to each position and jogs the units
-    into range where no pose guess can point them; the pose found is the served world's
-    within its uncertainty."""
+def quick_machine(tmp_path: Path, reference_machine_path: Path) -> Machine:
+    """The reference machine with a 60 m/min rapid, as tmp_path/machine.yaml."""
     quick = yaml.safe_load(reference_machine_path.read_text())
     quick["feed_mm_min"] = {"rapid": 60000, "measure": 2000}
     quick["cnc"] = {"acceleration_mm_s2": 5000}
     (tmp_path / "machine.yaml").write_text(yaml.safe_dump(quick))
-    machine = load_machine(tmp_path / "machine.yaml")
-    positions = design_step(machine, 4).machine_mm
-    (tmp_path / "ident.nc").write_text(_identification_program(positions))
-    served = World(tmp_path, tmp_path / "ident.nc")
+    return load_machine(tmp_path / "machine.yaml")
+
+
+def identify_live(
+    served: Any, make_operator: Callable[..., Any], machine: Machine, tmp_path: Path
+) -> tuple[Process, Any]:
+    """``identify --live`` with four alignments against ``served``, every prompt answered by
+    ``make_operator(served, machine, process)``, to a successful end."""
     identify = Process(
         ["identify", "--live", "--config", "units.yaml", "--machine", "machine.yaml"]
         + ["--alignments", "4", "--session", "session.json", "--out", "pose.json"]
@@ -118,7 +120,7 @@ def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
         tmp_path,
         stdin=subprocess.PIPE,
     )
-    operator = Operator(served, machine, identify)
+    operator = make_operator(served, machine, identify)
     try:
         while (line := identify.next_line()) is not None:
             operator.answer(line)
@@ -126,6 +128,28 @@ def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
     finally:
         identify.stop()
         served.server.stop()
+    return identify, operator
+
+
+def assert_within_its_uncertainty(pose: Any, truth: Any) -> None:
+    """The squared Mahalanobis distance of x, y, z, gamma from the truth below the
+    chi-squared 99.9 % point for 4 degrees of freedom."""
+    error = np.array([*(pose.position_mm - truth.launch2mcs_mm), 0.0])
+    error[3] = math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)
+    assert error @ np.linalg.solve(pose.covariance, error) < 18.47, (error, pose.covariance)
+
+
+def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
+    tmp_path: Path, reference_machine_path: Path
+) -> None:
+    """``identify --live``: the operator runs the CNC to each position and jogs the units
+    into range where no pose guess can point them; the pose found is the served world's
+    within its uncertainty."""
+    machine = quick_machine(tmp_path, reference_machine_path)
+    positions = design_step(machine, 4).machine_mm
+    (tmp_path / "ident.nc").write_text(_identification_program(positions))
+    served = World(tmp_path, tmp_path / "ident.nc")
+    identify, operator = identify_live(served, Operator, machine, tmp_path)
     said = "".join(identify.lines)
     moves = [n for n, line in enumerate(identify.lines) if "Move the machine to" in line]
     jogs = [n for n, line in enumerate(identify.lines) if "Jog: " in line]
@@ -135,10 +159,5 @@ def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
     assert "Traceback" not in identify.stderr
     assert len(read_session(tmp_path / "session.json").alignments) == 4
     pose = read_pose(tmp_path / "pose.json")
-    truth = operator.truth
-    error = np.array([*(pose.position_mm - truth.launch2mcs_mm), 0.0])
-    error[3] = math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)
-    # within its uncertainty: the squared Mahalanobis distance of x, y, z, gamma below
-    # the chi-squared 99.9 % point for 4 degrees of freedom; and that uncertainty small
-    assert error @ np.linalg.solve(pose.covariance, error) < 18.47, (error, pose.covariance)
+    assert_within_its_uncertainty(pose, operator.truth)
     assert np.all(np.sqrt(np.diag(pose.covariance)) < [0.05, 0.05, 0.05, 50e-6]), pose.covariance

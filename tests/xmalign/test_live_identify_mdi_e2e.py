@@ -10,19 +10,21 @@ this is).
 
 from __future__ import annotations
 
-import math
 import subprocess
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, Process, _free_port
-from tests.xmalign.test_live_identify_e2e import Operator
+from tests.xmalign.test_live_identify_e2e import (
+    Operator,
+    assert_within_its_uncertainty,
+    identify_live,
+    quick_machine,
+)
 from xmalign.formats.pose import read_pose
 from xmalign.formats.session import read_session
-from xmalign.machine import load_machine
 from xmalign.steps import design_step
 
 
@@ -75,27 +77,9 @@ class Jogger(Operator):
 def test_identify_live_moves_the_machine_over_mdi_where_units_yaml_allows_it(
     tmp_path: Path, reference_machine_path: Path
 ) -> None:
-    quick = yaml.safe_load(reference_machine_path.read_text())
-    quick["feed_mm_min"] = {"rapid": 60000, "measure": 2000}
-    quick["cnc"] = {"acceleration_mm_s2": 5000}
-    (tmp_path / "machine.yaml").write_text(yaml.safe_dump(quick))
-    machine = load_machine(tmp_path / "machine.yaml")
+    machine = quick_machine(tmp_path, reference_machine_path)
     served = LinuxcncWorld(tmp_path)
-    identify = Process(
-        ["identify", "--live", "--config", "units.yaml", "--machine", "machine.yaml"]
-        + ["--alignments", "4", "--session", "session.json", "--out", "pose.json"]
-        + ["--log-file", "wire.log"],
-        tmp_path,
-        stdin=subprocess.PIPE,
-    )
-    operator = Jogger(served, machine, identify)  # type: ignore[arg-type]
-    try:
-        while (line := identify.next_line()) is not None:
-            operator.answer(line)
-        assert identify.finish() == 0, identify.said() + served.server.said()
-    finally:
-        identify.stop()
-        served.server.stop()
+    identify, operator = identify_live(served, Jogger, machine, tmp_path)
     assert "Traceback" not in identify.stderr
     wire = (tmp_path / "wire.log").read_text()
     positions = design_step(machine, 4).machine_mm
@@ -104,9 +88,4 @@ def test_identify_live_moves_the_machine_over_mdi_where_units_yaml_allows_it(
     assert "set mode mdi" in wire and "EMCTOO" not in wire
     session = read_session(tmp_path / "session.json")
     assert len(session.alignments) == 4
-    pose = read_pose(tmp_path / "pose.json")
-    truth = operator.truth
-    error = np.array([*(pose.position_mm - truth.launch2mcs_mm), 0.0])
-    error[3] = math.remainder(pose.gamma_rad - truth.gamma_rad, math.tau)
-    # within its uncertainty (chi-squared 99.9 % point, 4 degrees of freedom)
-    assert error @ np.linalg.solve(pose.covariance, error) < 18.47, (error, pose.covariance)
+    assert_within_its_uncertainty(read_pose(tmp_path / "pose.json"), operator.truth)
