@@ -40,12 +40,6 @@ def test_a_follower_runs_at_its_own_virtual_time_and_timers_on_theirs():
     assert woke_at[-1] == pytest.approx(3.0) and follower.done
 
 
-def test_peek_sees_a_later_time_and_leaves_the_present_alone():
-    clock = LockstepClock(10.0)
-    assert clock.peek(10.02, clock.now) == pytest.approx(10.02)
-    assert clock.now() == pytest.approx(10.0)
-
-
 def test_a_released_follower_runs_to_its_end_without_time_passing():
     clock = LockstepClock()
     ended = threading.Event()
