@@ -12,7 +12,12 @@ from sim.dry_run import measure_controlled, measure_served, measure_virtually, v
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence, open_run_output
-from xmalign.formats.measurements import plan_sha256, read_measurements, write_measurements
+from xmalign.formats.measurements import (
+    RUN_START_TAG,
+    plan_sha256,
+    read_measurements,
+    write_measurements,
+)
 from xmalign.formats.plan import read_plan, write_plan
 
 SEED = 3
@@ -156,3 +161,31 @@ def test_a_controlled_run_over_linuxcncrsh_captures_what_the_in_process_run_capt
     _assert_close(controlled, in_process)
     assert run.statistics.points == 14 and not run.statistics.missed
     assert run.statistics.program_s is not None and run.statistics.program_s > 0
+
+
+def _measured_lines(path):
+    """The measurement file's lines but those that say when it was written."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    return [line for line in lines if not line.startswith(("# created_utc:", RUN_START_TAG))]
+
+
+@pytest.mark.parametrize("path", ["controlled", "position-file"])
+def test_a_served_run_is_repeatable_to_the_last_digit(
+    reference_machine, short_plan, tmp_path, path
+):
+    """Two served runs of one seed write the same file, however the threads of the host and
+    the servers are scheduled (the host's waits for streamed samples go through its clock,
+    docs/simulator.md); the dry run's path (LinuxCNC) and ``run --sim``'s (position file)."""
+    plan = read_plan(short_plan)
+    program = write_program(plan, reference_machine, DIALECTS["linuxcnc"]())
+    files = []
+    for name in ("first.csv", "second.csv"):
+        setup = virtual_setup(reference_machine, SEED, lockstep=True)
+        with open_run_output(tmp_path / name, plan, resume=False) as output:
+            if path == "controlled":
+                measure_controlled(setup, reference_machine, plan, output)
+            else:
+                measure_served(setup, reference_machine, plan, program, "linuxcnc", output)
+        files.append(_measured_lines(tmp_path / name))
+    assert len(read_measurements(tmp_path / "first.csv")) == 14
+    assert files[0] == files[1]
