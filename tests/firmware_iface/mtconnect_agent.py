@@ -2,7 +2,7 @@
 
 The documents are the reference agent's own sample responses (tests/firmware_iface/
 data/mtconnect/, each names its source); the agent fills in the position of a
-machine the test moves, the Execution and ControllerMode, and the timestamps
+machine the test moves, the Execution, ControllerMode and Program, and the timestamps
 (an observation's timestamp changes only when its value does, as an agent records them).
 """
 
@@ -18,6 +18,8 @@ from cli_helpers import free_port
 
 DATA = Path(__file__).parent / "data" / "mtconnect"
 AXES = ("X", "Y", "Z")
+#: The Program each set of documents reports until the test sets another.
+PROGRAMS = {"linuxcnc": "/home/mtconnect/simulator/spiral.ngc", "vmc_inch": "O1234"}
 
 
 def stamp(moment: datetime) -> str:
@@ -46,6 +48,7 @@ class TestAgent:
         self.changed = dict.fromkeys(AXES, datetime.now(UTC))
         self.execution = "READY"
         self.mode = "AUTOMATIC"
+        self.program = PROGRAMS[documents]
         #: Adapters that send unchanged values again: every timestamp is "now".
         self.repeat_unchanged = False
         #: A path's body replaced (damaged documents), and a delay before answering.
@@ -96,6 +99,7 @@ class TestAgent:
             "now": stamp(now),
             "execution": self.execution,
             "mode": self.mode,
+            "program": self.program,
             **{axis: repr(float(self.values[axis])) for axis in AXES},
             **{
                 f"{axis}_time": stamp(now if self.repeat_unchanged else self.changed[axis])
