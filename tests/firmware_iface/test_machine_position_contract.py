@@ -8,7 +8,9 @@ protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc). A source give
 the actual position in machine coordinates as mm, shape (3,); says whether the
 machine stands still; raises a TransportError naming where it reads from when that
 is gone; and plugs into OperatorPrompt as the position a confirmed move is checked
-against.
+against. A followed controller that reports its program (MTConnect's Program,
+the SINUMERIK's selectedWorkPProg) names it, spelled its own way, with its state,
+and a followed run refuses another program running (ProgramGuard).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from asyncua import ua
 from mtconnect_agent import TestAgent
 from sinumerik_server import SinumerikServer
 
@@ -29,9 +32,10 @@ from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
-from xmalign.errors import TransportError
+from xmalign.errors import DeviceError, TransportError
 from xmalign.machine import Machine
-from xmalign.roles import MachinePositionSource
+from xmalign.program_check import ProgramGuard, same_program
+from xmalign.roles import MachinePositionSource, ReportsProgram
 
 SETTLE_S = 0.5
 
@@ -48,6 +52,9 @@ class Stand:
     clock: SimClock
     #: False for a source that only ever sees a machine at rest (a position file).
     sees_motion: bool = True
+    #: ``show_program(name, running)``: the controller has program ``name`` (its bare
+    #: name, spelled as that controller does) running or idle; None: it reports none.
+    show_program: Callable[[str, bool], None] | None = None
 
 
 def _file_stand(tmp_path: Path) -> Iterator[Stand]:
@@ -64,8 +71,20 @@ def _mtconnect_stand(tmp_path: Path) -> Iterator[Stand]:
     agent = TestAgent("linuxcnc", "LinuxCNC").start()
     clock = SimClock()
     machine = open_mtconnect(agent.url, 2.0, settle_s=SETTLE_S, clock=clock)
+
+    def show_program(name: str, running: bool) -> None:  # LinuxCNC's adapter: the file
+        agent.program = f"/home/cnc/linuxcnc/nc_files/{name.lower()}.ngc"
+        agent.execution = "ACTIVE" if running else "READY"
+
     try:
-        yield Stand(machine, lambda x, y, z: agent.set(X=x, Y=y, Z=z), agent.stop, agent.url, clock)
+        yield Stand(
+            machine,
+            lambda x, y, z: agent.set(X=x, Y=y, Z=z),
+            agent.stop,
+            agent.url,
+            clock,
+            show_program=show_program,
+        )
     finally:
         machine.close()
         agent.stop()
@@ -82,8 +101,15 @@ def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
         server.stop()
         stopped.append(True)
 
+    def show_program(name: str, running: bool) -> None:  # the NC notation
+        nc_name = f"/_N_MPF_DIR/_N_{name.upper()}_MPF"
+        server.set("/Channel/ProgramInfo/selectedWorkPProg[u1]", nc_name, ua.VariantType.String)
+        server.set("/Channel/State/progStatus[u1]", 3 if running else 5, ua.VariantType.UInt16)
+
     try:
-        yield Stand(machine, server.set_position, cut, server.endpoint, clock)
+        yield Stand(
+            machine, server.set_position, cut, server.endpoint, clock, show_program=show_program
+        )
     finally:
         machine.close()
         if not stopped:
@@ -193,3 +219,43 @@ def test_an_operator_prompt_checks_the_confirmed_move_against_it(
     OperatorPrompt(reference_machine, press_enter, told.append, stand.source).move_to(target, 5e3)
     assert len(presses) == 2 and "move it there first" in told[-1]
     assert np.allclose(stand.source.position_mm(), target)
+
+
+def _reporting(stand: Stand) -> Callable[[str, bool], None]:
+    if stand.show_program is None:
+        pytest.skip("this source does not report a program (a file; LinuxCNC runs its own)")
+    assert isinstance(stand.source, ReportsProgram)
+    return stand.show_program
+
+
+def test_a_controller_reporting_its_program_names_it_with_its_state(stand: Stand) -> None:
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
+    show("run", True)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "running"
+    assert report.name is not None and same_program(report.name, "run")
+    show("other", False)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "idle"
+    assert report.name is not None and not same_program(report.name, "run")
+
+
+def test_another_program_running_stops_a_followed_run_with_one_line(stand: Stand) -> None:
+    """A stale or wrong program running (or stopped mid-way) is refused; xmalign's running,
+    or another one idle, is not."""
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
+    told: list[str] = []
+    guard = ProgramGuard(stand.source, "run", "machine_position.x.program_name", told.append)
+    show("run", True)
+    guard.check()
+    show("old", False)
+    guard.check()
+    show("old", True)
+    with pytest.raises(DeviceError) as caught:
+        guard.check()
+    message = str(caught.value)
+    assert "\n" not in message and "OLD" in message.upper()
+    assert "not xmalign's program run (machine_position.x.program_name)" in message
+    assert not told
