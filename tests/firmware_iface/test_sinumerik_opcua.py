@@ -1,7 +1,7 @@
 """SINUMERIK over OPC UA: the client against a real OPC UA stack (asyncua's server) on 127.0.0.1.
 
 The server carries the nodes the SINUMERIK OPC UA configuration manual documents
-(tests/firmware_iface/sinumerik_server.py); the values behind them are set by
+(tests/sinumerik_server.py); the values behind them are set by
 the test as the NC would set them.
 """
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from cli_helpers import free_port
 
-DATA = Path(__file__).parent / "data" / "mtconnect"
+DATA = Path(__file__).parent / "firmware_iface" / "data" / "mtconnect"
 AXES = ("X", "Y", "Z")
 #: The Program each set of documents reports until the test sets another.
 PROGRAMS = {"linuxcnc": "/home/mtconnect/simulator/spiral.ngc", "vmc_inch": "O1234"}
