@@ -70,7 +70,8 @@ from xmalign.safety import units_locked_on_exit
 
 #: File name ending of a program in each dialect, as the controllers expect.
 PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
-#: The name of the program file :func:`program_step` writes by default (and so of the program).
+#: The program file's name in the usual calibration (``xmalign program --out run.nc``, the
+#: dry run's ``run<suffix>``): the program a followed controller is expected to run.
 PROGRAM_STEM = "run"
 #: Alignments after which a quick identification points the units better than the guess.
 REFINE_AFTER = 3
