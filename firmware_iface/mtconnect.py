@@ -224,14 +224,17 @@ class MTConnectMachine(ClosesOnExit):
 
     def program_report(self) -> ProgramReport | None:
         """The ``Program`` and its state from one ``/current``; None when the device has no
-        PROGRAM data item or reports it UNAVAILABLE."""
+        PROGRAM data item or reports it UNAVAILABLE. Without an Execution to tell, the
+        program counts as running (it is then always compared)."""
         if self._program is None:
             return None
         current = self._current()
         name = current.get(self._program.id, (UNAVAILABLE, None))[0]
         if name == UNAVAILABLE:
             return None
-        return ProgramReport(name or None, self._status(current).program_state)
+        execution = None if self._execution is None else current.get(self._execution.id)
+        state = EXECUTION_STATES.get(execution[0], "running") if execution else "running"
+        return ProgramReport(name or None, state)
 
     def _status(self, current: dict[str, tuple[str, str | None]]) -> ControllerStatus:
         position = self._position(current)
