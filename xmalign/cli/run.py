@@ -239,7 +239,6 @@ def _program_check(
     put xmalign's program there (``copy_program``) and select it first; the check that
     refuses another program running (docs/hardware.md, "Following the controller")."""
     from firmware_iface.controller_config import expected_program
-    from firmware_iface.sinumerik_opcua import SinumerikMachine
     from xmalign.program_check import ProgramGuard, program_name
     from xmalign.roles import ReportsProgram
     from xmalign.steps import PROGRAM_STEM, program_gcode
@@ -249,10 +248,13 @@ def _program_check(
         return lambda: None
     expected, key = expected_program(section, PROGRAM_STEM)
     nc = source.sinumerik
-    if nc is not None and nc.program is not None and isinstance(followed, SinumerikMachine):
-        name = program_name(nc.program)
-        text = program_gcode(plan, machine, "sinumerik", name)[1] if nc.copy_program else None
-        _tell_operator(followed.prepare_run(nc.program, expected, text))
+    if nc is not None and nc.program is not None:
+        from firmware_iface.sinumerik_opcua import SinumerikMachine  # asyncua: only here
+
+        if isinstance(followed, SinumerikMachine):
+            name = program_name(nc.program)
+            text = program_gcode(plan, machine, "sinumerik", name)[1] if nc.copy_program else None
+            _tell_operator(followed.prepare_run(nc.program, expected, text))
     return ProgramGuard(followed, expected, key, _tell_operator).check
 
 
