@@ -12,6 +12,7 @@ server (tests/sinumerik_server.py). The machine is the script that runs the prog
 from __future__ import annotations
 
 import contextlib
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,7 @@ class Followed:
     cycle_start: Callable[[], None] | None = None
     #: What the controller holds after a run of xmalign's program, checked.
     check_after_run: Callable[[], None] = lambda: None
+    agent: TestAgent | None = None
 
 
 @contextlib.contextmanager
@@ -67,6 +69,7 @@ def _mtconnect() -> Iterator[Followed]:
             f"{{source: mtconnect, mtconnect: {{url: '{agent.url}', timeout_s: 2.0}}}}",
             lambda p: agent.set(X=p[0], Y=p[1], Z=p[2]),
             run_program,
+            agent=agent,
         )
     finally:
         agent.stop()
@@ -101,6 +104,17 @@ def _sinumerik() -> Iterator[Followed]:
         server.stop()
 
 
+@contextlib.contextmanager
+def _mtconnect_without_program() -> Iterator[Followed]:
+    """An agent whose device has no PROGRAM data item: the run says so once and goes on."""
+    with _mtconnect() as followed:
+        agent = followed.agent
+        assert agent is not None
+        without = re.sub(r"\n\s*<DataItem [^>]*type=\"PROGRAM\" />", "", agent.probe)
+        agent.replaced["/probe"] = without.encode()
+        yield followed
+
+
 CONTROLLERS = {"mtconnect": _mtconnect, "sinumerik": _sinumerik}
 
 
@@ -113,7 +127,9 @@ def _followed_world(
 ) -> Iterator[tuple[Served, Followed]]:
     start_mm = pre_position(reference_machine, plan)
     with (
-        CONTROLLERS[kind]() as followed,
+        {**CONTROLLERS, "mtconnect-without-program": _mtconnect_without_program}[
+            kind
+        ]() as followed,
         served(reference_machine, folder, plan, start_mm) as world,
     ):
         followed.report(start_mm)
@@ -150,7 +166,7 @@ def test_a_stale_program_running_is_refused_before_any_capture(
     assert not read_measurements(out)
 
 
-@pytest.mark.parametrize("kind", sorted(CONTROLLERS))
+@pytest.mark.parametrize("kind", [*sorted(CONTROLLERS), "mtconnect-without-program"])
 def test_xmalign_s_program_is_followed_to_the_end(
     kind: str,
     reference_machine,
@@ -170,3 +186,5 @@ def test_xmalign_s_program_is_followed_to_the_end(
         assert result.returncode == 0, result.stderr
         followed.check_after_run()
     assert _keys(out) == _points(short_plan)
+    unreported = terminal.out.getvalue().count("does not report its program: not checked")
+    assert unreported == (kind == "mtconnect-without-program")

@@ -274,7 +274,7 @@ def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) 
 
 
 def _tell_operator(message: str) -> None:
-    console.print(message, markup=False)
+    console.print(message, markup=False, soft_wrap=True)  # one line: the terminal wraps it
 
 
 def read_text(path: Path, what: str) -> str:
