@@ -8,6 +8,7 @@ machine the test moves, the Execution, ControllerMode and Program, and the times
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from datetime import UTC, datetime, timedelta
@@ -79,6 +80,12 @@ class TestAgent:
             if value != self.values[axis]:
                 self.changed[axis] = datetime.now(UTC)
             self.values[axis] = value
+
+    def drop_program(self) -> None:
+        """Serve a /probe without the PROGRAM data item (a device that does not report it)."""
+        without = re.sub(r'\n\s*<DataItem [^>]*type="PROGRAM" ?/>', "", self.probe)
+        assert without != self.probe, "the documents have no PROGRAM data item"
+        self.replaced["/probe"] = without.encode()
 
     def age(self, seconds: float) -> None:
         """Make every axis's last change ``seconds`` old."""

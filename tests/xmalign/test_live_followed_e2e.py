@@ -12,7 +12,6 @@ server (tests/sinumerik_server.py). The machine is the script that runs the prog
 from __future__ import annotations
 
 import contextlib
-import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,28 +107,25 @@ def _sinumerik() -> Iterator[Followed]:
 def _mtconnect_without_program() -> Iterator[Followed]:
     """An agent whose device has no PROGRAM data item: the run says so once and goes on."""
     with _mtconnect() as followed:
-        agent = followed.agent
-        assert agent is not None
-        without = re.sub(r"\n\s*<DataItem [^>]*type=\"PROGRAM\" />", "", agent.probe)
-        agent.replaced["/probe"] = without.encode()
+        assert followed.agent is not None
+        followed.agent.drop_program()
         yield followed
 
 
 CONTROLLERS = {"mtconnect": _mtconnect, "sinumerik": _sinumerik}
+EVERY_KIND = {**CONTROLLERS, "mtconnect-without-program": _mtconnect_without_program}
 
 
 @contextlib.contextmanager
 def _followed_world(
     kind: str,
-    reference_machine,
+    reference_machine,  # noqa: ANN001
     plan: Path,
-    folder: Path,  # noqa: ANN001
+    folder: Path,
 ) -> Iterator[tuple[Served, Followed]]:
     start_mm = pre_position(reference_machine, plan)
     with (
-        {**CONTROLLERS, "mtconnect-without-program": _mtconnect_without_program}[
-            kind
-        ]() as followed,
+        EVERY_KIND[kind]() as followed,
         served(reference_machine, folder, plan, start_mm) as world,
     ):
         followed.report(start_mm)
@@ -166,7 +162,7 @@ def test_a_stale_program_running_is_refused_before_any_capture(
     assert not read_measurements(out)
 
 
-@pytest.mark.parametrize("kind", [*sorted(CONTROLLERS), "mtconnect-without-program"])
+@pytest.mark.parametrize("kind", sorted(EVERY_KIND))
 def test_xmalign_s_program_is_followed_to_the_end(
     kind: str,
     reference_machine,
