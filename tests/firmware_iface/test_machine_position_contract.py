@@ -3,8 +3,11 @@
 Run against each implementation as a live run meets it: the position file a CNC
 keeps up to date, an MTConnect agent (the reference agent's documents served on
 127.0.0.1), a SINUMERIK's OPC UA server (asyncua's server carrying the
-documented nodes) and a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
-protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc). A source gives
+documented nodes), a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
+protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc) and a LinuxCNC
+through its Python module (the simulated module in front of the same simulated
+LinuxCNC; tests/linuxcnc/test_linuxcnc_module.py runs this contract against the
+real module and a real headless LinuxCNC). A source gives
 the actual position in machine coordinates as mm, shape (3,); says whether the
 machine stands still; raises a TransportError naming where it reads from when that
 is gone; and plugs into OperatorPrompt as the position a confirmed move is checked
@@ -22,16 +25,19 @@ import pytest
 from mtconnect_agent import TestAgent
 from sinumerik_server import SinumerikServer
 
+from firmware_iface.linuxcnc_module import LocalLinuxCnc
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
 from firmware_iface.mtconnect import open_mtconnect
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
+from sim.linuxcnc_module import NML_FILE, simulated_module
+from sim.linuxcnc_task import SimulatedLinuxcnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
 from xmalign.errors import TransportError
 from xmalign.machine import Machine
-from xmalign.roles import MachinePositionSource
+from xmalign.roles import Clock, MachinePositionSource
 
 SETTLE_S = 0.5
 
@@ -45,7 +51,7 @@ class Stand:
     cut: Callable[[], None]
     #: Where the source reads from, as its errors name it.
     address: str
-    clock: SimClock
+    clock: Clock
     #: False for a source that only ever sees a machine at rest (a position file).
     sees_motion: bool = True
 
@@ -90,18 +96,26 @@ def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
             server.stop()
 
 
-def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
-    clock = SimClock()
+def _simulated_cnc(reference_machine: Machine, clock: SimClock) -> tuple[SimulatedCnc, Machine]:
     roomy = {axis: [-5000.0, 5000.0] for axis in "XYZ"}  # the contract's points anywhere
     machine_model = reference_machine.model_copy(update={"travel_mm": roomy})
-    cnc = SimulatedCnc(machine_model, clock)
+    return SimulatedCnc(machine_model, clock), machine_model
+
+
+def _placer(cnc: SimulatedCnc, machine: Machine, clock: SimClock) -> Callable[..., None]:
+    def place(x: float, y: float, z: float) -> None:  # a rapid move, waited out
+        clock.sleep(cnc.start_move([x, y, z], machine.feed_mm_min.rapid))
+
+    return place
+
+
+def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
+    clock = SimClock()
+    cnc, machine_model = _simulated_cnc(reference_machine, clock)
     server = LinuxcncrshServer(cnc, machine_model)
     server.start()
     machine = open_linuxcnc("127.0.0.1", server.port, 2.0, clock=clock)
-
-    def place(x: float, y: float, z: float) -> None:  # a rapid move, waited out
-        clock.sleep(cnc.start_move([x, y, z], reference_machine.feed_mm_min.rapid))
-
+    place = _placer(cnc, machine_model, clock)
     try:
         # placed at rest, as a position file is; a moving CNC: test_linuxcncrsh_server.py
         yield Stand(machine, place, server.stop, server.where, clock, sees_motion=False)
@@ -110,11 +124,26 @@ def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[S
         server.stop()
 
 
+def _linuxcnc_module_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
+    """LinuxCNC's Python module, the simulated one (sim/linuxcnc_module.py) in front of the
+    same simulated LinuxCNC; the real module against a real LinuxCNC: tests/linuxcnc."""
+    clock = SimClock()
+    cnc, machine_model = _simulated_cnc(reference_machine, clock)
+    linuxcnc = SimulatedLinuxcnc(cnc, machine_model)
+    machine = LocalLinuxCnc(simulated_module(linuxcnc), clock=clock)
+    place = _placer(cnc, machine_model, clock)
+    try:
+        yield Stand(machine, place, linuxcnc.shut_down, NML_FILE, clock, sees_motion=False)
+    finally:
+        machine.close()
+
+
 STANDS = {
     "file": _file_stand,
     "mtconnect": _mtconnect_stand,
     "sinumerik": _sinumerik_stand,
     "linuxcncrsh": _linuxcncrsh_stand,
+    "linuxcnc-module": _linuxcnc_module_stand,
 }
 
 
@@ -123,8 +152,8 @@ def stand(
     request: pytest.FixtureRequest, tmp_path: Path, reference_machine: Machine
 ) -> Iterator[Stand]:
     make = STANDS[request.param]
-    if make is _linuxcncrsh_stand:
-        yield from _linuxcncrsh_stand(tmp_path, reference_machine)
+    if make in (_linuxcncrsh_stand, _linuxcnc_module_stand):
+        yield from make(tmp_path, reference_machine)  # type: ignore[call-arg]
     else:
         yield from make(tmp_path)
 

@@ -22,7 +22,8 @@ import pytest
 from cli_helpers import free_port
 from harness import SimMachine, linuxcnc_serving, write_sim_config
 
-from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.linuxcnc_control import MdiMover
+from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from xmalign.errors import DeviceError
 from xmalign.machine import Machine
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from firmware_iface.config import _mover, load_units_config
-from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.linuxcnc_control import MdiMover
+from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from firmware_iface.machine_position import OperatorPrompt
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
