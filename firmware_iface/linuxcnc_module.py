@@ -13,8 +13,11 @@ checks are shared with the linuxcncrsh driver) from the module:
 
 * actual position ``stat.actual_position`` (``motion.traj.actualPosition``,
   what linuxcncrsh's ``abs_act_pos`` prints), commanded ``stat.position``;
-* the command stands still when ``stat.inpos`` (the trajectory planner has
-  finished: set by LinuxCNC's motion controller, no sampling needed);
+* the command stands still when the trajectory planner has finished
+  (``stat.inpos``, set by LinuxCNC's motion controller) or, in a feed hold,
+  once it has brought the path to a stop (``stat.paused`` and
+  ``stat.current_vel == 0``; ``inpos`` stays false while the rest of the move
+  waits): LinuxCNC's own flags, no sampling as over linuxcncrsh;
 * program state from ``stat.interp_state`` as linuxcncrsh's
   ``program_status`` maps it (reading or waiting: running; paused: paused);
 * E-stop and machine on from ``stat.task_state``, as linuxcncrsh's
@@ -84,6 +87,8 @@ MODULE_API = {
         "actual_position",
         "position",
         "inpos",
+        "paused",
+        "current_vel",
         "interp_state",
         "task_state",
         "homed",
@@ -186,7 +191,8 @@ class LocalLinuxCnc(LinuxCncControl):
 
     def _commanded_at_rest_mm(self) -> Vec | None:
         stat = self._stat()
-        return np.array(stat.position[:3], dtype=float) if stat.inpos else None
+        at_rest = stat.inpos or (stat.paused and stat.current_vel == 0.0)
+        return np.array(stat.position[:3], dtype=float) if at_rest else None
 
     def program_state(self) -> ProgramState:
         """``idle``, ``running`` or ``paused``: ``stat.interp_state`` as linuxcncrsh maps it."""

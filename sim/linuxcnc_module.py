@@ -16,8 +16,9 @@ simulated linuxcncrsh serves:
   when the task refused it (its message then on the error channel);
 * ``error_channel().poll()``: ``(OPERATOR_ERROR, text)`` once per message, else None.
 
-``inpos`` is the simulated machine standing still (the simulated drives follow
-the command exactly; unlike LinuxCNC it is also true during a feed hold).
+``inpos`` is true when nothing is left to move (not in a feed hold mid-move, as
+LinuxCNC's); ``current_vel`` is the simulated path speed; ``paused`` is true at
+an M0 and in a feed hold (as LinuxCNC's ``traj.paused``, seen with 2.9).
 """
 
 from __future__ import annotations
@@ -90,8 +91,10 @@ def simulated_module(linuxcnc: SimulatedLinuxcnc) -> types.ModuleType:
         def poll(self) -> None:
             position = (*(float(v) for v in linuxcnc.position_mm()), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             self.actual_position = self.position = position
-            self.inpos = linuxcnc.cnc.is_standstill()
+            self.inpos = linuxcnc.in_position
+            self.current_vel = linuxcnc.cnc.speed_mm_s()
             self.interp_state = INTERP[linuxcnc.program_status]
+            self.paused = linuxcnc.program_status == "paused"
             self.task_state = CONSTANTS["STATE_ON"]
             self.homed = tuple(int(j < HOMED_JOINTS) for j in range(MAX_JOINTS))
             self.joint = tuple({"fault": 0, "homed": self.homed[j]} for j in range(MAX_JOINTS))

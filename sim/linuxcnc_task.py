@@ -64,6 +64,8 @@ class _Program:
         self._abort = False
         self._follower: Follower | None = None
         self._thread: threading.Thread | None = None
+        #: Held mid-move (a feed hold; not an M0): the rest of the move is still queued.
+        self.held_mid_move = False
 
     def start(self) -> None:
         if self.lockstep is not None:
@@ -138,7 +140,9 @@ class _Program:
             if self._abort:
                 return
             self.cnc.stop()  # feed hold
+            self.held_mid_move = True
             self._paused()
+            self.held_mid_move = False
 
 
 class SimulatedLinuxcnc:
@@ -171,6 +175,12 @@ class SimulatedLinuxcnc:
     def position_mm(self) -> np.ndarray:
         """Actual and commanded position alike (the simulated drives follow exactly), mm (3,)."""
         return self.cnc.position_mm()
+
+    @property
+    def in_position(self) -> bool:
+        """As LinuxCNC's ``inpos``: nothing left to move (false in a feed hold mid-move)."""
+        held = self.program is not None and self.program.held_mid_move
+        return self.cnc.is_standstill() and not held
 
     def take_error(self) -> str | None:
         """LinuxCNC's last error message, once (None when there is none)."""
