@@ -42,7 +42,7 @@ import importlib.util
 import logging
 import sys
 from collections.abc import Callable
-from importlib.machinery import PathFinder
+from importlib.machinery import ModuleSpec, PathFinder
 from pathlib import Path
 from typing import Any
 
@@ -112,28 +112,34 @@ def find_linuxcnc_module(module_dir: Path | None = None) -> Any:
     loaded from there). InputError in one line when it is absent or built for another Python.
     """
     if module_dir is None:
-        spec = PathFinder.find_spec("linuxcnc") or PathFinder.find_spec(
-            "linuxcnc", [str(SYSTEM_MODULE_DIR)]
-        )
-        where = f"on the Python path or in {SYSTEM_MODULE_DIR}"
-        folder = SYSTEM_MODULE_DIR
+        spec = _module_spec(None) or _module_spec([str(SYSTEM_MODULE_DIR)])
+        where, folder = f"on the Python path or in {SYSTEM_MODULE_DIR}", SYSTEM_MODULE_DIR
     else:
-        spec = PathFinder.find_spec("linuxcnc", [str(module_dir)])
+        spec = _module_spec([str(module_dir)])
         where, folder = f"in {module_dir}", module_dir
-    if spec is None or spec.loader is None:
+    if spec is None:
         built = sorted(path.name for path in folder.glob("linuxcnc.*.so"))
         python = f"{sys.version_info.major}.{sys.version_info.minor}"
         found = f"; found {', '.join(built)}, built for another Python than {python}"
         raise InputError(
             f"LinuxCNC's Python module 'linuxcnc' is not {where}{found if built else ''}:"
-            " install LinuxCNC"
-            " (Debian linuxcnc-uspace) or run xmalign with the Python LinuxCNC uses"
+            " install LinuxCNC (Debian linuxcnc-uspace) or run xmalign with the Python"
+            " LinuxCNC uses"
         )
-    if spec.name in sys.modules:
-        return sys.modules[spec.name]
+    loaded = sys.modules.get(spec.name)
+    if loaded is not None and getattr(loaded, "__file__", None) == spec.origin:
+        return loaded
     module = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
     spec.loader.exec_module(module)
     return module
+
+
+def _module_spec(path: list[str] | None) -> ModuleSpec | None:
+    """The spec of a module file ``linuxcnc`` on ``path`` (a folder named linuxcnc, such
+    as tests/linuxcnc, is a namespace package: not it)."""
+    spec = PathFinder.find_spec("linuxcnc", path)
+    return spec if spec is not None and spec.has_location and spec.loader is not None else None
 
 
 class LocalLinuxCnc(LinuxCncControl):

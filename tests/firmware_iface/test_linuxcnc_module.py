@@ -10,6 +10,7 @@ real module against a running headless LinuxCNC: tests/linuxcnc/test_linuxcnc_mo
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -79,12 +80,16 @@ def test_the_simulated_module_offers_the_same(reference_machine: Machine) -> Non
     assert len(stat.actual_position) == 9 and len(stat.homed) == 16  # as the real one's
 
 
-def test_the_module_is_found_in_debians_folder_without_the_rest_of_it() -> None:
-    import sys
-
-    module = _real_module()
+def test_the_module_is_found_in_debians_folder_without_the_rest_of_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _real_module()
+    (tmp_path / "linuxcnc").mkdir()  # a folder of that name (tests/linuxcnc): not the module
+    monkeypatch.syspath_prepend(str(tmp_path))
+    module = find_linuxcnc_module()
     assert module.__file__.startswith(str(SYSTEM_MODULE_DIR))
     assert str(SYSTEM_MODULE_DIR) not in sys.path
+    assert find_linuxcnc_module() is module
 
 
 def test_an_absent_module_is_one_line(tmp_path: Path) -> None:
