@@ -37,6 +37,8 @@ from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, Inp
 from xmalign.machine import Machine
 from xmalign.roles import ProgramControl, WallClock
 
+ROOT = Path(__file__).resolve().parents[2]
+
 
 def _real_module() -> Any:
     try:
@@ -236,6 +238,15 @@ def test_both_channels_see_the_same_simulated_linuxcnc(
     finally:
         rsh.close()
         server.stop()
+
+
+def test_the_documented_example_loads_and_is_in_the_docs() -> None:
+    example = ROOT / "examples" / "units-linuxcnc.yaml"
+    config = load_units_config(example).machine_position
+    assert config.source == "linuxcnc" and config.controlled is config.linuxcnc
+    assert not config.follows_the_machine
+    docs = (ROOT / "docs" / "hardware.md").read_text(encoding="utf-8")
+    assert example.read_text(encoding="utf-8") in docs, "docs/hardware.md lost the example"
 
 
 @pytest.mark.parametrize(("allowed", "mover_type"), [(False, OperatorPrompt), (True, MdiMover)])
