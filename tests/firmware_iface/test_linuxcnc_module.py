@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -33,9 +32,10 @@ from sim.cnc import SimulatedCnc
 from sim.linuxcnc_module import CONSTANTS, simulated_module
 from sim.linuxcnc_task import SimulatedLinuxcnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
+from tests.sim.test_linuxcncrsh_server import _wait, run_through_a_stop_and_a_feed_hold
 from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, InputError
 from xmalign.machine import Machine
-from xmalign.roles import ProgramControl, WallClock
+from xmalign.roles import WallClock
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -119,35 +119,11 @@ def cnc(linuxcnc: SimulatedLinuxcnc) -> LocalLinuxCnc:
     return LocalLinuxCnc(simulated_module(linuxcnc), timeout_s=1.0)
 
 
-def _wait(condition, timeout_s: float = 10.0) -> None:  # noqa: ANN001
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
-
-
 def test_program_control_through_the_module_with_each_command_logged(
     cnc: LocalLinuxCnc, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level(logging.DEBUG, logger="firmware_iface")
-    assert isinstance(cnc, ProgramControl)
-    cnc.check_ready()
-    program = tmp_path / "p.ngc"
-    program.write_text("G21 G90\nG53 G1 X100 Y50 Z-10 F6000\nM0\nG53 G1 X300 F600\nM2\n")
-    cnc.start_program(str(program))
-    assert cnc.loaded_program() == str(program)
-    _wait(lambda: cnc.program_state() == "paused")  # the M0
-    assert np.allclose(cnc.position_mm(), [100, 50, -10]) and cnc.is_standstill()
-    cnc.resume()
-    _wait(lambda: cnc.position_mm()[0] > 110)
-    assert not cnc.is_standstill()
-    cnc.hold()
-    _wait(lambda: cnc.program_state() == "paused" and cnc.is_standstill())
-    held = cnc.position_mm()
-    cnc.resume()
-    _wait(lambda: cnc.position_mm()[0] > held[0])
-    cnc.stop_program()
-    assert cnc.program_state() == "idle"
+    program = run_through_a_stop_and_a_feed_hold(cnc, tmp_path)
     log = caplog.text
     for line in (
         "> mode(MODE_AUTO)",

@@ -42,6 +42,7 @@ from tests.firmware_iface.machine_position_contract import (  # noqa: F401 (the 
     test_is_a_machine_position_source,
     test_stands_still_once_the_position_stays_put,
 )
+from tests.sim.test_linuxcncrsh_server import _wait
 from tests.xmalign.test_live_e2e import cut_plan
 from xmalign.errors import DeviceError
 from xmalign.machine import Machine
@@ -125,13 +126,6 @@ def stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> Stand:
     )
 
 
-def _wait(condition: Callable[[], bool], timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
-
-
 def _program(folder: Path, text: str) -> str:
     path = folder / "p.ngc"
     path.write_text(text)
@@ -171,7 +165,7 @@ def test_the_module_and_linuxcncrsh_agree_on_one_machine(
     time.sleep(0.2)
     assert np.array_equal(local.position_mm(), held)
     local.resume()
-    _wait(lambda: local.program_state() == "paused" and local.is_standstill())  # next M0
+    _wait(lambda: local.program_state() == "paused" and local.is_standstill(), 30.0)  # next M0
     assert np.allclose(local.position_mm(), [400, 20, -30], atol=1e-6)
     local.stop_program()
     assert local.program_state() == rsh.program_state() == "idle"
