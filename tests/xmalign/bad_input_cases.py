@@ -353,6 +353,22 @@ _UNITS_CASES = [
         replace(U, "source: prompt", "source: mtconnect\n  mtconnect: {url: 'ftp://a'}"),
         "mtconnect.url",
     ),
+    ("linuxcnc-missing", replace(U, "source: prompt", "source: linuxcnc"), "'linuxcnc' is req"),
+    (
+        "linuxcnc-no-program",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {joints: 3}"),
+        "linuxcnc.program",
+    ),
+    (
+        "linuxcnc-host",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {program: p.ngc, host: cnc}"),
+        "linuxcnc.host",
+    ),
+    (
+        "linuxcnc-joints-0",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {program: p.ngc, joints: 0}"),
+        "linuxcnc.joints",
+    ),
     (
         "sinumerik-policy-no-certificate",
         replace(

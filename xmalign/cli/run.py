@@ -194,17 +194,17 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
 
     config = load_units_config(config_path)
     devices = open_devices(config, machine)
-    rsh = config.machine_position.linuxcncrsh
+    controlled = config.machine_position.controlled
 
     def capture(output: RunOutput) -> CalibrationRun:
-        if devices.controller is not None and rsh is not None:
-            write_controller_program(plan, machine, "linuxcnc", rsh.program)
+        if devices.controller is not None and controlled is not None:
+            write_controller_program(plan, machine, "linuxcnc", controlled.program)
             drive = controlled_drive(
                 devices.controller,
-                rsh.cnc_program_path,
+                controlled.cnc_program_path,
                 _tell_operator,
                 machine,
-                rsh.tolerance_mm,
+                controlled.tolerance_mm,
                 config.timeouts.machine_s,
             )
         elif config.machine_position.follows_the_machine:
