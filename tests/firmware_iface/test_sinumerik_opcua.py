@@ -27,6 +27,7 @@ from sinumerik_server import SinumerikServer
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
 from xmalign.errors import DeviceError, TransportError, XmalignError
+from xmalign.program_check import ProgramGuard
 
 USER = OpcUaSecurity(identity="user", user="xmalign", password="s3cret-Pw")
 
@@ -340,5 +341,10 @@ def test_cross_check_against_open62541() -> None:
             assert (status.program_state, status.mode) == ("running", "AUTOMATIC")
             assert status.state == "progStatus 3 (in progress), chanStatus 1 (active)"
             assert machine.loaded_program() == "/_N_MPF_DIR/_N_XMALIGN_MPF"
+            report = machine.program_report()
+            assert (report.name, report.state) == ("/_N_MPF_DIR/_N_XMALIGN_MPF", "running")
+            ProgramGuard(machine, "XMALIGN", "key", print).check()  # xmalign's: passes
+            with pytest.raises(DeviceError, match="not xmalign's program run"):
+                ProgramGuard(machine, "run", "key", print).check()
     finally:
         server.communicate(input="", timeout=30)
