@@ -330,6 +330,8 @@ class LiveDevices(ClosesOnExit):
     environment: EnvironmentSource | None = None
     #: The controller xmalign runs the program on (``source: linuxcncrsh`` or ``linuxcnc``).
     controller: LinuxCncControl | None = None
+    #: Where the machine's position is read (None: the operator types it).
+    position: MachinePositionSource | None = None
 
     def close(self) -> None:
         """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
@@ -421,7 +423,9 @@ def open_devices(
             close()
         raise
     mover = _mover(config, machine, controller, ask, tell, position)
-    return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
+    return LiveDevices(
+        launch, receiver, interferometer, mover, closers, environment, controller, position
+    )
 
 
 def _mover(

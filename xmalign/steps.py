@@ -70,6 +70,9 @@ from xmalign.safety import units_locked_on_exit
 
 #: File name ending of a program in each dialect, as the controllers expect.
 PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
+#: The program file's name in the usual calibration (``xmalign program --out run.nc``, the
+#: dry run's ``run<suffix>``): the program a followed controller is expected to run.
+PROGRAM_STEM = "run"
 #: Alignments after which a quick identification points the units better than the guess.
 REFINE_AFTER = 3
 
@@ -215,7 +218,8 @@ def program_gcode(
 def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) -> Path:
     """Where :func:`program_step` writes the program by default: ``run<suffix>`` of the
     dialect next to the plan."""
-    return plan_path.with_name(f"run{PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]}")
+    suffix = PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]
+    return plan_path.with_name(f"{PROGRAM_STEM}{suffix}")
 
 
 def program_step(
@@ -301,13 +305,21 @@ def following_drive(
     tell: Callable[[str], None],
     machine: Machine,
     poll_s: float = 0.05,
+    check_program: Callable[[], None] = lambda: None,
 ) -> Drive:
     """Capture while the controller runs the program, at each standstill on a target
     (the units set at each line's pre-position, the machine file's overrun before it);
     ``tell`` says the operator's part (run the program, press cycle start); ``poll_s``:
-    how often the position is read while waiting."""
+    how often the position is read while waiting; ``check_program()`` refuses a
+    controller running another program (:class:`xmalign.program_check.ProgramGuard`)."""
     return lambda run: follow_machine(
-        run, position, run.plan.lines, tell, machine.measurement.overrun_mm, poll_s=poll_s
+        run,
+        position,
+        run.plan.lines,
+        tell,
+        machine.measurement.overrun_mm,
+        poll_s=poll_s,
+        check_program=check_program,
     )
 
 

@@ -36,6 +36,9 @@ class Stand:
     clock: Clock
     #: False for a source that only ever sees a machine at rest (a position file).
     sees_motion: bool = True
+    #: ``show_program(name, running)``: the controller has program ``name`` (its bare
+    #: name, spelled as that controller does) running or idle; None: it reports none.
+    show_program: Callable[[str, bool], None] | None = None
 
 
 def _settled(stand: Stand, reads: int = 10) -> bool:

@@ -7,7 +7,10 @@ documented nodes), a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
 protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc) and a LinuxCNC
 through its Python module (the simulated module in front of the same simulated
 LinuxCNC; tests/linuxcnc/test_linuxcnc_module.py runs this contract against the
-real module and a real headless LinuxCNC).
+real module and a real headless LinuxCNC). A followed controller that reports its
+program (MTConnect's Program, the SINUMERIK's selectedWorkPProg) names it, spelled
+its own way, with its state, and a followed run refuses another program running
+(ProgramGuard).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from asyncua import ua
 from machine_position_contract import (  # noqa: F401 (the contract's tests, run here)
     SETTLE_S,
     Stand,
@@ -39,7 +43,10 @@ from sim.cnc import SimulatedCnc
 from sim.linuxcnc_module import NML_FILE, simulated_module
 from sim.linuxcnc_task import SimulatedLinuxcnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
+from xmalign.errors import DeviceError
 from xmalign.machine import Machine
+from xmalign.program_check import ProgramGuard, same_program
+from xmalign.roles import ReportsProgram
 
 
 def _file_stand(tmp_path: Path) -> Iterator[Stand]:
@@ -56,8 +63,20 @@ def _mtconnect_stand(tmp_path: Path) -> Iterator[Stand]:
     agent = TestAgent("linuxcnc", "LinuxCNC").start()
     clock = SimClock()
     machine = open_mtconnect(agent.url, 2.0, settle_s=SETTLE_S, clock=clock)
+
+    def show_program(name: str, running: bool) -> None:  # LinuxCNC's adapter: the file
+        agent.program = f"/home/cnc/linuxcnc/nc_files/{name.lower()}.ngc"
+        agent.execution = "ACTIVE" if running else "READY"
+
     try:
-        yield Stand(machine, lambda x, y, z: agent.set(X=x, Y=y, Z=z), agent.stop, agent.url, clock)
+        yield Stand(
+            machine,
+            lambda x, y, z: agent.set(X=x, Y=y, Z=z),
+            agent.stop,
+            agent.url,
+            clock,
+            show_program=show_program,
+        )
     finally:
         machine.close()
         agent.stop()
@@ -74,8 +93,15 @@ def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
         server.stop()
         stopped.append(True)
 
+    def show_program(name: str, running: bool) -> None:  # the NC notation
+        nc_name = f"/_N_MPF_DIR/_N_{name.upper()}_MPF"
+        server.set("/Channel/ProgramInfo/selectedWorkPProg[u1]", nc_name, ua.VariantType.String)
+        server.set("/Channel/State/progStatus[u1]", 3 if running else 5, ua.VariantType.UInt16)
+
     try:
-        yield Stand(machine, server.set_position, cut, server.endpoint, clock)
+        yield Stand(
+            machine, server.set_position, cut, server.endpoint, clock, show_program=show_program
+        )
     finally:
         machine.close()
         if not stopped:
@@ -142,3 +168,43 @@ def stand(
         yield from make(tmp_path, reference_machine)  # type: ignore[call-arg]
     else:
         yield from make(tmp_path)
+
+
+def _reporting(stand: Stand) -> Callable[[str, bool], None]:
+    if stand.show_program is None:
+        pytest.skip("this source does not report a program (a file; LinuxCNC runs its own)")
+    assert isinstance(stand.source, ReportsProgram)
+    return stand.show_program
+
+
+def test_a_controller_reporting_its_program_names_it_with_its_state(stand: Stand) -> None:
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
+    show("run", True)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "running"
+    assert report.name is not None and same_program(report.name, "run")
+    show("other", False)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "idle"
+    assert report.name is not None and not same_program(report.name, "run")
+
+
+def test_another_program_running_stops_a_followed_run_with_one_line(stand: Stand) -> None:
+    """A stale or wrong program running (or stopped mid-way) is refused; xmalign's running,
+    or another one idle, is not."""
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
+    told: list[str] = []
+    guard = ProgramGuard(stand.source, "run", "machine_position.x.program_name", told.append)
+    show("run", True)
+    guard.check()
+    show("old", False)
+    guard.check()
+    show("old", True)
+    with pytest.raises(DeviceError) as caught:
+        guard.check()
+    message = str(caught.value)
+    assert "\n" not in message and "OLD" in message.upper()
+    assert "not xmalign's program run (machine_position.x.program_name)" in message
+    assert not told
