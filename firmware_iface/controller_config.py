@@ -144,7 +144,7 @@ class SinumerikConfig(StrictFileModel):
 def expected_program(config: MTConnectConfig | SinumerikConfig, default: str) -> tuple[str, str]:
     """xmalign's program as the controller names it, and the key that says so: the
     section's ``program_name``, else the SINUMERIK's ``program``, else ``default`` (the
-    name of the program file ``xmalign program`` writes)."""
+    name of the program file ``xmalign program`` writes, or the number in it on a Fanuc)."""
     kind = "mtconnect" if isinstance(config, MTConnectConfig) else "sinumerik"
     key = f"machine_position.{kind}.program_name"
     if config.program_name is not None:

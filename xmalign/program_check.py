@@ -3,7 +3,8 @@ controller").
 
 A controller spells a program's name its own way: a path (``/home/cnc/run.ngc``),
 the SINUMERIK's NC notation (``/_N_MPF_DIR/_N_RUN_MPF``) or its OPC UA file path
-(``Sinumerik/FileSystem/Part Program/run.mpf``), a program number (``O1000``).
+(``Sinumerik/FileSystem/Part Program/run.mpf``), a program number (``O1000``, or
+``1000``: the same program).
 :func:`program_name` reduces each to the bare name, in capitals, and two
 programs are the same when their bare names are.
 """
@@ -18,6 +19,8 @@ from xmalign.roles import ReportsProgram
 
 #: The SINUMERIK's NC notation of a file: ``_N_<name>_<type>`` (type MPF, SPF, ...).
 _NC_NOTATION = re.compile(r"^_N_(?P<name>.+)_[A-Z]{3}$", re.IGNORECASE)
+#: A program number: ``O1000``, or ``1000`` as some agents report it.
+_PROGRAM_NUMBER = re.compile(r"^O?(?P<number>\d+)$", re.IGNORECASE)
 
 
 def program_name(spelled: str) -> str:
@@ -26,6 +29,9 @@ def program_name(spelled: str) -> str:
     nc = _NC_NOTATION.match(last)
     if nc is not None:
         return nc["name"].upper()
+    number = _PROGRAM_NUMBER.match(last)
+    if number is not None:
+        return f"O{int(number['number'])}"
     stem, dot, _extension = last.rpartition(".")
     return (stem if dot and stem else last).upper()
 

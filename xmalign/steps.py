@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.gcode.fanuc import PROGRAM_NUMBER
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
@@ -213,6 +214,13 @@ def program_gcode(
     controller's, the program named ``name`` (Heidenhain wants the file's name)."""
     dialect_name = resolve_dialect(machine, dialect)
     return dialect_name, write_program(plan, machine, make_dialect(dialect_name, machine, name))
+
+
+def program_name_on_controller(machine: Machine) -> str:
+    """The name a followed controller reports for xmalign's program: on a Fanuc the
+    number in it (a Fanuc names a program by its number), elsewhere the program file's
+    name in the usual calibration (``run``)."""
+    return PROGRAM_NUMBER if machine.controller == "fanuc" else PROGRAM_STEM
 
 
 def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) -> Path:

@@ -21,6 +21,8 @@ from xmalign.roles import ProgramReport
         ("/_N_WKS_DIR/_N_SHAFT_WPD/_N_PART_2_MPF", "PART_2"),  # a workpiece's program
         ("Sinumerik/FileSystem/Part Program/XMALIGN.MPF", "XMALIGN"),  # its OPC UA path
         ("O1234", "O1234"),  # a Fanuc's program number (the VMC sample agent)
+        ("1234", "O1234"),  # the same number as some agents report it
+        ("O01234", "O1234"),
         ("C:\\CNC\\Programs\\run.nc", "RUN"),
         (" run.ngc ", "RUN"),
         (".hidden", ".HIDDEN"),
@@ -35,6 +37,7 @@ def test_different_programs_differ() -> None:
     assert not same_program("/_N_MPF_DIR/_N_OLD_MPF", "run")
     assert not same_program("/home/cnc/run2.ngc", "run")
     assert not same_program("O1000", "run")
+    assert not same_program("O1001", "O1000")
 
 
 @given(st.from_regex(r"[A-Za-z][A-Za-z0-9_]{0,20}", fullmatch=True))

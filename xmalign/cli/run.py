@@ -241,12 +241,12 @@ def _program_check(
     from firmware_iface.controller_config import expected_program
     from xmalign.program_check import ProgramGuard, program_name
     from xmalign.roles import ReportsProgram
-    from xmalign.steps import PROGRAM_STEM, program_gcode
+    from xmalign.steps import program_gcode, program_name_on_controller
 
     section = source.mtconnect or source.sinumerik
     if section is None or not isinstance(followed, ReportsProgram):
         return lambda: None
-    expected, key = expected_program(section, PROGRAM_STEM)
+    expected, key = expected_program(section, program_name_on_controller(machine))
     nc = source.sinumerik
     if nc is not None and nc.program is not None:
         from firmware_iface.sinumerik_opcua import SinumerikMachine  # asyncua: only here
