@@ -21,11 +21,14 @@
       rate_hz: 50                  # default 50
       # replay: recorded.csv       # instead of port: play back a recorded stream
     machine_position:
-      source: prompt               # prompt (operator types it), file, linuxcncrsh, mtconnect
-      #                              or sinumerik
+      source: prompt               # prompt (operator types it), file, linuxcncrsh, linuxcnc,
+      #                              mtconnect or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
       # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
       #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # linuxcnc: {program: /home/cnc/xmalign-run.ngc}
+      #                            (source: linuxcnc: the same, through LinuxCNC's Python
+      #                             module, xmalign on the CNC's own computer)
       # mtconnect: {url: http://192.168.10.30:5000, device: VMC}
       # sinumerik: {endpoint: opc.tcp://192.168.214.241:4840, user: xmalign,
       #             password_env: XMALIGN_OPCUA_PASSWORD}
@@ -34,7 +37,7 @@
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
-      machine_s: 600.0             # the machine reaching its next stop (linuxcncrsh)
+      machine_s: 600.0             # the machine reaching its next stop (linuxcncrsh, linuxcnc)
     environment:                   # optional; see docs/environment.md
       source: serial               # fixed, file, serial, modbus-tcp or modbus-rtu
       port: /dev/ttyUSB1
@@ -73,12 +76,12 @@ from firmware_iface.controller_config import (
     resolve_paths,
 )
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
+from firmware_iface.linuxcnc_control import LinuxCncControl, MdiMover
+from firmware_iface.linuxcnc_module import open_local_linuxcnc
 from firmware_iface.linuxcncrsh import (
     DEFAULT_CONNECT_PASSWORD,
     DEFAULT_ENABLE_PASSWORD,
     DEFAULT_PORT,
-    LinuxCnc,
-    MdiMover,
     open_linuxcnc,
 )
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
@@ -168,17 +171,11 @@ class InterferometerConfig(_Strict):
         return self
 
 
-class LinuxcncrshConfig(_Strict):
-    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md)."""
+class _ControlledLinuxcnc(_Strict):
+    """What both ways to a LinuxCNC share: the program xmalign runs, and its checks."""
 
-    host: str
-    port: Annotated[int, Field(ge=1, le=65535)] = DEFAULT_PORT
-    connect_password: str = DEFAULT_CONNECT_PASSWORD
-    enable_password: str = DEFAULT_ENABLE_PASSWORD
     #: Where xmalign writes its program (a folder the LinuxCNC computer reads).
     program: Path
-    #: The same file as LinuxCNC opens it (default: ``program``).
-    program_on_cnc: str | None = None
     joints: Annotated[int, Field(ge=1, le=9)] = 3
     #: Actual within this of commanded counts as standing still, mm.
     in_position_mm: Annotated[float, Field(gt=0, le=1)] = 0.002
@@ -190,19 +187,48 @@ class LinuxcncrshConfig(_Strict):
     @property
     def cnc_program_path(self) -> str:
         """The program as LinuxCNC opens it (absolute: LinuxCNC starts from its INI's folder)."""
-        return self.program_on_cnc or str(self.program.resolve())
+        return str(self.program.resolve())
+
+
+class LinuxcncrshConfig(_ControlledLinuxcnc):
+    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md)."""
+
+    host: str
+    port: Annotated[int, Field(ge=1, le=65535)] = DEFAULT_PORT
+    connect_password: str = DEFAULT_CONNECT_PASSWORD
+    enable_password: str = DEFAULT_ENABLE_PASSWORD
+    #: The same file as LinuxCNC opens it (default: ``program``).
+    program_on_cnc: str | None = None
+
+    @property
+    def cnc_program_path(self) -> str:
+        return self.program_on_cnc or super().cnc_program_path
+
+
+class LinuxcncModuleConfig(_ControlledLinuxcnc):
+    """The LinuxCNC on this computer, through its Python module ``linuxcnc`` (docs/hardware.md)."""
+
+    #: The folder holding LinuxCNC's ``linuxcnc`` module (default: the Python path, then
+    #: Debian's /usr/lib/python3/dist-packages).
+    module_dir: Path | None = None
+    #: The NML configuration of the running LinuxCNC (default: the module's own,
+    #: /usr/share/linuxcnc/linuxcnc.nml on Debian; an INI's [EMC] NML_FILE if it sets one).
+    nml_file: Path | None = None
 
 
 class MachinePositionConfig(_Strict):
-    source: Literal["prompt", "file", "linuxcncrsh", "mtconnect", "sinumerik"] = "prompt"
+    source: Literal["prompt", "file", "linuxcncrsh", "linuxcnc", "mtconnect", "sinumerik"] = (
+        "prompt"
+    )
     file: Path | None = None
     linuxcncrsh: LinuxcncrshConfig | None = None
+    linuxcnc: LinuxcncModuleConfig | None = None
     mtconnect: MTConnectConfig | None = None
     sinumerik: SinumerikConfig | None = None
 
     @model_validator(mode="after")
     def _source_given(self) -> MachinePositionConfig:
-        for source in ("file", "linuxcncrsh", "mtconnect", "sinumerik"):
+        for source in ("file", "linuxcncrsh", "linuxcnc", "mtconnect", "sinumerik"):
             if (self.source == source) != (getattr(self, source) is not None):
                 raise ValueError(f"'{source}' is required with source: {source}, and only then")
         return self
@@ -211,6 +237,11 @@ class MachinePositionConfig(_Strict):
     def follows_the_machine(self) -> bool:
         """The operator runs the program; xmalign follows the machine's position."""
         return self.source in ("file", "mtconnect", "sinumerik")
+
+    @property
+    def controlled(self) -> LinuxcncrshConfig | LinuxcncModuleConfig | None:
+        """The LinuxCNC xmalign runs its program on (``linuxcncrsh`` or ``linuxcnc``)."""
+        return self.linuxcncrsh or self.linuxcnc
 
 
 class Timeouts(_Strict):
@@ -255,13 +286,22 @@ def parse_units_config(data: object, source: str, base_dir: Path | None = None) 
 def _resolve_machine_position(
     config: MachinePositionConfig, base_dir: Path
 ) -> MachinePositionConfig:
-    rsh = config.linuxcncrsh
+    rsh, local = config.linuxcncrsh, config.linuxcnc
     return config.model_copy(
         update={
             "file": _resolve(config.file, base_dir),
             "linuxcncrsh": None
             if rsh is None
             else rsh.model_copy(update={"program": base_dir / rsh.program}),
+            "linuxcnc": None
+            if local is None
+            else local.model_copy(
+                update={
+                    "program": base_dir / local.program,
+                    "module_dir": _resolve(local.module_dir, base_dir),
+                    "nml_file": _resolve(local.nml_file, base_dir),
+                }
+            ),
             "sinumerik": resolve_paths(config.sinumerik, base_dir),
         }
     )
@@ -288,8 +328,10 @@ class LiveDevices(ClosesOnExit):
     mover: MachineMover
     closers: list[Callable[[], None]] = field(default_factory=list)
     environment: EnvironmentSource | None = None
-    #: The controller xmalign runs the program on (``source: linuxcncrsh``).
-    controller: LinuxCnc | None = None
+    #: The controller xmalign runs the program on (``source: linuxcncrsh`` or ``linuxcnc``).
+    controller: LinuxCncControl | None = None
+    #: Where the machine's position is read (None: the operator types it).
+    position: MachinePositionSource | None = None
 
     def close(self) -> None:
         """Close in reverse order of opening (heartbeats stop: the units then lock themselves)."""
@@ -388,22 +430,24 @@ def open_devices(
             close()
         raise
     mover = _mover(config, machine, controller, ask, tell, position)
-    return LiveDevices(launch, receiver, interferometer, mover, closers, environment, controller)
+    return LiveDevices(
+        launch, receiver, interferometer, mover, closers, environment, controller, position
+    )
 
 
 def _mover(
     config: UnitsConfig,
     machine: Machine,
-    controller: LinuxCnc | None,
+    controller: LinuxCncControl | None,
     ask: Callable[[str], str],
     tell: Callable[[str], None],
     position: MachinePositionSource | None,
 ) -> MachineMover:
     """Who moves the machine: xmalign over MDI where ``units.yaml`` allows it, otherwise
     the operator (asked to; the position read from ``position`` where there is one)."""
-    rsh = config.machine_position.linuxcncrsh
-    if controller is not None and rsh is not None and rsh.allow_mdi_moves:
-        return MdiMover(controller, machine, rsh.tolerance_mm, config.timeouts.machine_s)
+    controlled = config.machine_position.controlled
+    if controller is not None and controlled is not None and controlled.allow_mdi_moves:
+        return MdiMover(controller, machine, controlled.tolerance_mm, config.timeouts.machine_s)
     return OperatorPrompt(machine, ask, tell, position)
 
 
@@ -423,20 +467,34 @@ def _position_source(
 
 def _open_controller(
     config: UnitsConfig, closers: list[Callable[[], None]], clock: Clock | None
-) -> LinuxCnc | None:
-    """The LinuxCNC of ``source: linuxcncrsh``, connected and enabled for control."""
-    rsh = config.machine_position.linuxcncrsh
-    if rsh is None:
+) -> LinuxCncControl | None:
+    """The LinuxCNC of ``source: linuxcncrsh`` (connected and enabled for control) or of
+    ``source: linuxcnc`` (through its module on this computer)."""
+    source = config.machine_position
+    cnc: LinuxCncControl
+    if source.linuxcncrsh is not None:
+        rsh = source.linuxcncrsh
+        cnc = open_linuxcnc(
+            rsh.host,
+            rsh.port,
+            config.timeouts.io_s,
+            rsh.connect_password,
+            rsh.enable_password,
+            rsh.joints,
+            rsh.in_position_mm,
+            clock,
+        )
+    elif source.linuxcnc is not None:
+        local = source.linuxcnc
+        cnc = open_local_linuxcnc(
+            local.module_dir,
+            local.nml_file,
+            local.joints,
+            local.in_position_mm,
+            clock,
+            config.timeouts.io_s,
+        )
+    else:
         return None
-    cnc = open_linuxcnc(
-        rsh.host,
-        rsh.port,
-        config.timeouts.io_s,
-        rsh.connect_password,
-        rsh.enable_password,
-        rsh.joints,
-        rsh.in_position_mm,
-        clock,
-    )
     closers.append(cnc.close)
     return cnc

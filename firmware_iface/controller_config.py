@@ -10,6 +10,8 @@
         timeout_s: 2.0             # default: timeouts.io_s
         settle_s: 0.2              # standstill: unchanged this long ...
         standstill_mm: 0.002       # ... within this
+        program_name: run          # xmalign's program as the agent's Program names it
+                                   # (default: the program file's name, run)
 
     machine_position:
       source: sinumerik
@@ -20,6 +22,9 @@
         security_policy: Basic256Sha256        # None, Basic256Sha256, Aes128_Sha256_RsaOaep, ...
         certificate: xmalign-cert.der
         private_key: xmalign-key.pem
+        program: Sinumerik/FileSystem/Part Program/XMALIGN.MPF  # selected before the run
+        copy_program: true         # and written there from the plan first (FsWrite)
+        program_name: XMALIGN      # default: program's file name, else run
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 
 from xmalign.errors import InputError
 from xmalign.formats.common import StrictFileModel
@@ -38,6 +43,10 @@ from xmalign.roles import Clock, MachinePositionSource
 Seconds = Annotated[float, Field(gt=0, le=600)]
 SettleSeconds = Annotated[float, Field(gt=0, le=60)]
 StandstillMm = Annotated[float, Field(gt=0, le=1)]
+#: A program's name as a controller reports it (``run``, ``O1000``, ``/home/cnc/run.ngc``).
+ProgramName = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^\S(.*\S)?$")]
+#: Where the SINUMERIK's OPC UA file system keeps main programs (configuration manual 7.5).
+NC_FILE_SYSTEM = "Sinumerik/FileSystem/"
 
 
 class MTConnectConfig(StrictFileModel):
@@ -50,6 +59,8 @@ class MTConnectConfig(StrictFileModel):
     timeout_s: Seconds | None = None
     settle_s: SettleSeconds = 0.2
     standstill_mm: StandstillMm = 0.002
+    #: xmalign's program as the agent's ``Program`` names it (default: the program file's).
+    program_name: ProgramName | None = None
 
 
 class SinumerikConfig(StrictFileModel):
@@ -81,6 +92,32 @@ class SinumerikConfig(StrictFileModel):
     timeout_s: Seconds | None = None
     settle_s: SettleSeconds = 0.2
     standstill_mm: StandstillMm = 0.002
+    #: xmalign's program in the NC's OPC UA file system: selected before the run.
+    program: str | None = None
+    #: Write the plan's program to ``program`` before selecting it (CopyFileToServer).
+    copy_program: bool = False
+    #: xmalign's program as the NC names it (default: the file name of ``program``).
+    program_name: ProgramName | None = None
+
+    @field_validator("program")
+    @classmethod
+    def _main_program_path(cls, program: str | None) -> str | None:
+        if program is None:
+            return None
+        name = program.rsplit("/", 1)[-1]
+        stem, _, extension = name.rpartition(".")
+        if (
+            not program.startswith(NC_FILE_SYSTEM)
+            or extension.lower() != "mpf"
+            or not stem
+            or "." in stem
+            or name != name.strip()
+        ):
+            raise ValueError(
+                f"expected a main program's path in the NC's file system, e.g."
+                f" '{NC_FILE_SYSTEM}Part Program/XMALIGN.MPF' (one extension, .mpf)"
+            )
+        return program
 
     @model_validator(mode="after")
     def _consistent(self) -> SinumerikConfig:
@@ -94,12 +131,27 @@ class SinumerikConfig(StrictFileModel):
             raise ValueError("identity: user needs 'user'")
         if self.login == "certificate" and self.certificate is None:
             raise ValueError("identity: certificate needs 'certificate'")
+        if self.copy_program and self.program is None:
+            raise ValueError("copy_program needs 'program' (where on the NC to write it)")
         return self
 
     @property
     def login(self) -> Literal["user", "certificate", "anonymous"]:
         """The identity: as given, else user when a user is named, else anonymous."""
         return self.identity or ("user" if self.user is not None else "anonymous")
+
+
+def expected_program(config: MTConnectConfig | SinumerikConfig, default: str) -> tuple[str, str]:
+    """xmalign's program as the controller names it, and the key that says so: the
+    section's ``program_name``, else the SINUMERIK's ``program``, else ``default`` (the
+    name of the program file ``xmalign program`` writes, or the number in it on a Fanuc)."""
+    kind = "mtconnect" if isinstance(config, MTConnectConfig) else "sinumerik"
+    key = f"machine_position.{kind}.program_name"
+    if config.program_name is not None:
+        return config.program_name, key
+    if isinstance(config, SinumerikConfig) and config.program is not None:
+        return config.program, f"machine_position.{kind}.program"
+    return default, f"{key}, default: the program file's name"
 
 
 def resolve_paths(config: SinumerikConfig | None, base_dir: Path) -> SinumerikConfig | None:

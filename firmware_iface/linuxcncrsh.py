@@ -10,11 +10,10 @@ Two layers, as for every device:
   on such a link: the actual position in machine coordinates
   (``get abs_act_pos``), standstill, the program state
   (``get program_status``), and program control (``set open``, ``set run``,
-  ``set pause``, ``set resume``, ``set abort``). It is a
-  ``MachinePositionSource`` and a ``ProgramControl`` (:mod:`xmalign.roles`).
-  It writes an axis position only in :meth:`LinuxCnc.move_mdi` (``set mode
-  mdi``, ``set mdi G53 G1 ...``), which :class:`MdiMover` uses, and only where
-  ``units.yaml`` allows it (``allow_mdi_moves: true``); no jog, no homing.
+  ``set pause``, ``set resume``, ``set abort``; MDI moves with ``set mode
+  mdi`` and ``set mdi G53 G1 ...``). Only these primitives are its own: the
+  waits and checks are :class:`~firmware_iface.linuxcnc_control.LinuxCncControl`'s,
+  which the ``linuxcnc`` Python module's driver shares.
 
 Replies as LinuxCNC 2.9 sends them (seen on a headless ``linuxcnc-uspace``):
 ``get`` replies end with ``\\r\\n`` and start with the subcommand in capitals
@@ -33,16 +32,10 @@ from typing import Protocol
 
 import numpy as np
 
-from xmalign.errors import (
-    DeviceError,
-    DeviceTimeoutError,
-    DriveFaultError,
-    OutOfRangeError,
-    TransportError,
-)
+from firmware_iface.linuxcnc_control import LinuxCncControl, Mode
+from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
 from xmalign.geometry import Vec
-from xmalign.machine import Machine
-from xmalign.roles import Clock, ProgramState, WallClock
+from xmalign.roles import Clock, ProgramState
 
 log = logging.getLogger(__name__)
 
@@ -148,22 +141,19 @@ class LinuxcncrshLink:
             log.debug("%s: closed", self.name)
 
 
-class LinuxCnc:
-    """A LinuxCNC seen through linuxcncrsh: position, standstill, program state and control.
+class LinuxCnc(LinuxCncControl):
+    """A LinuxCNC seen through linuxcncrsh: the primitives of :class:`LinuxCncControl`.
 
-    Positions are ``abs_act_pos``: the actual position of the controlled point
-    in machine coordinates (what ``G53`` addresses; no work offset, no G92
-    offset; the tool length offset is what the program sets, and xmalign's
-    program cancels it with ``G49``), the coordinates of the plan.
+    Positions are ``abs_act_pos`` (commanded: ``abs_cmd_pos``). linuxcncrsh has
+    no in-position flag: the command stands still when two reads
+    ``STANDSTILL_PROBE_S`` apart agree.
 
     Parameters
     ----------
     link : LineLink
         A fresh session (:meth:`open` says hello).
-    joints : int
-        How many joints must be homed and free of faults.
-    in_position_mm : float
-        Largest distance between the actual and the commanded position at a standstill.
+    joints, in_position_mm, clock
+        As for :class:`~firmware_iface.linuxcnc_control.LinuxCncControl`.
     """
 
     def __init__(
@@ -173,11 +163,8 @@ class LinuxCnc:
         in_position_mm: float = 0.002,
         clock: Clock | None = None,
     ) -> None:
+        super().__init__(link.name, joints, in_position_mm, clock)
         self.link = link
-        self.name = link.name
-        self.joints = joints
-        self.in_position_mm = in_position_mm
-        self.clock = clock or WallClock()
 
     def open(self, connect_password: str, enable_password: str | None) -> None:
         """Say hello; without echo, with a reply to every ``set``; enable control if asked."""
@@ -222,19 +209,14 @@ class LinuxCnc:
         """Commanded X Y Z in machine coordinates (``abs_cmd_pos``), mm, shape (3,)."""
         return self._axes_mm("abs_cmd_pos")
 
-    def is_standstill(self) -> bool:
-        """The commanded position did not change over ``STANDSTILL_PROBE_S`` and the actual
-        position is within ``in_position_mm`` of it (linuxcncrsh has no in-position flag)."""
+    def _commanded_at_rest_mm(self) -> Vec | None:
         before = self.commanded_mm()
         self.clock.sleep(STANDSTILL_PROBE_S)
         commanded = self.commanded_mm()
-        if not np.array_equal(before, commanded):
-            return False
-        miss = float(np.linalg.norm(self.position_mm() - commanded))
-        return miss <= self.in_position_mm
+        return commanded if np.array_equal(before, commanded) else None
 
     def program_state(self) -> ProgramState:
-        """``idle``, ``running`` or ``paused`` (an M0, or a feed hold)."""
+        """``idle``, ``running`` or ``paused`` (``get program_status``)."""
         (state,) = self._get("program_status")[:1] or ["?"]
         state = state.lower()
         if state not in ("idle", "running", "paused"):
@@ -246,25 +228,19 @@ class LinuxCnc:
         words = self._get("program")
         return None if not words or words[0].lower() == "none" else " ".join(words)
 
-    def check_ready(self) -> None:
-        """Out of E-stop, machine on, the first ``joints`` joints homed and without fault.
+    def _in_estop(self) -> bool:
+        return self._get("estop")[:1] != ["OFF"]
 
-        xmalign does none of this itself: the operator brings the machine up.
-        """
-        if self._get("estop")[:1] != ["OFF"] or self._get("machine")[:1] != ["ON"]:
-            raise DriveFaultError(
-                f"{self.name}: the machine is in E-stop or off; switch it on and home it first"
-            )
-        homed = self._get("joint_homed")[: self.joints]
-        if len(homed) < self.joints or any(word.upper() != "YES" for word in homed):
-            raise DriveFaultError(
-                f"{self.name}: not every joint is homed ({' '.join(homed)}); home the machine first"
-            )
-        faults = self._get("joint_fault")[: self.joints]
-        if any(word.upper() != "OK" for word in faults):
-            raise DriveFaultError(f"{self.name}: joint fault ({' '.join(faults)})")
+    def _machine_on(self) -> bool:
+        return self._get("machine")[:1] == ["ON"]
 
-    # -- program control ------------------------------------------------------------
+    def _joints_homed(self) -> list[bool]:
+        return [word.upper() == "YES" for word in self._get("joint_homed")]
+
+    def _joints_faulted(self) -> list[bool]:
+        return [word.upper() != "OK" for word in self._get("joint_fault")]
+
+    # -- commands -----------------------------------------------------------------
     def _set(self, what: str) -> None:
         reply = self.link.ask(f"set {what}")
         head = what.split()[0].upper()
@@ -283,21 +259,17 @@ class LinuxCnc:
             return ""
         return "" if text.upper() == "OK" else text
 
-    def start_program(self, path: str, timeout_s: float = 5.0) -> None:
-        """Auto mode, open ``path`` (as the LinuxCNC computer sees it), run from the top.
+    def _set_mode(self, mode: Mode) -> None:
+        self._set(f"mode {mode}")
 
-        Returns once LinuxCNC reports the program running (its status lags the
-        command); DeviceError with LinuxCNC's own message when it does not start.
-        """
-        self._set("mode auto")
+    def _open_program(self, path: str) -> None:
         self._set(f"open {path}")
+
+    def _run_program(self) -> None:
         self._set("run")
-        deadline = self.clock.now() + timeout_s
-        while self.program_state() == "idle":
-            if self.clock.now() >= deadline:
-                reason = self._error_text() or "no message"
-                raise DeviceError(f"{self.name} did not start {path} ({reason})")
-            self.clock.sleep(0.02)
+
+    def _mdi(self, line: str) -> None:
+        self._set(f"mdi {line}")
 
     def hold(self) -> None:
         """Feed hold (``set pause``)."""
@@ -310,85 +282,6 @@ class LinuxCnc:
     def stop_program(self) -> None:
         """Abort the program (``set abort``)."""
         self._set("abort")
-
-    # -- MDI moves (only where units.yaml allows them) ---------------------------------
-    def move_mdi(
-        self, target_mm: Vec, feed_mm_min: float, tolerance_mm: float, timeout_s: float
-    ) -> None:
-        """Move the tool point to ``target_mm`` (3,), machine coordinates, with one MDI line.
-
-        ``set mode mdi``, ``set mdi G53 G1 X.. Y.. Z.. F..``; returns once no
-        command runs and the machine is at rest within ``tolerance_mm`` of the
-        target (as LinuxCNC reports its actual position). The controller's
-        soft limits stay in force: a target beyond them is refused there.
-        DeviceError when a program runs, DeviceTimeoutError (with LinuxCNC's
-        last error) when the machine is not there within ``timeout_s``.
-        """
-        state = self.program_state()
-        if state != "idle":
-            raise DeviceError(f"{self.name}: a program is {state}; it moves the machine only idle")
-        x, y, z = np.asarray(target_mm, dtype=float)
-        self._set("mode mdi")
-        self._error_text()  # reading LinuxCNC's last error clears it: only this move's is left
-        self._set(f"mdi G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{feed_mm_min:.1f}")
-        target = f"{np.round(target_mm, 4).tolist()} mm"
-        deadline = self.clock.now() + timeout_s
-        while True:
-            miss_mm = self._miss_at_rest_mm(target_mm)
-            if miss_mm is not None and miss_mm <= tolerance_mm:
-                return
-            # at rest elsewhere: not started yet, or refused (a soft limit): LinuxCNC says which
-            reason = self._error_text() if miss_mm is not None else ""
-            if reason:
-                where = np.round(self.position_mm(), 4).tolist()
-                raise DeviceError(
-                    f"{self.name} did not move to {target} ({reason}); the machine is at {where} mm"
-                )
-            if self.clock.now() >= deadline:
-                where = np.round(self.position_mm(), 4).tolist()
-                raise DeviceTimeoutError(
-                    f"{self.name}: the machine is not at {target} {timeout_s:g} s after the"
-                    f" MDI move; it is at {where} mm"
-                )
-            self.clock.sleep(0.05)
-
-    def _miss_at_rest_mm(self, target_mm: Vec) -> float | None:
-        """Distance of the machine from ``target_mm`` once no command runs and it is at
-        rest, mm; None while it is not."""
-        if self.program_state() != "idle" or not self.is_standstill():
-            return None
-        return float(np.linalg.norm(self.position_mm() - target_mm))
-
-
-class MdiMover:
-    """The ``MachineMover`` of a LinuxCNC that xmalign may move (``allow_mdi_moves: true``).
-
-    :meth:`move_to` checks the target against the machine file's travel and
-    the machine's readiness, then moves there with :meth:`LinuxCnc.move_mdi`.
-    """
-
-    def __init__(
-        self, cnc: LinuxCnc, machine: Machine, tolerance_mm: float, timeout_s: float
-    ) -> None:
-        self.cnc = cnc
-        self.machine = machine
-        self.tolerance_mm = tolerance_mm
-        self.timeout_s = timeout_s
-
-    def position_mm(self) -> Vec:
-        return self.cnc.position_mm()
-
-    def is_standstill(self) -> bool:
-        return self.cnc.is_standstill()
-
-    def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
-        target = np.asarray(position_mm, dtype=float)
-        if not self.machine.within_travel(target):
-            raise OutOfRangeError(
-                f"{np.round(target, 3).tolist()} mm is outside the machine's travel"
-            )
-        self.cnc.check_ready()
-        self.cnc.move_mdi(target, feed_mm_min, self.tolerance_mm, self.timeout_s)
 
 
 def open_linuxcnc(

@@ -23,6 +23,10 @@ Which data items (MTConnect Part 2, Devices; Part 3, Streams):
 * program state: the ``EXECUTION`` event (READY, ACTIVE, INTERRUPTED,
   FEED_HOLD, STOPPED, OPTIONAL_STOP, PROGRAM_STOPPED, PROGRAM_COMPLETED, WAIT);
   operating mode: ``CONTROLLER_MODE``. The first of each in the device is used.
+* the program: the ``PROGRAM`` event ("the identity of the logic or motion
+  program being executed"), the one of ``subType="MAIN"`` first, then one
+  without a subType, then ``ACTIVE`` (never ``SCHEDULE``). A device without
+  one, or one reporting it ``UNAVAILABLE``, does not report its program.
 
 Standstill: every axis's last change is at least ``settle_s`` older than the
 document (the agent records an observation only when a value changes, so this
@@ -52,7 +56,7 @@ from firmware_iface.controller_status import ControllerStatus
 from firmware_iface.standstill import StandstillWindow
 from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, ClosesOnExit, ProgramState, WallClock
+from xmalign.roles import Clock, ClosesOnExit, ProgramReport, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +76,8 @@ EXECUTION_STATES: dict[str, ProgramState] = {
     "PROGRAM_STOPPED": "paused",
 }
 UNAVAILABLE = "UNAVAILABLE"
+#: Which PROGRAM data item names the program the machine runs, best first.
+PROGRAM_SUBTYPES = ("MAIN", None, "ACTIVE")
 
 
 class AgentTransport(Protocol):
@@ -177,6 +183,7 @@ class MTConnectMachine(ClosesOnExit):
         self._positions: tuple[_Item, ...] = ()
         self._execution: _Item | None = None
         self._mode: _Item | None = None
+        self._program: _Item | None = None
         where = f" (device {device})" if device else ""
         self.name = f"{link.name}{where}"
 
@@ -187,6 +194,7 @@ class MTConnectMachine(ClosesOnExit):
         self._positions = tuple(self._position_item(device, axis) for axis in self.axes)
         self._execution = self._first_item(device, "EXECUTION")
         self._mode = self._first_item(device, "CONTROLLER_MODE")
+        self._program = _program_item(device)
         self._window.reset()
         return self
 
@@ -212,7 +220,23 @@ class MTConnectMachine(ClosesOnExit):
 
     def status(self) -> ControllerStatus:
         """Position, program state and mode from one ``/current`` document."""
+        return self._status(self._current())
+
+    def program_report(self) -> ProgramReport | None:
+        """The ``Program`` and its state from one ``/current``; None when the device has no
+        PROGRAM data item or reports it UNAVAILABLE. Without an Execution to tell, the
+        program counts as running (it is then always compared)."""
+        if self._program is None:
+            return None
         current = self._current()
+        name = current.get(self._program.id, (UNAVAILABLE, None))[0]
+        if name == UNAVAILABLE:
+            return None
+        execution = None if self._execution is None else current.get(self._execution.id)
+        state = EXECUTION_STATES.get(execution[0], "running") if execution else "running"
+        return ProgramReport(name or None, state)
+
+    def _status(self, current: dict[str, tuple[str, str | None]]) -> ControllerStatus:
         position = self._position(current)
         if self._execution is None:
             raise DeviceError(f"{self.name} reports no Execution (no EXECUTION data item)")
@@ -362,6 +386,21 @@ def _machine_rank(item: ET.Element, machine_frames: set[str | None]) -> int | No
     if frame is None:
         return 1
     return 0 if frame == "MACHINE" else None
+
+
+def _program_item(device: ET.Element) -> _Item | None:
+    """The PROGRAM data item naming the program the machine runs (:data:`PROGRAM_SUBTYPES`)."""
+    items = [
+        item
+        for item in device.iter()
+        if _local(item.tag) == "DataItem"
+        and item.get("type") == "PROGRAM"
+        and item.get("subType") in PROGRAM_SUBTYPES
+    ]
+    if not items:
+        return None
+    best = min(items, key=lambda item: PROGRAM_SUBTYPES.index(item.get("subType")))
+    return _Item(str(best.get("id")))
 
 
 def _linear_names(device: ET.Element) -> list[str]:

@@ -23,10 +23,15 @@ Two layers, as for every device:
   ==============================================  ==========================================
 
   and selects a program with the server's ``Select`` method (configuration
-  manual, "Select / Unselect": ``Select(path: String, channel: Int32) ->
-  status: Int32``, 0 good, 1 channel not found, 2 program not found, 3 channel
-  not in reset, 4 refused; the ``ApWrite`` right). The method's node is found by
-  its browse name under ``/Methods`` (``/Methods/Select`` or
+  manual 05/2022, 7.6 "Select": ``Select(SourceFileNodeId: String,
+  ChannelNumber: Int32) -> StatusCode: Int32``, 0 good, 1 channel not found, 2
+  program not found, 3 channel not in reset, 4 refused; the ``ApWrite`` right;
+  the program named by its path in the server's file system,
+  ``Sinumerik/FileSystem/Part Program/<name>.mpf``). It copies a program to the
+  NC with ``CopyFileToServer`` (7.5 "File system": ``CopyFileToServer(
+  TargetFilename: String, Data: ByteString, Overwrite: Boolean)``, the
+  ``FsWrite`` right, files up to 16 MB, one extension). The methods' nodes are
+  found by their browse names under ``/Methods`` (``/Methods/Select`` or
   ``/Methods/Filehandling/Select``, depending on the server's version).
 
   ``measPos1`` (``/Channel/MachineAxis/measPos1``) is the position a probe
@@ -58,7 +63,8 @@ from firmware_iface.controller_status import ControllerStatus
 from firmware_iface.standstill import StandstillWindow
 from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError, XmalignError
 from xmalign.geometry import Vec
-from xmalign.roles import Clock, ClosesOnExit, ProgramState, WallClock
+from xmalign.program_check import same_program
+from xmalign.roles import Clock, ClosesOnExit, ProgramReport, ProgramState, WallClock
 
 log = logging.getLogger(__name__)
 
@@ -382,19 +388,30 @@ class SinumerikMachine(ClosesOnExit):
         values = self.link.read([*nodes, self.mode_node])
         position = self._position(values[:3])
         prog, chan, mode = (_integer(v) for v in values[3:])
-        if prog not in PROG_STATUS:
-            raise DeviceError(f"{self.name} reports an unknown progStatus {values[3]!r}")
-        meaning, state = PROG_STATUS[prog]
-        text = f"progStatus {prog} ({meaning}), chanStatus {chan} ({CHAN_STATUS.get(chan, '?')})"
+        state = self._state(values[3])
+        text = f"progStatus {prog} ({PROG_STATUS[prog][0]}), chanStatus {chan}"
+        text += f" ({CHAN_STATUS.get(chan, '?')})"
         return ControllerStatus(position, state, text, OP_MODE.get(mode))
+
+    def _state(self, prog_status: Any) -> ProgramState:
+        prog = _integer(prog_status)
+        if prog not in PROG_STATUS:
+            raise DeviceError(f"{self.name} reports an unknown progStatus {prog_status!r}")
+        return PROG_STATUS[prog][1]
 
     def loaded_program(self) -> str | None:
         """The selected program as the NC shows it, None if none."""
         value = self.link.read([self.selected_node])[0]
         return str(value) if value else None
 
+    def program_report(self) -> ProgramReport:
+        """The selected program (NC notation, ``/_N_MPF_DIR/_N_RUN_MPF``) and its state."""
+        selected, prog = self.link.read([self.selected_node, self.prog_status_node])
+        return ProgramReport(str(selected) if selected else None, self._state(prog))
+
     def select_program(self, path: str) -> None:
-        """Select ``path`` (as the server names it) in the channel; DeviceError if refused."""
+        """Select ``path`` (the server's file path) in the channel and check the NC shows it
+        selected; DeviceError (with Select's status in words) otherwise."""
         folder, method = self.link.find_method("/Methods", "Select")
         outputs = self.link.call(
             folder,
@@ -405,7 +422,62 @@ class SinumerikMachine(ClosesOnExit):
         status = _integer(outputs[0]) if outputs else -1
         if status != 0:
             why = SELECT_STATUS.get(status, f"status {outputs[0] if outputs else None}")
-            raise DeviceError(f"{self.name} did not select {path} in channel {self.channel}: {why}")
+            raise DeviceError(
+                f"{self.name} did not select {path} in channel {self.channel}:"
+                f" Select answered {status} ({why})"
+            )
+        selected = self.loaded_program()
+        if selected is None or not same_program(selected, path):
+            raise DeviceError(
+                f"{self.name} accepted Select of {path} in channel {self.channel}, but"
+                f" shows {selected or 'no program'} selected"
+            )
+
+    def channel_in_reset(self) -> tuple[bool, str]:
+        """Whether the channel is in reset (``chanStatus`` 0), and its state in words."""
+        chan = _integer(self.link.read([self.chan_status_node])[0])
+        return chan == 0, f"chanStatus {chan} ({CHAN_STATUS.get(chan, '?')})"
+
+    def prepare_run(self, path: str, expected: str, text: str | None = None) -> str:
+        """Before a followed run: with the channel in reset, copy ``text`` to ``path``
+        (when given) and select ``path``; what the operator is to do next.
+
+        A channel not in reset is left alone: running or stopped with xmalign's
+        program (``expected``, e.g. a resumed run) it is followed as it is;
+        with another program it is a DeviceError (a stale or wrong program).
+        """
+        in_reset, state = self.channel_in_reset()
+        if not in_reset:
+            selected = self.loaded_program()
+            if selected is not None and same_program(selected, expected):
+                return (
+                    f"channel {self.channel} is not in reset ({state}) with xmalign's program"
+                    f" {selected}: followed as it is, not selected again"
+                )
+            raise DeviceError(
+                f"{self.name}: channel {self.channel} is not in reset ({state}) with program"
+                f" {selected or '(none)'}, not xmalign's program {expected}: a stale or wrong"
+                " program? press Reset on the machine, then run again"
+            )
+        if text is not None:
+            self.copy_program(path, text)
+        self.select_program(path)
+        copied = " (copied to the NC)" if text is not None else ""
+        return (
+            f"xmalign's program {path}{copied} is selected in channel {self.channel}:"
+            " press Cycle Start"
+        )
+
+    def copy_program(self, path: str, text: str) -> None:
+        """Write ``text`` to the NC as ``path`` (the server's file path), replacing it."""
+        folder, method = self.link.find_method("/Methods", "CopyFileToServer")
+        self.link.call(
+            folder,
+            method,
+            ua.Variant(path, ua.VariantType.String),
+            ua.Variant(text.encode("utf-8"), ua.VariantType.ByteString),
+            ua.Variant(True, ua.VariantType.Boolean),
+        )
 
     def _position(self, values: Sequence[Any]) -> Vec:
         try:

@@ -88,6 +88,14 @@ class _Segment:
             return length - 0.5 * a * left * left
         return 0.5 * peak * ramp_s + peak * (t - ramp_s)
 
+    def velocity_mm_s(self, t_s: float) -> float:
+        """Path speed at time ``t_s``, mm/s."""
+        t, total = t_s - self.t0_s, self.duration_s
+        if t <= 0.0 or t >= total:
+            return 0.0
+        a, peak = self.accel_mm_s2, self._peak_mm_s
+        return min(a * t, a * (total - t), peak)
+
     def position_mm(self, t_s: float) -> Vec:
         if self.length_mm == 0.0:
             return self.end_mm.copy()
@@ -538,6 +546,10 @@ class SimulatedCnc:
 
     def is_standstill(self) -> bool:
         return self._clock.now() >= self._segment.t0_s + self._segment.duration_s
+
+    def speed_mm_s(self) -> float:
+        """Path speed of the tool point at the clock's present time, mm/s."""
+        return self._segment.velocity_mm_s(self._clock.now())
 
     def start_move(self, position_mm: ArrayLike, feed_mm_min: float) -> float:
         """Start a straight move from the present position; returns its duration, s.

@@ -531,6 +531,7 @@ def follow_machine(
     tolerance_mm: float = 0.005,
     timeout_s: float = 600.0,
     poll_s: float = 0.05,
+    check_program: Callable[[], None] = lambda: None,
 ) -> None:
     """Capture while the controller runs the program: wait for standstill at each target.
 
@@ -545,8 +546,11 @@ def follow_machine(
     program moves on to overrun and approach, and a capture while it does would
     average a moving machine. While waiting, the units are read every
     ``DEVICE_CHECK_S``, so a lost link ends the run at once rather than at the
-    timeout.
+    timeout. ``check_program()`` raises when the controller runs another program than
+    xmalign's (:class:`xmalign.program_check.ProgramGuard`): called first, and again
+    before the units are set and before each capture.
     """
+    check_program()
     for line in lines:
         if run.line_is_done(line):
             continue
@@ -559,6 +563,7 @@ def follow_machine(
                 " (start the program if it is not running)"
             )
             _wait_for(run, there, f"stop at {where}", timeout_s, poll_s)
+        check_program()
         run.prepare_line(line)
         tell(f"line {line.id}: units aligned and locked; {PRESS_CYCLE_START}")
         previous: CapturePoint | None = None
@@ -578,6 +583,7 @@ def follow_machine(
                 timeout_s,
                 poll_s,
             )
+            check_program()
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
 

@@ -209,6 +209,25 @@ class ProgramControl(MachinePositionSource, Protocol):
 
 
 @dataclass(frozen=True)
+class ProgramReport:
+    """The program a followed controller reports: ``name`` as the controller spells it
+    (a path, ``/_N_MPF_DIR/_N_XMALIGN_MPF``, ``O1000``; None: no program selected) and
+    its state."""
+
+    name: str | None
+    state: ProgramState
+
+
+@runtime_checkable
+class ReportsProgram(Protocol):
+    """A controller xmalign follows that says which program it has (MTConnect, SINUMERIK)."""
+
+    def program_report(self) -> ProgramReport | None:
+        """The program and its state; None when the controller does not report its program."""
+        ...
+
+
+@dataclass(frozen=True)
 class EnvironmentReading:
     """One reading of a weather station (XC-80 class): NaN where a sensor gave nothing.
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.gcode.fanuc import PROGRAM_NUMBER
 from trajectories.gcode.program import write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
@@ -70,6 +71,9 @@ from xmalign.safety import units_locked_on_exit
 
 #: File name ending of a program in each dialect, as the controllers expect.
 PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxcnc": ".ngc"}
+#: The program file's name in the usual calibration (``xmalign program --out run.nc``, the
+#: dry run's ``run<suffix>``): the program a followed controller is expected to run.
+PROGRAM_STEM = "run"
 #: Alignments after which a quick identification points the units better than the guess.
 REFINE_AFTER = 3
 
@@ -212,10 +216,18 @@ def program_gcode(
     return dialect_name, write_program(plan, machine, make_dialect(dialect_name, machine, name))
 
 
+def program_name_on_controller(machine: Machine) -> str:
+    """The name a followed controller reports for xmalign's program: on a Fanuc the
+    number in it (a Fanuc names a program by its number), elsewhere the program file's
+    name in the usual calibration (``run``)."""
+    return PROGRAM_NUMBER if machine.controller == "fanuc" else PROGRAM_STEM
+
+
 def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) -> Path:
     """Where :func:`program_step` writes the program by default: ``run<suffix>`` of the
     dialect next to the plan."""
-    return plan_path.with_name(f"run{PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]}")
+    suffix = PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]
+    return plan_path.with_name(f"{PROGRAM_STEM}{suffix}")
 
 
 def program_step(
@@ -301,13 +313,21 @@ def following_drive(
     tell: Callable[[str], None],
     machine: Machine,
     poll_s: float = 0.05,
+    check_program: Callable[[], None] = lambda: None,
 ) -> Drive:
     """Capture while the controller runs the program, at each standstill on a target
     (the units set at each line's pre-position, the machine file's overrun before it);
     ``tell`` says the operator's part (run the program, press cycle start); ``poll_s``:
-    how often the position is read while waiting."""
+    how often the position is read while waiting; ``check_program()`` refuses a
+    controller running another program (:class:`xmalign.program_check.ProgramGuard`)."""
     return lambda run: follow_machine(
-        run, position, run.plan.lines, tell, machine.measurement.overrun_mm, poll_s=poll_s
+        run,
+        position,
+        run.plan.lines,
+        tell,
+        machine.measurement.overrun_mm,
+        poll_s=poll_s,
+        check_program=check_program,
     )
 
 

@@ -14,7 +14,12 @@ from mtconnect_agent import TestAgent
 from sinumerik_server import SinumerikServer
 
 from firmware_iface.config import load_units_config, open_devices
-from firmware_iface.controller_config import open_sinumerik_source
+from firmware_iface.controller_config import (
+    MTConnectConfig,
+    SinumerikConfig,
+    expected_program,
+    open_sinumerik_source,
+)
 from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
@@ -177,3 +182,18 @@ def test_open_a_sinumerik_with_the_password_from_the_environment(
                 close()
     finally:
         server.stop()
+
+
+def test_xmalign_s_program_is_named_by_the_key_then_the_nc_path_then_the_default() -> None:
+    agent = MTConnectConfig(url="http://a")
+    assert expected_program(agent, "run") == (
+        "run",
+        "machine_position.mtconnect.program_name, default: the program file's name",
+    )
+    named = MTConnectConfig(url="http://a", program_name="O1000")
+    assert expected_program(named, "run") == ("O1000", "machine_position.mtconnect.program_name")
+    path = "Sinumerik/FileSystem/Part Program/XMALIGN.MPF"
+    nc = SinumerikConfig(endpoint="opc.tcp://h:4840", program=path)
+    assert expected_program(nc, "run") == (path, "machine_position.sinumerik.program")
+    both = SinumerikConfig(endpoint="opc.tcp://h:4840", program=path, program_name="CAL")
+    assert expected_program(both, "run") == ("CAL", "machine_position.sinumerik.program_name")

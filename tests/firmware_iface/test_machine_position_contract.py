@@ -1,53 +1,52 @@
-"""The contract every machine-position source passes (``xmalign.roles.MachinePositionSource``).
+"""The contract every machine-position source passes (machine_position_contract.py).
 
 Run against each implementation as a live run meets it: the position file a CNC
 keeps up to date, an MTConnect agent (the reference agent's documents served on
 127.0.0.1), a SINUMERIK's OPC UA server (asyncua's server carrying the
-documented nodes) and a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
-protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc). A source gives
-the actual position in machine coordinates as mm, shape (3,); says whether the
-machine stands still; raises a TransportError naming where it reads from when that
-is gone; and plugs into OperatorPrompt as the position a confirmed move is checked
-against.
+documented nodes), a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
+protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc) and a LinuxCNC
+through its Python module (the simulated module in front of the same simulated
+LinuxCNC; tests/linuxcnc/test_linuxcnc_module.py runs this contract against the
+real module and a real headless LinuxCNC). A followed controller that reports its
+program (MTConnect's Program, the SINUMERIK's selectedWorkPProg) names it, spelled
+its own way, with its state, and a followed run refuses another program running
+(ProgramGuard).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pytest
+from asyncua import ua
+from machine_position_contract import (  # noqa: F401 (the contract's tests, run here)
+    SETTLE_S,
+    Stand,
+    test_a_lost_source_is_a_transport_error_naming_it,
+    test_a_moving_machine_does_not_stand_still,
+    test_an_operator_prompt_checks_the_confirmed_move_against_it,
+    test_gives_the_actual_position_in_mm_as_three_floats,
+    test_is_a_machine_position_source,
+    test_stands_still_once_the_position_stays_put,
+)
 from mtconnect_agent import TestAgent
 from sinumerik_server import SinumerikServer
 
+from firmware_iface.linuxcnc_module import LocalLinuxCnc
 from firmware_iface.linuxcncrsh import open_linuxcnc
-from firmware_iface.machine_position import FilePositions, OperatorPrompt
+from firmware_iface.machine_position import FilePositions
 from firmware_iface.mtconnect import open_mtconnect
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
+from sim.linuxcnc_module import NML_FILE, simulated_module
+from sim.linuxcnc_task import SimulatedLinuxcnc
 from sim.servers.linuxcncrsh import LinuxcncrshServer
-from xmalign.errors import TransportError
+from xmalign.errors import DeviceError
 from xmalign.machine import Machine
-from xmalign.roles import MachinePositionSource
-
-SETTLE_S = 0.5
-
-
-@dataclass
-class Stand:
-    """One implementation, served: its source, how to move the machine, how to cut it off."""
-
-    source: MachinePositionSource
-    place: Callable[[float, float, float], None]
-    cut: Callable[[], None]
-    #: Where the source reads from, as its errors name it.
-    address: str
-    clock: SimClock
-    #: False for a source that only ever sees a machine at rest (a position file).
-    sees_motion: bool = True
+from xmalign.program_check import ProgramGuard, same_program
+from xmalign.roles import ReportsProgram
 
 
 def _file_stand(tmp_path: Path) -> Iterator[Stand]:
@@ -64,8 +63,20 @@ def _mtconnect_stand(tmp_path: Path) -> Iterator[Stand]:
     agent = TestAgent("linuxcnc", "LinuxCNC").start()
     clock = SimClock()
     machine = open_mtconnect(agent.url, 2.0, settle_s=SETTLE_S, clock=clock)
+
+    def show_program(name: str, running: bool) -> None:  # LinuxCNC's adapter: the file
+        agent.program = f"/home/cnc/linuxcnc/nc_files/{name.lower()}.ngc"
+        agent.execution = "ACTIVE" if running else "READY"
+
     try:
-        yield Stand(machine, lambda x, y, z: agent.set(X=x, Y=y, Z=z), agent.stop, agent.url, clock)
+        yield Stand(
+            machine,
+            lambda x, y, z: agent.set(X=x, Y=y, Z=z),
+            agent.stop,
+            agent.url,
+            clock,
+            show_program=show_program,
+        )
     finally:
         machine.close()
         agent.stop()
@@ -82,26 +93,41 @@ def _sinumerik_stand(tmp_path: Path) -> Iterator[Stand]:
         server.stop()
         stopped.append(True)
 
+    def show_program(name: str, running: bool) -> None:  # the NC notation
+        nc_name = f"/_N_MPF_DIR/_N_{name.upper()}_MPF"
+        server.set("/Channel/ProgramInfo/selectedWorkPProg[u1]", nc_name, ua.VariantType.String)
+        server.set("/Channel/State/progStatus[u1]", 3 if running else 5, ua.VariantType.UInt16)
+
     try:
-        yield Stand(machine, server.set_position, cut, server.endpoint, clock)
+        yield Stand(
+            machine, server.set_position, cut, server.endpoint, clock, show_program=show_program
+        )
     finally:
         machine.close()
         if not stopped:
             server.stop()
 
 
-def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
-    clock = SimClock()
+def _simulated_cnc(reference_machine: Machine, clock: SimClock) -> tuple[SimulatedCnc, Machine]:
     roomy = {axis: [-5000.0, 5000.0] for axis in "XYZ"}  # the contract's points anywhere
     machine_model = reference_machine.model_copy(update={"travel_mm": roomy})
-    cnc = SimulatedCnc(machine_model, clock)
+    return SimulatedCnc(machine_model, clock), machine_model
+
+
+def _placer(cnc: SimulatedCnc, machine: Machine, clock: SimClock) -> Callable[..., None]:
+    def place(x: float, y: float, z: float) -> None:  # a rapid move, waited out
+        clock.sleep(cnc.start_move([x, y, z], machine.feed_mm_min.rapid))
+
+    return place
+
+
+def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
+    clock = SimClock()
+    cnc, machine_model = _simulated_cnc(reference_machine, clock)
     server = LinuxcncrshServer(cnc, machine_model)
     server.start()
     machine = open_linuxcnc("127.0.0.1", server.port, 2.0, clock=clock)
-
-    def place(x: float, y: float, z: float) -> None:  # a rapid move, waited out
-        clock.sleep(cnc.start_move([x, y, z], reference_machine.feed_mm_min.rapid))
-
+    place = _placer(cnc, machine_model, clock)
     try:
         # placed at rest, as a position file is; a moving CNC: test_linuxcncrsh_server.py
         yield Stand(machine, place, server.stop, server.where, clock, sees_motion=False)
@@ -110,11 +136,26 @@ def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[S
         server.stop()
 
 
+def _linuxcnc_module_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
+    """LinuxCNC's Python module, the simulated one (sim/linuxcnc_module.py) in front of the
+    same simulated LinuxCNC; the real module against a real LinuxCNC: tests/linuxcnc."""
+    clock = SimClock()
+    cnc, machine_model = _simulated_cnc(reference_machine, clock)
+    linuxcnc = SimulatedLinuxcnc(cnc, machine_model)
+    machine = LocalLinuxCnc(simulated_module(linuxcnc), clock=clock)
+    place = _placer(cnc, machine_model, clock)
+    try:
+        yield Stand(machine, place, linuxcnc.shut_down, NML_FILE, clock, sees_motion=False)
+    finally:
+        machine.close()
+
+
 STANDS = {
     "file": _file_stand,
     "mtconnect": _mtconnect_stand,
     "sinumerik": _sinumerik_stand,
     "linuxcncrsh": _linuxcncrsh_stand,
+    "linuxcnc-module": _linuxcnc_module_stand,
 }
 
 
@@ -123,73 +164,47 @@ def stand(
     request: pytest.FixtureRequest, tmp_path: Path, reference_machine: Machine
 ) -> Iterator[Stand]:
     make = STANDS[request.param]
-    if make is _linuxcncrsh_stand:
-        yield from _linuxcncrsh_stand(tmp_path, reference_machine)
+    if make in (_linuxcncrsh_stand, _linuxcnc_module_stand):
+        yield from make(tmp_path, reference_machine)  # type: ignore[call-arg]
     else:
         yield from make(tmp_path)
 
 
-def _settled(stand: Stand, reads: int = 10) -> bool:
-    """Read the standstill on the virtual clock until it says yes (at most ``reads`` times)."""
-    for _ in range(reads):
-        if stand.source.is_standstill():
-            return True
-        stand.clock.sleep(SETTLE_S / 4)
-    return False
+def _reporting(stand: Stand) -> Callable[[str, bool], None]:
+    if stand.show_program is None:
+        pytest.skip("this source does not report a program (a file; LinuxCNC runs its own)")
+    assert isinstance(stand.source, ReportsProgram)
+    return stand.show_program
 
 
-def test_is_a_machine_position_source(stand: Stand) -> None:
-    assert isinstance(stand.source, MachinePositionSource)
+def test_a_controller_reporting_its_program_names_it_with_its_state(stand: Stand) -> None:
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
+    show("run", True)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "running"
+    assert report.name is not None and same_program(report.name, "run")
+    show("other", False)
+    report = stand.source.program_report()
+    assert report is not None and report.state == "idle"
+    assert report.name is not None and not same_program(report.name, "run")
 
 
-def test_gives_the_actual_position_in_mm_as_three_floats(stand: Stand) -> None:
-    stand.place(1250.125, -300.5, 42.0)
-    position = stand.source.position_mm()
-    assert isinstance(position, np.ndarray) and position.shape == (3,)
-    assert position.dtype == np.float64
-    assert np.allclose(position, [1250.125, -300.5, 42.0], atol=1e-9)
-
-
-def test_stands_still_once_the_position_stays_put(stand: Stand) -> None:
-    stand.place(10.0, 20.0, 30.0)
-    assert _settled(stand)
-    assert isinstance(stand.source.is_standstill(), bool)
-
-
-def test_a_moving_machine_does_not_stand_still(stand: Stand) -> None:
-    if not stand.sees_motion:
-        pytest.skip("a position file is written only with the machine at rest")
-    stand.place(10.0, 20.0, 30.0)
-    assert _settled(stand)
-    for step in range(1, 6):
-        stand.place(10.0 + step, 20.0, 30.0)  # 1 mm per read: moving
-        assert not stand.source.is_standstill()
-        stand.clock.sleep(SETTLE_S)
-    assert _settled(stand)
-
-
-def test_a_lost_source_is_a_transport_error_naming_it(stand: Stand) -> None:
-    stand.cut()
-    with pytest.raises(TransportError) as caught:
-        stand.source.position_mm()
-    assert stand.address in str(caught.value) and "\n" not in str(caught.value)
-
-
-def test_an_operator_prompt_checks_the_confirmed_move_against_it(
-    stand: Stand,
-    reference_machine,  # noqa: ANN001
-) -> None:
-    target = np.array([1000.0, 750.0, -250.0])
-    stand.place(100.0, 100.0, -100.0)
-    presses: list[str] = []
-
-    def press_enter(prompt: str) -> str:  # the machine arrives after the first Enter
-        if presses:
-            stand.place(*target)
-        presses.append(prompt)
-        return ""
-
+def test_another_program_running_stops_a_followed_run_with_one_line(stand: Stand) -> None:
+    """A stale or wrong program running (or stopped mid-way) is refused; xmalign's running,
+    or another one idle, is not."""
+    show = _reporting(stand)
+    assert isinstance(stand.source, ReportsProgram)
     told: list[str] = []
-    OperatorPrompt(reference_machine, press_enter, told.append, stand.source).move_to(target, 5e3)
-    assert len(presses) == 2 and "move it there first" in told[-1]
-    assert np.allclose(stand.source.position_mm(), target)
+    guard = ProgramGuard(stand.source, "run", "machine_position.x.program_name", told.append)
+    show("run", True)
+    guard.check()
+    show("old", False)
+    guard.check()
+    show("old", True)
+    with pytest.raises(DeviceError) as caught:
+        guard.check()
+    message = str(caught.value)
+    assert "\n" not in message and "OLD" in message.upper()
+    assert "not xmalign's program run (machine_position.x.program_name)" in message
+    assert not told

@@ -135,6 +135,59 @@ def test_a_position_that_is_not_a_finite_number_is_a_device_fault(
         machine.position_mm()
 
 
+def test_the_program_is_the_agents_program_data_item_with_its_state(
+    linuxcnc_agent: TestAgent, vmc_agent: TestAgent
+) -> None:
+    with open_mtconnect(linuxcnc_agent.url, 2.0) as machine:
+        report = machine.program_report()
+        assert report is not None
+        assert (report.name, report.state) == ("/home/mtconnect/simulator/spiral.ngc", "idle")
+        linuxcnc_agent.program, linuxcnc_agent.execution = "/home/cnc/run.ngc", "FEED_HOLD"
+        report = machine.program_report()
+        assert report is not None and (report.name, report.state) == ("/home/cnc/run.ngc", "paused")
+        linuxcnc_agent.program = ""  # no program loaded
+        report = machine.program_report()
+        assert report is not None and report.name is None
+    with open_mtconnect(vmc_agent.url, 2.0, device="VMC-3Axis") as machine:
+        report = machine.program_report()
+        assert report is not None and report.name == "O1234"
+
+
+def test_an_agent_that_does_not_report_the_program_says_so_with_none(
+    linuxcnc_agent: TestAgent,
+) -> None:
+    """No PROGRAM data item in /probe, or its value UNAVAILABLE: the program is not reported
+    (the run says so once and goes on); the position and state still are."""
+    linuxcnc_agent.program = "UNAVAILABLE"
+    with open_mtconnect(linuxcnc_agent.url, 2.0) as machine:
+        assert machine.program_report() is None
+        assert machine.status().program_state == "idle"
+        linuxcnc_agent.program, linuxcnc_agent.execution = "old.ngc", "UNAVAILABLE"
+        report = machine.program_report()  # the state unknown: compared as if running
+        assert report is not None and (report.name, report.state) == ("old.ngc", "running")
+    linuxcnc_agent.drop_program()
+    with open_mtconnect(linuxcnc_agent.url, 2.0) as machine:
+        assert machine.program_report() is None
+
+
+def test_the_main_program_is_preferred_to_the_active_one(linuxcnc_agent: TestAgent) -> None:
+    """MTConnect 1.5 on: PROGRAM with subType MAIN (the program selected) and ACTIVE (the
+    one executing, a subprogram): MAIN names the program; SCHEDULE never."""
+    item = (
+        '<DataItem category="EVENT" id="23" name="program" significantDigits="0" type="PROGRAM" />'
+    )
+    assert item in linuxcnc_agent.probe
+    linuxcnc_agent.replaced["/probe"] = linuxcnc_agent.probe.replace(
+        item,
+        item.replace('id="23"', 'id="22" subType="SCHEDULE"').replace("program", "schedule", 1)
+        + item.replace('id="23"', 'id="21" subType="ACTIVE"').replace("program", "active", 1)
+        + item.replace('id="23"', 'id="23" subType="MAIN"'),
+    ).encode()
+    with open_mtconnect(linuxcnc_agent.url, 2.0) as machine:
+        report = machine.program_report()
+    assert report is not None and report.name == "/home/mtconnect/simulator/spiral.ngc"
+
+
 @pytest.mark.parametrize(("field", "what"), [("X", "X position"), ("execution", "Execution")])
 def test_unavailable_values_are_a_device_fault(
     linuxcnc_agent: TestAgent, field: str, what: str

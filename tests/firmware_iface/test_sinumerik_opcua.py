@@ -1,7 +1,7 @@
 """SINUMERIK over OPC UA: the client against a real OPC UA stack (asyncua's server) on 127.0.0.1.
 
 The server carries the nodes the SINUMERIK OPC UA configuration manual documents
-(tests/firmware_iface/sinumerik_server.py); the values behind them are set by
+(tests/sinumerik_server.py); the values behind them are set by
 the test as the NC would set them.
 """
 
@@ -27,6 +27,7 @@ from sinumerik_server import SinumerikServer
 from firmware_iface.sinumerik_opcua import OpcUaSecurity, open_sinumerik
 from sim.clock import SimClock
 from xmalign.errors import DeviceError, TransportError, XmalignError
+from xmalign.program_check import ProgramGuard
 
 USER = OpcUaSecurity(identity="user", user="xmalign", password="s3cret-Pw")
 
@@ -75,23 +76,108 @@ def test_positions_in_inch_are_converted(server: SinumerikServer) -> None:
         assert np.allclose(machine.position_mm(), [254.0, 25.4, -12.7])
 
 
+PROGRAM = "Sinumerik/FileSystem/Part Program/XMALIGN.MPF"
+
+
 @pytest.mark.parametrize("folder", ["/Methods/Filehandling", "/Methods"])
 def test_select_a_program_with_the_documented_method(folder: str) -> None:
+    """Select's documented status codes, each one line with its meaning; a good one is
+    checked against what the NC then shows selected."""
     server = SinumerikServer(users={"xmalign": "s3cret-Pw"}, methods_folder=folder).start()
     try:
         with open_sinumerik(server.endpoint, 5.0, USER) as machine:
             assert machine.loaded_program() is None
-            program = "Sinumerik/FileSystem/Part Program/XMALIGN.MPF"
-            machine.select_program(program)
-            assert machine.loaded_program() == program
-            assert server.select_calls == [(program, 1)]
-            with pytest.raises(DeviceError, match="did not select NOPE.MPF in channel 1: program"):
-                machine.select_program("NOPE.MPF")
+            machine.select_program(PROGRAM)
+            assert machine.loaded_program() == "/_N_MPF_DIR/_N_XMALIGN_MPF"
+            assert server.select_calls == [(PROGRAM, 1)]
+            nope = "Sinumerik/FileSystem/Part Program/NOPE.MPF"
+            with pytest.raises(
+                DeviceError,
+                match=f"did not select {nope} in channel 1: Select answered 2 .program not found",
+            ):
+                machine.select_program(nope)
+            server.refuse_select = True
+            with pytest.raises(DeviceError, match=r"answered 4 \(refused by the NC\)"):
+                machine.select_program(PROGRAM)
             server.set("/Channel/State/chanStatus[u1]", 1, ua.VariantType.UInt16)
-            with pytest.raises(DeviceError, match="channel not in reset"):
-                machine.select_program(program)
+            with pytest.raises(DeviceError, match=r"answered 3 \(channel not in reset\)"):
+                machine.select_program(PROGRAM)
     finally:
         server.stop()
+
+
+def test_a_select_the_nc_does_not_show_is_refused(server: SinumerikServer) -> None:
+    """Select answers 0 but the NC shows no program selected: refused, not taken on trust."""
+    server.select_ignored = True
+    try:
+        with (
+            open_sinumerik(server.endpoint, 5.0, USER) as machine,
+            pytest.raises(DeviceError, match="accepted Select of .* shows no program"),
+        ):
+            machine.select_program(PROGRAM)
+    finally:
+        server.select_ignored = False
+
+
+def test_the_program_report_is_the_selected_program_and_its_state(
+    server: SinumerikServer,
+) -> None:
+    with open_sinumerik(server.endpoint, 5.0, USER) as machine:
+        report = machine.program_report()
+        assert report.name is None and report.state == "idle"
+        machine.select_program(PROGRAM)
+        server.set("/Channel/State/progStatus[u1]", 3, ua.VariantType.UInt16)
+        report = machine.program_report()
+        assert (report.name, report.state) == ("/_N_MPF_DIR/_N_XMALIGN_MPF", "running")
+
+
+def test_before_a_run_the_program_is_copied_and_selected_in_reset(server: SinumerikServer) -> None:
+    target = "Sinumerik/FileSystem/Part Program/RUN.MPF"
+    with open_sinumerik(server.endpoint, 5.0, USER) as machine:
+        told = machine.prepare_run(target, target, "; RUN\nM30\n")
+        assert server.programs[target] == b"; RUN\nM30\n"
+        assert machine.loaded_program() == "/_N_MPF_DIR/_N_RUN_MPF"
+        assert told.endswith("(copied to the NC) is selected in channel 1: press Cycle Start")
+        # a resumed run: the channel runs xmalign's program; left as it is, not copied again
+        server.set("/Channel/State/chanStatus[u1]", 1, ua.VariantType.UInt16)
+        told = machine.prepare_run(target, "run", "; CHANGED\n")
+        assert "followed as it is, not selected again" in told
+        assert server.programs[target] == b"; RUN\nM30\n"
+
+
+def test_a_channel_not_in_reset_with_another_program_is_one_line(server: SinumerikServer) -> None:
+    server.set("/Channel/State/chanStatus[u1]", 2, ua.VariantType.UInt16)
+    server.set(
+        "/Channel/ProgramInfo/selectedWorkPProg[u1]",
+        "/_N_MPF_DIR/_N_OLD_MPF",
+        ua.VariantType.String,
+    )
+    calls = len(server.select_calls)
+    with (
+        open_sinumerik(server.endpoint, 5.0, USER) as machine,
+        pytest.raises(DeviceError) as caught,
+    ):
+        machine.prepare_run(PROGRAM, PROGRAM)
+    assert str(caught.value) == (
+        f"the SINUMERIK OPC UA server at {server.endpoint}: channel 1 is not in reset"
+        " (chanStatus 2 (interrupted)) with program /_N_MPF_DIR/_N_OLD_MPF, not xmalign's"
+        f" program {PROGRAM}: a stale or wrong program? press Reset on the machine, then run"
+        " again"
+    )
+    assert len(server.select_calls) == calls  # nothing selected behind the operator's back
+
+
+def test_copying_without_the_file_write_right_is_one_line(server: SinumerikServer) -> None:
+    server.may_write_files = False
+    try:
+        with (
+            open_sinumerik(server.endpoint, 5.0, USER) as machine,
+            pytest.raises(DeviceError, match="BadUserAccessDenied") as caught,
+        ):
+            machine.copy_program(PROGRAM, "M30\n")
+        assert "\n" not in str(caught.value) and "CopyFileToServer" in str(caught.value)
+    finally:
+        server.may_write_files = True
 
 
 def test_a_wrong_password_is_refused_and_never_shown(
@@ -255,5 +341,10 @@ def test_cross_check_against_open62541() -> None:
             assert (status.program_state, status.mode) == ("running", "AUTOMATIC")
             assert status.state == "progStatus 3 (in progress), chanStatus 1 (active)"
             assert machine.loaded_program() == "/_N_MPF_DIR/_N_XMALIGN_MPF"
+            report = machine.program_report()
+            assert (report.name, report.state) == ("/_N_MPF_DIR/_N_XMALIGN_MPF", "running")
+            ProgramGuard(machine, "XMALIGN", "key", print).check()  # xmalign's: passes
+            with pytest.raises(DeviceError, match="not xmalign's program run"):
+                ProgramGuard(machine, "run", "key", print).check()
     finally:
         server.communicate(input="", timeout=30)

@@ -513,6 +513,17 @@ def linuxcnc_serving(ini: Path, port: int, *, start_timeout_s: float = 60.0) -> 
             _wait_gone(user, 20.0)
 
 
+def bring_up(client: Any, timeout_s: float = 30.0) -> None:
+    """Play the operator over a linuxcncrsh session ``client`` (an enabled
+    ``firmware_iface.linuxcncrsh.LinuxCnc``): E-stop reset, machine on, home all joints."""
+    for command in ("estop off", "machine on", "mode manual", "home -1"):
+        client._set(command)
+    deadline = time.monotonic() + timeout_s
+    while client._get("joint_homed")[:3] != ["YES"] * 3:
+        assert time.monotonic() < deadline, "LinuxCNC did not home"
+        time.sleep(0.1)
+
+
 def standard_start() -> list[dict[str, Any]]:
     """Estop reset, machine on, home all joints."""
     return [{"op": "estop_reset"}, {"op": "machine_on"}, {"op": "home"}]

@@ -13,16 +13,16 @@ exceed X's positive limit); the machine is at [10.0, 250.0, -5.0] mm``).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_helpers import free_port
-from harness import SimMachine, linuxcnc_serving, write_sim_config
+from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
 
-from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.linuxcnc_control import MdiMover
+from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from xmalign.errors import DeviceError
 from xmalign.machine import Machine
 
@@ -37,12 +37,7 @@ def linuxcnc(linuxcnc_dir: Path) -> Iterator[LinuxCnc]:
     with linuxcnc_serving(ini, port):
         client = open_linuxcnc("127.0.0.1", port, 5.0)
         try:
-            for command in ("estop off", "machine on", "mode manual", "home -1"):
-                client._set(command)
-            deadline = time.monotonic() + 30
-            while client._get("joint_homed")[:3] != ["YES"] * 3:
-                assert time.monotonic() < deadline, "LinuxCNC did not home"
-                time.sleep(0.1)
+            bring_up(client)
             yield client
         finally:
             client.close()

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import Process, free_port
-from harness import SimMachine, linuxcnc_serving, write_sim_config
+from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, cut_plan
@@ -114,19 +114,21 @@ class CablePuller:
             sink.shutdown(socket.SHUT_RDWR)
 
 
-class Shop:
-    """LinuxCNC (brought up by the 'operator'), ``sim serve`` following it, a units.yaml."""
+#: How xmalign reaches LinuxCNC in units.yaml (``source``: the keys before ``program``).
+_CHANNELS = {"linuxcncrsh": "host: 127.0.0.1, port: {port}, ", "linuxcnc": ""}
 
-    def __init__(self, workdir: Path, rsh_port: int, position_file: Path) -> None:
+
+class Shop:
+    """LinuxCNC (brought up by the 'operator'), ``sim serve`` following it, a units.yaml
+    whose ``source`` (linuxcncrsh, or linuxcnc: the Python module) xmalign reaches it by."""
+
+    def __init__(
+        self, workdir: Path, rsh_port: int, position_file: Path, source: str = "linuxcncrsh"
+    ) -> None:
         self.workdir = workdir
         self.cable = CablePuller(rsh_port)
         operator = open_linuxcnc("127.0.0.1", rsh_port, 5.0)
-        for command in ("estop off", "machine on", "mode manual", "home -1"):
-            operator._set(command)
-        deadline = time.monotonic() + 30
-        while operator._get("joint_homed")[:3] != ["YES"] * 3:
-            assert time.monotonic() < deadline, "LinuxCNC did not home"
-            time.sleep(0.1)
+        bring_up(operator)
         operator.close()
         ports = [free_port(), free_port()]
         args = ["sim", "serve", "--seed", str(SEED), "--gamma-deg", str(GAMMA_DEG)]
@@ -142,8 +144,8 @@ class Shop:
             f"receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {ports[1]}}}\n"
             f"interferometer: {{port: {pty}, rate_hz: 50}}\n"
             "machine_position:\n"
-            "  source: linuxcncrsh\n"
-            f"  linuxcncrsh: {{host: 127.0.0.1, port: {self.cable.port}, program: run.ngc}}\n"
+            f"  source: {source}\n"
+            f"  {source}: {{{_CHANNELS[source].format(port=self.cable.port)}program: run.ngc}}\n"
             "timeouts: {io_s: 2.0, move_s: 30.0, machine_s: 120.0}\n"
         )
 
@@ -170,7 +172,7 @@ class Shop:
 
 
 @contextmanager
-def _shop(plan_dir: Path, linuxcnc_dir: Path) -> Iterator[Shop]:
+def shop_running(plan_dir: Path, linuxcnc_dir: Path, source: str = "linuxcncrsh") -> Iterator[Shop]:
     machine = load_machine(plan_dir / "machine.yaml")
     for name in ("machine.yaml", "plan.json"):
         (linuxcnc_dir / name).write_bytes((plan_dir / name).read_bytes())
@@ -187,7 +189,7 @@ def _shop(plan_dir: Path, linuxcnc_dir: Path) -> Iterator[Shop]:
     position_file = linuxcnc_dir / "cnc" / "position.txt"
     ini = write_sim_config(linuxcnc_dir / "cnc", cnc, f"linuxcncrsh --port {port}", position_file)
     with linuxcnc_serving(ini, port):
-        served = Shop(linuxcnc_dir, port, position_file)
+        served = Shop(linuxcnc_dir, port, position_file, source)
         try:
             yield served
         finally:
@@ -197,13 +199,13 @@ def _shop(plan_dir: Path, linuxcnc_dir: Path) -> Iterator[Shop]:
 
 @pytest.fixture
 def shop(short_plan: Path, linuxcnc_dir: Path) -> Iterator[Shop]:
-    with _shop(short_plan, linuxcnc_dir) as served:
+    with shop_running(short_plan, linuxcnc_dir) as served:
         yield served
 
 
 @pytest.fixture
 def six_line_shop(six_line_plan: Path, linuxcnc_dir: Path) -> Iterator[Shop]:
-    with _shop(six_line_plan, linuxcnc_dir) as served:
+    with shop_running(six_line_plan, linuxcnc_dir) as served:
         yield served
 
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from firmware_iface.config import _mover, load_units_config
-from firmware_iface.linuxcncrsh import LinuxCnc, MdiMover, open_linuxcnc
+from firmware_iface.linuxcnc_control import LinuxCncControl, MdiMover
+from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from firmware_iface.machine_position import OperatorPrompt
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
@@ -41,11 +42,13 @@ def _wait(condition, timeout_s: float = 10.0) -> None:  # noqa: ANN001
         time.sleep(0.01)
 
 
-def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> None:  # noqa: ANN001
-    client, _ = cnc
+def run_through_a_stop_and_a_feed_hold(client: LinuxCncControl, folder: Path) -> Path:
+    """Start a program, see it paused at its M0 at rest, resume, hold the feed mid-move (at
+    rest where it is), resume, abort: what xmalign's program control does, on any channel
+    to a simulated LinuxCNC. Returns the program's path."""
     assert isinstance(client, ProgramControl)
     client.check_ready()
-    program = tmp_path / "p.ngc"
+    program = folder / "p.ngc"
     program.write_text("G21 G90\nG53 G1 X100 Y50 Z-10 F6000\nM0\nG53 G1 X300 F600\nM2\n")
     client.start_program(str(program))
     assert client.loaded_program() == str(program)
@@ -53,6 +56,7 @@ def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> Non
     assert np.allclose(client.position_mm(), [100, 50, -10]) and client.is_standstill()
     client.resume()
     _wait(lambda: client.position_mm()[0] > 110)
+    assert not client.is_standstill()
     client.hold()  # feed hold mid-move: the machine stops where it is (as LinuxCNC's status,
     # the program state follows the acknowledged command a moment later)
     _wait(lambda: client.program_state() == "paused" and client.is_standstill())
@@ -63,6 +67,12 @@ def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> Non
     _wait(lambda: client.position_mm()[0] > held[0])
     client.stop_program()
     assert client.program_state() == "idle"
+    return program
+
+
+def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> None:  # noqa: ANN001
+    client, _ = cnc
+    run_through_a_stop_and_a_feed_hold(client, tmp_path)
 
 
 def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # noqa: ANN001

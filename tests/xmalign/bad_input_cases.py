@@ -353,6 +353,22 @@ _UNITS_CASES = [
         replace(U, "source: prompt", "source: mtconnect\n  mtconnect: {url: 'ftp://a'}"),
         "mtconnect.url",
     ),
+    ("linuxcnc-missing", replace(U, "source: prompt", "source: linuxcnc"), "'linuxcnc' is req"),
+    (
+        "linuxcnc-no-program",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {joints: 3}"),
+        "linuxcnc.program",
+    ),
+    (
+        "linuxcnc-host",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {program: p.ngc, host: cnc}"),
+        "linuxcnc.host",
+    ),
+    (
+        "linuxcnc-joints-0",
+        replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {program: p.ngc, joints: 0}"),
+        "linuxcnc.joints",
+    ),
     (
         "sinumerik-policy-no-certificate",
         replace(
@@ -362,6 +378,46 @@ _UNITS_CASES = [
             "security_policy: Basic256Sha256}",
         ),
         "certificate",
+    ),
+    (
+        "mtconnect-program-name-blank",
+        replace(
+            U,
+            "source: prompt",
+            "source: mtconnect\n  mtconnect: {url: 'http://a', program_name: ' '}",
+        ),
+        "mtconnect.program_name",
+    ),
+    *(
+        (
+            f"sinumerik-program-{name}",
+            replace(
+                U,
+                "source: prompt",
+                f"source: sinumerik\n  sinumerik: {{endpoint: 'opc.tcp://a:4840', {value}}}",
+            ),
+            key,
+        )
+        for name, value, key in [
+            ("nc-notation", "program: /_N_MPF_DIR/_N_RUN_MPF", "sinumerik.program"),
+            (
+                "subprogram",
+                "program: 'Sinumerik/FileSystem/Sub Program/RUN.SPF'",
+                "sinumerik.program",
+            ),
+            (
+                "two-extensions",
+                "program: 'Sinumerik/FileSystem/Part Program/RUN.MPF.MPF'",
+                "program",
+            ),
+            ("copy-without-program", "copy_program: true", "copy_program needs 'program'"),
+            (
+                "copy-yes-please",
+                "program: 'Sinumerik/FileSystem/Part Program/R.MPF', copy_program: please",
+                "copy_program",
+            ),
+            ("name-empty", "program_name: ''", "sinumerik.program_name"),
+        ]
     ),
 ]
 

@@ -505,64 +505,101 @@ def two_short_lines(plans, tmp_path):
     return path
 
 
+@contextlib.contextmanager
+def controller_running_the_plan(
+    world: Served,
+    terminal: Terminal,
+    plan_path: Path,
+    overrun_mm: float,
+    out: Path,
+    report: Callable[[np.ndarray], None],
+    cycle_start: Callable[[], None] | None = None,
+) -> Iterator[None]:
+    """A script in a thread of its own that runs the program as a controller would, while
+    the ``with`` block runs xmalign; ``report(point_mm)`` publishes where the machine stands
+    (a position file, an agent, an OPC UA server) as the interferometer sees it there.
+
+    First, with ``cycle_start``, it waits for xmalign to say "press Cycle Start" and calls
+    it. Then to each line's pre-position, where it stops until cycle start (the run sets
+    the units there), then to each target in turn, going on once the point is in the
+    measurement file; where the program stops twice at one place (end of a run and start
+    of the way back, the drift check), it moves away and back first, as the program's
+    overrun does. Between lines it travels (retract and approach): the run must not set
+    the units for the next line before the machine stands at its pre-position.
+    """
+    lines = read_plan(plan_path).lines
+    pre_positions = [line.target_points_mm()[0] - overrun_mm * line.frame[0] for line in lines]
+    stop = threading.Event()
+
+    def stand_at(point_mm: np.ndarray) -> None:
+        world.machine.position = np.asarray(point_mm)
+        report(np.asarray(point_mm))
+
+    def said(text: str) -> None:
+        while text not in terminal.out.getvalue() and not stop.wait(0.01):
+            pass
+
+    def controller() -> None:
+        if cycle_start is not None:
+            said("press Cycle Start")
+            cycle_start()
+        captured = 0
+        for number, (line, pre_mm) in enumerate(zip(lines, pre_positions, strict=True)):
+            if number:  # the retract and approach: a while, and the units stay locked
+                stand_at((pre_positions[number - 1] + pre_mm) / 2)
+                stop.wait(1.0)
+                while not all(a.is_locked() for a in world.axes()) and not stop.wait(0.01):
+                    pass
+            stand_at(pre_mm)  # M0: cycle start once the units are set
+            said(f"line {line.id}: units aligned and locked; press cycle start")
+            points = [p.point_mm for p in capture_sequence(line)]
+            for k, point_mm in enumerate(points):
+                if k and np.allclose(point_mm, points[k - 1]):
+                    stand_at(np.asarray(point_mm) + 2.0)  # the overrun
+                    stop.wait(0.3)  # the run polls every 0.05 s
+                stand_at(point_mm)
+                captured += 1
+                while _rows_in(out) < captured and not stop.wait(0.01):
+                    pass
+
+    thread = threading.Thread(target=controller, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+
+
+def pre_position(reference_machine, plan_path: Path) -> np.ndarray:  # noqa: ANN001
+    """Where the program stops before the plan's first line."""
+    line = read_plan(plan_path).lines[0]
+    return line.target_points_mm()[0] - reference_machine.measurement.overrun_mm * line.frame[0]
+
+
 def test_live_run_follows_a_machine_that_reports_its_position_in_a_file(
     reference_machine, two_short_lines, tmp_path
 ):
-    """machine_position source: file. The machine here is a script that runs the program
-    as a controller would: to each line's pre-position, where it stops until cycle start
-    (the run sets the units there), then to each target in turn, going on once the point
-    is in the measurement file; where the program stops twice at one place (end of a run
-    and start of the way back, the drift check), it moves away and back first, as the
-    program's overrun does. Between lines it travels (retract and approach): the run
-    must not set the units for the next line before the machine stands at its
-    pre-position."""
+    """machine_position source: file, the machine a script that runs the program."""
     out, position_file = tmp_path / "m.csv", tmp_path / "position.txt"
-    lines = read_plan(two_short_lines).lines
-    overrun_mm = reference_machine.measurement.overrun_mm
-    pre_positions = [line.target_points_mm()[0] - overrun_mm * line.frame[0] for line in lines]
     terminal = Terminal(lambda printed: None)
-    with served(reference_machine, tmp_path, two_short_lines, pre_positions[0]) as world:
+    start_mm = pre_position(reference_machine, two_short_lines)
+    with served(reference_machine, tmp_path, two_short_lines, start_mm) as world:
         world.config.write_text(
             world.config.read_text()
             + f"machine_position: {{source: file, file: {position_file}}}\n"
         )
-        stop = threading.Event()
 
-        def stand_at(point_mm: np.ndarray) -> None:
-            world.machine.position = np.asarray(point_mm)
+        def write_position(point_mm: np.ndarray) -> None:
             written = position_file.with_suffix(".new")  # replaced whole, never torn
             written.write_text("# X Y Z\n" + " ".join(f"{v:.4f}" for v in point_mm))
             os.replace(written, position_file)
 
-        def controller() -> None:
-            captured = 0
-            for number, (line, pre_mm) in enumerate(zip(lines, pre_positions, strict=True)):
-                if number:  # the retract and approach: a while, and the units stay locked
-                    stand_at((pre_positions[number - 1] + pre_mm) / 2)
-                    stop.wait(1.0)
-                    while not all(a.is_locked() for a in world.axes()) and not stop.wait(0.01):
-                        pass
-                stand_at(pre_mm)  # M0: cycle start once the units are set
-                said = f"line {line.id}: units aligned and locked; press cycle start"
-                while said not in terminal.out.getvalue() and not stop.wait(0.01):
-                    pass
-                points = [p.point_mm for p in capture_sequence(line)]
-                for k, point_mm in enumerate(points):
-                    if k and np.allclose(point_mm, points[k - 1]):
-                        stand_at(np.asarray(point_mm) + 2.0)  # the overrun
-                        stop.wait(0.3)  # the run polls every 0.05 s
-                    stand_at(point_mm)
-                    captured += 1
-                    while _rows_in(out) < captured and not stop.wait(0.01):
-                        pass
-
-        thread = threading.Thread(target=controller, daemon=True)
-        thread.start()
-        try:
+        overrun_mm = reference_machine.measurement.overrun_mm
+        with controller_running_the_plan(
+            world, terminal, two_short_lines, overrun_mm, out, write_position
+        ):
             result = _run(terminal, world, two_short_lines, out)
-        finally:
-            stop.set()
-            thread.join(timeout=5)
         assert result.returncode == 0, result.stderr
     assert _keys(out) == _points(two_short_lines)
     rows = read_measurements(out)

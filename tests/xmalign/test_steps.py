@@ -1,5 +1,7 @@
 """The step layer: the same step functions whatever drives the machine."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -9,10 +11,14 @@ from trajectories.gcode.program import write_program
 from xmalign.calibration import open_run_output
 from xmalign.formats.measurements import read_measurements
 from xmalign.formats.plan import read_plan
+from xmalign.program_check import same_program
 from xmalign.steps import (
     comp_step,
     post_step,
     program_drive,
+    program_file,
+    program_gcode,
+    program_name_on_controller,
     refine_guess,
     run_step,
     stepping_drive,
@@ -93,3 +99,21 @@ def test_refine_guess_waits_for_three_alignments(dry_run_folder):
     assert guess is not None and np.all(np.isfinite(guess.launch2mcs_mm))
     session.alignments = session.alignments[:2]
     assert refine_guess(session) is None
+
+
+@pytest.mark.parametrize("controller", ["sinumerik", "fanuc", "heidenhain", "linuxcnc"])
+def test_the_expected_program_name_is_the_one_the_program_step_gives(
+    controller, dry_run_folder, reference_machine
+):
+    """What a followed run expects a controller to report (without ``program_name``) is
+    what that controller calls the program ``xmalign program --out run<suffix>`` writes:
+    a Fanuc its O number (the file's name means nothing there), the others the file."""
+    machine = reference_machine.model_copy(update={"controller": controller})
+    plan = _two_lines(dry_run_folder)
+    text = program_gcode(plan, machine, name="RUN")[1]
+    file_name = program_file(dry_run_folder / "plan.json", machine).name
+    numbers = re.findall(r"^(O\d+)\b", text, flags=re.MULTILINE)
+    reported = numbers[0] if controller == "fanuc" else file_name
+    assert same_program(reported, program_name_on_controller(machine))
+    if controller == "fanuc":
+        assert not same_program(file_name, program_name_on_controller(machine))

@@ -21,6 +21,9 @@ from collections.abc import Mapping
 from trajectories.gcode.base import Dialect, plain_text, words
 from xmalign.machine import WorkOffset
 
+#: The number of every program xmalign writes for a Fanuc (its file name does not count there).
+PROGRAM_NUMBER = "O1000"
+
 #: The work offset the program sets when the machine file gives none: G59 at machine zero.
 DEFAULT_WORK_OFFSET = WorkOffset(code="G59", origin_mm=[0.0, 0.0, 0.0])
 
@@ -40,7 +43,7 @@ class IsoDialect(Dialect):
         assert self.work_offset is not None
         return [
             "%",
-            f"O1000 ({plain_text(self.program_name)})",
+            f"{PROGRAM_NUMBER} ({plain_text(self.program_name)})",
             "G21 G90 G94 G17 G40 G49 G80",
             "G52 X0. Y0. Z0.",
             f"G10 L2 P{self.work_offset.number} {self.offset_words()}",

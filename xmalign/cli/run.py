@@ -43,7 +43,9 @@ from xmalign.safety import like
 from xmalign.steps import open_measurements_step
 
 if TYPE_CHECKING:
+    from firmware_iface.config import MachinePositionConfig
     from sim.dry_run import DryRunOptions
+    from xmalign.roles import MachinePositionSource
 
 _SHOP_HELP = (
     "the virtual shop's air and machine temperature: 'drifting' (air 22 -> 25 °C,"
@@ -192,21 +194,22 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
 
     config = load_units_config(config_path)
     devices = open_devices(config, machine)
-    rsh = config.machine_position.linuxcncrsh
+    controlled = config.machine_position.controlled
 
     def capture(output: RunOutput) -> CalibrationRun:
-        if devices.controller is not None and rsh is not None:
-            write_controller_program(plan, machine, "linuxcnc", rsh.program)
+        if devices.controller is not None and controlled is not None:
+            write_controller_program(plan, machine, "linuxcnc", controlled.program)
             drive = controlled_drive(
                 devices.controller,
-                rsh.cnc_program_path,
+                controlled.cnc_program_path,
                 _tell_operator,
                 machine,
-                rsh.tolerance_mm,
+                controlled.tolerance_mm,
                 config.timeouts.machine_s,
             )
         elif config.machine_position.follows_the_machine:
-            drive = following_drive(devices.mover, _tell_operator, machine)
+            check = _program_check(config.machine_position, devices.position, plan, machine)
+            drive = following_drive(devices.mover, _tell_operator, machine, check_program=check)
         else:
             drive = stepping_drive(devices.mover, machine)
         roles = RunStepDevices(
@@ -226,6 +229,35 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
         )
 
 
+def _program_check(
+    source: MachinePositionConfig,
+    followed: MachinePositionSource | None,
+    plan: Plan,
+    machine: Machine,
+) -> Callable[[], None]:
+    """For a followed controller that reports its program: on a SINUMERIK with ``program``,
+    put xmalign's program there (``copy_program``) and select it first; the check that
+    refuses another program running (docs/hardware.md, "Following the controller")."""
+    from firmware_iface.controller_config import expected_program
+    from xmalign.program_check import ProgramGuard, program_name
+    from xmalign.roles import ReportsProgram
+    from xmalign.steps import program_gcode, program_name_on_controller
+
+    section = source.mtconnect or source.sinumerik
+    if section is None or not isinstance(followed, ReportsProgram):
+        return lambda: None
+    expected, key = expected_program(section, program_name_on_controller(machine))
+    nc = source.sinumerik
+    if nc is not None and nc.program is not None:
+        from firmware_iface.sinumerik_opcua import SinumerikMachine  # asyncua: only here
+
+        if isinstance(followed, SinumerikMachine):
+            name = program_name(nc.program)
+            text = program_gcode(plan, machine, "sinumerik", name)[1] if nc.copy_program else None
+            _tell_operator(followed.prepare_run(nc.program, expected, text))
+    return ProgramGuard(followed, expected, key, _tell_operator).check
+
+
 def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) -> None:
     """The program's time on the machine against the G-code's own estimate."""
     from trajectories.gcode.program import estimate_machine_time
@@ -242,7 +274,7 @@ def _tell_machine_time(plan: Plan, machine: Machine, statistics: RunStatistics) 
 
 
 def _tell_operator(message: str) -> None:
-    console.print(message, markup=False)
+    console.print(message, markup=False, soft_wrap=True)  # one line: the terminal wraps it
 
 
 def read_text(path: Path, what: str) -> str:

@@ -2,12 +2,13 @@
 
 The documents are the reference agent's own sample responses (tests/firmware_iface/
 data/mtconnect/, each names its source); the agent fills in the position of a
-machine the test moves, the Execution and ControllerMode, and the timestamps
+machine the test moves, the Execution, ControllerMode and Program, and the timestamps
 (an observation's timestamp changes only when its value does, as an agent records them).
 """
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from datetime import UTC, datetime, timedelta
@@ -16,8 +17,10 @@ from pathlib import Path
 
 from cli_helpers import free_port
 
-DATA = Path(__file__).parent / "data" / "mtconnect"
+DATA = Path(__file__).parent / "firmware_iface" / "data" / "mtconnect"
 AXES = ("X", "Y", "Z")
+#: The Program each set of documents reports until the test sets another.
+PROGRAMS = {"linuxcnc": "/home/mtconnect/simulator/spiral.ngc", "vmc_inch": "O1234"}
 
 
 def stamp(moment: datetime) -> str:
@@ -46,6 +49,7 @@ class TestAgent:
         self.changed = dict.fromkeys(AXES, datetime.now(UTC))
         self.execution = "READY"
         self.mode = "AUTOMATIC"
+        self.program = PROGRAMS[documents]
         #: Adapters that send unchanged values again: every timestamp is "now".
         self.repeat_unchanged = False
         #: A path's body replaced (damaged documents), and a delay before answering.
@@ -77,6 +81,12 @@ class TestAgent:
                 self.changed[axis] = datetime.now(UTC)
             self.values[axis] = value
 
+    def drop_program(self) -> None:
+        """Serve a /probe without the PROGRAM data item (a device that does not report it)."""
+        without = re.sub(r'\n\s*<DataItem [^>]*type="PROGRAM" ?/>', "", self.probe)
+        assert without != self.probe, "the documents have no PROGRAM data item"
+        self.replaced["/probe"] = without.encode()
+
     def age(self, seconds: float) -> None:
         """Make every axis's last change ``seconds`` old."""
         for axis in AXES:
@@ -96,6 +106,7 @@ class TestAgent:
             "now": stamp(now),
             "execution": self.execution,
             "mode": self.mode,
+            "program": self.program,
             **{axis: repr(float(self.values[axis])) for axis in AXES},
             **{
                 f"{axis}_time": stamp(now if self.repeat_unchanged else self.changed[axis])

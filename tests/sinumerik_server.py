@@ -2,11 +2,16 @@
 
 The nodes are those the SINUMERIK OPC UA configuration manual names for NC
 access (namespace 2, string identifiers such as
-``/Channel/MachineAxis/actToolBasePos[u1,1]``) and the ``Select`` method under
-``/Methods/Filehandling`` (manual 05/2022) or directly under ``/Methods``
-(earlier versions), with its documented arguments and status codes. A real
-OPC UA stack (asyncua's server) answers; what a real NC does behind the nodes
-(moving axes, refusing a selection while running) the test sets.
+``/Channel/MachineAxis/actToolBasePos[u1,1]``) and the ``Select`` and
+``CopyFileToServer`` methods under ``/Methods/Filehandling`` (manual 05/2022,
+7.5 and 7.6) or directly under ``/Methods`` (earlier versions), with their
+documented arguments and Select's status codes (0 good, 1 channel not found, 2
+program not found, 3 channel not in reset, 4 refused). A selected program shows
+in ``selectedWorkPProg`` in the NC notation (``Sinumerik/FileSystem/Part
+Program/RUN.MPF`` selected: ``/_N_MPF_DIR/_N_RUN_MPF``), as the programming
+manual has the NC name its files (our reading: not seen on a controller). A
+real OPC UA stack (asyncua's server) answers; what a real NC does behind the
+nodes (moving axes, a channel not in reset) the test sets.
 """
 
 from __future__ import annotations
@@ -23,6 +28,16 @@ from asyncua.server.user_managers import UserManager
 from cli_helpers import free_port
 
 NS = 2
+PART_PROGRAMS = "Sinumerik/FileSystem/Part Program/"
+#: Where the NC keeps each folder of the OPC UA file system (NC notation).
+NC_FOLDERS = {PART_PROGRAMS: "/_N_MPF_DIR/"}
+
+
+def nc_notation(path: str) -> str:
+    """``Sinumerik/FileSystem/Part Program/run.mpf`` -> ``/_N_MPF_DIR/_N_RUN_MPF``."""
+    folder, _, name = path.rpartition("/")
+    stem, _, extension = name.rpartition(".")
+    return f"{NC_FOLDERS[folder + '/']}_N_{stem.upper()}_{extension.upper()}"
 
 
 class PasswordUsers(UserManager):
@@ -72,8 +87,14 @@ class SinumerikServer:
         self.axes = axes
         self.port = free_port()
         self.endpoint = f"opc.tcp://127.0.0.1:{self.port}"
-        self.programs = {"Sinumerik/FileSystem/Part Program/XMALIGN.MPF"}
+        #: The NC's part programs: path in the OPC UA file system -> content.
+        self.programs: dict[str, bytes] = {f"{PART_PROGRAMS}XMALIGN.MPF": b"M30\n"}
         self.select_calls: list[tuple[str, int]] = []
+        #: The NC refuses a selection (Select's status 4), the user lacks FsWrite.
+        self.refuse_select = False
+        self.may_write_files = True
+        #: Select answers 0 but selects nothing (a server not doing what it says).
+        self.select_ignored = False
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, daemon=True)
         self._server: Server | None = None
@@ -147,11 +168,19 @@ class SinumerikServer:
             [ua.VariantType.String, ua.VariantType.Int32],
             [ua.VariantType.Int32],
         )
+        await methods.add_method(
+            ua.NodeId(f"{self.methods_folder}/CopyFileToServer", NS),
+            ua.QualifiedName("CopyFileToServer", NS),
+            self._copy_file_to_server,
+            [ua.VariantType.String, ua.VariantType.ByteString, ua.VariantType.Boolean],
+            [],
+        )
         await server.start()
         self._server = server
 
     async def _select(self, parent: ua.NodeId, path: ua.Variant, channel: ua.Variant) -> list:
-        """The documented status codes: 0 good, 1 channel, 2 program, 3 not in reset."""
+        """The documented status codes: 0 good, 1 channel, 2 program, 3 not in reset, 4
+        refused; a good one selects the program (selectedWorkPProg in NC notation)."""
         self.select_calls.append((path.Value, channel.Value))
         if channel.Value != 1:
             status = 1
@@ -159,12 +188,27 @@ class SinumerikServer:
             status = 2
         elif await self._nodes["/Channel/State/chanStatus[u1]"].read_value() != 0:
             status = 3
+        elif self.refuse_select:
+            status = 4
+        elif self.select_ignored:
+            status = 0
         else:
             status = 0
             await self._nodes["/Channel/ProgramInfo/selectedWorkPProg[u1]"].write_value(
-                ua.Variant(path.Value, ua.VariantType.String)
+                ua.Variant(nc_notation(path.Value), ua.VariantType.String)
             )
         return [ua.Variant(status, ua.VariantType.Int32)]
+
+    async def _copy_file_to_server(
+        self, parent: ua.NodeId, target: ua.Variant, data: ua.Variant, overwrite: ua.Variant
+    ) -> list | ua.StatusCode:
+        """Store the file; without the FsWrite right the call is refused."""
+        if not self.may_write_files:
+            return ua.StatusCode(ua.StatusCodes.BadUserAccessDenied)
+        if target.Value in self.programs and not overwrite.Value:
+            return ua.StatusCode(ua.StatusCodes.BadAlreadyExists)
+        self.programs[target.Value] = data.Value
+        return []
 
 
 async def _maybe_await(value: Any) -> None:
