@@ -179,9 +179,12 @@ class PtyInterferometerServer:
             if not clock.wait_for_stream_request(self._answered, _POLL_S):
                 continue
             with self._sample_lock:
+                waits = clock.stream_waits()
+                if waits <= self._answered:  # a STREAM ON meanwhile dropped an earlier wait
+                    continue
                 if not self.streaming or self._stop.is_set():
                     # a wait with the stream off: nothing comes, as from the instrument
-                    self._answered = clock.stream_waits()
+                    self._answered = waits
                     continue
                 self._answered += 1
                 clock.sleep(1.0 / self.rate_hz)
