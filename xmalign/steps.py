@@ -41,8 +41,8 @@ from xmalign.calibration import (
 from xmalign.comp import Compensation, compensate
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
-from xmalign.formats.common import atomic_write_files
 from xmalign.errors import InputError
+from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
