@@ -86,9 +86,13 @@ class AgentTransport(Protocol):
 
     name: str
 
-    def get(self, path: str) -> tuple[int, bytes]: ...
+    def get(self, path: str) -> tuple[int, bytes]:
+        """GET ``path`` (relative to the agent's address): the HTTP status and the body."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the connection, if the transport keeps one."""
+        ...
 
 
 class AgentLink:
@@ -200,6 +204,7 @@ class MTConnectMachine(ClosesOnExit):
         return self
 
     def close(self) -> None:
+        """Close the transport."""
         self.link.close()
 
     def __enter__(self) -> MTConnectMachine:
@@ -215,6 +220,7 @@ class MTConnectMachine(ClosesOnExit):
         return self._window.add(self.position_mm())
 
     def program_state(self) -> ProgramState:
+        """``idle``, ``running`` or ``paused`` from the device's ``Execution``."""
         return self.status().program_state
 
     def status(self) -> ControllerStatus:
