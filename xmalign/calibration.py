@@ -699,8 +699,8 @@ def check_stop_on_way(
     miss = float(np.linalg.norm(position_mm - target_mm))
     raise DeviceError(
         f"the program stopped with the machine at {np.round(position_mm, 4).tolist()} mm,"
-        f" {miss:.4f} mm from {what} {np.round(target_mm, 4).tolist()} mm (tolerance"
-        f" {tolerance_mm} mm): program and plan do not match"
+        f" {miss:.4f} mm from {what} (tolerance {tolerance_mm} mm): program and plan do not"
+        " match"
     )
 
 
@@ -798,8 +798,9 @@ def _control_line(
     """Units set at the line's first stop; capture at each point's stop; resume each time."""
     pre_mm = program.way.pre_position_mm(line)
     to_line = program.way.to_line(from_mm, (), line)
+    where = f"the pre-position of line {line.id} {np.round(pre_mm, 3).tolist()} mm"
     # on the way to a line the units are not yet set for it: the beam is not watched
-    _wait_program(run, program, pre_mm, f"the pre-position of line {line.id}", to_line, tell)
+    _wait_program(run, program, pre_mm, where, to_line, tell)
     stopped = run.clock.now()
     if not run.line_is_done(line):
         run.prepare_line(line)
