@@ -279,3 +279,33 @@ def test_a_cycle_start_during_a_capture_records_nothing_of_the_moving_machine():
     (went_on,) = [text for text in shop.told if "went on" in text]
     assert went_on.startswith("line X run 1 target 2")
     assert shop.cnc.commands.count("resume") == STOPS - 1  # the cycle start resumed that one
+
+
+@pytest.mark.parametrize(
+    ("interrupt", "code", "said"),
+    [
+        (KeyboardInterrupt(), 130, ""),
+        (StopSignal(signal.SIGTERM), 143, "SIGTERM: "),
+        (StopSignal(signal.SIGHUP), 129, "SIGHUP: "),
+    ],
+    ids=["ctrl-c", "sigterm", "sighup"],
+)
+def test_the_command_ends_with_one_line_keeping_the_note_and_the_signals_exit_code(
+    interrupt, code, said, tmp_path, capsys
+):
+    """What ``xmalign run`` makes of it (xmalign.cli.run, then the console entry point)."""
+    from xmalign.cli import _stopped as end_the_command
+    from xmalign.cli.run import _stopped
+
+    shop = Shop()
+    shop.cnc.on_read = _at_stop(4, interrupt)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        shop.control()
+    out = tmp_path / "m.csv"
+    with pytest.raises(SystemExit) as ended:
+        end_the_command(_stopped(caught.value, out))
+    assert ended.value.code == code
+    assert capsys.readouterr().err.splitlines() == [
+        f"xmalign: {said}stopped: 0 points kept in {out}; go on with --resume; the feed is held"
+        " on the controller"
+    ]
