@@ -810,7 +810,8 @@ def _control_line(
     for point in capture_sequence(line):
         _wait_program(run, program, point.point_mm, _where(point), on_line, tell, watch_beam=True)
         held = partial(_held_at, program)
-        if run.capture(point, line.dwell_s, held, check_after=True) is None and not held(point):
+        row = run.capture(point, line.dwell_s, held, check_after=True)
+        if row is None and point.key in run.statistics.missed and not held(point):
             tell(
                 f"{_where(point)}: the program went on during the capture (cycle start on"
                 " the controller?): the point is not recorded; --resume captures it"
