@@ -49,7 +49,7 @@ from xmalign.steps import (
     RunStepDevices,
     as_left_step,
     comp_step,
-    controlled_drive,
+    controlled_run_step,
     design_step,
     following_drive,
     identify_step,
@@ -58,7 +58,6 @@ from xmalign.steps import (
     program_drive,
     program_step,
     run_step,
-    write_controller_program,
 )
 
 #: How far the simulated launch unit stands from the machine file's coarse guess, mm:
@@ -371,7 +370,9 @@ def measure_served(
             served.config, machine, ask=_no_operator, tell=lambda text: None, clock=served.clock
         ) as devices,
     ):
-        following = following_drive(devices.mover, served.operator, machine, FOLLOW_POLL_S)
+        following = following_drive(
+            devices.mover, served.operator, machine, served.config.timeouts.machine_s, FOLLOW_POLL_S
+        )
 
         def drive(run: CalibrationRun) -> None:
             first = next((line for line in plan.lines if not run.line_is_done(line)), None)
@@ -397,7 +398,7 @@ def measure_controlled(
     linuxcncrsh, all on the world's virtual clock); the host opens the
     generated ``units.yaml`` with :func:`~firmware_iface.config.open_devices`,
     writes the controller's program (a stop at each point) and starts, holds
-    and resumes it over linuxcncrsh (:func:`~xmalign.steps.controlled_drive`).
+    and resumes it over linuxcncrsh (:func:`~xmalign.steps.controlled_run_step`).
     """
     from firmware_iface.config import open_devices
     from sim.servers.served_world import serve_world_with_linuxcnc
@@ -413,19 +414,12 @@ def measure_controlled(
         config = served.config
         rsh = config.machine_position.linuxcncrsh
         assert devices.controller is not None and rsh is not None
-        write_controller_program(plan, machine, "linuxcnc", rsh.program)
-        drive = controlled_drive(
-            devices.controller,
-            rsh.cnc_program_path,
-            _quiet,
-            machine,
-            rsh.tolerance_mm,
-            config.timeouts.machine_s,
-        )
         roles = RunStepDevices(
             devices.launch, devices.receiver, devices.interferometer, served.clock
         )
-        return run_step(plan, roles, output, drive)
+        return controlled_run_step(
+            plan, machine, roles, output, devices.controller, rsh, config.timeouts.machine_s, _quiet
+        )
 
 
 def _quiet(message: str) -> None:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -43,7 +43,6 @@ from xmalign.environment import DRIFT_RUN, EnvironmentMonitor
 from xmalign.errors import (
     BeamLostError,
     DeviceError,
-    DeviceTimeoutError,
     InputError,
     TransportError,
     XmalignError,
@@ -72,7 +71,10 @@ from xmalign.roles import (
     MachinePositionSource,
     PositioningUnit,
     ProgramControl,
+    ProgramState,
+    ReportsProgram,
 )
+from xmalign.safety import like
 
 #: Fine alignment at a line start turns only the receiver (see FineAlignmentSettings).
 LINE_START_ALIGNMENT = FineAlignmentSettings(steer_launch=False)
@@ -363,6 +365,7 @@ class CalibrationRun:
         point: CapturePoint,
         dwell_s: float,
         still_there: Callable[[CapturePoint], bool] | None = None,
+        check_after: bool = False,
     ) -> MeasurementRow | None:
         """Datum at the run's first point; once readings settle, average to 0.8 of the dwell.
 
@@ -373,8 +376,11 @@ class CalibrationRun:
         A lost beam is searched for and the point captured again
         (:meth:`_recapture`); ``still_there`` says whether the machine still
         stands at the point after the search (default: it waits for the
-        capture). Returns None for a point already recorded or one the machine
-        left before the beam was found (``statistics.missed``).
+        capture). With ``check_after`` (a program that waits at each point's stop
+        until it is resumed) ``still_there`` is asked again after the average, and a
+        point the machine left meanwhile is not recorded. Returns None for a point
+        already recorded or one the machine left before the beam was found or the
+        average ended (``statistics.missed``).
         """
         started = self.clock.now()
         if point.starts_run:
@@ -390,6 +396,9 @@ class CalibrationRun:
                 self.statistics.missed.append(point.key)
                 return None
             reading = recaptured
+        if check_after and still_there is not None and not still_there(point):
+            self.statistics.missed.append(point.key)  # averaged (in part) on the move
+            return None
         sample = self.environment.sample() if self.environment else None
         line = point.line
         displacement = float(line.targets_mm[point.index]) - self._datum_mm
@@ -431,7 +440,7 @@ class CalibrationRun:
             [setup.launch_rad, setup.receiver_rad] if setup else self._standing_rad()
         )
         try:
-            if not self._beam_returns(started + BEAM_WAIT_S):
+            if not self.beam_returns(started + BEAM_WAIT_S):
                 self._search(point, last_in_range, settings)
         except BeamLostError as error:
             raise BeamLostError(
@@ -461,11 +470,7 @@ class CalibrationRun:
             raise BeamLostError(_beam_message(point, reading))
         return reading
 
-    def wait_for_beam(self, until_s: float) -> bool:
-        """Read until ``until_s``: True as soon as the beam is back (the units do not move)."""
-        return self._beam_returns(until_s)
-
-    def _beam_returns(self, until_s: float) -> bool:
+    def beam_returns(self, until_s: float) -> bool:
         """Read at the locked angles until ``until_s``: True when the beam is back by itself."""
         while self.clock.now() + BEAM_PROBE_S <= until_s:
             if self.interferometer.average(BEAM_PROBE_S).beam_ok:
@@ -527,7 +532,7 @@ def follow_machine(
     position: MachinePositionSource,
     lines: Iterable[PlanLine],
     tell: Callable[[str], None],
-    overrun_mm: float,
+    way: ProgramWay,
     tolerance_mm: float = 0.005,
     timeout_s: float = 600.0,
     poll_s: float = 0.05,
@@ -536,7 +541,7 @@ def follow_machine(
     """Capture while the controller runs the program: wait for standstill at each target.
 
     The units are set for a line once the machine stands at the line's
-    pre-position (``overrun_mm`` before the first target, where the program
+    pre-position (``way.overrun_mm`` before the first target, where the program
     stops for it): fine alignment needs a machine at rest where the plan
     aligned the beam. ``tell`` gets what the operator is to do: run the
     program while the machine is not there, press cycle start once the units
@@ -545,18 +550,26 @@ def follow_machine(
     check), the machine has to leave it before it counts as there again: the
     program moves on to overrun and approach, and a capture while it does would
     average a moving machine. While waiting, the units are read every
-    ``DEVICE_CHECK_S``, so a lost link ends the run at once rather than at the
-    timeout. ``check_program()`` raises when the controller runs another program than
-    xmalign's (:class:`xmalign.program_check.ProgramGuard`): called first, and again
-    before the units are set and before each capture.
+    ``DEVICE_CHECK_S``; the machine not at its next stop within ``timeout_s``
+    ends the run with one line. A controller that reports its program
+    (:class:`~xmalign.roles.ReportsProgram`) is checked as a controlled run is:
+    its program stopped with the machine at rest off the program's way to the
+    next stop is a program that is not the plan's (one line); held on that way
+    (a feed hold), it is waited for. ``check_program()`` raises when the controller
+    runs another program than xmalign's (:class:`xmalign.program_check.ProgramGuard`):
+    called first, and again before the units are set and before each capture.
     """
     check_program()
+    last_stop_mm = position.position_mm()
+    passed: list[PlanLine] = []  # lines done: the program still runs through them
     for line in lines:
         if run.line_is_done(line):
+            passed.append(line)
             continue
-        pre_mm = pre_position_mm(line, overrun_mm)
-        there = partial(_stands_at_mm, position, pre_mm, tolerance_mm)
+        pre_mm = way.pre_position_mm(line)
         where = f"the pre-position of line {line.id} {np.round(pre_mm, 3).tolist()} mm"
+        to_line = way.to_line(last_stop_mm, passed, line)
+        there = _arrived(position, pre_mm, to_line, tolerance_mm, where)
         if not there():
             tell(
                 f"line {line.id}: waiting for the machine to stop at {where}"
@@ -566,6 +579,7 @@ def follow_machine(
         check_program()
         run.prepare_line(line)
         tell(f"line {line.id}: units aligned and locked; {PRESS_CYCLE_START}")
+        on_line = way.on_line(line)
         previous: CapturePoint | None = None
         for point in capture_sequence(line):
             if previous is not None and np.allclose(previous.point_mm, point.point_mm):
@@ -576,22 +590,125 @@ def follow_machine(
                     timeout_s,
                     poll_s,
                 )
-            _wait_for(
-                run,
-                partial(_stands_at, position, point, tolerance_mm),
-                f"stop at {_where(point)}",
-                timeout_s,
-                poll_s,
-            )
+            arrived = _arrived(position, point.point_mm, on_line, tolerance_mm, _where(point))
+            _wait_for(run, arrived, f"stop at {_where(point)}", timeout_s, poll_s)
             check_program()
             run.capture(point, line.dwell_s, lambda p: _stands_at(position, p, tolerance_mm))
             previous = point
+        last_stop_mm = line.target_points_mm()[0]  # the drift check
+        passed = []
+
+
+@dataclass(frozen=True)
+class ProgramWay:
+    """Where the program ``xmalign program`` writes moves the machine between its stops.
+
+    Within a line, on the line's axis between the pre-position (``overrun_mm``
+    before the first target) and the overrun past the last one. From a line's
+    last stop (or wherever the program starts) to the next line's pre-position:
+    up to ``safe_z_mm`` (the top of the Z travel), across at that height (a
+    rapid, straight or not: anywhere between the two ends in X and Y), down.
+    A program stopped (paused, the machine at rest) on this way is held there
+    (a feed hold); anywhere else it is not the plan's program.
+    """
+
+    overrun_mm: float
+    safe_z_mm: float
+
+    def pre_position_mm(self, line: PlanLine) -> Vec:
+        return pre_position_mm(line, self.overrun_mm)
+
+    def on_line(self, line: PlanLine) -> Callable[[Vec], float]:
+        """Distance from the line's part of the program, mm."""
+        points = line.target_points_mm()
+        start = self.pre_position_mm(line)
+        end = points[-1] + self.overrun_mm * line.frame[0]
+        return partial(_off_segment_mm, start=start, end=end)
+
+    def to_line(
+        self, from_mm: Vec, passed: Sequence[PlanLine], line: PlanLine
+    ) -> Callable[[Vec], float]:
+        """Distance from the program's way from a stop at ``from_mm`` to ``line``'s
+        pre-position, through the lines ``passed`` (recorded: the program still runs them)."""
+        pieces = []
+        for done in passed:
+            pieces += [self._transit(from_mm, self.pre_position_mm(done)), self.on_line(done)]
+            from_mm = done.target_points_mm()[0]  # its drift check
+        pieces.append(self._transit(from_mm, self.pre_position_mm(line)))
+        return lambda position_mm: min(piece(position_mm) for piece in pieces)
+
+    def _transit(self, from_mm: Vec, to_mm: Vec) -> Callable[[Vec], float]:
+        up, down = _with_z(from_mm, self.safe_z_mm), _with_z(to_mm, self.safe_z_mm)
+
+        def off_mm(position_mm: Vec) -> float:
+            low, high = np.minimum(up, down), np.maximum(up, down)
+            across = float(np.linalg.norm(position_mm - np.clip(position_mm, low, high)))
+            return min(
+                _off_segment_mm(position_mm, from_mm, up),
+                across,
+                _off_segment_mm(position_mm, down, to_mm),
+            )
+
+        return off_mm
+
+
+def _with_z(point_mm: Vec, z_mm: float) -> Vec:
+    return np.array([point_mm[0], point_mm[1], z_mm])
+
+
+def _off_segment_mm(position_mm: Vec, start: Vec, end: Vec) -> float:
+    """Distance of a point from the segment ``start`` to ``end``, mm."""
+    step = end - start
+    length2 = float(step @ step)
+    along = 0.0 if length2 == 0.0 else float(np.clip((position_mm - start) @ step / length2, 0, 1))
+    return float(np.linalg.norm(position_mm - (start + along * step)))
+
+
+def _arrived(
+    position: MachinePositionSource,
+    target_mm: Vec,
+    way: Callable[[Vec], float],
+    tolerance_mm: float,
+    what: str,
+) -> Callable[[], bool]:
+    """Whether a followed machine stands at ``target_mm``; a program it reports stopped at
+    rest off ``way`` (distance from it, mm) is not the plan's (:func:`check_stop_on_way`)."""
+
+    def there() -> bool:
+        at_mm = position.position_mm()
+        if not position.is_standstill():
+            return False
+        if float(np.linalg.norm(at_mm - target_mm)) <= tolerance_mm:
+            return True
+        if isinstance(position, ReportsProgram):
+            report = position.program_report()
+            if report is not None and report.state == "paused":
+                check_stop_on_way(at_mm, target_mm, way, tolerance_mm, what)
+        return False
+
+    return there
+
+
+def check_stop_on_way(
+    position_mm: Vec, target_mm: Vec, way: Callable[[Vec], float], tolerance_mm: float, what: str
+) -> None:
+    """Refuse a program stopped with the machine at rest off its way to ``target_mm`` (its
+    next stop, ``what``): a program that is not the plan's. On the way it is held there."""
+    if way(position_mm) <= tolerance_mm:
+        return
+    miss = float(np.linalg.norm(position_mm - target_mm))
+    raise DeviceError(
+        f"the program stopped with the machine at {np.round(position_mm, 4).tolist()} mm,"
+        f" {miss:.4f} mm from {what} (tolerance {tolerance_mm} mm): program and plan do not"
+        " match"
+    )
 
 
 @dataclass
 class ControlledProgram:
     """xmalign's program on a controller xmalign starts, holds and resumes.
 
+    ``way``: where the program moves the machine (its overrun and safe height).
     ``tolerance_mm``: a point is captured only with the machine at rest within
     this distance of the plan's point. ``timeout_s``: the longest the machine
     may take to its next stop.
@@ -599,7 +716,7 @@ class ControlledProgram:
 
     controller: ProgramControl
     path: str
-    overrun_mm: float
+    way: ProgramWay
     tolerance_mm: float = 0.005
     timeout_s: float = 600.0
     poll_s: float = 0.05
@@ -612,25 +729,32 @@ def control_program(
 
     The program is the one ``xmalign program`` writes for ``run.plan`` with a
     programmed stop at each point instead of the dwell. xmalign starts it (a
-    program of an earlier run still open is aborted first), sets the units at
-    each line's first stop, and resumes it at every stop once the point is
-    captured (at once for points already recorded). A point is captured only
-    when the program stands at a stop and the machine at rest within
-    ``tolerance_mm`` of the plan's point; a stop anywhere else, or a program
-    that ends early, stops the run with one line (program and plan do not
-    match). While the machine moves between points the beam is watched: lost,
-    the feed is held until it comes back (at most ``BEAM_WAIT_S``), and the
-    next point is captured as after a beam lost there. On a fault the program
-    is aborted; on a lost connection or Ctrl-C the feed is held where the
-    controller still answers.
+    program of an earlier run still open is aborted first; another program is
+    refused and never touched), sets the units at each line's first stop, and
+    resumes it at every stop once the point is captured (at once for points
+    already recorded). A point is captured only when the program stands at a
+    stop and the machine at rest within ``tolerance_mm`` of the plan's point,
+    and recorded only if it still does after the average (someone pressed cycle
+    start: the point is missed, ``--resume`` captures it). The program held on
+    its way (a feed hold on the controller) is told once and waited for; a stop
+    anywhere else, or a program that ends early, stops the run with one line
+    (program and plan do not match). While the machine moves between points the
+    beam is watched: lost, the feed is held until it comes back (at most
+    ``BEAM_WAIT_S``), and the next point is captured as after a beam lost there.
+    On a fault the program is aborted; on a lost connection or Ctrl-C (SIGTERM,
+    SIGHUP) the feed is held where the controller still answers; the error says
+    which.
     """
     controller = program.controller
     controller.check_ready()
-    _start_fresh(controller, program.path, tell)
+    earlier = _earlier_run(controller, program.path)
     started = run.clock.now()
     try:
+        from_mm = controller.position_mm()
+        _start_fresh(controller, program.path, earlier, tell)
         for line in run.plan.lines:
-            _control_line(run, program, line, tell)
+            _control_line(run, program, line, from_mm, tell)
+            from_mm = line.target_points_mm()[0]  # the drift check
         _wait_for(run, _program_ended(controller), "end the program", program.timeout_s, 0.1)
     except (TransportError, KeyboardInterrupt) as error:
         note = _try(controller.hold, "the feed is held on the controller")
@@ -641,8 +765,9 @@ def control_program(
     run.statistics.program_s = run.clock.now() - started
 
 
-def _start_fresh(controller: ProgramControl, path: str, tell: Callable[[str], None]) -> None:
-    """Start the program; one of an earlier run still open is aborted first."""
+def _earlier_run(controller: ProgramControl, path: str) -> ProgramState:
+    """The state of xmalign's program left open by an earlier run ("idle": none); another
+    program open is refused (DeviceError), before anything is sent to the controller."""
     state = controller.program_state()
     if state != "idle":
         loaded = controller.loaded_program()
@@ -650,27 +775,57 @@ def _start_fresh(controller: ProgramControl, path: str, tell: Callable[[str], No
             raise DeviceError(
                 f"the controller is {state} with another program ({loaded}); stop it first"
             )
+    return state
+
+
+def _start_fresh(
+    controller: ProgramControl, path: str, earlier: ProgramState, tell: Callable[[str], None]
+) -> None:
+    """Start the program; xmalign's program of an earlier run still open is aborted first."""
+    if earlier != "idle":
         controller.stop_program()
-        tell(f"the program was {state} from an earlier run: aborted, started again from the top")
+        tell(f"the program was {earlier} from an earlier run: aborted, started again from the top")
     controller.start_program(path)
 
 
 def _control_line(
-    run: CalibrationRun, program: ControlledProgram, line: PlanLine, tell: Callable[[str], None]
+    run: CalibrationRun,
+    program: ControlledProgram,
+    line: PlanLine,
+    from_mm: Vec,
+    tell: Callable[[str], None],
 ) -> None:
     """Units set at the line's first stop; capture at each point's stop; resume each time."""
-    pre_mm = pre_position_mm(line, program.overrun_mm)
+    pre_mm = program.way.pre_position_mm(line)
+    to_line = program.way.to_line(from_mm, (), line)
+    where = f"the pre-position of line {line.id} {np.round(pre_mm, 3).tolist()} mm"
     # on the way to a line the units are not yet set for it: the beam is not watched
-    _wait_program(run, program, pre_mm, f"the pre-position of line {line.id}", None)
+    _wait_program(run, program, pre_mm, where, to_line, tell)
     stopped = run.clock.now()
     if not run.line_is_done(line):
         run.prepare_line(line)
     _resume(run, program, pre_mm)
     run.statistics.stopped_s += run.clock.now() - stopped
+    on_line = program.way.on_line(line)
     for point in capture_sequence(line):
-        _wait_program(run, program, point.point_mm, _where(point), tell)
-        run.capture(point, line.dwell_s, lambda p: True)  # the program waits at the stop
+        _wait_program(run, program, point.point_mm, _where(point), on_line, tell, watch_beam=True)
+        held = partial(_held_at, program)
+        row = run.capture(point, line.dwell_s, held, check_after=True)
+        if row is None and point.key in run.statistics.missed and not held(point):
+            tell(
+                f"{_where(point)}: the program went on during the capture (cycle start on"
+                " the controller?): the point is not recorded; --resume captures it"
+            )
+            continue  # the program is no longer at this stop: nothing to resume
         _resume(run, program, point.point_mm)
+
+
+def _held_at(program: ControlledProgram, point: CapturePoint) -> bool:
+    """The program still stands at the point's stop, the machine at rest there."""
+    controller = program.controller
+    if controller.program_state() != "paused":
+        return False
+    return _stands_at(controller, point, program.tolerance_mm)
 
 
 def _resume(run: CalibrationRun, program: ControlledProgram, stop_mm: Vec) -> None:
@@ -691,54 +846,63 @@ def _wait_program(
     program: ControlledProgram,
     target_mm: Vec,
     what: str,
-    tell: Callable[[str], None] | None,
+    way: Callable[[Vec], float],
+    tell: Callable[[str], None],
+    watch_beam: bool = False,
 ) -> None:
     """Until the program stands at a stop with the machine at rest at ``target_mm``.
 
     DeviceError when the program ends first, or stands at a stop with the
-    machine at rest anywhere else: program and plan do not match. With
-    ``tell``, while the program runs, a lost beam holds the feed
-    (:func:`_hold_for_beam`).
+    machine at rest off its ``way`` (distance from it, mm): program and plan do
+    not match. Held on the way (a feed hold on the controller), it is told once
+    and waited for. With ``watch_beam``, while the program runs, a lost beam
+    holds the feed (:func:`_hold_for_beam`).
     """
     controller = program.controller
+    told = False
 
     def there() -> bool:
+        nonlocal told
         state = controller.program_state()
         if state == "idle":
             raise DeviceError(f"the program ended before {what}: program and plan do not match")
         if state == "running":
-            if tell is not None and not run.interferometer.read().beam_ok:
-                _hold_for_beam(run, controller, what, tell)
+            told = False
+            if watch_beam and not run.interferometer.read().beam_ok:
+                _hold_for_beam(run, program, what, tell)
             return False
         if not controller.is_standstill():
             return False
         position = controller.position_mm()
-        miss = float(np.linalg.norm(position - target_mm))
-        if miss > program.tolerance_mm:
-            raise DeviceError(
-                f"the program stopped with the machine at {np.round(position, 4).tolist()} mm,"
-                f" {miss:.4f} mm from {what} {np.round(target_mm, 4).tolist()} mm (tolerance"
-                f" {program.tolerance_mm} mm): program and plan do not match"
+        if float(np.linalg.norm(position - target_mm)) <= program.tolerance_mm:
+            return True
+        check_stop_on_way(position, target_mm, way, program.tolerance_mm, what)
+        if not told:
+            told = True
+            tell(
+                f"the program is held at {np.round(position, 3).tolist()} mm on its way to"
+                f" {what} (a feed hold on the controller): waiting for it to go on"
             )
-        return True
+        return False
 
     _wait_for(run, there, f"stop at {what}", program.timeout_s, program.poll_s)
 
 
 def _hold_for_beam(
-    run: CalibrationRun, controller: ProgramControl, what: str, tell: Callable[[str], None]
+    run: CalibrationRun, program: ControlledProgram, what: str, tell: Callable[[str], None]
 ) -> None:
     """The beam is lost while the machine moves: hold the feed until it is back (at most
     ``BEAM_WAIT_S``), resume; the next capture counts the beam as lost there."""
+    controller = program.controller
     controller.hold()
     held = run.clock.now()
-    back = run.wait_for_beam(held + BEAM_WAIT_S)
+    back = run.beam_returns(held + BEAM_WAIT_S)
     run.count_lost = True
     tell(
         f"beam lost on the way to {what}: feed held {run.clock.now() - held:.1f} s,"
         f" {'beam back' if back else 'beam still lost (searched for at the point)'}; resumed"
     )
-    controller.resume()
+    _resume(run, program, controller.position_mm())
 
 
 def _program_ended(controller: ProgramControl) -> Callable[[], bool]:
@@ -755,8 +919,8 @@ def _try(action: Callable[[], None], done: str) -> str:
 
 
 def _noted(error: BaseException, note: str) -> BaseException:
-    """The same error with ``note`` added to its one line."""
-    return type(error)(f"{error}; {note}")
+    """The same error (a StopSignal keeps its signal) with ``note`` added to its one line."""
+    return like(error, "; ".join(part for part in (str(error), note) if part))
 
 
 def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:
@@ -766,11 +930,7 @@ def pre_position_mm(line: PlanLine, overrun_mm: float) -> Vec:
 
 def _stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
     """The machine stands still at the point (it has not gone on with the program)."""
-    return _stands_at_mm(position, point.point_mm, tolerance_mm)
-
-
-def _stands_at_mm(position: MachinePositionSource, point_mm: Vec, tolerance_mm: float) -> bool:
-    miss = float(np.linalg.norm(position.position_mm() - point_mm))
+    miss = float(np.linalg.norm(position.position_mm() - point.point_mm))
     return position.is_standstill() and miss <= tolerance_mm
 
 
@@ -800,7 +960,8 @@ def _wait_for(
             run.receiver.angles_rad()
             checked_s = clock.now()
         clock.sleep(poll_s)
-    raise DeviceTimeoutError(f"the machine did not {what} within {timeout_s:.0f} s")
+    # the controller answers all along: the machine is late, no connection is lost
+    raise DeviceError(f"the machine did not {what} within {timeout_s:.0f} s (timeouts.machine_s)")
 
 
 def check_program_position(point: CapturePoint, position_mm: Vec, tolerance_mm: float) -> None:

@@ -17,9 +17,13 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TypeVar
 
 from xmalign.errors import DeviceError, XmalignError
 from xmalign.roles import PositioningUnit, RotaryAxis
+
+#: Any exception: :func:`like` gives back the kind it is given.
+E = TypeVar("E", bound=BaseException)
 
 
 def _label(axis: RotaryAxis, unit: PositioningUnit) -> str:
@@ -65,11 +69,18 @@ class StopSignal(KeyboardInterrupt):
         return signal.Signals(self.signum).name
 
 
-def like(interrupt: KeyboardInterrupt, message: str) -> KeyboardInterrupt:
-    """A KeyboardInterrupt saying ``message``, of the same kind (signal) as ``interrupt``."""
-    if isinstance(interrupt, StopSignal):
-        return StopSignal(interrupt.signum, message)
-    return KeyboardInterrupt(message)
+def like(error: E, message: str) -> E:
+    """The same error saying ``message``: its class and attributes (a StopSignal's signal).
+
+    Not made by calling the class with the message: a class whose constructor
+    takes more than one message (:class:`StopSignal`,
+    :class:`~xmalign.errors.MachineKeyError`) would take it for another argument.
+    """
+    kind = type(error)
+    same = kind.__new__(kind)
+    same.__dict__.update(error.__dict__)
+    same.args = (message,)
+    return same
 
 
 def _stop_handler(owner_pid: int) -> Callable[[int, object], None]:
@@ -144,7 +155,7 @@ def units_locked_on_exit(*units: PositioningUnit) -> Iterator[None]:
         with _sigint_deferred():
             problems = lock_all(units)
         if problems and isinstance(error, XmalignError):
-            raise type(error)("; ".join([str(error), *problems])) from error
+            raise like(error, "; ".join([str(error), *problems])) from error
         for problem in problems:
             error.add_note(problem)
         raise

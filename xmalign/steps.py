@@ -11,7 +11,8 @@ writes every pose (:func:`write_pose_step`), opens every measurement file
 shows, by hooks. Only what differs between a controller running the program and
 an operator stepping the machine is given by the caller: the *drive* of
 :func:`run_step` (:func:`program_drive`, :func:`stepping_drive`,
-:func:`following_drive`, :func:`controlled_drive`).
+:func:`following_drive`, :func:`controlled_drive`); a run on a controller xmalign
+starts and resumes its program on is :func:`controlled_run_step`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -31,6 +33,7 @@ from xmalign.calibration import (
     CalibrationRun,
     ControlledProgram,
     ProgramEvent,
+    ProgramWay,
     RunOutput,
     capture_program,
     control_program,
@@ -313,12 +316,14 @@ def following_drive(
     position: MachinePositionSource,
     tell: Callable[[str], None],
     machine: Machine,
+    timeout_s: float,
     poll_s: float = 0.05,
     check_program: Callable[[], None] = lambda: None,
 ) -> Drive:
     """Capture while the controller runs the program, at each standstill on a target
     (the units set at each line's pre-position, the machine file's overrun before it);
-    ``tell`` says the operator's part (run the program, press cycle start); ``poll_s``:
+    ``tell`` says the operator's part (run the program, press cycle start); ``timeout_s``:
+    the longest the machine may take to its next stop (``timeouts.machine_s``); ``poll_s``:
     how often the position is read while waiting; ``check_program()`` refuses a
     controller running another program (:class:`xmalign.program_check.ProgramGuard`)."""
     return lambda run: follow_machine(
@@ -326,10 +331,16 @@ def following_drive(
         position,
         run.plan.lines,
         tell,
-        machine.measurement.overrun_mm,
+        program_way(machine),
+        timeout_s=timeout_s,
         poll_s=poll_s,
         check_program=check_program,
     )
+
+
+def program_way(machine: Machine) -> ProgramWay:
+    """Where the program :func:`program_step` writes for ``machine`` moves it between stops."""
+    return ProgramWay(machine.measurement.overrun_mm, float(machine.travel_max_mm[2]))
 
 
 def controlled_drive(
@@ -344,9 +355,48 @@ def controlled_drive(
     program at ``program_path`` as the controller opens it (:func:`write_controller_program`
     wrote it); a point only with the machine at rest within ``tolerance_mm`` of the plan's."""
     program = ControlledProgram(
-        controller, program_path, machine.measurement.overrun_mm, tolerance_mm, timeout_s
+        controller, program_path, program_way(machine), tolerance_mm, timeout_s
     )
     return lambda run: control_program(run, program, tell)
+
+
+class ControllerProgramFiles(Protocol):
+    """Where a controller xmalign runs its program on has it (a ``units.yaml`` section)."""
+
+    @property
+    def program(self) -> Path:
+        """The program file xmalign writes."""
+        ...
+
+    @property
+    def cnc_program_path(self) -> str:
+        """The same file as the controller opens it."""
+        ...
+
+    @property
+    def tolerance_mm(self) -> float:
+        """A point is captured only with the machine at rest this close to it, mm."""
+        ...
+
+
+def controlled_run_step(
+    plan: Plan,
+    machine: Machine,
+    devices: RunStepDevices,
+    output: RunOutput,
+    controller: ProgramControl,
+    files: ControllerProgramFiles,
+    timeout_s: float,
+    tell: Callable[[str], None],
+) -> CalibrationRun:
+    """:func:`run_step` with xmalign running its program on a LinuxCNC: the program written
+    for the plan (:func:`write_controller_program`), then started, held and resumed
+    (:func:`controlled_drive`). ``xmalign run --config`` and the dry run call this."""
+    write_controller_program(plan, machine, "linuxcnc", files.program)
+    drive = controlled_drive(
+        controller, files.cnc_program_path, tell, machine, files.tolerance_mm, timeout_s
+    )
+    return run_step(plan, devices, output, drive)
 
 
 def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: Path) -> str:

@@ -148,10 +148,21 @@ def test_run_sim_is_served_by_default(short_plan, tmp_path):
 
 
 def test_a_controlled_run_over_linuxcncrsh_captures_what_the_in_process_run_captures(
-    reference_machine, short_plan, tmp_path
+    reference_machine, short_plan, tmp_path, monkeypatch
 ):
     """The dry run's path: xmalign starts, resumes (and would hold) the program on a
-    simulated LinuxCNC over linuxcncrsh, all on the world's virtual clock."""
+    simulated LinuxCNC over linuxcncrsh, all on the world's virtual clock; wired by the step
+    ``xmalign run --config`` calls too (tests/xmalign/test_one_pipeline.py)."""
+    import sim.dry_run as dry_run
+    from xmalign import steps
+
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(args)
+        return steps.controlled_run_step(*args, **kwargs)
+
+    monkeypatch.setattr(dry_run, "controlled_run_step", spy)
     plan = read_plan(short_plan)
     setup = virtual_setup(reference_machine, SEED, lockstep=True)
     with open_run_output(tmp_path / "c.csv", plan, resume=False) as output:
@@ -161,6 +172,7 @@ def test_a_controlled_run_over_linuxcncrsh_captures_what_the_in_process_run_capt
     _assert_close(controlled, in_process)
     assert run.statistics.points == 14 and not run.statistics.missed
     assert run.statistics.program_s is not None and run.statistics.program_s > 0
+    assert len(calls) == 1
 
 
 def _measured_lines(path):

@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 from cli_helpers import run_in_process
 
+from tests.xmalign.test_live_controlled_e2e import served  # noqa: F401 - fixture
+from tests.xmalign.test_live_e2e import short_plan  # noqa: F401 - the fixture served uses
 from xmalign import steps
 from xmalign.errors import InputError
 from xmalign.formats.measurements import load_measurements
@@ -160,3 +162,20 @@ def test_the_instrument_dry_run_posts_through_the_post_step(
     assert len(calls) == 1
     errors = (tmp_path / "tracer" / "errors-instruments.csv").read_text()
     assert "tracer.csv" in errors  # the tables name the readings they came from
+
+
+def test_a_controlled_live_run_calls_the_controlled_run_step(
+    served,  # noqa: F811 - fixture
+    tmp_path,
+    monkeypatch,
+):
+    """``xmalign run --config`` with ``source: linuxcncrsh`` (here against ``sim serve``)
+    wires the controlled run in the step the dry run calls too (tests/sim/test_served_world.py)."""
+    calls = _spy(monkeypatch, steps, "controlled_run_step")  # run imports it when it runs
+    result = run_in_process(
+        "run", "--config", str(tmp_path / "units.yaml"), "--machine",
+        str(tmp_path / "machine.yaml"), "--plan", str(tmp_path / "plan.json"), "--out",
+        str(tmp_path / "m.csv"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert len(calls) == 1 and len(load_measurements(tmp_path / "m.csv").rows) == 7

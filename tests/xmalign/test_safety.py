@@ -10,10 +10,17 @@ import pytest
 
 from sim.clock import SimClock
 from sim.units import SimPositioningUnit, SimUnit
-from xmalign.errors import DeviceError, DriveFaultError, TransportError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    DriveFaultError,
+    MachineKeyError,
+    TransportError,
+)
 from xmalign.safety import (
     StopSignal,
     interrupted,
+    like,
     lock_all,
     stop_signals_as_interrupts,
     units_locked_on_exit,
@@ -190,3 +197,20 @@ def test_a_forked_worker_ends_on_sigterm_as_by_default() -> None:
     os.close(ready)
     os.close(tell)
     assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        StopSignal(signal.SIGTERM),
+        KeyboardInterrupt(),
+        MachineKeyError("cnc.work_offset", "not a G54..G59 offset"),
+        DeviceTimeoutError("no answer"),
+    ],
+    ids=["sigterm", "ctrl-c", "machine-key", "timeout"],
+)
+def test_like_keeps_the_kind_and_the_attributes_with_the_new_message(error) -> None:
+    """Made by calling the class, a StopSignal would take the message for its signal."""
+    same = like(error, "stopped: 3 points kept")
+    assert type(same) is type(error) and str(same) == "stopped: 3 points kept"
+    assert vars(same) == vars(error)  # a StopSignal's signum, a MachineKeyError's key

@@ -81,7 +81,8 @@ def _point_count(plan: Plan) -> int:
 
 
 def _stopped(interrupt: KeyboardInterrupt, out: Path, also: str = "") -> KeyboardInterrupt:
-    """Ctrl-C (SIGTERM, SIGHUP): one line saying what is kept and how to go on.
+    """Ctrl-C (SIGTERM, SIGHUP): one line saying what is kept and how to go on, and what
+    the run said of it (the controller's feed held, an axis that could not be locked).
 
     Printed by the CLI, exit 130 (128 + the signal's number).
     """
@@ -89,12 +90,16 @@ def _stopped(interrupt: KeyboardInterrupt, out: Path, also: str = "") -> Keyboar
         saved = len(load_measurements(out, torn_ok=True).rows)
     except XmalignError:
         saved = 0
-    return like(interrupt, f"stopped: {saved} points kept in {out}; go on with --resume{also}")
+    said = [str(interrupt), *getattr(interrupt, "__notes__", ())]
+    more = "".join(f"; {part}" for part in said if part)
+    return like(
+        interrupt, f"stopped: {saved} points kept in {out}; go on with --resume{also}{more}"
+    )
 
 
 def _kept(error: XmalignError, output: RunOutput) -> XmalignError:
     """The same error, saying how many points the file keeps."""
-    return type(error)(f"{error}; {output.writer.saved} points kept in {output.writer.path}")
+    return like(error, f"{error}; {output.writer.saved} points kept in {output.writer.path}")
 
 
 def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun]) -> None:
@@ -115,7 +120,7 @@ def _measure(output: RunOutput, plan: Plan, measure: Callable[[], CalibrationRun
     if run.statistics.missed:
         error_console.print(
             f"warning: {len(run.statistics.missed)} points were not captured (the machine"
-            " went on while the beam was searched); run again with --resume to capture them",
+            " went on before they were captured); run again with --resume to capture them",
             style="yellow",
             markup=False,
         )
@@ -185,12 +190,11 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     from xmalign.roles import WallClock
     from xmalign.steps import (
         RunStepDevices,
-        controlled_drive,
+        controlled_run_step,
         following_drive,
         refuse_replacing_a_foreign_program,
         run_step,
         stepping_drive,
-        write_controller_program,
     )
 
     config = load_units_config(config_path)
@@ -198,30 +202,33 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
     if controlled is not None:  # before anything is opened or moved
         refuse_replacing_a_foreign_program(controlled.program)
     devices = open_devices(config, machine)
+    timeout_s = config.timeouts.machine_s
 
     def capture(output: RunOutput) -> CalibrationRun:
-        if devices.controller is not None and controlled is not None:
-            write_controller_program(plan, machine, "linuxcnc", controlled.program)
-            drive = controlled_drive(
-                devices.controller,
-                controlled.cnc_program_path,
-                _tell_operator,
-                machine,
-                controlled.tolerance_mm,
-                config.timeouts.machine_s,
-            )
-        elif config.machine_position.follows_the_machine:
-            check = _program_check(config.machine_position, devices.position, plan, machine)
-            drive = following_drive(devices.mover, _tell_operator, machine, check_program=check)
-        else:
-            drive = stepping_drive(devices.mover, machine)
         roles = RunStepDevices(
             devices.launch, devices.receiver, devices.interferometer, WallClock()
         )
-        run = run_step(plan, roles, output, drive)
-        if run.statistics.program_s is not None:
+        if devices.controller is not None and controlled is not None:
+            run = controlled_run_step(
+                plan,
+                machine,
+                roles,
+                output,
+                devices.controller,
+                controlled,
+                timeout_s,
+                _tell_operator,
+            )
             _tell_machine_time(plan, machine, run.statistics)
-        return run
+            return run
+        if config.machine_position.follows_the_machine:
+            check = _program_check(config.machine_position, devices.position, plan, machine)
+            drive = following_drive(
+                devices.mover, _tell_operator, machine, timeout_s, check_program=check
+            )
+        else:
+            drive = stepping_drive(devices.mover, machine)
+        return run_step(plan, roles, output, drive)
 
     environment = (
         EnvironmentMonitor(devices.environment) if devices.environment is not None else None
