@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from required_tools import skip_unless_required
 
 from firmware_iface.config import _mover, load_units_config
 from firmware_iface.linuxcnc_control import MdiMover
@@ -44,7 +45,7 @@ def _real_module() -> Any:
     try:
         return find_linuxcnc_module(SYSTEM_MODULE_DIR)
     except InputError:
-        pytest.skip("LinuxCNC's Python module is not installed (Debian linuxcnc-uspace)")
+        skip_unless_required("LinuxCNC's Python module is not installed (Debian linuxcnc-uspace)")
 
 
 def test_the_real_module_has_what_the_driver_uses_and_the_simulated_one_its_values() -> None:
