@@ -31,12 +31,13 @@ from cli_helpers import free_port
 from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
 from test_unattended_run import LINES, Shop, _expected_keys, _keys, shop_running
 
-from firmware_iface.linuxcnc_control import MdiMover
+from firmware_iface.linuxcnc_control import MdiMover, mdi_move_line
 from firmware_iface.linuxcnc_module import LocalLinuxCnc, find_linuxcnc_module
 from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from tests.firmware_iface.machine_position_contract import (  # noqa: F401 (the contract, run here)
     Stand,
     test_a_lost_source_is_a_transport_error_naming_it,
+    test_a_moving_machine_does_not_stand_still,
     test_an_operator_prompt_checks_the_confirmed_move_against_it,
     test_gives_the_actual_position_in_mm_as_three_floats,
     test_is_a_machine_position_source,
@@ -119,10 +120,25 @@ def _placer(cnc: LocalLinuxCnc) -> Callable[[float, float, float], None]:
     return place
 
 
+def _mover(cnc: LocalLinuxCnc) -> Callable[[float, float, float], None]:
+    def move(x: float, y: float, z: float) -> None:  # a slow MDI move, returns once under way
+        before = cnc.commanded_mm()
+        cnc._set_mode("mdi")
+        cnc._mdi(mdi_move_line(np.array([x, y, z]), 120.0))  # 1 mm: 0.5 s
+        _wait(lambda: not np.array_equal(cnc.commanded_mm(), before))
+
+    return move
+
+
 @pytest.fixture
 def stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> Stand:
     return Stand(
-        local, _placer(local), headless.stop, find_linuxcnc_module().nmlfile, WallClock(), False
+        local,
+        _placer(local),
+        headless.stop,
+        find_linuxcnc_module().nmlfile,
+        WallClock(),
+        move=_mover(local),
     )
 
 
@@ -176,7 +192,11 @@ def test_refusals_carry_linuxcncs_message(local: LocalLinuxCnc) -> None:
     with pytest.raises(DeviceError, match=refused):
         local.start_program("/nowhere.ngc")
     _placer(local)(10.0, 20.0, -5.0)
-    beyond = r"did not move to \[6000.0, 20.0, -5.0\] mm \(.*would exceed X's positive limit"
+    # refused at once (RCS_ERROR for the MDI line), or once at rest short of the target
+    beyond = (
+        r"(refused 'mdi\('G21 G90 G94 G53 G1 X6000.0000 Y20.0000 Z-5.0000 F60000.0'\)'"
+        r"|did not move to \[6000.0, 20.0, -5.0\] mm) \(.*would exceed X's positive limit"
+    )
     with pytest.raises(DeviceError, match=beyond):
         local.move_mdi(np.array([6000.0, 20.0, -5.0]), RAPID_MM_MIN, 0.005, 30.0)
     assert np.allclose(local.position_mm(), [10.0, 20.0, -5.0], atol=1e-6)
