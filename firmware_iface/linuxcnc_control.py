@@ -196,18 +196,34 @@ class LinuxCncControl(ABC):
     def start_program(self, path: str) -> None:
         """Auto mode, open ``path`` (as the LinuxCNC computer sees it), run from the top.
 
-        Returns once LinuxCNC reports the program running (its status lags the
-        command); DeviceError with LinuxCNC's own message when it does not start
-        within ``start_timeout_s``.
+        Runs only once LinuxCNC reports ``path`` open: a LinuxCNC that cannot
+        open a file keeps the program it had open, and a run would start that
+        one (seen with 2.9 over linuxcncrsh). Returns once LinuxCNC reports the
+        program running (its status lags the command); DeviceError with
+        LinuxCNC's own message when it does not open or start ``path`` within
+        ``start_timeout_s``.
         """
         self._set_mode("auto")
         self._open_program(path)
+        self._wait_opened(path)
         self._run_program()
         deadline = self.clock.now() + self.start_timeout_s
         while self.program_state() == "idle":
             if self.clock.now() >= deadline:
                 reason = self._error_text() or "no message"
                 raise DeviceError(f"{self.name} did not start {path} ({reason})")
+            self.clock.sleep(0.02)
+
+    def _wait_opened(self, path: str) -> None:
+        """Wait until LinuxCNC reports ``path`` as its open program (its message: refused)."""
+        deadline = self.clock.now() + self.start_timeout_s
+        while (loaded := self.loaded_program()) != path:
+            reason = self._error_text()
+            if reason or self.clock.now() >= deadline:
+                has = f"; it has {loaded} open" if loaded else ""
+                raise DeviceError(
+                    f"{self.name} did not open {path} ({reason or 'no message'}){has}"
+                )
             self.clock.sleep(0.02)
 
     def move_mdi(

@@ -90,8 +90,11 @@ def test_program_control_and_state() -> None:
     steps = [
         ("set mode auto", "SET MODE ACK"),
         ("set open /cnc/run.ngc", "SET OPEN ACK"),
+        ("get program", "PROGRAM /cnc/old.ngc"),  # the status lags the command
+        ("get error", "ERROR OK"),
+        ("get program", "PROGRAM /cnc/run.ngc"),
         ("set run", "SET RUN ACK"),
-        ("get program_status", "PROGRAM_STATUS IDLE"),  # the status lags the command
+        ("get program_status", "PROGRAM_STATUS IDLE"),
         ("get program_status", "PROGRAM_STATUS RUNNING"),
         ("set pause", "SET PAUSE ACK"),
         ("get program_status", "PROGRAM_STATUS PAUSED"),
@@ -121,17 +124,37 @@ def test_a_refused_command_says_linuxcncs_own_reason() -> None:
         _cnc(link).start_program("/x.ngc")
 
 
-def test_a_program_that_does_not_start_is_one_error() -> None:
+def test_a_program_linuxcnc_cannot_open_is_never_run() -> None:
+    """LinuxCNC 2.9 acknowledges ``set open`` of a missing file, keeps its old program
+    open, and a ``set run`` would run that one (seen in tests/linuxcnc)."""
     steps = [
         ("set mode auto", "SET MODE ACK"),
         ("set open /x.ngc", "SET OPEN ACK"),
-        ("set run", "SET RUN ACK"),
-        *[("get program_status", "PROGRAM_STATUS IDLE")] * 2,
+        ("get program", "PROGRAM /cnc/old.ngc"),
         ("get error", "ERROR Unable to open file </x.ngc>"),
     ]
     with (
         ExpectedRshLines(steps) as link,
-        pytest.raises(DeviceError, match="did not start /x.ngc .Unable to open file"),
+        pytest.raises(
+            DeviceError,
+            match=r"did not open /x.ngc \(Unable to open file </x.ngc>\); it has /cnc/old.ngc open",
+        ),
+    ):
+        _cnc(link).start_program("/x.ngc")
+
+
+def test_a_program_that_does_not_start_is_one_error() -> None:
+    steps = [
+        ("set mode auto", "SET MODE ACK"),
+        ("set open /x.ngc", "SET OPEN ACK"),
+        ("get program", "PROGRAM /x.ngc"),
+        ("set run", "SET RUN ACK"),
+        *[("get program_status", "PROGRAM_STATUS IDLE")] * 2,
+        ("get error", "ERROR Unable to read file </x.ngc>"),
+    ]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="did not start /x.ngc .Unable to read file"),
     ):
         _cnc(link, start_timeout_s=0.02).start_program("/x.ngc")
 

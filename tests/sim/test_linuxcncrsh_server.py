@@ -77,7 +77,7 @@ def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> Non
 
 def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # noqa: ANN001
     client, server = cnc
-    with pytest.raises(DeviceError, match="did not start /nowhere.ngc .Unable to open file"):
+    with pytest.raises(DeviceError, match="did not open /nowhere.ngc .Unable to open file"):
         client.start_timeout_s = 0.2
         client.start_program("/nowhere.ngc")
     with pytest.raises(DeviceError, match="refused the enable password"):
