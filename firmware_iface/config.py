@@ -24,8 +24,10 @@
       source: prompt               # prompt (operator types it), file, linuxcncrsh, linuxcnc,
       #                              mtconnect or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
-      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
-      #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc,
+      #               enable_password_env: XMALIGN_LINUXCNC_ENABLE_PW}
+      #                            (source: linuxcncrsh; xmalign runs the program itself;
+      #                             examples/units-linuxcncrsh.yaml has every key)
       # linuxcnc: {program: /home/cnc/xmalign-run.ngc}
       #                            (source: linuxcnc: the same, through LinuxCNC's Python
       #                             module, xmalign on the CNC's own computer)

@@ -12,11 +12,13 @@ import logging
 import socket
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scripted import ExpectedRshLines
 
+from firmware_iface.config import load_units_config
 from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, masked, open_linuxcnc
 from sim.clock import SimClock
 from xmalign.errors import (
@@ -359,3 +361,19 @@ def test_the_wire_log_and_a_timeout_never_show_a_spaced_password(
         link.close()
     assert "secret" not in str(error.value) and "'hello **** xmalign 1.0'" in str(error.value)
     assert "secret" not in caplog.text and "top" not in caplog.text
+
+
+def test_the_documented_example_loads_and_is_in_the_docs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    root = Path(__file__).resolve().parents[2]
+    example = root / "examples" / "units-linuxcncrsh.yaml"
+    config = load_units_config(example)
+    rsh = config.machine_position.linuxcncrsh
+    assert rsh is not None and config.machine_position.controlled is rsh
+    assert (rsh.timeout_s, rsh.start_timeout_s) == (1.0, 5.0)
+    monkeypatch.setenv("XMALIGN_LINUXCNC_CONNECT_PW", "c0nnect")
+    monkeypatch.setenv("XMALIGN_LINUXCNC_ENABLE_PW", "3nable")
+    assert rsh.passwords() == ("c0nnect", "3nable")
+    docs = (root / "docs" / "hardware.md").read_text(encoding="utf-8")
+    assert example.read_text(encoding="utf-8") in docs, "docs/hardware.md lost the example"
