@@ -3,7 +3,7 @@
 LinuxCNC 2.9 (Debian ``linuxcnc-uspace``) runs with ``linuxcncrsh`` as its display
 (tests/linuxcnc/harness.py); the test brings the machine up over a session of its
 own (E-stop reset, machine on, home), then :class:`~firmware_iface.linuxcncrsh.MdiMover`
-moves it with ``set mode mdi`` and ``set mdi G53 G1 ...`` (``man linuxcncrsh``).
+moves it with ``set mode mdi`` and ``set mdi G21 G90 G94 G53 G1 ...`` (``man linuxcncrsh``).
 LinuxCNC's travel (X 0..400, Y 0..300, Z -200..0) is smaller than the machine
 file's, so a target inside the file's travel can lie beyond LinuxCNC's soft limits:
 LinuxCNC refuses it, and the move stops with LinuxCNC's own message (seen: ``LinuxCNC

@@ -85,7 +85,7 @@ def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # n
 
 
 def test_an_mdi_move_to_a_point_and_what_is_refused(cnc, reference_machine, tmp_path) -> None:  # noqa: ANN001
-    """``set mode mdi`` + ``set mdi G53 G1 ...`` as :class:`MdiMover` sends them (the
+    """``set mode mdi`` + ``set mdi G21 G90 G94 G53 G1 ...`` as :class:`MdiMover` sends them (the
     commands of ``man linuxcncrsh``); back at rest at the point, the program idle."""
     client, server = cnc
     mover = MdiMover(client, reference_machine, 0.005, 10.0)
