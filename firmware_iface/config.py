@@ -434,13 +434,17 @@ def _open_unit(
 
 
 def _open_interferometer(
-    config: InterferometerConfig, timeouts: Timeouts, closers: list[Callable[[], None]]
+    config: InterferometerConfig,
+    timeouts: Timeouts,
+    closers: list[Callable[[], None]],
+    clock: Clock | None,
 ) -> Interferometer:
     if config.replay is not None:
         return ReplayInterferometer(config.replay)
     connection = open_serial(str(config.port), config.baudrate, timeouts.io_s)
     closers.append(connection.close)
-    interferometer = SerialInterferometer(connection, f"interferometer on {config.port}")
+    name = f"interferometer on {config.port}"
+    interferometer = SerialInterferometer(connection, name, clock)
     interferometer.set_rate(config.rate_hz)
     return interferometer
 
@@ -455,8 +459,9 @@ def open_devices(
     """Open both units, the interferometer and the machine-position source of ``config``.
 
     Anything opened before a failure is closed again before the error propagates.
-    ``clock`` is what the Modbus units wait on (default the wall clock; the
-    simulator's shared virtual clock when it serves the devices in-process).
+    ``clock`` is what the Modbus units and the controller wait on and what the
+    interferometer tells before each wait for a streamed sample (default the wall clock;
+    the simulator's shared virtual clock when it serves the devices in-process).
     """
     closers: list[Callable[[], None]] = []
     networks: dict[tuple[str, str], canopen.Network] = {}
@@ -465,7 +470,9 @@ def open_devices(
         receiver = _open_unit(
             config.receiver, "receiver", config.timeouts, networks, closers, clock
         )
-        interferometer = _open_interferometer(config.interferometer, config.timeouts, closers)
+        interferometer = _open_interferometer(
+            config.interferometer, config.timeouts, closers, clock
+        )
         environment = (
             None
             if config.environment is None

@@ -35,9 +35,11 @@ from xmalign.errors import DeviceError, DeviceTimeoutError, FormatError, Transpo
 from xmalign.formats.common import read_text
 from xmalign.roles import (
     CHANNELS,
+    Clock,
     ClosesOnExit,
     Interferometer,
     InterferometerReading,
+    WallClock,
     mean_reading,
 )
 
@@ -77,11 +79,20 @@ class SerialInterferometer:
         Open serial connection with a read timeout.
     device_name : str
         How errors name the instrument, e.g. ``"interferometer on /dev/ttyUSB0"``.
+    clock : Clock, optional
+        The host's clock, told before each wait for a streamed sample
+        (``Clock.await_stream``; the wall clock, the default, does nothing).
     """
 
-    def __init__(self, connection: LineConnection, device_name: str = "interferometer") -> None:
+    def __init__(
+        self,
+        connection: LineConnection,
+        device_name: str = "interferometer",
+        clock: Clock | None = None,
+    ) -> None:
         self.connection = connection
         self.device_name = device_name
+        self.clock = clock or WallClock()
         self.corrupted_lines = 0
         self.connection.reset_input_buffer()
 
@@ -102,9 +113,9 @@ class SerialInterferometer:
         """Mean of the streamed samples that cover ``duration_s`` (each covers one period)."""
         self._command(Command("STREAM", "ON"))
         try:
-            samples = [self._next_sample(), self._next_sample()]
+            samples = [self._next_streamed(), self._next_streamed()]
             while _covered_s(samples) < duration_s - _TIME_TOLERANCE_S:
-                samples.append(self._next_sample())
+                samples.append(self._next_streamed())
         finally:
             self._send(Command("STREAM", "OFF"))
             self._await_reply("STREAM")
@@ -133,6 +144,10 @@ class SerialInterferometer:
                 raise DeviceError(f"the {self.device_name} refused {word}: {line.text}")
             if line.text.split(" ", 1)[0].rstrip("?") == word:
                 return line
+
+    def _next_streamed(self) -> InterferometerReading:
+        self.clock.await_stream()
+        return self._next_sample()
 
     def _next_sample(self) -> InterferometerReading:
         while True:

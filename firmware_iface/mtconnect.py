@@ -28,11 +28,13 @@ Which data items (MTConnect Part 2, Devices; Part 3, Streams):
   without a subType, then ``ACTIVE`` (never ``SCHEDULE``). A device without
   one, or one reporting it ``UNAVAILABLE``, does not report its program.
 
-Standstill: every axis's last change is at least ``settle_s`` older than the
-document (the agent records an observation only when a value changes, so this
-is the agent's own evidence), or the positions read on successive calls stayed
-within ``standstill_tolerance_mm`` for ``settle_s`` (:class:`StandstillWindow`;
-for adapters that repeat unchanged or jittering values).
+Standstill: the positions read on successive calls stayed within
+``standstill_tolerance_mm`` for ``settle_s`` of xmalign's clock
+(:class:`StandstillWindow`; adapters that repeat unchanged or jittering values
+pass too). The observations' timestamps are not used for it: they are the
+adapter's clock (cppagent keeps the timestamp an adapter sends) and the
+document's ``creationTime`` the agent's, so an adapter whose clock runs behind
+would make a moving machine look settled.
 """
 
 from __future__ import annotations
@@ -47,7 +49,6 @@ import urllib.request
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Protocol
 
 import numpy as np
@@ -85,9 +86,13 @@ class AgentTransport(Protocol):
 
     name: str
 
-    def get(self, path: str) -> tuple[int, bytes]: ...
+    def get(self, path: str) -> tuple[int, bytes]:
+        """GET ``path`` (relative to the agent's address): the HTTP status and the body."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the connection, if the transport keeps one."""
+        ...
 
 
 class AgentLink:
@@ -199,6 +204,7 @@ class MTConnectMachine(ClosesOnExit):
         return self
 
     def close(self) -> None:
+        """Close the transport."""
         self.link.close()
 
     def __enter__(self) -> MTConnectMachine:
@@ -210,12 +216,11 @@ class MTConnectMachine(ClosesOnExit):
         return self._position(self._current())
 
     def is_standstill(self) -> bool:
-        current = self._current()
-        position = self._position(current)
-        window_says = self._window.add(position)
-        return window_says or self._unchanged_for_settle_time(current)
+        """The position stayed within the tolerance for the settle time (module docstring)."""
+        return self._window.add(self.position_mm())
 
     def program_state(self) -> ProgramState:
+        """``idle``, ``running`` or ``paused`` from the device's ``Execution``."""
         return self.status().program_state
 
     def status(self) -> ControllerStatus:
@@ -229,21 +234,21 @@ class MTConnectMachine(ClosesOnExit):
         if self._program is None:
             return None
         current = self._current()
-        name = current.get(self._program.id, (UNAVAILABLE, None))[0]
+        name = current.get(self._program.id, UNAVAILABLE)
         if name == UNAVAILABLE:
             return None
         execution = None if self._execution is None else current.get(self._execution.id)
-        state = EXECUTION_STATES.get(execution[0], "running") if execution else "running"
+        state = EXECUTION_STATES.get(execution, "running") if execution else "running"
         return ProgramReport(name or None, state)
 
-    def _status(self, current: dict[str, tuple[str, str | None]]) -> ControllerStatus:
+    def _status(self, current: dict[str, str]) -> ControllerStatus:
         position = self._position(current)
         if self._execution is None:
             raise DeviceError(f"{self.name} reports no Execution (no EXECUTION data item)")
         execution = self._value(current, self._execution, "Execution")
         if execution not in EXECUTION_STATES:
             raise DeviceError(f"{self.name} reports an unknown Execution '{execution}'")
-        mode = None if self._mode is None else current.get(self._mode.id, (None, None))[0]
+        mode = None if self._mode is None else current.get(self._mode.id)
         return ControllerStatus(position, EXECUTION_STATES[execution], execution, mode)
 
     # -- documents ---------------------------------------------------------------
@@ -334,27 +339,24 @@ class MTConnectMachine(ClosesOnExit):
                 return _Item(str(item.get("id")))
         return None
 
-    def _current(self) -> dict[str, tuple[str, str | None]]:
-        """``dataItemId -> (value, timestamp)``; the header's creationTime under ``""``."""
+    def _current(self) -> dict[str, str]:
+        """``dataItemId -> value`` of the ``/current`` document."""
         root = self._document("current", "MTConnectStreams")
-        values: dict[str, tuple[str, str | None]] = {}
-        for element in root.iter():
-            if _local(element.tag) == "Header":
-                values[""] = ("", element.get("creationTime"))
-            item_id = element.get("dataItemId")
-            if item_id is not None:
-                values[item_id] = ((element.text or "").strip(), element.get("timestamp"))
-        return values
+        return {
+            str(element.get("dataItemId")): (element.text or "").strip()
+            for element in root.iter()
+            if element.get("dataItemId") is not None
+        }
 
-    def _value(self, current: dict[str, tuple[str, str | None]], item: _Item, what: str) -> str:
+    def _value(self, current: dict[str, str], item: _Item, what: str) -> str:
         if item.id not in current:
             raise DeviceError(f"{self.name}: /current has no {what} (data item {item.id})")
-        value = current[item.id][0]
+        value = current[item.id]
         if value == UNAVAILABLE:
             raise DeviceError(f"{self.name} reports the {what} UNAVAILABLE (controller offline?)")
         return value
 
-    def _position(self, current: dict[str, tuple[str, str | None]]) -> Vec:
+    def _position(self, current: dict[str, str]) -> Vec:
         values = []
         for axis, item in zip(self.axes, self._positions, strict=True):
             text = self._value(current, item, f"{axis} position")
@@ -368,13 +370,6 @@ class MTConnectMachine(ClosesOnExit):
         position = np.array(values)
         log.debug("%s: machine position %s mm", self.name, np.array2string(position))
         return position
-
-    def _unchanged_for_settle_time(self, current: dict[str, tuple[str, str | None]]) -> bool:
-        now = _time(current.get("", ("", None))[1])
-        changes = [_time(current[item.id][1]) for item in self._positions]
-        if now is None or any(t is None for t in changes):
-            return False
-        return all((now - t).total_seconds() >= self.settle_s for t in changes if t is not None)
 
 
 def _machine_rank(item: ET.Element, machine_frames: set[str | None]) -> int | None:
@@ -405,17 +400,6 @@ def _program_item(device: ET.Element) -> _Item | None:
 
 def _linear_names(device: ET.Element) -> list[str]:
     return [str(e.get("name")) for e in device.iter() if _local(e.tag) == "Linear"]
-
-
-def _time(text: str | None) -> datetime | None:
-    """An MTConnect timestamp (ISO 8601, UTC), or None when absent or unreadable."""
-    if not text:
-        return None
-    try:
-        moment = datetime.fromisoformat(text)
-    except ValueError:
-        return None
-    return moment if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
 
 
 def open_mtconnect(

@@ -172,6 +172,7 @@ class OpcUaLink:
         self._mask = _Masked(security.password) if security.password else None
 
     def open(self) -> None:
+        """Connect, with the security and the identity of the configuration."""
         # asyncua times each request out itself; the wrapper's own limit is a backstop
         backstop_s = 4 * self.timeout_s + 5
         # a daemon thread: a session left open by a crash never keeps xmalign from exiting
@@ -232,10 +233,12 @@ class OpcUaLink:
 
     @property
     def is_open(self) -> bool:
+        """Whether a session is open."""
         return self._client is not None
 
     @property
     def client(self) -> Client:
+        """The open session's asyncua client; TransportError once closed."""
         if self._client is None:
             raise TransportError(f"no session with {self.name} (closed)")
         return self._client
@@ -289,6 +292,7 @@ class OpcUaLink:
         return outputs
 
     def close(self) -> None:
+        """End the session (idempotent)."""
         client, self._client = self._client, None
         if client is not None:
             try:
@@ -357,6 +361,7 @@ class SinumerikMachine(ClosesOnExit):
         self.mode_node = f"/Bag/State/opMode[u{mode_group}]"
 
     def open(self) -> SinumerikMachine:
+        """Open the session and read the position once (every axis node is there)."""
         self.link.open()
         try:
             self.position_mm()  # every axis node is there, now rather than mid-run
@@ -366,6 +371,7 @@ class SinumerikMachine(ClosesOnExit):
         return self
 
     def close(self) -> None:
+        """End the session."""
         self.link.close()
 
     def __enter__(self) -> SinumerikMachine:
@@ -377,9 +383,11 @@ class SinumerikMachine(ClosesOnExit):
         return self._position(self.link.read(self.position_nodes))
 
     def is_standstill(self) -> bool:
+        """The position stayed within the tolerance for the settle time."""
         return self._window.add(self.position_mm())
 
     def program_state(self) -> ProgramState:
+        """``idle``, ``running`` or ``paused`` from the channel's ``progStatus``."""
         return self.status().program_state
 
     def status(self) -> ControllerStatus:

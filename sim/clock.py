@@ -5,9 +5,6 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import TypeVar
-
-T = TypeVar("T")
 
 
 class SimClock:
@@ -46,6 +43,9 @@ class SimClock:
         with self._lock:
             self._now_s += max(0.0, seconds)
 
+    def await_stream(self) -> None:
+        """Nothing to do: in-process devices are read, not streamed."""
+
 
 class Follower:
     """A thread of a :class:`LockstepClock` that runs only when the clock lets it.
@@ -82,6 +82,11 @@ class LockstepClock(SimClock):
     So every device acts at its own virtual time, whatever the wall clock does,
     and a served world behaves as the same world in-process does. Listeners
     (:meth:`on_advance`) are called after every advance, in the driving thread.
+
+    A host that waits for a streamed sample says so first (:meth:`await_stream`,
+    the ``Clock`` role); a served stream sends one sample per such wait
+    (:meth:`wait_for_stream_request`), so which samples the host sees, and at
+    which virtual time, does not depend on how the threads are scheduled.
     """
 
     def __init__(self, start_s: float = 0.0) -> None:
@@ -91,6 +96,26 @@ class LockstepClock(SimClock):
         self._followers: dict[int, Follower] = {}
         self._timers: list[_Timer] = []
         self._listeners: list[Callable[[], None]] = []
+        #: How often the host has waited for a streamed sample (:meth:`await_stream`).
+        self._stream_waits = 0
+
+    def await_stream(self) -> None:
+        """The host is about to wait for the next streamed sample: a served stream may
+        send it (advancing the time to it)."""
+        with self._state:
+            self._stream_waits += 1
+            self._state.notify_all()
+
+    def stream_waits(self) -> int:
+        """How many waits for a streamed sample the host has announced so far."""
+        with self._state:
+            return self._stream_waits
+
+    def wait_for_stream_request(self, answered: int, timeout_s: float) -> bool:
+        """In a served stream: whether the host has announced more than ``answered`` waits,
+        waiting up to ``timeout_s`` of wall time for one."""
+        with self._state:
+            return self._state.wait_for(lambda: self._stream_waits > answered, timeout_s)
 
     def _set_now(self, time_s: float) -> None:
         with self._lock:
@@ -193,22 +218,6 @@ class LockstepClock(SimClock):
             follower.running = False
             self._state.notify_all()
             self._state.wait_for(lambda: follower.running)
-
-    def peek(self, time_s: float, evaluate: Callable[[], T]) -> T:
-        """``evaluate()`` as of ``time_s`` (later than now) without advancing to it.
-
-        Nothing due on the way runs, so only what is analytic in time (motion,
-        the shop's drift) is seen there; a served instrument sends a sample
-        ahead this way and advances the time only once the host has taken it.
-        """
-        with self._advancing:
-            with self._lock:
-                now_s, self._now_s = self._now_s, max(self._now_s, time_s)
-            try:
-                return evaluate()
-            finally:
-                with self._lock:
-                    self._now_s = now_s
 
     def _next_due(self, until_s: float) -> Follower | _Timer | None:
         with self._state:

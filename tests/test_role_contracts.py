@@ -251,6 +251,19 @@ def test_a_clock_goes_forward_by_what_is_slept(make: Callable[[], Clock]) -> Non
         assert time.monotonic() - wall_started_s < 0.5
 
 
+@pytest.mark.parametrize("make", CLOCKS, ids=["wall", "simulated", "lockstep"])
+def test_a_wait_for_a_stream_announced_alone_leaves_the_time(make: Callable[[], Clock]) -> None:
+    """``await_stream`` only announces the caller's wait: with nothing streamed it returns at
+    once (a served stream answers it, tests/sim/test_servers.py)."""
+    clock = make()
+    before_s = clock.now()
+    wall_started_s = time.monotonic()
+    clock.await_stream()
+    assert time.monotonic() - wall_started_s < 0.5
+    if not isinstance(clock, WallClock):
+        assert clock.now() == before_s
+
+
 def test_the_simulated_unit_is_the_role_without_the_drivers_base() -> None:
     unit = SimPositioningUnit(SimUnit("launch", SimClock(), seed=1))
     assert isinstance(unit, PositioningUnit)

@@ -73,6 +73,7 @@ class ProgramGuard:
         self._said_unreported = False
 
     def check(self) -> None:
+        """DeviceError when another program than xmalign's runs or is stopped mid-way."""
         report = self.source.program_report()
         who = getattr(self.source, "name", "the controller")
         if report is None:

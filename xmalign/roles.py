@@ -52,6 +52,16 @@ class Clock(Protocol):
 
     def sleep(self, seconds: float) -> None: ...
 
+    def await_stream(self) -> None:
+        """The caller is about to wait for the next sample a device streams at its own rate.
+
+        Called right before each such wait (never before the answer to a request). Real
+        time passes meanwhile by itself, so the wall clock does nothing; a clock whose time
+        passes only while the host waits (the simulator's lockstep clock) lets the served
+        stream go on by one sample.
+        """
+        ...
+
 
 class WallClock:
     """The real clock."""
@@ -61,6 +71,9 @@ class WallClock:
 
     def sleep(self, seconds: float) -> None:
         time.sleep(max(0.0, seconds))
+
+    def await_stream(self) -> None:
+        """Nothing to do: the device streams in real time."""
 
 
 @runtime_checkable

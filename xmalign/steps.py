@@ -24,7 +24,7 @@ import numpy as np
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.fanuc import PROGRAM_NUMBER
-from trajectories.gcode.program import write_program
+from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import (
@@ -41,6 +41,7 @@ from xmalign.calibration import (
 from xmalign.comp import Compensation, compensate
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
+from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
@@ -352,11 +353,29 @@ def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: P
     """Write the plan's program for a controller xmalign runs it on: a programmed stop at
     each point instead of the dwell (xmalign resumes it once the point is captured);
     readable by all (the controller may run as another user); replaced on every run (it
-    is made from the plan)."""
+    is made from the plan), but never a file xmalign did not write (InputError naming it)."""
     program = write_program(plan, machine, make_dialect(dialect, machine, "run", True))
+    refuse_replacing_a_foreign_program(path)
     atomic_write_files({path: program.encode("utf-8")})
     path.chmod(0o644)
     return program
+
+
+def refuse_replacing_a_foreign_program(path: Path) -> None:
+    """InputError when ``path`` holds something else than a program xmalign wrote (its
+    mark in the first lines): the controller's folder may hold the shop's own programs."""
+    try:
+        with path.open("rb") as existing:
+            head = existing.read(4096)
+    except FileNotFoundError:
+        return
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the program there ({error.strerror})") from error
+    if PROGRAM_MARK.encode() not in head:
+        raise InputError(
+            f"{path}: exists and is not a program xmalign wrote; it is not replaced: move it,"
+            " or name another file in units.yaml (machine_position: ... program)"
+        )
 
 
 @dataclass

@@ -6,11 +6,8 @@ The server owns the pty's master side; a client opens :attr:`PtyInterferometerSe
 
 from __future__ import annotations
 
-import array
-import fcntl
 import os
 import select
-import termios
 import threading
 import time
 import tty
@@ -30,10 +27,6 @@ from xmalign.roles import Interferometer
 IDENTIFICATION = "XMALIGN-SIM XM-60 class 1.0"
 _POLL_S = 0.05
 _MAX_LATE_S = 0.25
-#: Lockstep: how often to look whether the host has read the last sample (wall time).
-_LOCKSTEP_POLL_S = 50e-6
-#: Lockstep: longest time the kernel takes to queue a sample for the host (wall time).
-_PUSH_WAIT_S = 0.05
 
 
 class PtyInterferometerServer:
@@ -47,9 +40,10 @@ class PtyInterferometerServer:
         Initial stream rate.
     lockstep : LockstepClock, optional
         The virtual clock the interferometer shares with its host in this
-        process: while streaming, each sample advances it by one sample period,
-        once the host has read the previous one (the host's readings are those
-        of the in-process interferometer). Default: samples on the wall clock.
+        process: while streaming, each wait for a sample the host announces on
+        it advances it by one sample period and gets that sample (the host's
+        readings are those of the in-process interferometer). Default: samples
+        on the wall clock.
     """
 
     def __init__(
@@ -70,10 +64,8 @@ class PtyInterferometerServer:
         #: Lockstep: a command and a sample (advance, read, send) never interleave, so no
         #: sample of one stream arrives after the reply that ends it.
         self._sample_lock = threading.RLock()
-        #: Lockstep: the time of the sample sent ahead, not yet reached.
-        self._ahead_s: float | None = None
-        #: Lockstep: when the last sample was sent (wall time), and whether it was seen queued.
-        self._sent = (0.0, True)
+        #: Lockstep: the host's waits for a sample answered (or dropped) so far.
+        self._answered = 0
         self._threads = [
             threading.Thread(target=self._serve_commands, name="xm-commands", daemon=True),
             threading.Thread(
@@ -101,7 +93,6 @@ class PtyInterferometerServer:
     def stop(self) -> None:
         """Stop both threads and close the pty."""
         self._stop.set()
-        self._streaming.set()  # wakes a lockstep stream waiting for STREAM ON
         for thread in self._threads:
             if thread.is_alive():
                 thread.join(2.0)
@@ -134,7 +125,8 @@ class PtyInterferometerServer:
             self.interferometer.zero()
         elif command.name == "STREAM":
             self.streaming = command.argument == "ON"
-            self._ahead_s = None
+            if self.lockstep is not None:  # the host waits for samples only after the reply
+                self._answered = self.lockstep.stream_waits()
             return f"STREAM {command.argument}"
         elif command.name == "RATE":
             self.rate_hz = rate_hz(command.argument)
@@ -171,53 +163,29 @@ class PtyInterferometerServer:
             if self.streaming:
                 self._send(encode_sample(self.interferometer.read()))
 
-    def _unread_bytes(self) -> int:
-        """Bytes sent that the client has not read yet."""
-        count = array.array("i", [0])
-        fcntl.ioctl(self._slave, termios.FIONREAD, count)
-        return count[0]
-
-    def _host_has_read(self) -> bool:
-        """Whether the host has read the last sample sent.
-
-        The kernel hands bytes written to the master to the slave's queue a
-        little later, so an empty queue counts only once the sample has been
-        seen in it (or after ``_PUSH_WAIT_S``, a host that read it at once).
-        """
-        if self._unread_bytes():
-            self._sent = (self._sent[0], True)
-            return False
-        sent_s, seen = self._sent
-        return seen or time.monotonic() - sent_s > _PUSH_WAIT_S
-
-    def _host_has_written(self) -> bool:
-        ready, _, _ = select.select([self._master], [], [], 0)
-        return bool(ready)
-
     def _serve_lockstep(self) -> None:
-        """Stream one sample ahead; virtual time reaches a sample once the host has taken it.
+        """Send one sample for each wait the host announces; time reaches it as it is sent.
 
-        Each sample is computed one period after the present (``LockstepClock.peek``)
-        and sent; when the host has read it and sent nothing (it waits for
-        more), time advances to it and the next is sent. A host that has
-        enough sends STREAM OFF before it reads on, so the sample it skips never
-        advances the time: an average takes as much virtual time as in-process,
-        whatever the wall clock does (at most the last sample's period less).
+        The host says it waits for a streamed sample through its clock
+        (``Clock.await_stream``) before each wait; this advances the virtual time by
+        one sample period and sends the sample of that moment. A host that has enough
+        sends STREAM OFF instead of waiting, so no sample is sent that it skips: an
+        average of n samples takes n periods of virtual time, as in-process, and the
+        host sees the same samples at the same virtual times however the threads run.
         """
         assert self.lockstep is not None
         clock = self.lockstep
         while not self._stop.is_set():
-            self._streaming.wait()
-            if not self._host_has_read():
-                time.sleep(_LOCKSTEP_POLL_S)
+            if not clock.wait_for_stream_request(self._answered, _POLL_S):
                 continue
             with self._sample_lock:
-                waiting = self.streaming and not self._host_has_written()
-                if waiting and not self._stop.is_set():
-                    if self._ahead_s is not None:
-                        clock.sleep(self._ahead_s - clock.now())
-                    self._ahead_s = clock.now() + 1.0 / self.rate_hz
-                    self._send(encode_sample(clock.peek(self._ahead_s, self.interferometer.read)))
-                    self._sent = (time.monotonic(), False)
-            if not waiting:
-                time.sleep(_LOCKSTEP_POLL_S)
+                waits = clock.stream_waits()
+                if waits <= self._answered:  # a STREAM ON meanwhile dropped an earlier wait
+                    continue
+                if not self.streaming or self._stop.is_set():
+                    # a wait with the stream off: nothing comes, as from the instrument
+                    self._answered = waits
+                    continue
+                self._answered += 1
+                clock.sleep(1.0 / self.rate_hz)
+                self._send(encode_sample(self.interferometer.read()))

@@ -210,11 +210,18 @@ def test_an_agent_that_does_not_answer_in_time_is_a_timeout(linuxcnc_agent: Test
         open_mtconnect(linuxcnc_agent.url, 0.2)
 
 
-def test_standstill_from_the_agents_timestamps_in_one_request(linuxcnc_agent: TestAgent) -> None:
+def test_old_timestamps_alone_are_no_standstill(linuxcnc_agent: TestAgent) -> None:
+    """An adapter's clock running behind the agent's makes every observation look old
+    (cppagent keeps the adapter's timestamps): only positions seen unchanged for the
+    settle time on xmalign's clock count."""
     linuxcnc_agent.set(X=5.0, Y=6.0, Z=7.0)
-    machine = open_mtconnect(linuxcnc_agent.url, 2.0, settle_s=0.5, clock=SimClock())
-    assert not machine.is_standstill()  # changed just now, and nothing seen before
-    linuxcnc_agent.age(0.6)
+    linuxcnc_agent.age(60.0)
+    clock = SimClock()
+    machine = open_mtconnect(linuxcnc_agent.url, 2.0, settle_s=0.5, clock=clock)
+    assert not machine.is_standstill()  # nothing seen before
+    clock.sleep(0.3)
+    assert not machine.is_standstill()
+    clock.sleep(0.3)
     assert machine.is_standstill()
 
 

@@ -11,9 +11,10 @@ import serial
 from pymodbus.client import ModbusTcpClient
 
 from firmware_iface.can_bus import DEFAULT_PORT, LocalUdpBus
+from firmware_iface.interferometer import SerialInterferometer, open_serial
 from firmware_iface.register_map import Control, Status, load_register_map
 from firmware_iface.xm_line_protocol import Reply, decode_line
-from sim.clock import SimClock
+from sim.clock import LockstepClock, SimClock
 from sim.servers.canopen_node import EDS_PATH, CanopenUnitServer
 from sim.servers.modbus import ModbusUnitServer
 from sim.servers.serial_pty import PtyInterferometerServer
@@ -183,6 +184,29 @@ def test_interferometer_on_a_pty(machine):
         # about 200 samples/s: the typical spacing (a busy computer delays a few samples)
         assert 0.0025 < np.median(np.diff(times)) < 0.01
         port.write(b"STREAM OFF\n")
+    finally:
+        port.close()
+        server.stop()
+
+
+def test_a_lockstep_pty_streams_one_sample_per_wait_the_host_announces(machine):
+    """On a LockstepClock the stream sends a sample only for a wait the host announces on
+    its clock (``Clock.await_stream``), the time advanced one period to it: an average of
+    n samples takes n periods, and no sample the host would skip is ever sent."""
+    clock = LockstepClock()
+    world = build_world(machine, seed=3, clock=clock)
+    server = PtyInterferometerServer(world.interferometer, rate_hz=50.0, lockstep=clock)
+    server.start()
+    port = open_serial(server.port, timeout_s=2.0)
+    host = SerialInterferometer(port, "interferometer on the pty", clock)
+    try:
+        reading = host.average(0.1)
+        assert clock.now() == pytest.approx(0.1) and reading.time_s == pytest.approx(0.1)
+        clock.await_stream()  # a wait with the stream off: nothing comes
+        time.sleep(0.2)  # wall time for a stray sample to arrive, were one sent
+        assert port.in_waiting == 0 and clock.now() == pytest.approx(0.1)
+        assert host.read().time_s == pytest.approx(0.1)  # the READ's sample, nothing before it
+        assert host.average(0.06).time_s == pytest.approx(0.16)
     finally:
         port.close()
         server.stop()

@@ -705,6 +705,19 @@ _CLI_CASES = [
         (L, "lines.1.launch_deg.0"),
         damage=edit_json(L, sets("lines", 1, "launch_deg", 0, value="x")),
     ),  # noqa: E501
+    Case(
+        "run-program-replaces-a-shop-program",  # the controller's folder holds the shop's own
+        ("run", "--config", U, "--plan", L, "--out", "new.csv"),
+        ("shop.ngc", "not a program xmalign wrote", "not replaced"),
+        damage=each(
+            write("shop.ngc", "(the shop's own part program)\nG0 X0\nM2\n"),
+            replace(
+                U,
+                "source: prompt",
+                "source: linuxcncrsh\n  linuxcncrsh: {host: cnc, program: shop.ngc}",
+            ),
+        ),
+    ),
     Case("dry-run-seed", ("dry-run", "--seed", "-5", "--out", "dr"), ("--seed", "-5")),
     Case("identify-seed", ("identify", "--sim", "--seed", "-1"), ("--seed",)),
     Case("align-seed", ("align", "--sim", "--seed", "-3"), ("--seed",)),

@@ -38,6 +38,9 @@ from xmalign.formats.plan import Plan, PlanLine
 from xmalign.geometry import Vec
 from xmalign.machine import AXES, Machine
 
+#: The comment near the top of every program xmalign writes (how it knows its own files).
+PROGRAM_MARK = "xmalign measurement program"
+
 
 @dataclass(frozen=True)
 class _Feeds:
@@ -182,7 +185,7 @@ def _program_blocks(
     safe_z = float(machine.travel_max_mm[2])
     blocks = [
         *dialect.begin(),
-        dialect.comment(f"xmalign measurement program for {plan.machine}"),
+        dialect.comment(f"{PROGRAM_MARK} for {plan.machine}"),
         dialect.comment(f"{len(plan.lines)} lines: {' '.join(line.id for line in plan.lines)}"),
         dialect.retract({"Z": safe_z}),
     ]

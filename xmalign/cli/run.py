@@ -187,14 +187,17 @@ def _live_measurement(machine: Machine, plan: Plan, config_path: Path) -> Iterat
         RunStepDevices,
         controlled_drive,
         following_drive,
+        refuse_replacing_a_foreign_program,
         run_step,
         stepping_drive,
         write_controller_program,
     )
 
     config = load_units_config(config_path)
-    devices = open_devices(config, machine)
     controlled = config.machine_position.controlled
+    if controlled is not None:  # before anything is opened or moved
+        refuse_replacing_a_foreign_program(controlled.program)
+    devices = open_devices(config, machine)
 
     def capture(output: RunOutput) -> CalibrationRun:
         if devices.controller is not None and controlled is not None:
