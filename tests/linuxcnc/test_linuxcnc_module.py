@@ -45,6 +45,14 @@ from tests.firmware_iface.machine_position_contract import (  # noqa: F401 (the 
     test_is_a_machine_position_source,
     test_stands_still_once_the_position_stays_put,
 )
+from tests.firmware_iface.program_control_contract import (  # noqa: F401 (run here)
+    ControlStand,
+    test_a_feed_hold_stops_on_the_path_and_a_resume_goes_on,
+    test_a_program_it_cannot_open_is_refused_with_its_message,
+    test_a_start_runs_the_program_to_its_stop_at_rest,
+    test_a_stop_ends_the_program_mid_move_and_a_start_begins_at_the_top,
+    test_is_a_program_control,
+)
 from tests.sim.test_linuxcncrsh_server import _wait
 from tests.xmalign.test_live_e2e import cut_plan
 from xmalign.errors import DeviceError
@@ -59,12 +67,16 @@ RAPID_MM_MIN = 60_000.0
 
 
 class HeadlessLinuxcnc:
-    """One LinuxCNC for the tests of this file: started when first needed, started again
-    after a test stopped it (the contract's lost source)."""
+    """One LinuxCNC for the tests of this file, its [TRAJ] LINEAR_UNITS inches (the
+    positions compared in mm): started when first needed, started again after a test
+    stopped it (the contract's lost source, this file's last test)."""
 
     def __init__(self, folder: Path) -> None:
         machine = SimMachine(
-            travel_mm=TRAVEL_MM, max_velocity_mm_s=1000.0, max_acceleration_mm_s2=10000.0
+            travel_mm=TRAVEL_MM,
+            max_velocity_mm_s=1000.0,
+            max_acceleration_mm_s2=10000.0,
+            linear_units="inch",
         )
         self.port = free_port()
         self.ini = write_sim_config(folder, machine, f"linuxcncrsh --port {self.port}")
@@ -105,6 +117,13 @@ def local(headless: HeadlessLinuxcnc) -> Iterator[LocalLinuxCnc]:
     cnc = LocalLinuxCnc(find_linuxcnc_module(), clock=WallClock())
     yield cnc
     cnc.close()
+
+
+@pytest.fixture
+def control_stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> ControlStand:
+    """The program-control contract's stand: the module (linuxcncrsh's:
+    test_program_control_contract.py, a LinuxCNC of its own)."""
+    return ControlStand(local, headless.ini.parent)
 
 
 @pytest.fixture
@@ -267,8 +286,11 @@ def test_an_unattended_run_through_the_module(module_shop: Shop) -> None:
 
 
 # Last of this file's tests (pytest runs a module's tests in the order they are defined):
-# it stops LinuxCNC, and after LinuxCNC has started again, the module's error channel in
-# this process answers "Error buffer invalid" (seen with 2.9; a new process is not affected).
+# it stops LinuxCNC. The module's channels do not survive a restart of LinuxCNC within
+# one process (seen with 2.9: afterwards the error channel answers "Error buffer invalid",
+# or a fresh stat reads task_state 0); a new process is not affected (xmalign run
+# --resume is one). So every test of this worker that uses the module in this process
+# uses this file's LinuxCNC, before this test.
 test_a_lost_source_is_a_transport_error_naming_it = (
     machine_position_contract.test_a_lost_source_is_a_transport_error_naming_it
 )

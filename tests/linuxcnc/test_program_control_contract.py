@@ -1,13 +1,15 @@
 """The program-control contract (tests/firmware_iface/program_control_contract.py) against a
-real headless LinuxCNC 2.9, over linuxcncrsh and through LinuxCNC's own Python module.
+real headless LinuxCNC 2.9 over linuxcncrsh.
 
 LinuxCNC (Debian ``linuxcnc-uspace``) runs with ``linuxcncrsh`` as its display
 (harness.py) on a machine whose [TRAJ] LINEAR_UNITS are inches: the contract's
-positions are in mm, so both channels convert (linuxcncrsh's ``abs_act_pos`` and
-the module's ``stat.actual_position`` are in inches; ``stat.linear_units`` is
-1/25.4). An operator session brings the machine up (E-stop reset, machine on,
-home); each test then controls it through one channel. The simulated LinuxCNC
-passes the same contract in tests/firmware_iface/test_program_control_contract.py.
+positions are in mm, so the driver converts (``abs_act_pos`` is in inches). An
+operator session brings the machine up (E-stop reset, machine on, home); each
+test then controls it through a session of its own. Through LinuxCNC's Python
+module the contract runs in test_linuxcnc_module.py, on that file's LinuxCNC
+(inches too): the module's channels do not survive a restart of LinuxCNC within
+one process. The simulated LinuxCNC passes the same contract over both channels
+in tests/firmware_iface/test_program_control_contract.py.
 
 Seen with 2.9 (not part of the contract, the simulated LinuxCNC differs): a
 resume or a feed hold with no program running is accepted (``SET RESUME ACK``,
@@ -25,8 +27,6 @@ import pytest
 from cli_helpers import free_port
 from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
 
-from firmware_iface.linuxcnc_control import LinuxCncControl
-from firmware_iface.linuxcnc_module import LocalLinuxCnc, find_linuxcnc_module
 from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
 from tests.firmware_iface.program_control_contract import (  # noqa: F401 (the contract's tests, run here)
     ControlStand,
@@ -68,13 +68,9 @@ def headless() -> Iterator[_Headless]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-@pytest.fixture(params=["linuxcncrsh", "module"])
-def control_stand(request: pytest.FixtureRequest, headless: _Headless) -> Iterator[ControlStand]:
-    control: LinuxCncControl
-    if request.param == "linuxcncrsh":
-        control = open_linuxcnc("127.0.0.1", headless.port, 5.0)
-    else:
-        control = LocalLinuxCnc(find_linuxcnc_module(), timeout_s=5.0)
+@pytest.fixture
+def control_stand(headless: _Headless) -> Iterator[ControlStand]:
+    control = open_linuxcnc("127.0.0.1", headless.port, 5.0)
     try:
         yield ControlStand(control, headless.folder)
     finally:
