@@ -24,8 +24,10 @@
       source: prompt               # prompt (operator types it), file, linuxcncrsh, linuxcnc,
       #                              mtconnect or sinumerik
       # file: /mnt/cnc/position.txt  (source: file; the operator still moves the machine)
-      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc}
-      #                            (source: linuxcncrsh; xmalign runs the program itself)
+      # linuxcncrsh: {host: 192.168.10.20, program: /mnt/cnc/xmalign-run.ngc,
+      #               enable_password_env: XMALIGN_LINUXCNC_ENABLE_PW}
+      #                            (source: linuxcncrsh; xmalign runs the program itself;
+      #                             examples/units-linuxcncrsh.yaml has every key)
       # linuxcnc: {program: /home/cnc/xmalign-run.ngc}
       #                            (source: linuxcnc: the same, through LinuxCNC's Python
       #                             module, xmalign on the CNC's own computer)
@@ -58,7 +60,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import canopen
-from pydantic import Field, ValidationInfo, field_validator, model_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 
 from firmware_iface.can_bus import (
     LOOPBACK,
@@ -70,18 +72,21 @@ from firmware_iface.can_bus import (
 from firmware_iface.canopen_axis import CanopenUnit
 from firmware_iface.controller_config import (
     MTConnectConfig,
+    Seconds,
     SinumerikConfig,
     open_mtconnect_source,
     open_sinumerik_source,
     resolve_paths,
+    secret_value,
 )
 from firmware_iface.interferometer import ReplayInterferometer, SerialInterferometer, open_serial
-from firmware_iface.linuxcnc_control import LinuxCncControl, MdiMover
+from firmware_iface.linuxcnc_control import START_TIMEOUT_S, LinuxCncControl, MdiMover
 from firmware_iface.linuxcnc_module import open_local_linuxcnc
 from firmware_iface.linuxcncrsh import (
     DEFAULT_CONNECT_PASSWORD,
     DEFAULT_ENABLE_PASSWORD,
     DEFAULT_PORT,
+    check_password,
     open_linuxcnc,
 )
 from firmware_iface.machine_position import FilePositions, OperatorPrompt
@@ -93,6 +98,7 @@ from firmware_iface.weather_station import (
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import (
+    Secret,
     StrictFileModel,
     check_format,
     located,
@@ -183,6 +189,11 @@ class _ControlledLinuxcnc(_Strict):
     tolerance_mm: Annotated[float, Field(gt=0, le=1)] = 0.005
     #: xmalign may move the axes itself with MDI (``identify --live``); default: never.
     allow_mdi_moves: bool = False
+    #: One reply (linuxcncrsh) or one command's acknowledgement (module), s
+    #: (default: ``timeouts.io_s``).
+    timeout_s: Seconds | None = None
+    #: How long the program may take to show as running after the start, s.
+    start_timeout_s: Seconds = START_TIMEOUT_S
 
     @property
     def cnc_program_path(self) -> str:
@@ -191,18 +202,55 @@ class _ControlledLinuxcnc(_Strict):
 
 
 class LinuxcncrshConfig(_ControlledLinuxcnc):
-    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md)."""
+    """A LinuxCNC whose ``linuxcncrsh`` xmalign connects to (docs/hardware.md).
+
+    Each password is given in the file or in an environment variable (``*_env``),
+    or left at linuxcncrsh's default (``EMC``, ``EMCTOO``); linuxcncrsh takes one
+    word of printable ASCII (it splits its requests on spaces).
+    """
 
     host: str
     port: Annotated[int, Field(ge=1, le=65535)] = DEFAULT_PORT
-    connect_password: str = DEFAULT_CONNECT_PASSWORD
-    enable_password: str = DEFAULT_ENABLE_PASSWORD
+    connect_password: Secret | None = None
+    #: The name of an environment variable holding the connect password.
+    connect_password_env: str | None = None
+    enable_password: Secret | None = None
+    #: The name of an environment variable holding the enable password.
+    enable_password_env: str | None = None
     #: The same file as LinuxCNC opens it (default: ``program``).
     program_on_cnc: str | None = None
 
+    @field_validator("connect_password", "enable_password")
+    @classmethod
+    def _one_word(cls, value: SecretStr | None, info: ValidationInfo) -> SecretStr | None:
+        if value is not None:
+            check_password(value.get_secret_value(), str(info.field_name).replace("_", " "))
+        return value
+
+    @model_validator(mode="after")
+    def _password_or_env(self) -> LinuxcncrshConfig:
+        for name in ("connect_password", "enable_password"):
+            if getattr(self, name) is not None and getattr(self, f"{name}_env") is not None:
+                raise ValueError(f"give '{name}' or '{name}_env', not both")
+        return self
+
     @property
     def cnc_program_path(self) -> str:
+        """The program as LinuxCNC opens it: ``program_on_cnc``, else ``program``'s
+        absolute path."""
         return self.program_on_cnc or super().cnc_program_path
+
+    def passwords(self) -> tuple[str, str]:
+        """The connect and the enable password (from the file, the environment or
+        linuxcncrsh's defaults); InputError naming the key when a variable is not set."""
+        key = "machine_position.linuxcncrsh"
+        connect = secret_value(
+            self.connect_password, self.connect_password_env, f"{key}.connect_password_env"
+        )
+        enable = secret_value(
+            self.enable_password, self.enable_password_env, f"{key}.enable_password_env"
+        )
+        return connect or DEFAULT_CONNECT_PASSWORD, enable or DEFAULT_ENABLE_PASSWORD
 
 
 class LinuxcncModuleConfig(_ControlledLinuxcnc):
@@ -217,6 +265,9 @@ class LinuxcncModuleConfig(_ControlledLinuxcnc):
 
 
 class MachinePositionConfig(_Strict):
+    """``machine_position``: where the machine's position comes from, and who runs the
+    program (the operator, or xmalign on a LinuxCNC); exactly the ``source``'s key is given."""
+
     source: Literal["prompt", "file", "linuxcncrsh", "linuxcnc", "mtconnect", "sinumerik"] = (
         "prompt"
     )
@@ -245,7 +296,11 @@ class MachinePositionConfig(_Strict):
 
 
 class Timeouts(_Strict):
+    """``timeouts``: the defaults of the waits, s (a controller's ``timeout_s`` overrides io_s)."""
+
+    #: One request to a device.
     io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
+    #: One unit move.
     move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
     #: The machine reaching its next stop while xmalign runs the program, s.
     machine_s: Annotated[float, Field(gt=0, le=86400)] = 600.0
@@ -474,15 +529,17 @@ def _open_controller(
     cnc: LinuxCncControl
     if source.linuxcncrsh is not None:
         rsh = source.linuxcncrsh
+        connect_password, enable_password = rsh.passwords()
         cnc = open_linuxcnc(
             rsh.host,
             rsh.port,
-            config.timeouts.io_s,
-            rsh.connect_password,
-            rsh.enable_password,
+            rsh.timeout_s or config.timeouts.io_s,
+            connect_password,
+            enable_password,
             rsh.joints,
             rsh.in_position_mm,
             clock,
+            rsh.start_timeout_s,
         )
     elif source.linuxcnc is not None:
         local = source.linuxcnc
@@ -492,7 +549,8 @@ def _open_controller(
             local.joints,
             local.in_position_mm,
             clock,
-            config.timeouts.io_s,
+            local.timeout_s or config.timeouts.io_s,
+            local.start_timeout_s,
         )
     else:
         return None

@@ -37,7 +37,7 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator, model_validator
 
 from xmalign.errors import InputError
-from xmalign.formats.common import StrictFileModel
+from xmalign.formats.common import Secret, StrictFileModel
 from xmalign.roles import Clock, MachinePositionSource
 
 Seconds = Annotated[float, Field(gt=0, le=600)]
@@ -77,7 +77,7 @@ class SinumerikConfig(StrictFileModel):
     mode_group: Annotated[int, Field(ge=1, le=10)] = 1
     length_unit: Literal["mm", "inch"] = "mm"
     user: str | None = None
-    password: SecretStr | None = None
+    password: Secret | None = None
     #: The name of an environment variable holding the password (keeps it out of the file).
     password_env: str | None = None
     security_policy: Literal[
@@ -226,14 +226,19 @@ def open_sinumerik_source(
 
 
 def _password(config: SinumerikConfig) -> str | None:
-    if config.password is not None:
-        return config.password.get_secret_value()
-    if config.password_env is None:
+    return secret_value(
+        config.password, config.password_env, "machine_position.sinumerik.password_env"
+    )
+
+
+def secret_value(value: SecretStr | None, env: str | None, env_key: str) -> str | None:
+    """A password given in the file (``value``) or in the environment variable ``env``
+    (``env_key`` names that key in errors); None when neither is given."""
+    if value is not None:
+        return value.get_secret_value()
+    if env is None:
         return None
-    value = os.environ.get(config.password_env)
-    if value is None:
-        raise InputError(
-            f"machine_position.sinumerik.password_env: the environment variable"
-            f" {config.password_env} is not set"
-        )
-    return value
+    text = os.environ.get(env)
+    if text is None:
+        raise InputError(f"{env_key}: the environment variable {env} is not set")
+    return text

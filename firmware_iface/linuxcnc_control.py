@@ -13,10 +13,17 @@ the actual position is ``motion.traj.actualPosition`` (linuxcncrsh's
 ``motion.traj.position``; the program state is ``task.interpState`` read as
 linuxcncrsh's ``get program_status`` reads it (reading or waiting: running;
 paused: paused; anything else: idle).
+
+Units: LinuxCNC reports positions in its machine units, ``[TRAJ] LINEAR_UNITS``
+of its INI (``traj.linearUnits``: machine units per mm), whatever the program's
+G20/G21; each channel converts them to mm (linuxcncrsh's ``set
+linear_unit_conversion mm`` does not: it converts only offsets, not
+``abs_act_pos``; seen with 2.9). An MDI move states its own modes (:func:`mdi_move_line`).
 """
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from typing import Literal
 
@@ -27,7 +34,26 @@ from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.roles import Clock, ProgramState, WallClock
 
+log = logging.getLogger(__name__)
+
 Mode = Literal["manual", "auto", "mdi"]
+#: How long a program may take to show as running after ``run``, s (``start_timeout_s``).
+START_TIMEOUT_S = 5.0
+#: The modes an MDI move states: mm (G21), absolute (G90), feed per minute (G94).
+MDI_MODES = "G21 G90 G94"
+
+
+def mdi_move_line(target_mm: Vec, feed_mm_min: float) -> str:
+    """The MDI line of a move to ``target_mm`` (3,), machine coordinates, mm, mm/min.
+
+    It states its modes (:data:`MDI_MODES`) rather than trusting those in force:
+    on an inch machine (or after a G20, a G91 or a G93) ``G53 G1 X10`` would
+    mean 10 inch, an increment, or an inverse time. The modes are modal and stay
+    in force after the move (LinuxCNC keeps an MDI line's modal state), until a
+    program or another MDI line changes them; xmalign's own program states them too.
+    """
+    x, y, z = np.asarray(target_mm, dtype=float)
+    return f"{MDI_MODES} G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{feed_mm_min:.1f}"
 
 
 class LinuxCncControl(ABC):
@@ -51,15 +77,23 @@ class LinuxCncControl(ABC):
         Largest distance between the actual and the commanded position at a standstill.
     clock : Clock, optional
         What the waits run on (default the wall clock).
+    start_timeout_s : float
+        How long a program may take to show as running after the start, s.
     """
 
     def __init__(
-        self, name: str, joints: int, in_position_mm: float, clock: Clock | None = None
+        self,
+        name: str,
+        joints: int,
+        in_position_mm: float,
+        clock: Clock | None = None,
+        start_timeout_s: float = START_TIMEOUT_S,
     ) -> None:
         self.name = name
         self.joints = joints
         self.in_position_mm = in_position_mm
         self.clock = clock or WallClock()
+        self.start_timeout_s = start_timeout_s
 
     # -- primitives: what differs per channel -------------------------------------------
     @abstractmethod
@@ -127,7 +161,8 @@ class LinuxCncControl(ABC):
         """Abort the program."""
 
     @abstractmethod
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the channel (the program and the machine go on as they are)."""
 
     # -- shared: the waits and checks ---------------------------------------------------
     def is_standstill(self) -> bool:
@@ -158,20 +193,37 @@ class LinuxCncControl(ABC):
             words = " ".join("FAULT" if flag else "OK" for flag in faulted)
             raise DriveFaultError(f"{self.name}: joint fault ({words})")
 
-    def start_program(self, path: str, timeout_s: float = 5.0) -> None:
+    def start_program(self, path: str) -> None:
         """Auto mode, open ``path`` (as the LinuxCNC computer sees it), run from the top.
 
-        Returns once LinuxCNC reports the program running (its status lags the
-        command); DeviceError with LinuxCNC's own message when it does not start.
+        Runs only once LinuxCNC reports ``path`` open: a LinuxCNC that cannot
+        open a file keeps the program it had open, and a run would start that
+        one (seen with 2.9 over linuxcncrsh). Returns once LinuxCNC reports the
+        program running (its status lags the command); DeviceError with
+        LinuxCNC's own message when it does not open or start ``path`` within
+        ``start_timeout_s``.
         """
         self._set_mode("auto")
         self._open_program(path)
+        self._wait_opened(path)
         self._run_program()
-        deadline = self.clock.now() + timeout_s
+        deadline = self.clock.now() + self.start_timeout_s
         while self.program_state() == "idle":
             if self.clock.now() >= deadline:
                 reason = self._error_text() or "no message"
                 raise DeviceError(f"{self.name} did not start {path} ({reason})")
+            self.clock.sleep(0.02)
+
+    def _wait_opened(self, path: str) -> None:
+        """Wait until LinuxCNC reports ``path`` as its open program (its message: refused)."""
+        deadline = self.clock.now() + self.start_timeout_s
+        while (loaded := self.loaded_program()) != path:
+            reason = self._error_text()
+            if reason or self.clock.now() >= deadline:
+                has = f"; it has {loaded} open" if loaded else ""
+                raise DeviceError(
+                    f"{self.name} did not open {path} ({reason or 'no message'}){has}"
+                )
             self.clock.sleep(0.02)
 
     def move_mdi(
@@ -179,20 +231,37 @@ class LinuxCncControl(ABC):
     ) -> None:
         """Move the tool point to ``target_mm`` (3,), machine coordinates, with one MDI line.
 
-        MDI mode, ``G53 G1 X.. Y.. Z.. F..``; returns once no command runs and
-        the machine is at rest within ``tolerance_mm`` of the target (as
-        LinuxCNC reports its actual position). The controller's soft limits
-        stay in force: a target beyond them is refused there. DeviceError when
-        a program runs, DeviceTimeoutError (with LinuxCNC's last error) when
-        the machine is not there within ``timeout_s``.
+        MDI mode, :func:`mdi_move_line` (``G21 G90 G94 G53 G1 X.. Y.. Z.. F..``);
+        returns once no command runs and the machine is at rest within
+        ``tolerance_mm`` of the target (as LinuxCNC reports its actual
+        position). The controller's soft limits stay in force: a target beyond
+        them is refused there. DeviceError when a program runs,
+        DeviceTimeoutError (with LinuxCNC's last error) when the machine is not
+        there within ``timeout_s``. Whatever ends the wait early (an error, a
+        lost connection, Ctrl-C) aborts the move before it propagates: the
+        machine never goes on moving while xmalign has stopped watching.
         """
         state = self.program_state()
         if state != "idle":
             raise DeviceError(f"{self.name}: a program is {state}; it moves the machine only idle")
-        x, y, z = np.asarray(target_mm, dtype=float)
         self._set_mode("mdi")
         self._error_text()  # reading LinuxCNC's last error clears it: only this move's is left
-        self._mdi(f"G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{feed_mm_min:.1f}")
+        try:
+            self._mdi(mdi_move_line(target_mm, feed_mm_min))
+            self._wait_mdi_move(target_mm, tolerance_mm, timeout_s)
+        except BaseException:
+            self._abort_quietly()
+            raise
+
+    def _abort_quietly(self) -> None:
+        """Abort whatever moves, after a failure: a failing abort must not hide the failure."""
+        try:
+            self.stop_program()
+        except Exception as error:  # the connection may be what failed
+            log.warning("%s: could not abort the MDI move (%s)", self.name, error)
+
+    def _wait_mdi_move(self, target_mm: Vec, tolerance_mm: float, timeout_s: float) -> None:
+        """Wait until the machine is at rest within ``tolerance_mm`` of ``target_mm``."""
         target = f"{np.round(target_mm, 4).tolist()} mm"
         deadline = self.clock.now() + timeout_s
         while True:
@@ -238,12 +307,20 @@ class MdiMover:
         self.timeout_s = timeout_s
 
     def position_mm(self) -> Vec:
+        """The LinuxCNC's actual X Y Z in machine coordinates, mm, shape (3,)."""
         return self.cnc.position_mm()
 
     def is_standstill(self) -> bool:
+        """The machine stands still within its ``in_position_mm``."""
         return self.cnc.is_standstill()
 
     def move_to(self, position_mm: Vec, feed_mm_min: float) -> None:
+        """Move to ``position_mm`` (3,), machine coordinates, mm, at ``feed_mm_min``.
+
+        OutOfRangeError outside the machine file's travel; DriveFaultError when
+        the machine is not ready; the errors of :meth:`LinuxCncControl.move_mdi`
+        (which aborts the move on any of them, Ctrl-C included).
+        """
         target = np.asarray(position_mm, dtype=float)
         if not self.machine.within_travel(target):
             raise OutOfRangeError(

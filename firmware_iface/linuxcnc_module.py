@@ -12,7 +12,9 @@ putting the rest of the system's packages on ``sys.path``.
 checks are shared with the linuxcncrsh driver) from the module:
 
 * actual position ``stat.actual_position`` (``motion.traj.actualPosition``,
-  what linuxcncrsh's ``abs_act_pos`` prints), commanded ``stat.position``;
+  what linuxcncrsh's ``abs_act_pos`` prints), commanded ``stat.position``,
+  both in the machine's units ([TRAJ] LINEAR_UNITS), divided by
+  ``stat.linear_units`` (machine units per mm) into mm;
 * the command stands still when the trajectory planner has finished
   (``stat.inpos``, set by LinuxCNC's motion controller) or, in a feed hold,
   once it has brought the path to a stop (``stat.paused`` and
@@ -24,10 +26,11 @@ checks are shared with the linuxcncrsh driver) from the module:
   ``estop`` / ``machine``; ``stat.homed``, ``stat.joint[i]['fault']``;
 * commands ``mode``, ``program_open``, ``auto(AUTO_RUN, 0)``,
   ``auto(AUTO_PAUSE)``, ``auto(AUTO_RESUME)``, ``abort``, ``mdi``: a mode
-  change, an open and an abort must complete (LinuxCNC's status ``RCS_DONE``;
-  ``RCS_ERROR`` is a refusal with LinuxCNC's own message); a run, a pause, a
-  resume and an MDI line must have been received (the status echoes the
-  command's serial number), as linuxcncrsh acknowledges them.
+  change, an open and an abort must complete (LinuxCNC's status ``RCS_DONE``);
+  a run, a pause, a resume and an MDI line must have been received (the
+  status echoes the command's serial number), as linuxcncrsh acknowledges
+  them. ``RCS_ERROR`` for the command is a refusal, raised at once with
+  LinuxCNC's own message (a resume with nothing to resume).
 
 Each command and its outcome, and each message taken from the error channel,
 is logged at DEBUG. Every read takes a fresh ``stat()``: a stat opened while
@@ -48,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_iface.linuxcnc_control import LinuxCncControl, Mode
+from firmware_iface.linuxcnc_control import START_TIMEOUT_S, LinuxCncControl, Mode
 from xmalign.errors import DeviceError, DeviceTimeoutError, InputError, TransportError
 from xmalign.geometry import Vec
 from xmalign.roles import Clock, ProgramState
@@ -93,6 +96,7 @@ MODULE_API = {
         "task_state",
         "homed",
         "joint",
+        "linear_units",
         "file",
         "echo_serial_number",
         "state",
@@ -101,7 +105,7 @@ MODULE_API = {
     "error_channel": ("poll",),
 }
 #: Longest wait for a command to complete or be received, s (the module itself waits up to
-#: 5 s for the reception before it returns).
+#: 5 s for the reception before it returns); ``timeout_s`` in units.yaml.
 COMMAND_TIMEOUT_S = 5.0
 _POLL_S = 0.01
 
@@ -150,7 +154,7 @@ class LocalLinuxCnc(LinuxCncControl):
     linuxcnc : module
         LinuxCNC's ``linuxcnc`` module (:func:`find_linuxcnc_module`), or the
         simulated one (``sim.linuxcnc_module``).
-    joints, in_position_mm, clock
+    joints, in_position_mm, clock, start_timeout_s
         As for :class:`~firmware_iface.linuxcnc_control.LinuxCncControl`.
     timeout_s : float
         Longest wait for a command to complete or be received.
@@ -163,9 +167,10 @@ class LocalLinuxCnc(LinuxCncControl):
         in_position_mm: float = 0.002,
         clock: Clock | None = None,
         timeout_s: float = COMMAND_TIMEOUT_S,
+        start_timeout_s: float = START_TIMEOUT_S,
     ) -> None:
         name = f"LinuxCNC on this computer ({linuxcnc.nmlfile})"
-        super().__init__(name, joints, in_position_mm, clock)
+        super().__init__(name, joints, in_position_mm, clock, start_timeout_s)
         self.lc = linuxcnc
         self.timeout_s = timeout_s
         self._stat()  # LinuxCNC runs, or TransportError now
@@ -174,6 +179,7 @@ class LocalLinuxCnc(LinuxCncControl):
         log.debug("%s: opened", self.name)
 
     def close(self) -> None:
+        """Nothing to release (the module's channels need no closing); logged."""
         log.debug("%s: closed", self.name)
 
     # -- reading ------------------------------------------------------------------
@@ -189,16 +195,18 @@ class LocalLinuxCnc(LinuxCncControl):
 
     def position_mm(self) -> Vec:
         """Actual X Y Z in machine coordinates (``stat.actual_position``), mm, shape (3,)."""
-        return np.array(self._stat().actual_position[:3], dtype=float)
+        stat = self._stat()
+        return _in_mm(stat.actual_position, stat)
 
     def commanded_mm(self) -> Vec:
         """Commanded X Y Z in machine coordinates (``stat.position``), mm, shape (3,)."""
-        return np.array(self._stat().position[:3], dtype=float)
+        stat = self._stat()
+        return _in_mm(stat.position, stat)
 
     def _commanded_at_rest_mm(self) -> Vec | None:
         stat = self._stat()
         at_rest = stat.inpos or (stat.paused and stat.current_vel == 0.0)
-        return np.array(stat.position[:3], dtype=float) if at_rest else None
+        return _in_mm(stat.position, stat) if at_rest else None
 
     def program_state(self) -> ProgramState:
         """``idle``, ``running`` or ``paused``: ``stat.interp_state`` as linuxcncrsh maps it."""
@@ -235,8 +243,9 @@ class LocalLinuxCnc(LinuxCncControl):
     def _send(self, what: str, send: Callable[[], object], completes: bool) -> None:
         """Send a command; wait until LinuxCNC completed it (``completes``) or received it.
 
-        DeviceError with LinuxCNC's message when it reports an error for it;
-        DeviceTimeoutError when it does not get that far within ``timeout_s``.
+        DeviceError with LinuxCNC's message as soon as it reports an error for it
+        (``RCS_ERROR`` with its serial number), whether or not the command
+        completes; DeviceTimeoutError when it does not get that far within ``timeout_s``.
         """
         self._stat()  # LinuxCNC is there (a command to a gone LinuxCNC waits 5 s, silently)
         log.debug("%s > %s", self.name, what)
@@ -248,7 +257,7 @@ class LocalLinuxCnc(LinuxCncControl):
             behind = stat.echo_serial_number - serial
             if behind > 0 or (behind == 0 and stat.state == self.lc.RCS_DONE):
                 outcome = "done"
-            elif behind == 0 and stat.state == self.lc.RCS_ERROR and completes:
+            elif behind == 0 and stat.state == self.lc.RCS_ERROR:
                 reason = self._error_text() or "no message"
                 log.debug("%s < %s: error", self.name, what)
                 raise DeviceError(f"{self.name} refused '{what}' ({reason})")
@@ -292,6 +301,11 @@ class LocalLinuxCnc(LinuxCncControl):
         self._send("abort()", self._command.abort, True)
 
 
+def _in_mm(values: Any, stat: Any) -> Vec:
+    """X Y Z of a position of ``stat`` (machine units) in mm, shape (3,)."""
+    return np.array(values[:3], dtype=float) / float(stat.linear_units)
+
+
 def open_local_linuxcnc(
     module_dir: Path | None = None,
     nml_file: Path | None = None,
@@ -299,10 +313,11 @@ def open_local_linuxcnc(
     in_position_mm: float = 0.002,
     clock: Clock | None = None,
     timeout_s: float = COMMAND_TIMEOUT_S,
+    start_timeout_s: float = START_TIMEOUT_S,
 ) -> LocalLinuxCnc:
     """The LinuxCNC running on this computer, through its module (``nml_file``: the
     NML configuration of that LinuxCNC, default the module's own)."""
     linuxcnc = find_linuxcnc_module(module_dir)
     if nml_file is not None:
         linuxcnc.nmlfile = str(nml_file)
-    return LocalLinuxCnc(linuxcnc, joints, in_position_mm, clock, timeout_s)
+    return LocalLinuxCnc(linuxcnc, joints, in_position_mm, clock, timeout_s, start_timeout_s)

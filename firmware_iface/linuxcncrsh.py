@@ -11,7 +11,8 @@ Two layers, as for every device:
   (``get abs_act_pos``), standstill, the program state
   (``get program_status``), and program control (``set open``, ``set run``,
   ``set pause``, ``set resume``, ``set abort``; MDI moves with ``set mode
-  mdi`` and ``set mdi G53 G1 ...``). Only these primitives are its own: the
+  mdi`` and ``set mdi G21 G90 G94 G53 G1 ...``), in mm whatever the
+  machine's units (``get user_linear_units``). Only these primitives are its own: the
   waits and checks are :class:`~firmware_iface.linuxcnc_control.LinuxCncControl`'s,
   which the ``linuxcnc`` Python module's driver shares.
 
@@ -32,8 +33,8 @@ from typing import Protocol
 
 import numpy as np
 
-from firmware_iface.linuxcnc_control import LinuxCncControl, Mode
-from xmalign.errors import DeviceError, DeviceTimeoutError, TransportError
+from firmware_iface.linuxcnc_control import START_TIMEOUT_S, LinuxCncControl, Mode
+from xmalign.errors import DeviceError, DeviceTimeoutError, InputError, TransportError
 from xmalign.geometry import Vec
 from xmalign.roles import Clock, ProgramState
 
@@ -52,15 +53,34 @@ _MASK = "****"
 _LINE_END = re.compile(rb"[\r\n]")
 
 
+#: linuxcncrsh's units of ``get user_linear_units`` ([TRAJ] LINEAR_UNITS), in mm.
+MM_PER_UNIT = {"MM": 1.0, "INCH": 25.4, "CM": 10.0}
+_HELLO = re.compile(r"(?i)(hello\s+)(.*?)((?:\s+\S+){2})?$")
+_ENABLE = re.compile(r"(?i)(set\s+enable\s+)(.*)$")
+
+
 def masked(line: str) -> str:
-    """A request with its password replaced by ``****`` (``hello PW ...``, ``set enable PW``)."""
-    words = line.split(" ")
-    lowered = [word.lower() for word in words]
-    if lowered[:1] == ["hello"] and len(words) > 1:
-        words[1] = _MASK
-    elif lowered[:2] == ["set", "enable"] and len(words) > 2 and lowered[2] != "off":
-        words[2] = _MASK
-    return " ".join(words)
+    """A request with its password replaced by ``****``: everything between ``hello``
+    and its last two words (client, version), everything after ``set enable`` but ``off``."""
+    if match := _HELLO.match(line):
+        return f"{match[1]}{_MASK}{match[3] or ''}"
+    if (match := _ENABLE.match(line)) and match[2].strip().lower() != "off":
+        return f"{match[1]}{_MASK}"
+    return line
+
+
+def check_password(password: str, what: str) -> None:
+    """InputError unless linuxcncrsh can take ``password``: one word of printable ASCII
+    (it splits requests on spaces and tabs; ``off`` disables rather than enables)."""
+    if not password or any(
+        not char.isascii() or not char.isprintable() or char.isspace() for char in password
+    ):
+        raise InputError(
+            f"the {what} must be one word of printable ASCII without spaces"
+            " (linuxcncrsh splits its requests on spaces)"
+        )
+    if what == "enable password" and password.lower() == "off":
+        raise InputError("the enable password cannot be 'off' (linuxcncrsh: it disables)")
 
 
 class LineLink(Protocol):
@@ -72,7 +92,9 @@ class LineLink(Protocol):
         """Send one request line, return its one reply line (without line ends)."""
         ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """End the connection."""
+        ...
 
 
 class LinuxcncrshLink:
@@ -100,6 +122,11 @@ class LinuxcncrshLink:
         log.debug("%s: connected", self.name)
 
     def ask(self, line: str) -> str:
+        """Send one request line, return its one reply line (without line ends).
+
+        DeviceTimeoutError without a reply within ``timeout_s``, TransportError
+        when the connection fails; either closes the session.
+        """
         if self._socket is None:
             raise TransportError(f"the connection to {self.name} is closed")
         log.debug("%s > %r", self.name, masked(line))
@@ -135,6 +162,7 @@ class LinuxcncrshLink:
             self._buffer += chunk
 
     def close(self) -> None:
+        """Close the TCP session (again: nothing)."""
         if self._socket is not None:
             self._socket.close()
             self._socket = None
@@ -144,15 +172,18 @@ class LinuxcncrshLink:
 class LinuxCnc(LinuxCncControl):
     """A LinuxCNC seen through linuxcncrsh: the primitives of :class:`LinuxCncControl`.
 
-    Positions are ``abs_act_pos`` (commanded: ``abs_cmd_pos``). linuxcncrsh has
-    no in-position flag: the command stands still when two reads
-    ``STANDSTILL_PROBE_S`` apart agree.
+    Positions are ``abs_act_pos`` (commanded: ``abs_cmd_pos``), which
+    linuxcncrsh gives in the machine's units ([TRAJ] LINEAR_UNITS; its ``set
+    linear_unit_conversion`` does not change them): :meth:`open` reads them
+    (``get user_linear_units``) and the positions are converted to mm.
+    linuxcncrsh has no in-position flag: the command stands still when two
+    reads ``STANDSTILL_PROBE_S`` apart agree.
 
     Parameters
     ----------
     link : LineLink
         A fresh session (:meth:`open` says hello).
-    joints, in_position_mm, clock
+    joints, in_position_mm, clock, start_timeout_s
         As for :class:`~firmware_iface.linuxcnc_control.LinuxCncControl`.
     """
 
@@ -162,12 +193,23 @@ class LinuxCnc(LinuxCncControl):
         joints: int = 3,
         in_position_mm: float = 0.002,
         clock: Clock | None = None,
+        start_timeout_s: float = START_TIMEOUT_S,
     ) -> None:
-        super().__init__(link.name, joints, in_position_mm, clock)
+        super().__init__(link.name, joints, in_position_mm, clock, start_timeout_s)
         self.link = link
+        #: mm per machine unit (:meth:`open` reads it from LinuxCNC).
+        self.mm_per_unit = 1.0
 
     def open(self, connect_password: str, enable_password: str | None) -> None:
-        """Say hello; without echo, with a reply to every ``set``; enable control if asked."""
+        """Say hello; without echo, with a reply to every ``set``; enable control if
+        asked; read the machine's linear units.
+
+        InputError for a password linuxcncrsh cannot take (:func:`check_password`),
+        before anything is sent.
+        """
+        check_password(connect_password, "connect password")
+        if enable_password is not None:
+            check_password(enable_password, "enable password")
         reply = self.link.ask(f"hello {connect_password} {CLIENT} {PROTOCOL_VERSION}")
         if not reply.upper().startswith("HELLO ACK"):
             raise DeviceError(f"{self.name} refused the connect password (hello: {reply})")
@@ -177,8 +219,20 @@ class LinuxCnc(LinuxCncControl):
             reply = self.link.ask(f"set enable {enable_password}")
             if reply.upper() != "SET ENABLE ACK":
                 raise DeviceError(f"{self.name} refused the enable password (set enable)")
+        self.mm_per_unit = self._mm_per_unit()
+
+    def _mm_per_unit(self) -> float:
+        """mm per machine unit, from ``get user_linear_units`` (MM, INCH or CM)."""
+        (units,) = self._get("user_linear_units")[:1] or ["?"]
+        if units.upper() not in MM_PER_UNIT:
+            raise DeviceError(
+                f"{self.name}: its linear units are {units} ([TRAJ] LINEAR_UNITS), not mm,"
+                " inch or cm; xmalign cannot read its positions in mm"
+            )
+        return MM_PER_UNIT[units.upper()]
 
     def close(self) -> None:
+        """End the session (the program and the machine go on as they are)."""
         self.link.close()
 
     # -- reading ------------------------------------------------------------------
@@ -199,7 +253,7 @@ class LinuxCnc(LinuxCncControl):
             raise DeviceError(f"{self.name}: unexpected reply to 'get {what}': {words}") from error
         if values.shape != (3,):
             raise DeviceError(f"{self.name}: 'get {what}' gave {len(words)} values, not X Y Z")
-        return values
+        return values * self.mm_per_unit
 
     def position_mm(self) -> Vec:
         """Actual X Y Z in machine coordinates (``abs_act_pos``), mm, shape (3,)."""
@@ -293,11 +347,13 @@ def open_linuxcnc(
     joints: int = 3,
     in_position_mm: float = 0.002,
     clock: Clock | None = None,
+    start_timeout_s: float = START_TIMEOUT_S,
 ) -> LinuxCnc:
     """Connect to linuxcncrsh and open a session (enabled for control with a password);
-    ``clock``: what it waits on (default the wall clock)."""
+    ``timeout_s``: for the connection and each reply; ``clock``: what it waits on
+    (default the wall clock)."""
     link = LinuxcncrshLink(host, port, timeout_s)
-    cnc = LinuxCnc(link, joints, in_position_mm, clock)
+    cnc = LinuxCnc(link, joints, in_position_mm, clock, start_timeout_s)
     try:
         cnc.open(connect_password, enable_password)
     except BaseException:

@@ -7,7 +7,8 @@ constants carry the real module's values, LinuxCNC 2.9), in front of a
 simulated linuxcncrsh serves:
 
 * ``stat()`` and ``stat.poll()``: a snapshot of the status (``actual_position``
-  and ``position`` are 9-tuples XYZABCUVW; ``homed`` and ``joint`` one entry per
+  and ``position`` are 9-tuples XYZABCUVW in the machine's units, ``linear_units``
+  machine units per mm; ``homed`` and ``joint`` one entry per
   joint of LinuxCNC's 16); ``stat()`` raises ``error`` once LinuxCNC has shut
   down, as the real one does (``emcStatusBuffer invalid err=3``);
 * ``command()``: ``mode``, ``program_open``, ``auto``, ``abort``, ``mdi``; each
@@ -89,7 +90,16 @@ def simulated_module(linuxcnc: SimulatedLinuxcnc) -> types.ModuleType:
                 raise LinuxcncError("emcStatusBuffer invalid err=3")
 
         def poll(self) -> None:
-            position = (*(float(v) for v in linuxcnc.position_mm()), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            position = (
+                *(float(v) for v in linuxcnc.position_units()),
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
+            self.linear_units = linuxcnc.units_per_mm
             self.actual_position = self.position = position
             self.inpos = linuxcnc.in_position
             self.current_vel = linuxcnc.cnc.speed_mm_s()

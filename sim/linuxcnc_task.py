@@ -22,6 +22,7 @@ or an abort acts at the virtual time it arrives.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from pathlib import Path
 from typing import Literal
@@ -42,6 +43,10 @@ logger = logging.getLogger(__name__)
 #: Joints of the simulated LinuxCNC (XYZABC); the first three are homed.
 JOINTS = 6
 HOMED_JOINTS = 3
+#: Machine units per mm of each [TRAJ] LINEAR_UNITS the simulated LinuxCNC can have.
+UNITS_PER_MM = {"mm": 1.0, "inch": 1.0 / 25.4}
+_UNITS_WORD = re.compile(r"(?i)\bG\s*0*(20|21)(?![\d.])")
+_LENGTH_WORD = re.compile(r"(?i)\b([XYZF])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
 
 class _Program:
@@ -149,9 +154,16 @@ class SimulatedLinuxcnc:
     """LinuxCNC's task for ``cnc`` (the world's simulated CNC); see the module docstring."""
 
     def __init__(
-        self, cnc: SimulatedCnc, machine: Machine, lockstep: LockstepClock | None = None
+        self,
+        cnc: SimulatedCnc,
+        machine: Machine,
+        lockstep: LockstepClock | None = None,
+        linear_units: Literal["mm", "inch"] = "mm",
     ) -> None:
         self.cnc = cnc
+        self.linear_units = linear_units
+        #: G20/G21 in force for MDI lines (LinuxCNC starts in the machine's units).
+        self.program_units = linear_units
         self.machine = machine
         self.lockstep = lockstep
         self.rapid_mm_min = machine.feed_mm_min.rapid
@@ -175,6 +187,15 @@ class SimulatedLinuxcnc:
     def position_mm(self) -> np.ndarray:
         """Actual and commanded position alike (the simulated drives follow exactly), mm (3,)."""
         return self.cnc.position_mm()
+
+    @property
+    def units_per_mm(self) -> float:
+        """LinuxCNC's ``linear_units``: machine units per mm."""
+        return UNITS_PER_MM[self.linear_units]
+
+    def position_units(self) -> np.ndarray:
+        """The position in the machine's units, as LinuxCNC reports it (3,)."""
+        return self.position_mm() * self.units_per_mm
 
     @property
     def in_position(self) -> bool:
@@ -225,7 +246,16 @@ class SimulatedLinuxcnc:
     def mdi(self, line: str) -> bool:
         if self.busy or self.mode != "mdi":
             return self._refuse("can't execute MDI: a program runs, or not in MDI mode")
-        return self._start(f"G21 G90\n{line}\nM2\n", "MDI command")
+        return self._start(f"G21 G90\n{self._mdi_in_mm(line)}\nM2\n", "MDI command")
+
+    def _mdi_in_mm(self, line: str) -> str:
+        """``line`` with the program units in force applied (G20/G21 modal): in mm."""
+        for match in _UNITS_WORD.finditer(line):
+            self.program_units = "inch" if match[1] == "20" else "mm"
+        line = _UNITS_WORD.sub("", line)
+        if self.program_units == "mm":
+            return line
+        return _LENGTH_WORD.sub(lambda word: f"{word[1]}{float(word[2]) * 25.4:.6f}", line)
 
     def pause(self) -> bool:
         return self._to_program("hold")

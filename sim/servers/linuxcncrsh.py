@@ -7,7 +7,8 @@ LinuxCNC's own replies (``get`` replies ``NAME value...`` ending ``\\r\\n``;
 echo until ``set echo off``; ``get error`` gives the last error once), in front
 of a :class:`~sim.linuxcnc_task.SimulatedLinuxcnc` (which the simulated Python
 module ``linuxcnc`` serves too): ``set mode auto`` + ``set open``/``set run``
-run a program file (LinuxCNC dialect); ``set mode mdi`` + ``set mdi LINE`` runs
+run a program file (LinuxCNC dialect); positions in the machine's units
+(``get user_linear_units``: MM or INCH); ``set mode mdi`` + ``set mdi LINE`` runs
 one line; ``M0`` pauses a program until ``set resume``; ``set pause`` is a feed
 hold; ``set abort`` ends it. As linuxcncrsh, ``set open`` is acknowledged when
 LinuxCNC received it; a file it cannot open shows in ``get error``. Each
@@ -26,6 +27,7 @@ import contextlib
 import logging
 import socket
 import threading
+from typing import Literal
 
 import numpy as np
 
@@ -49,8 +51,9 @@ class LinuxcncrshServer:
         connect_password: str = "EMC",
         enable_password: str = "EMCTOO",
         lockstep: LockstepClock | None = None,
+        linear_units: Literal["mm", "inch"] = "mm",
     ) -> None:
-        self.linuxcnc = SimulatedLinuxcnc(cnc, machine, lockstep)
+        self.linuxcnc = SimulatedLinuxcnc(cnc, machine, lockstep, linear_units)
         self.passwords = (connect_password, enable_password)
         self.listener = socket.create_server((host, port))
         self.port = self.listener.getsockname()[1]
@@ -127,8 +130,9 @@ class LinuxcncrshServer:
             return f"ERROR {linuxcnc.take_error() or 'OK'}"
         homed = ["YES"] * HOMED_JOINTS + ["NO"] * (JOINTS - HOMED_JOINTS)
         answers = {
-            "abs_act_pos": f"ABS_ACT_POS {axes(linuxcnc.position_mm())}",
-            "abs_cmd_pos": f"ABS_CMD_POS {axes(linuxcnc.position_mm())}",
+            "abs_act_pos": f"ABS_ACT_POS {axes(linuxcnc.position_units())}",
+            "abs_cmd_pos": f"ABS_CMD_POS {axes(linuxcnc.position_units())}",
+            "user_linear_units": f"USER_LINEAR_UNITS {linuxcnc.linear_units.upper()}",
             "program_status": f"PROGRAM_STATUS {linuxcnc.program_status.upper()}",
             "program": f"PROGRAM {linuxcnc.opened or 'NONE'}",
             "estop": "ESTOP OFF",

@@ -39,6 +39,10 @@ class Stand:
     #: ``show_program(name, running)``: the controller has program ``name`` (its bare
     #: name, spelled as that controller does) running or idle; None: it reports none.
     show_program: Callable[[str, bool], None] | None = None
+    #: Starts a move to (x, y, z) and returns while the machine is on its way (a
+    #: controller that tells standstill from its own motion: LinuxCNC); None: ``place``
+    #: (a source that sees motion as a reading that changes).
+    move: Callable[[float, float, float], None] | None = None
 
 
 def _settled(stand: Stand, reads: int = 10) -> bool:
@@ -73,8 +77,9 @@ def test_a_moving_machine_does_not_stand_still(stand: Stand) -> None:
         pytest.skip("a position file is written only with the machine at rest")
     stand.place(10.0, 20.0, 30.0)
     assert _settled(stand)
+    move = stand.move or stand.place
     for step in range(1, 6):
-        stand.place(10.0 + step, 20.0, 30.0)  # 1 mm per read: moving
+        move(10.0 + step, 20.0, 30.0)  # 1 mm per read: moving
         assert not stand.source.is_standstill()
         stand.clock.sleep(SETTLE_S)
     assert _settled(stand)

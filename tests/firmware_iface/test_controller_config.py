@@ -6,14 +6,16 @@ import re
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 import pytest
 from cli_helpers import free_port
 from mtconnect_agent import TestAgent
+from pydantic import BaseModel
 from sinumerik_server import SinumerikServer
 
-from firmware_iface.config import load_units_config, open_devices
+from firmware_iface.config import UnitsConfig, load_units_config, open_devices
 from firmware_iface.controller_config import (
     MTConnectConfig,
     SinumerikConfig,
@@ -24,6 +26,7 @@ from sim.clock import SimClock
 from sim.servers.modbus import ModbusUnitServer
 from sim.units import SimUnit
 from xmalign.errors import InputError, TransportError
+from xmalign.formats.common import is_secret_field
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAD = """\
@@ -197,3 +200,102 @@ def test_xmalign_s_program_is_named_by_the_key_then_the_nc_path_then_the_default
     assert expected_program(nc, "run") == (path, "machine_position.sinumerik.program")
     both = SinumerikConfig(endpoint="opc.tcp://h:4840", program=path, program_name="CAL")
     assert expected_program(both, "run") == ("CAL", "machine_position.sinumerik.program_name")
+
+
+def _secret_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
+    """Every secret field reachable in ``model`` (dotted keys)."""
+    keys = set()
+    for name, field in model.model_fields.items():
+        if is_secret_field(field):
+            keys.add(prefix + name)
+        for inner in _models(field.annotation):
+            keys |= _secret_keys(inner, f"{prefix}{name}.")
+    return keys
+
+
+def _models(annotation: object) -> list[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [model for argument in get_args(annotation) for model in _models(argument)]
+
+
+#: A valid section around each secret key of units.yaml (the key's value goes at {}).
+SECRET_SECTIONS = {
+    "machine_position.sinumerik.password": (
+        "source: sinumerik\n  sinumerik: {{endpoint: 'opc.tcp://h:4840', user: u, password: {}}}"
+    ),
+    "machine_position.linuxcncrsh.connect_password": (
+        "source: linuxcncrsh\n  linuxcncrsh: {{host: h, program: p.ngc, connect_password: {}}}"
+    ),
+    "machine_position.linuxcncrsh.enable_password": (
+        "source: linuxcncrsh\n  linuxcncrsh: {{host: h, program: p.ngc, enable_password: {}}}"
+    ),
+}
+
+
+def test_every_secret_key_is_in_the_bad_value_table() -> None:
+    assert _secret_keys(UnitsConfig) == set(SECRET_SECTIONS)
+
+
+def _units_with(tmp_path: Path, section: str) -> Path:
+    path = tmp_path / "units.yaml"
+    path.write_text(HEAD.format(launch=1, receiver=2) + f"machine_position:\n  {section}\n")
+    return path
+
+
+@pytest.mark.parametrize("key", sorted(SECRET_SECTIONS))
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [
+        ("yes", "True"),
+        ("4711.5", "4711.5"),
+        ("[4711, 815]", "4711"),
+        ("{pin: 4711}", "4711"),
+        ("'s3cr3t-but-\u00e4'", "s3cr3t"),  # linuxcncrsh: ASCII only
+        ("'two words'", "two"),  # linuxcncrsh: one word
+    ],
+)
+def test_a_bad_secret_is_refused_without_showing_it(
+    tmp_path: Path, key: str, value: str, shown: str
+) -> None:
+    path = _units_with(tmp_path, SECRET_SECTIONS[key].format(value))
+    if "linuxcncrsh" not in key and value.startswith("'"):
+        load_units_config(path)  # OPC UA takes any text
+        return
+    with pytest.raises(InputError, match=f"units.yaml: key '{re.escape(key)}'") as caught:
+        load_units_config(path)
+    message = str(caught.value)
+    assert shown not in message and "\n" not in message
+    assert caught.value.__cause__ is None  # pydantic's message shows the input: not chained
+
+
+@pytest.mark.parametrize("key", sorted(SECRET_SECTIONS))
+def test_a_whole_number_is_a_password_as_written(tmp_path: Path, key: str) -> None:
+    config = load_units_config(_units_with(tmp_path, SECRET_SECTIONS[key].format("4711")))
+    section = config.machine_position.sinumerik or config.machine_position.linuxcncrsh
+    secret = getattr(section, key.rsplit(".", 1)[1])
+    assert secret.get_secret_value() == "4711" and "4711" not in repr(config)
+
+
+def test_linuxcncrsh_passwords_from_the_file_the_environment_or_the_defaults(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    section = (
+        "source: linuxcncrsh\n  linuxcncrsh: {host: h, program: p.ngc, connect_password: 4711,"
+        " enable_password_env: XMALIGN_TEST_ENABLE}"
+    )
+    rsh = load_units_config(_units_with(tmp_path, section)).machine_position.linuxcncrsh
+    assert rsh is not None
+    with pytest.raises(InputError, match="enable_password_env: the environment variable"):
+        rsh.passwords()
+    monkeypatch.setenv("XMALIGN_TEST_ENABLE", "from-env")
+    assert rsh.passwords() == ("4711", "from-env")
+    bare = "source: linuxcncrsh\n  linuxcncrsh: {host: h, program: p.ngc}"
+    rsh = load_units_config(_units_with(tmp_path, bare)).machine_position.linuxcncrsh
+    assert rsh is not None and rsh.passwords() == ("EMC", "EMCTOO")
+    both = (
+        "source: linuxcncrsh\n  linuxcncrsh: {host: h, program: p.ngc, connect_password: a,"
+        " connect_password_env: B}"
+    )
+    with pytest.raises(InputError, match="'connect_password' or 'connect_password_env'"):
+        load_units_config(_units_with(tmp_path, both))

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from required_tools import skip_unless_required
 
 from firmware_iface.config import _mover, load_units_config
 from firmware_iface.linuxcnc_control import MdiMover
@@ -44,7 +45,7 @@ def _real_module() -> Any:
     try:
         return find_linuxcnc_module(SYSTEM_MODULE_DIR)
     except InputError:
-        pytest.skip("LinuxCNC's Python module is not installed (Debian linuxcnc-uspace)")
+        skip_unless_required("LinuxCNC's Python module is not installed (Debian linuxcnc-uspace)")
 
 
 def test_the_real_module_has_what_the_driver_uses_and_the_simulated_one_its_values() -> None:
@@ -244,3 +245,64 @@ def test_units_yaml_source_linuxcnc(
     assert local.nml_file == tmp_path / "cnc" / "x.nml" and local.module_dir is None
     assert (local.joints, local.in_position_mm, local.tolerance_mm) == (3, 0.002, 0.005)
     assert type(_mover(config, reference_machine, cnc, input, print, cnc)) is mover_type
+
+
+@pytest.fixture
+def inch_linuxcnc(reference_machine: Machine) -> Iterator[SimulatedLinuxcnc]:
+    """A simulated LinuxCNC with [TRAJ] LINEAR_UNITS = inch, in G20 until told otherwise."""
+    simulated = SimulatedLinuxcnc(
+        SimulatedCnc(reference_machine, WallClock()), reference_machine, linear_units="inch"
+    )
+    yield simulated
+    simulated.shut_down()
+
+
+def test_an_inch_machine_is_read_and_moved_in_mm(
+    inch_linuxcnc: SimulatedLinuxcnc, reference_machine: Machine
+) -> None:
+    """``stat.actual_position`` is in machine units, ``stat.linear_units`` machine units
+    per mm (LinuxCNC's Python interface documentation); the MDI line says G21 itself."""
+    cnc = LocalLinuxCnc(simulated_module(inch_linuxcnc), timeout_s=1.0)
+    target = np.array([120.0, 80.0, -20.0])
+    MdiMover(cnc, reference_machine, 0.005, 10.0).move_to(target, 30000.0)
+    assert np.allclose(inch_linuxcnc.position_mm(), target, atol=1e-6)
+    assert np.allclose(cnc.position_mm(), target, atol=1e-6)
+    assert np.allclose(cnc.commanded_mm(), target, atol=1e-6)
+    assert inch_linuxcnc.program_units == "mm"  # modal: the G21 stays in force
+
+
+def test_a_refused_resume_is_refused_at_once(cnc: LocalLinuxCnc) -> None:
+    """``RCS_ERROR`` for a command that does not complete (a resume, nothing paused) is a
+    refusal with LinuxCNC's message, not 'received': the run does not wait for the machine."""
+    cnc.clock = _NoTimePasses()
+    with pytest.raises(DeviceError, match=r"refused 'auto\(AUTO_RESUME\)' \(no program to resume"):
+        cnc.resume()
+
+
+class _NoTimePasses(WallClock):
+    """A clock on which any wait fails the test: the answer must come without one."""
+
+    def sleep(self, seconds: float) -> None:
+        raise AssertionError(f"waited {seconds} s")
+
+
+class _InterruptedClock(WallClock):
+    """Ctrl-C during the first wait longer than a command's poll."""
+
+    def sleep(self, seconds: float) -> None:
+        if seconds >= 0.05:
+            raise KeyboardInterrupt
+        super().sleep(seconds)
+
+
+def test_ctrl_c_during_an_mdi_move_aborts_it(
+    linuxcnc: SimulatedLinuxcnc, reference_machine: Machine
+) -> None:
+    cnc = LocalLinuxCnc(simulated_module(linuxcnc), clock=_InterruptedClock(), timeout_s=1.0)
+    mover = MdiMover(cnc, reference_machine, 0.005, 60.0)
+    with pytest.raises(KeyboardInterrupt):
+        mover.move_to(np.array([900.0, 0.0, 0.0]), 600.0)  # 10 mm/s: 90 s to go
+    assert linuxcnc.program_status == "idle" and linuxcnc.cnc.is_standstill()
+    stopped_at = linuxcnc.position_mm()
+    WallClock().sleep(0.2)
+    assert np.array_equal(linuxcnc.position_mm(), stopped_at) and stopped_at[0] < 10.0

@@ -12,14 +12,22 @@ import logging
 import socket
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scripted import ExpectedRshLines
 
+from firmware_iface.config import load_units_config
 from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, masked, open_linuxcnc
 from sim.clock import SimClock
-from xmalign.errors import DeviceError, DeviceTimeoutError, DriveFaultError, TransportError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    DriveFaultError,
+    InputError,
+    TransportError,
+)
 from xmalign.roles import ProgramControl
 
 HELLO = [
@@ -27,11 +35,12 @@ HELLO = [
     ("set echo off", "set echo off"),
     ("set verbose on", "SET VERBOSE ACK"),
     ("set enable EMCTOO", "SET ENABLE ACK"),
+    ("get user_linear_units", "USER_LINEAR_UNITS MM"),
 ]
 
 
-def _cnc(link: ExpectedRshLines) -> LinuxCnc:
-    return LinuxCnc(link, joints=3, in_position_mm=0.002, clock=SimClock())
+def _cnc(link: ExpectedRshLines, start_timeout_s: float = 5.0) -> LinuxCnc:
+    return LinuxCnc(link, 3, 0.002, SimClock(), start_timeout_s)
 
 
 def test_a_session_says_hello_turns_echo_off_and_enables_control() -> None:
@@ -83,8 +92,11 @@ def test_program_control_and_state() -> None:
     steps = [
         ("set mode auto", "SET MODE ACK"),
         ("set open /cnc/run.ngc", "SET OPEN ACK"),
+        ("get program", "PROGRAM /cnc/old.ngc"),  # the status lags the command
+        ("get error", "ERROR OK"),
+        ("get program", "PROGRAM /cnc/run.ngc"),
         ("set run", "SET RUN ACK"),
-        ("get program_status", "PROGRAM_STATUS IDLE"),  # the status lags the command
+        ("get program_status", "PROGRAM_STATUS IDLE"),
         ("get program_status", "PROGRAM_STATUS RUNNING"),
         ("set pause", "SET PAUSE ACK"),
         ("get program_status", "PROGRAM_STATUS PAUSED"),
@@ -114,19 +126,39 @@ def test_a_refused_command_says_linuxcncs_own_reason() -> None:
         _cnc(link).start_program("/x.ngc")
 
 
-def test_a_program_that_does_not_start_is_one_error() -> None:
+def test_a_program_linuxcnc_cannot_open_is_never_run() -> None:
+    """LinuxCNC 2.9 acknowledges ``set open`` of a missing file, keeps its old program
+    open, and a ``set run`` would run that one (seen in tests/linuxcnc)."""
     steps = [
         ("set mode auto", "SET MODE ACK"),
         ("set open /x.ngc", "SET OPEN ACK"),
-        ("set run", "SET RUN ACK"),
-        *[("get program_status", "PROGRAM_STATUS IDLE")] * 2,
+        ("get program", "PROGRAM /cnc/old.ngc"),
         ("get error", "ERROR Unable to open file </x.ngc>"),
     ]
     with (
         ExpectedRshLines(steps) as link,
-        pytest.raises(DeviceError, match="did not start /x.ngc .Unable to open file"),
+        pytest.raises(
+            DeviceError,
+            match=r"did not open /x.ngc \(Unable to open file </x.ngc>\); it has /cnc/old.ngc open",
+        ),
     ):
-        _cnc(link).start_program("/x.ngc", timeout_s=0.02)
+        _cnc(link).start_program("/x.ngc")
+
+
+def test_a_program_that_does_not_start_is_one_error() -> None:
+    steps = [
+        ("set mode auto", "SET MODE ACK"),
+        ("set open /x.ngc", "SET OPEN ACK"),
+        ("get program", "PROGRAM /x.ngc"),
+        ("set run", "SET RUN ACK"),
+        *[("get program_status", "PROGRAM_STATUS IDLE")] * 2,
+        ("get error", "ERROR Unable to read file </x.ngc>"),
+    ]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="did not start /x.ngc .Unable to read file"),
+    ):
+        _cnc(link, start_timeout_s=0.02).start_program("/x.ngc")
 
 
 @pytest.mark.parametrize(
@@ -172,6 +204,9 @@ def test_a_reply_to_another_question_is_refused() -> None:
         ("hello s3cret xmalign 1.0", "hello **** xmalign 1.0"),
         ("set enable s3cret", "set enable ****"),
         ("SET ENABLE s3cret", "SET ENABLE ****"),
+        ("hello s3 cret xmalign 1.0", "hello **** xmalign 1.0"),
+        ("set enable s3 cret", "set enable ****"),
+        ("hello s3cret", "hello ****"),
         ("set enable off", "set enable off"),
         ("get abs_act_pos", "get abs_act_pos"),
     ],
@@ -209,6 +244,7 @@ def server() -> Iterator[Server]:
             "set echo off": b"set echo off\r\n",
             "set verbose on": b"SET VERBOSE ACK\n\r",
             "set enable pw2": b"SET ENABLE ACK\n\r",
+            "get user_linear_units": b"USER_LINEAR_UNITS MM\r\n",
             "get abs_act_pos": b"ABS_ACT_POS 1.5 2.5 -3.5 0 0 0\r\n",
             "get program_status": b"",  # never answered
         }
@@ -239,3 +275,105 @@ def test_a_refused_connection_is_one_line() -> None:
         port = probe.getsockname()[1]
     with pytest.raises(TransportError, match=f"cannot connect to LinuxCNC at 127.0.0.1:{port}"):
         LinuxcncrshLink("127.0.0.1", port, 0.5)
+
+
+@pytest.mark.parametrize(("units", "mm_per_unit"), [("MM", 1.0), ("INCH", 25.4), ("CM", 10.0)])
+def test_positions_come_in_mm_whatever_the_machines_units(units: str, mm_per_unit: float) -> None:
+    """linuxcncrsh prints ``abs_act_pos`` in [TRAJ] LINEAR_UNITS (emcrsh.cc, LinuxCNC 2.9:
+    ``emcStatus->motion.traj.actualPosition`` unconverted; its ``set
+    linear_unit_conversion`` converts only offsets: seen on the real one in
+    tests/linuxcnc/test_mdi_moves.py)."""
+    steps = [
+        *HELLO[:4],
+        ("get user_linear_units", f"USER_LINEAR_UNITS {units}"),
+        ("get abs_act_pos", "ABS_ACT_POS 1.000000 2.000000 -0.500000 0.000000 0.000000 0.000000"),
+    ]
+    with ExpectedRshLines(steps) as link:
+        cnc = _cnc(link)
+        cnc.open("EMC", "EMCTOO")
+        assert np.allclose(cnc.position_mm(), np.array([1.0, 2.0, -0.5]) * mm_per_unit)
+
+
+def test_a_machine_in_custom_units_is_refused() -> None:
+    steps = [*HELLO[:4], ("get user_linear_units", "USER_LINEAR_UNITS CUSTOM")]
+    with (
+        ExpectedRshLines(steps) as link,
+        pytest.raises(DeviceError, match="linear units are CUSTOM"),
+    ):
+        _cnc(link).open("EMC", "EMCTOO")
+
+
+def test_an_mdi_move_states_mm_absolute_and_feed_per_minute() -> None:
+    """On an inch machine (or after a G20, G91, G93) a bare ``G53 G1 X10`` is not 10 mm."""
+    at = "ABS_ACT_POS 0.393701 0.787402 -0.196850 0.000000 0.000000 0.000000"
+    at_cmd = at.replace("ABS_ACT_POS", "ABS_CMD_POS")
+    steps = [
+        *HELLO[:4],
+        ("get user_linear_units", "USER_LINEAR_UNITS INCH"),
+        ("get program_status", "PROGRAM_STATUS IDLE"),
+        ("set mode mdi", "SET MODE ACK"),
+        ("get error", "ERROR OK"),
+        ("set mdi G21 G90 G94 G53 G1 X10.0000 Y20.0000 Z-5.0000 F600.0", "SET MDI ACK"),
+        ("get program_status", "PROGRAM_STATUS IDLE"),
+        ("get abs_cmd_pos", at_cmd),
+        ("get abs_cmd_pos", at_cmd),
+        ("get abs_act_pos", at),
+        ("get abs_act_pos", at),
+    ]
+    with ExpectedRshLines(steps) as link:
+        cnc = _cnc(link)
+        cnc.open("EMC", "EMCTOO")
+        cnc.move_mdi(np.array([10.0, 20.0, -5.0]), 600.0, 0.005, 10.0)
+
+
+def test_an_mdi_move_is_aborted_when_the_wait_ends_early() -> None:
+    """An error or Ctrl-C while the machine moves: ``set abort`` before it propagates."""
+    steps = [
+        ("get program_status", "PROGRAM_STATUS IDLE"),
+        ("set mode mdi", "SET MODE ACK"),
+        ("get error", "ERROR OK"),
+        ("set mdi G21 G90 G94 G53 G1 X10.0000 Y20.0000 Z-5.0000 F600.0", "SET MDI ACK"),
+        ("get program_status", KeyboardInterrupt()),
+        ("set abort", "SET ABORT ACK"),
+    ]
+    with ExpectedRshLines(steps) as link, pytest.raises(KeyboardInterrupt):
+        _cnc(link).move_mdi(np.array([10.0, 20.0, -5.0]), 600.0, 0.005, 10.0)
+
+
+@pytest.mark.parametrize("password", ["pw 1", "pw\t1", "", "pässword"])
+def test_a_password_linuxcncrsh_cannot_take_is_refused_before_it_is_sent(password: str) -> None:
+    """linuxcncrsh splits each request on spaces and tabs (emcrsh.cc, ``toksep``): a
+    password with a space could never match, and would be sent in parts."""
+    with ExpectedRshLines([]) as link, pytest.raises(InputError, match="one word") as error:
+        _cnc(link).open(password or "EMC", password)
+    assert password not in str(error.value) or not password
+
+
+def test_the_wire_log_and_a_timeout_never_show_a_spaced_password(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A password with a space must not leak its tail: the whole argument is masked."""
+    caplog.set_level(logging.DEBUG, logger="firmware_iface")
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        link = LinuxcncrshLink("127.0.0.1", listener.getsockname()[1], 0.05)
+        with pytest.raises(DeviceTimeoutError) as error:
+            link.ask("hello top secret xmalign 1.0")
+        link.close()
+    assert "secret" not in str(error.value) and "'hello **** xmalign 1.0'" in str(error.value)
+    assert "secret" not in caplog.text and "top" not in caplog.text
+
+
+def test_the_documented_example_loads_and_is_in_the_docs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    root = Path(__file__).resolve().parents[2]
+    example = root / "examples" / "units-linuxcncrsh.yaml"
+    config = load_units_config(example)
+    rsh = config.machine_position.linuxcncrsh
+    assert rsh is not None and config.machine_position.controlled is rsh
+    assert (rsh.timeout_s, rsh.start_timeout_s) == (1.0, 5.0)
+    monkeypatch.setenv("XMALIGN_LINUXCNC_CONNECT_PW", "c0nnect")
+    monkeypatch.setenv("XMALIGN_LINUXCNC_ENABLE_PW", "3nable")
+    assert rsh.passwords() == ("c0nnect", "3nable")
+    docs = (root / "docs" / "hardware.md").read_text(encoding="utf-8")
+    assert example.read_text(encoding="utf-8") in docs, "docs/hardware.md lost the example"

@@ -288,7 +288,8 @@ def test_linuxcncrsh_source_with_defaults_and_its_program_path(tmp_path) -> None
     )
     rsh = load_units_config(path).machine_position.linuxcncrsh
     assert rsh is not None
-    assert (rsh.port, rsh.connect_password, rsh.enable_password) == (5007, "EMC", "EMCTOO")
+    assert (rsh.port, *rsh.passwords()) == (5007, "EMC", "EMCTOO")
+    assert (rsh.timeout_s, rsh.start_timeout_s) == (None, 5.0)  # timeouts.io_s; as before
     assert rsh.cnc_program_path == str((tmp_path / "shared" / "run.ngc").resolve())
     assert load_units_config(path).timeouts.machine_s == 600.0
     assert rsh.allow_mdi_moves is False  # xmalign moves no axis unless told to

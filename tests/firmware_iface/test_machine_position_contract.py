@@ -121,6 +121,17 @@ def _placer(cnc: SimulatedCnc, machine: Machine, clock: SimClock) -> Callable[..
     return place
 
 
+#: The feed of a contract move that the source must see under way, mm/min (1 mm: 0.5 s).
+MOVING_FEED_MM_MIN = 120.0
+
+
+def _mover(cnc: SimulatedCnc) -> Callable[..., None]:
+    def move(x: float, y: float, z: float) -> None:  # a slow move, not waited out
+        cnc.start_move([x, y, z], MOVING_FEED_MM_MIN)
+
+    return move
+
+
 def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[Stand]:
     clock = SimClock()
     cnc, machine_model = _simulated_cnc(reference_machine, clock)
@@ -129,8 +140,7 @@ def _linuxcncrsh_stand(tmp_path: Path, reference_machine: Machine) -> Iterator[S
     machine = open_linuxcnc("127.0.0.1", server.port, 2.0, clock=clock)
     place = _placer(cnc, machine_model, clock)
     try:
-        # placed at rest, as a position file is; a moving CNC: test_linuxcncrsh_server.py
-        yield Stand(machine, place, server.stop, server.where, clock, sees_motion=False)
+        yield Stand(machine, place, server.stop, server.where, clock, move=_mover(cnc))
     finally:
         machine.close()
         server.stop()
@@ -145,7 +155,7 @@ def _linuxcnc_module_stand(tmp_path: Path, reference_machine: Machine) -> Iterat
     machine = LocalLinuxCnc(simulated_module(linuxcnc), clock=clock)
     place = _placer(cnc, machine_model, clock)
     try:
-        yield Stand(machine, place, linuxcnc.shut_down, NML_FILE, clock, sees_motion=False)
+        yield Stand(machine, place, linuxcnc.shut_down, NML_FILE, clock, move=_mover(cnc))
     finally:
         machine.close()
 

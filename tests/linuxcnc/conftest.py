@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -9,21 +10,28 @@ from pathlib import Path
 
 import pytest
 from harness import linuxcnc_available
+from required_tools import skip_unless_required
 
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
-        "markers", "linuxcnc: starts a real headless LinuxCNC (skipped when it is not installed)"
+        "markers",
+        "linuxcnc: starts a real headless LinuxCNC (skipped when it is not installed,"
+        " failed under XMALIGN_REQUIRE_LINUXCNC=1)",
     )
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    if linuxcnc_available():
-        return
-    skip = pytest.mark.skip(reason="LinuxCNC (Debian linuxcnc-uspace) is not installed")
-    for item in items:
-        if "linuxcnc" in item.keywords:
-            item.add_marker(skip)
+@functools.cache
+def _linuxcnc_installed() -> bool:
+    return linuxcnc_available()
+
+
+@pytest.fixture(autouse=True)
+def _linuxcnc_present(request: pytest.FixtureRequest) -> None:
+    """A ``linuxcnc`` test without LinuxCNC: skipped, or failed under
+    XMALIGN_REQUIRE_LINUXCNC=1 (.ci/run; tests/required_tools.py)."""
+    if "linuxcnc" in request.keywords and not _linuxcnc_installed():
+        skip_unless_required("LinuxCNC (Debian linuxcnc-uspace) is not installed")
 
 
 @pytest.fixture

@@ -49,7 +49,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 #: The host-wide lock every start of LinuxCNC takes (``flock`` on the command line, the
 #: same ``fcntl.flock`` here), so that tests, CI and other helpers never start two.
@@ -125,16 +125,25 @@ class SimMachine:
     #: With ``drive_lag`` a ``minmax`` per joint (``drive-range-N.min``/``max``) tracks
     #: every command the drive was sent since the start.
     drive_lag: bool = False
+    #: [TRAJ] LINEAR_UNITS and the joints' units: ``inch`` writes every length of the INI
+    #: (travel, velocity, acceleration, following error) in inches; the fields stay in mm
+    linear_units: Literal["mm", "inch"] = "mm"
 
     @property
     def joints(self) -> int:
         return len(self.coordinates)
 
+    @property
+    def units_per_mm(self) -> float:
+        """LinuxCNC's ``linear_units``: machine units per mm."""
+        return 1.0 if self.linear_units == "mm" else 1.0 / 25.4
+
 
 def _ini_text(
     machine: SimMachine, halfile: str, display: str = "./display.py", apps: Sequence[str] = ()
 ) -> str:
-    v, a = machine.max_velocity_mm_s, machine.max_acceleration_mm_s2
+    unit = machine.units_per_mm
+    v, a = machine.max_velocity_mm_s * unit, machine.max_acceleration_mm_s2 * unit
     gantry = len(set(machine.coordinates)) < machine.joints
     sections = [
         ("EMC", {"VERSION": "1.1", "MACHINE": "xmalign-harness", "DEBUG": "0"}),
@@ -162,7 +171,7 @@ def _ini_text(
             "TRAJ",
             {
                 "COORDINATES": " ".join(machine.coordinates),
-                "LINEAR_UNITS": "mm",
+                "LINEAR_UNITS": machine.linear_units,
                 "ANGULAR_UNITS": "degree",
                 "DEFAULT_LINEAR_VELOCITY": f"{v}",
                 "MAX_LINEAR_VELOCITY": f"{v}",
@@ -175,7 +184,7 @@ def _ini_text(
     if apps:
         sections.append(("APPLICATIONS", {"APP": apps[0]}))
     for axis in AXES:
-        low, high = machine.travel_mm[axis]
+        low, high = (limit * unit for limit in machine.travel_mm[axis])
         sections.append(
             (
                 f"AXIS_{axis}",
@@ -188,7 +197,7 @@ def _ini_text(
             )
         )
     for joint, axis in enumerate(machine.coordinates):
-        low, high = machine.travel_mm[axis]
+        low, high = (limit * unit for limit in machine.travel_mm[axis])
         sequence = -1 if gantry and machine.coordinates.count(axis) > 1 else 0
         sections.append(
             (
@@ -199,8 +208,8 @@ def _ini_text(
                     "MAX_ACCELERATION": f"{a}",
                     "MIN_LIMIT": f"{low}",
                     "MAX_LIMIT": f"{high}",
-                    "FERROR": f"{machine.ferror_mm}",
-                    "MIN_FERROR": f"{machine.ferror_mm}",
+                    "FERROR": f"{machine.ferror_mm * unit}",
+                    "MIN_FERROR": f"{machine.ferror_mm * unit}",
                     "HOME": "0.0",
                     "HOME_OFFSET": "0.0",
                     "HOME_SEARCH_VEL": "0",

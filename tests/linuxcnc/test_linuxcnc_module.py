@@ -6,7 +6,8 @@ commands it through the module from /usr/lib/python3/dist-packages, loaded by
 :func:`~firmware_iface.linuxcnc_module.find_linuxcnc_module`, through LinuxCNC's
 NML shared memory, as xmalign on the CNC's own computer does. The tests run
 the machine-position contract (tests/firmware_iface/machine_position_contract.py)
-on it, compare what the module and linuxcncrsh report of the same machine,
+on it and on linuxcncrsh (a moving machine included), compare what the module and
+linuxcncrsh report of the same machine,
 hold and resume a program, MDI moves and refusals with LinuxCNC's own messages,
 and an unattended ``xmalign run`` through the module (the Shop of
 test_unattended_run.py with ``source: linuxcnc``).
@@ -19,6 +20,7 @@ after LinuxCNC has gone; a fresh one raises ``linuxcnc.error``. In a feed hold
 from __future__ import annotations
 
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -31,16 +33,25 @@ from cli_helpers import free_port
 from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
 from test_unattended_run import LINES, Shop, _expected_keys, _keys, shop_running
 
-from firmware_iface.linuxcnc_control import MdiMover
+from firmware_iface.linuxcnc_control import MdiMover, mdi_move_line
 from firmware_iface.linuxcnc_module import LocalLinuxCnc, find_linuxcnc_module
-from firmware_iface.linuxcncrsh import LinuxCnc, open_linuxcnc
+from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, open_linuxcnc
+from tests.firmware_iface import machine_position_contract
 from tests.firmware_iface.machine_position_contract import (  # noqa: F401 (the contract, run here)
     Stand,
-    test_a_lost_source_is_a_transport_error_naming_it,
+    test_a_moving_machine_does_not_stand_still,
     test_an_operator_prompt_checks_the_confirmed_move_against_it,
     test_gives_the_actual_position_in_mm_as_three_floats,
     test_is_a_machine_position_source,
     test_stands_still_once_the_position_stays_put,
+)
+from tests.firmware_iface.program_control_contract import (  # noqa: F401 (run here)
+    ControlStand,
+    test_a_feed_hold_stops_on_the_path_and_a_resume_goes_on,
+    test_a_program_it_cannot_open_is_refused_with_its_message,
+    test_a_start_runs_the_program_to_its_stop_at_rest,
+    test_a_stop_ends_the_program_mid_move_and_a_start_begins_at_the_top,
+    test_is_a_program_control,
 )
 from tests.sim.test_linuxcncrsh_server import _wait
 from tests.xmalign.test_live_e2e import cut_plan
@@ -56,12 +67,16 @@ RAPID_MM_MIN = 60_000.0
 
 
 class HeadlessLinuxcnc:
-    """One LinuxCNC for the tests of this file: started when first needed, started again
-    after a test stopped it (the contract's lost source)."""
+    """One LinuxCNC for the tests of this file, its [TRAJ] LINEAR_UNITS inches (the
+    positions compared in mm): started when first needed, started again after a test
+    stopped it (the contract's lost source, this file's last test)."""
 
     def __init__(self, folder: Path) -> None:
         machine = SimMachine(
-            travel_mm=TRAVEL_MM, max_velocity_mm_s=1000.0, max_acceleration_mm_s2=10000.0
+            travel_mm=TRAVEL_MM,
+            max_velocity_mm_s=1000.0,
+            max_acceleration_mm_s2=10000.0,
+            linear_units="inch",
         )
         self.port = free_port()
         self.ini = write_sim_config(folder, machine, f"linuxcncrsh --port {self.port}")
@@ -105,6 +120,13 @@ def local(headless: HeadlessLinuxcnc) -> Iterator[LocalLinuxCnc]:
 
 
 @pytest.fixture
+def control_stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> ControlStand:
+    """The program-control contract's stand: the module (linuxcncrsh's:
+    test_program_control_contract.py, a LinuxCNC of its own)."""
+    return ControlStand(local, headless.ini.parent)
+
+
+@pytest.fixture
 def rsh(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> Iterator[LinuxCnc]:
     """The same LinuxCNC over linuxcncrsh."""
     client = open_linuxcnc("127.0.0.1", headless.port, 5.0)
@@ -119,11 +141,50 @@ def _placer(cnc: LocalLinuxCnc) -> Callable[[float, float, float], None]:
     return place
 
 
-@pytest.fixture
-def stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> Stand:
-    return Stand(
-        local, _placer(local), headless.stop, find_linuxcnc_module().nmlfile, WallClock(), False
-    )
+def _mover(cnc: LocalLinuxCnc) -> Callable[[float, float, float], None]:
+    def move(x: float, y: float, z: float) -> None:  # a slow MDI move, returns once under way
+        before = cnc.commanded_mm()
+        cnc._set_mode("mdi")
+        cnc._mdi(mdi_move_line(np.array([x, y, z]), 120.0))  # 1 mm: 0.5 s
+        _wait(lambda: not np.array_equal(cnc.commanded_mm(), before))
+
+    return move
+
+
+@pytest.fixture(params=["module", "linuxcncrsh"])
+def stand(
+    request: pytest.FixtureRequest, headless: HeadlessLinuxcnc, local: LocalLinuxCnc
+) -> Iterator[Stand]:
+    """The contract's source: the module, or linuxcncrsh on the same LinuxCNC (the
+    machine placed and moved through the module either way)."""
+    if request.param == "module":
+        yield Stand(
+            local,
+            _placer(local),
+            headless.stop,
+            find_linuxcnc_module().nmlfile,
+            WallClock(),
+            move=_mover(local),
+        )
+        return
+    client = open_linuxcnc("127.0.0.1", headless.port, 5.0)
+
+    def cut() -> None:  # the connection dropped (stopping LinuxCNC a second time in a row
+        # left the module's error channel invalid in this process: "Error buffer invalid")
+        assert isinstance(client.link, LinuxcncrshLink) and client.link._socket is not None
+        client.link._socket.shutdown(socket.SHUT_RDWR)
+
+    try:
+        yield Stand(
+            client,
+            _placer(local),
+            cut,
+            f"127.0.0.1:{headless.port}",
+            WallClock(),
+            move=_mover(local),
+        )
+    finally:
+        client.close()
 
 
 def _program(folder: Path, text: str) -> str:
@@ -176,7 +237,11 @@ def test_refusals_carry_linuxcncs_message(local: LocalLinuxCnc) -> None:
     with pytest.raises(DeviceError, match=refused):
         local.start_program("/nowhere.ngc")
     _placer(local)(10.0, 20.0, -5.0)
-    beyond = r"did not move to \[6000.0, 20.0, -5.0\] mm \(.*would exceed X's positive limit"
+    # refused at once (RCS_ERROR for the MDI line), or once at rest short of the target
+    beyond = (
+        r"(refused 'mdi\('G21 G90 G94 G53 G1 X6000.0000 Y20.0000 Z-5.0000 F60000.0'\)'"
+        r"|did not move to \[6000.0, 20.0, -5.0\] mm) \(.*would exceed X's positive limit"
+    )
     with pytest.raises(DeviceError, match=beyond):
         local.move_mdi(np.array([6000.0, 20.0, -5.0]), RAPID_MM_MIN, 0.005, 30.0)
     assert np.allclose(local.position_mm(), [10.0, 20.0, -5.0], atol=1e-6)
@@ -218,3 +283,14 @@ def test_an_unattended_run_through_the_module(module_shop: Shop) -> None:
     assert "LinuxCNC on this computer" in wire and "> auto(AUTO_RESUME)" in wire, wire[-2000:]
     assert "> 'set " not in wire  # nothing went over linuxcncrsh
     print(*(line for line in said.splitlines() if "machine time" in line))
+
+
+# Last of this file's tests (pytest runs a module's tests in the order they are defined):
+# it stops LinuxCNC. The module's channels do not survive a restart of LinuxCNC within
+# one process (seen with 2.9: afterwards the error channel answers "Error buffer invalid",
+# or a fresh stat reads task_state 0); a new process is not affected (xmalign run
+# --resume is one). So every test of this worker that uses the module in this process
+# uses this file's LinuxCNC, before this test.
+test_a_lost_source_is_a_transport_error_naming_it = (
+    machine_position_contract.test_a_lost_source_is_a_transport_error_naming_it
+)

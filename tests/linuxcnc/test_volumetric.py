@@ -29,6 +29,7 @@ from harness import (
     standard_start,
     write_sim_config,
 )
+from required_tools import skip_unless_required
 
 from sim.machine import VirtualMachine
 from xmalign.comp.linuxcnc_volumetric import (
@@ -84,7 +85,9 @@ def component() -> None:
                 capture_output=True,
             )
     elif not MODULE.exists():
-        pytest.skip("xmalign_volcomp is not installed and cannot be (not root or no halcompile)")
+        skip_unless_required(
+            "xmalign_volcomp is not installed and cannot be (not root or no halcompile)"
+        )
 
 
 def _machine_and_errors(
@@ -418,11 +421,10 @@ def test_a_damaged_table_file_stops_linuxcnc_with_the_file_and_the_reason(compon
 UPSTREAM_GANTRY = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/gantry")
 
 
-@pytest.mark.skipif(
-    not (UPSTREAM_GANTRY / "gantry_mm.hal").exists(), reason="LinuxCNC's sample configs missing"
-)
 def test_merge_of_linuxcncs_own_gantry_sample_config(component, linuxcnc_dir):
     """LinuxCNC's gantry_mm sample (HAL file as shipped; INI: our display, faster moves)."""
+    if not (UPSTREAM_GANTRY / "gantry_mm.hal").exists():
+        skip_unless_required("LinuxCNC's sample configs are missing")
     for name in ("gantry_mm.hal", "gantry_mm.tbl"):
         shutil.copy(UPSTREAM_GANTRY / name, linuxcnc_dir)
     ini_text = (UPSTREAM_GANTRY / "gantry_mm.ini").read_text()

@@ -77,14 +77,15 @@ def test_program_with_a_stop_a_feed_hold_and_the_end(cnc, tmp_path: Path) -> Non
 
 def test_a_program_that_cannot_be_opened_and_a_refused_enable(cnc) -> None:  # noqa: ANN001
     client, server = cnc
-    with pytest.raises(DeviceError, match="did not start /nowhere.ngc .Unable to open file"):
-        client.start_program("/nowhere.ngc", timeout_s=0.2)
+    with pytest.raises(DeviceError, match="did not open /nowhere.ngc .Unable to open file"):
+        client.start_timeout_s = 0.2
+        client.start_program("/nowhere.ngc")
     with pytest.raises(DeviceError, match="refused the enable password"):
         open_linuxcnc("127.0.0.1", server.port, 2.0, enable_password="WRONG")
 
 
 def test_an_mdi_move_to_a_point_and_what_is_refused(cnc, reference_machine, tmp_path) -> None:  # noqa: ANN001
-    """``set mode mdi`` + ``set mdi G53 G1 ...`` as :class:`MdiMover` sends them (the
+    """``set mode mdi`` + ``set mdi G21 G90 G94 G53 G1 ...`` as :class:`MdiMover` sends them (the
     commands of ``man linuxcncrsh``); back at rest at the point, the program idle."""
     client, server = cnc
     mover = MdiMover(client, reference_machine, 0.005, 10.0)
@@ -158,3 +159,28 @@ def test_xmalign_moves_the_machine_only_where_units_yaml_allows_it(
     config = load_units_config(path)
     mover = _mover(config, reference_machine, client, input, print, client)
     assert type(mover) is mover_type
+
+
+def test_an_inch_linuxcnc_reports_inches_and_reads_mdi_lines_in_the_units_in_force(
+    reference_machine: Machine,
+) -> None:
+    """As a LinuxCNC with [TRAJ] LINEAR_UNITS = inch: ``get user_linear_units`` INCH,
+    ``abs_act_pos`` in inches, MDI lines in G20 until a G21 (then G21, modal)."""
+    server = LinuxcncrshServer(
+        SimulatedCnc(reference_machine, WallClock()), reference_machine, linear_units="inch"
+    )
+    server.start()
+    client = open_linuxcnc("127.0.0.1", server.port, 2.0)
+    try:
+        assert client.mm_per_unit == 25.4
+        client._set("mode mdi")
+        client._set("mdi G53 G1 X1 Y2 Z-0.5 F100")  # the machine's units: inch
+        _wait(lambda: client.program_state() == "idle" and client.is_standstill())
+        assert np.allclose(server.linuxcnc.position_mm(), [25.4, 50.8, -12.7], atol=1e-6)
+        assert client._get("abs_act_pos")[:3] == ["1.000000", "2.000000", "-0.500000"]
+        MdiMover(client, reference_machine, 0.005, 10.0).move_to(np.array([100, 60, -20]), 6e3)
+        assert np.allclose(server.linuxcnc.position_mm(), [100.0, 60.0, -20.0], atol=1e-6)
+        assert server.linuxcnc.program_units == "mm"
+    finally:
+        client.close()
+        server.stop()

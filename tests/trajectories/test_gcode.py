@@ -9,6 +9,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from required_tools import LINUXCNC_REQUIRED
 
 from sim.clock import SimClock
 from sim.cnc import SimulatedCnc
@@ -19,6 +20,8 @@ from xmalign.errors import InputError, OutOfRangeError
 from xmalign.machine import WorkOffset
 
 GCODE_RESOLUTION_MM = 0.5e-3 + 1e-9
+#: Skip without rs274, unless .ci/run requires LinuxCNC (then the test fails running it).
+RS274_MISSING = shutil.which("rs274") is None and not LINUXCNC_REQUIRED
 
 
 @pytest.fixture
@@ -38,7 +41,7 @@ def expected_dwell_points(plan) -> np.ndarray:
     return np.array(points)
 
 
-@pytest.mark.skipif(shutil.which("rs274") is None, reason="LinuxCNC's rs274 is not on PATH")
+@pytest.mark.skipif(RS274_MISSING, reason="LinuxCNC's rs274 is not on PATH")
 def test_linuxcnc_program_passes_rs274_and_dwells_at_every_target(tmp_path, machine, plan):
     path = tmp_path / "run.ngc"
     path.write_text(write_program(plan, machine, DIALECTS["linuxcnc"]()))
@@ -198,7 +201,7 @@ def test_heidenhain_refuses_a_work_offset(machine):
         make_dialect("heidenhain", _with_work_offset(machine, [0.0, 0.0, 0.0]))
 
 
-@pytest.mark.skipif(shutil.which("rs274") is None, reason="LinuxCNC's rs274 is not on PATH")
+@pytest.mark.skipif(RS274_MISSING, reason="LinuxCNC's rs274 is not on PATH")
 def test_linuxcnc_work_offset_is_what_rs274_sets(tmp_path, machine, plan):
     origin = [100.0, 50.0, -20.0]
     shifted = _with_work_offset(machine, origin)

@@ -369,6 +369,33 @@ _UNITS_CASES = [
         replace(U, "source: prompt", "source: linuxcnc\n  linuxcnc: {program: p.ngc, joints: 0}"),
         "linuxcnc.joints",
     ),
+    *(
+        (
+            f"secret-{source}-{key}-{name}",
+            replace(
+                U, "source: prompt", f"source: {source}\n  {source}: {{{base}, {key}: {value}}}"
+            ),
+            f"{source}.{key}",
+        )
+        for source, base in [
+            ("linuxcncrsh", "host: cnc, program: p.ngc"),
+            ("sinumerik", "endpoint: 'opc.tcp://a:4840', user: u"),
+        ]
+        for key in (
+            ["connect_password", "enable_password"] if source == "linuxcncrsh" else ["password"]
+        )
+        for name, value in [("yes", "yes"), ("decimal", "47.11"), ("list", "[47, 11]")]
+    ),
+    (
+        "linuxcncrsh-password-with-a-space",
+        replace(
+            U,
+            "source: prompt",
+            "source: linuxcncrsh\n  linuxcncrsh: {host: cnc, program: p.ngc,"
+            " enable_password: 'top secret'}",
+        ),
+        "linuxcncrsh.enable_password",
+    ),
     (
         "sinumerik-policy-no-certificate",
         replace(

@@ -2,7 +2,7 @@
 
 ``xmalign sim serve --linuxcncrsh`` serves the world's CNC as a LinuxCNC; the
 ``units.yaml`` allows MDI moves (``allow_mdi_moves: true``), so identify sends
-``set mode mdi`` and ``set mdi G53 G1 ...`` for every identification position and
+``set mode mdi`` and ``set mdi G21 G90 G94 G53 G1 ...`` for every identification position and
 never asks anyone to move the machine; the test only jogs the units into range
 where no pose guess can point them (as in test_live_identify_e2e.py, whose harness
 this is).
@@ -84,7 +84,7 @@ def test_identify_live_moves_the_machine_over_mdi_where_units_yaml_allows_it(
     wire = (tmp_path / "wire.log").read_text()
     positions = design_step(machine, 4).machine_mm
     for x, y, z in positions:  # each position sent as one MDI line, as LinuxCNC takes it
-        assert f"set mdi G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f}" in wire, wire[-2000:]
+        assert f"set mdi G21 G90 G94 G53 G1 X{x:.4f} Y{y:.4f} Z{z:.4f}" in wire, wire[-2000:]
     assert "set mode mdi" in wire and "EMCTOO" not in wire
     session = read_session(tmp_path / "session.json")
     assert len(session.alignments) == 4

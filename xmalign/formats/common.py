@@ -32,11 +32,12 @@ import stat
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, get_args
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, SecretStr, ValidationError
+from pydantic.fields import FieldInfo
 
 from xmalign.errors import FormatError, InputError, OutputError
 
@@ -68,6 +69,59 @@ class StrictFileModel(FileModel):
     """A file model that refuses keys it does not know (YAML written by people)."""
 
     model_config = ConfigDict(allow_inf_nan=False, extra="forbid", frozen=True)
+
+
+def _secret_text(value: object) -> object:
+    """A password as text: a whole number as written (YAML ``4711`` is the password
+    ``4711``); a yes/no value or a decimal number refused (YAML may have changed them)."""
+    if isinstance(value, bool | float):
+        raise ValueError("not text: write the password in quotes")
+    return str(value) if isinstance(value, int) else value
+
+
+#: A password or other secret in a file: text (a whole number is taken as written),
+#: shown as ``**********``, and never shown in an error message (:func:`validate`).
+Secret = Annotated[SecretStr, BeforeValidator(_secret_text)]
+
+
+def is_secret_field(field: FieldInfo) -> bool:
+    """A field whose value is never shown: a SecretStr (or one inside an Optional,
+    Annotated ...), or a field marked ``Field(json_schema_extra={"secret": True})``."""
+    extra = field.json_schema_extra
+    return (isinstance(extra, dict) and extra.get("secret") is True) or _mentions(
+        field.annotation, SecretStr
+    )
+
+
+def _mentions(annotation: object, wanted: type) -> bool:
+    if annotation is wanted:
+        return True
+    return any(_mentions(argument, wanted) for argument in get_args(annotation))
+
+
+def _models_in(annotation: object) -> list[type[BaseModel]]:
+    """The models an annotation can hold (itself, or inside Optional, Union, list, dict...)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [model for argument in get_args(annotation) for model in _models_in(argument)]
+
+
+def secret_at(model: type[BaseModel], loc: Sequence[int | str]) -> bool:
+    """Whether the key at ``loc`` (a ValidationError's) is, or lies inside, a secret field.
+
+    Parts that name no field (a union's tag, a list index, a dict key) are stepped over.
+    """
+    models = [model]
+    for part in loc:
+        fields = [
+            m.model_fields[part] for m in models if isinstance(part, str) and part in m.model_fields
+        ]
+        if not fields:
+            continue
+        if any(is_secret_field(field) for field in fields):
+            return True
+        models = [found for field in fields for found in _models_in(field.annotation)]
+    return False
 
 
 def located(source: str | Path, where: str, problem: str) -> str:
@@ -139,15 +193,16 @@ def check_finite(data: object, source: str) -> None:
     _walk_finite(data, source, "")
 
 
-def describe_problem(first: Any) -> str:
-    """What is wrong, in words, for one entry of ``ValidationError.errors()``."""
+def describe_problem(first: Any, secret: bool = False) -> str:
+    """What is wrong, in words, for one entry of ``ValidationError.errors()``;
+    ``secret``: the key holds a password, whose value is never shown."""
     kind = first["type"]
     if kind == "missing":
         return "missing"
     if kind == "extra_forbidden":
         return "not a known key"
     if kind == "finite_number":
-        return f"{first['input']} is not a finite number"
+        return f"{'the value' if secret else first['input']} is not a finite number"
     if kind in ("too_short", "too_long"):
         context = first.get("ctx", {})
         bound = "at least" if kind == "too_short" else "at most"
@@ -156,16 +211,20 @@ def describe_problem(first: Any) -> str:
     message = first["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
     if message.startswith("Input should be"):
         value = first.get("input")
-        shown = f"{value!r} " if isinstance(value, int | float | str) else ""
+        shown = f"{value!r} " if isinstance(value, int | float | str) and not secret else ""
         message = shown + message.replace("Input should be", "must be", 1)
     return message
 
 
-def describe_validation_error(error: ValidationError, source: str) -> str:
-    """One line naming the file, the first offending key and what is wrong with it."""
+def describe_validation_error(
+    error: ValidationError, source: str, model: type[BaseModel] | None = None
+) -> str:
+    """One line naming the file, the first offending key and what is wrong with it
+    (never the value of a secret field of ``model``: :func:`secret_at`)."""
     first = error.errors()[0]
     key = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    return located(source, f"key '{key}'", describe_problem(first))
+    secret = model is not None and secret_at(model, first["loc"])
+    return located(source, f"key '{key}'", describe_problem(first, secret))
 
 
 def _yes_no_read_as_number(value: object, raw: object, key: str) -> str | None:
@@ -199,7 +258,11 @@ def validate(model: type[M], data: object, source: str, context: dict | None = N
     try:
         validated = model.model_validate(data, context=context)
     except ValidationError as error:
-        raise InputError(describe_validation_error(error, source)) from error
+        message = describe_validation_error(error, source, model)
+        if secret_at(model, error.errors()[0]["loc"]):
+            # pydantic's own message (the cause) carries the input: not even a traceback shows it
+            raise InputError(message) from None
+        raise InputError(message) from error
     key = _yes_no_read_as_number(validated, data, "")
     if key is not None:
         raise key_error(

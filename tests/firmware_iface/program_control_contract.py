@@ -1,0 +1,143 @@
+"""The contract every program control passes (``xmalign.roles.ProgramControl``).
+
+A controller that runs xmalign's program lets xmalign start it (open and run
+from the top), reports it running, paused at a programmed stop (M0) with the
+machine at rest, holds the feed mid-move (the machine stops on its path and
+stays), resumes, stops it (aborted, at rest, a new start begins at the top),
+reports the program it has open, and refuses a program it cannot open with the
+controller's own message. The checks take a ``control_stand`` fixture
+(:class:`ControlStand`): test_program_control_contract.py serves the simulated
+LinuxCNC over linuxcncrsh and through the simulated Python module;
+tests/linuxcnc/test_program_control_contract.py a real headless LinuxCNC over
+linuxcncrsh and through LinuxCNC's own module.
+
+The program is LinuxCNC's dialect (every ProgramControl today is a LinuxCNC);
+its points lie in the travel of both the simulated machines and the headless
+LinuxCNC (X 0..400, Y 0..300, Z -200..0 mm).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from xmalign.errors import DeviceError
+from xmalign.roles import ProgramControl
+
+#: To the first stop fast, then 190 mm at 20 mm/s (9.5 s) to the second.
+PROGRAM = "G21 G90 G94\nG53 G1 X10 Y20 Z-30 F60000\nM0\nG53 G1 X200 F1200\nM0\nM2\n"
+FIRST_STOP_MM = [10.0, 20.0, -30.0]
+SECOND_STOP_MM = [200.0, 20.0, -30.0]
+WAIT_S = 30.0
+
+
+@dataclass
+class ControlStand:
+    """One program control, served: the control and where its programs go."""
+
+    control: ProgramControl
+    #: A folder the controller reads programs from (as this process writes them).
+    folder: Path
+
+
+def _wait(condition: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
+def _program(stand: ControlStand) -> str:
+    path = stand.folder / "contract.ngc"
+    path.write_text(PROGRAM, encoding="utf-8")
+    path.chmod(0o644)  # the controller may run as another user
+    return str(path)
+
+
+def _at_first_stop(stand: ControlStand) -> str:
+    control = stand.control
+    program = _program(stand)
+    control.start_program(program)
+    assert control.program_state() in ("running", "paused")
+    _wait(lambda: control.program_state() == "paused" and control.is_standstill())
+    return program
+
+
+def _on_the_way(stand: ControlStand) -> None:
+    """From the first stop, resumed: on the way to the second."""
+    control = stand.control
+    control.resume()
+    _wait(lambda: control.position_mm()[0] > 20.0)
+    assert control.program_state() == "running" and not control.is_standstill()
+
+
+def _stays_put(stand: ControlStand) -> np.ndarray:
+    at = stand.control.position_mm()
+    time.sleep(0.2)
+    assert np.allclose(stand.control.position_mm(), at, atol=1e-9)
+    return at
+
+
+def test_is_a_program_control(control_stand: ControlStand) -> None:
+    assert isinstance(control_stand.control, ProgramControl)
+    control_stand.control.check_ready()
+
+
+def test_a_start_runs_the_program_to_its_stop_at_rest(control_stand: ControlStand) -> None:
+    control = control_stand.control
+    program = _at_first_stop(control_stand)
+    assert np.allclose(control.position_mm(), FIRST_STOP_MM, atol=1e-6)
+    assert control.loaded_program() == program
+    control.resume()  # the state lags the command: paused again once at the second stop
+    _wait(lambda: control.position_mm()[0] > FIRST_STOP_MM[0] + 1.0)
+    _wait(lambda: control.program_state() == "paused" and control.is_standstill())
+    assert np.allclose(control.position_mm(), SECOND_STOP_MM, atol=1e-6)
+    control.stop_program()
+    _wait(lambda: control.program_state() == "idle")
+
+
+def test_a_feed_hold_stops_on_the_path_and_a_resume_goes_on(control_stand: ControlStand) -> None:
+    control = control_stand.control
+    _at_first_stop(control_stand)
+    _on_the_way(control_stand)
+    control.hold()
+    _wait(lambda: control.program_state() == "paused" and control.is_standstill())
+    held = _stays_put(control_stand)
+    assert 20.0 < held[0] < SECOND_STOP_MM[0]
+    assert np.allclose(held[1:], FIRST_STOP_MM[1:], atol=1e-6)
+    control.resume()
+    _wait(lambda: control.position_mm()[0] > held[0] + 1.0)
+    assert control.program_state() == "running"
+    control.stop_program()
+    _wait(lambda: control.program_state() == "idle")
+
+
+def test_a_stop_ends_the_program_mid_move_and_a_start_begins_at_the_top(
+    control_stand: ControlStand,
+) -> None:
+    control = control_stand.control
+    _at_first_stop(control_stand)
+    _on_the_way(control_stand)
+    control.stop_program()
+    _wait(lambda: control.program_state() == "idle" and control.is_standstill(), 5.0)
+    stopped = _stays_put(control_stand)
+    assert stopped[0] < SECOND_STOP_MM[0]
+    _at_first_stop(control_stand)  # from the top: back at the first stop
+    assert np.allclose(control.position_mm(), FIRST_STOP_MM, atol=1e-6)
+    control.stop_program()
+
+
+def test_a_program_it_cannot_open_is_refused_with_its_message(
+    control_stand: ControlStand,
+) -> None:
+    control = control_stand.control
+    missing = str(control_stand.folder / "nowhere" / "missing.ngc")
+    with pytest.raises(DeviceError, match="Unable to open file") as caught:
+        control.start_program(missing)
+    assert missing in str(caught.value) and "\n" not in str(caught.value)
+    assert control.program_state() == "idle"
