@@ -5,7 +5,7 @@ says whether the machine stands still; raises a TransportError naming where it
 reads from when that is gone; and plugs into OperatorPrompt as the position a
 confirmed move is checked against. The checks take a ``stand`` fixture
 (:class:`Stand`): test_machine_position_contract.py serves one per
-implementation, tests/linuxcnc/test_linuxcnc_module.py a real headless LinuxCNC
+implementation, tests/linuxcnc/test_real_linuxcnc_module.py a real headless LinuxCNC
 read through LinuxCNC's own Python module.
 """
 

@@ -8,7 +8,7 @@ reports the program it has open, and refuses a program it cannot open with the
 controller's own message. The checks take a ``control_stand`` fixture
 (:class:`ControlStand`): test_program_control_contract.py serves the simulated
 LinuxCNC over linuxcncrsh and through the simulated Python module;
-tests/linuxcnc/test_program_control_contract.py a real headless LinuxCNC over
+tests/linuxcnc/test_real_program_control_contract.py a real headless LinuxCNC over
 linuxcncrsh and through LinuxCNC's own module.
 
 The program is LinuxCNC's dialect (every ProgramControl today is a LinuxCNC);

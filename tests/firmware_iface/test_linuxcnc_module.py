@@ -4,7 +4,7 @@ The simulated module (sim/linuxcnc_module.py) serves the same simulated LinuxCNC
 as the simulated linuxcncrsh; the real module (Debian ``linuxcnc-uspace``, in
 /usr/lib/python3/dist-packages) is checked once for every name the driver uses
 and for the constants' values, so the simulated one cannot drift from it. The
-real module against a running headless LinuxCNC: tests/linuxcnc/test_linuxcnc_module.py.
+real module against a running headless LinuxCNC: tests/linuxcnc/test_real_linuxcnc_module.py.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ keeps up to date, an MTConnect agent (the reference agent's documents served on
 documented nodes), a LinuxCNC over linuxcncrsh (the simulated CNC speaking its
 protocol, answering as a real LinuxCNC 2.9 did in tests/linuxcnc) and a LinuxCNC
 through its Python module (the simulated module in front of the same simulated
-LinuxCNC; tests/linuxcnc/test_linuxcnc_module.py runs this contract against the
+LinuxCNC; tests/linuxcnc/test_real_linuxcnc_module.py runs this contract against the
 real module and a real headless LinuxCNC). A followed controller that reports its
 program (MTConnect's Program, the SINUMERIK's selectedWorkPProg) names it, spelled
 its own way, with its state, and a followed run refuses another program running

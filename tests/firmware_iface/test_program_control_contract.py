@@ -3,7 +3,7 @@
 Over its remote shell (sim/servers/linuxcncrsh.py, answering as LinuxCNC 2.9's
 linuxcncrsh did in tests/linuxcnc) and through the simulated ``linuxcnc`` Python
 module (sim/linuxcnc_module.py), both in front of the same kind of simulated
-LinuxCNC on the wall clock; tests/linuxcnc/test_program_control_contract.py runs
+LinuxCNC on the wall clock; tests/linuxcnc/test_real_program_control_contract.py runs
 the same contract against a real headless LinuxCNC.
 """
 

@@ -6,7 +6,7 @@ LinuxCNC (Debian ``linuxcnc-uspace``) runs with ``linuxcncrsh`` as its display
 positions are in mm, so the driver converts (``abs_act_pos`` is in inches). An
 operator session brings the machine up (E-stop reset, machine on, home); each
 test then controls it through a session of its own. Through LinuxCNC's Python
-module the contract runs in test_linuxcnc_module.py, on that file's LinuxCNC
+module the contract runs in test_real_linuxcnc_module.py, on that file's LinuxCNC
 (inches too): the module's channels do not survive a restart of LinuxCNC within
 one process. The simulated LinuxCNC passes the same contract over both channels
 in tests/firmware_iface/test_program_control_contract.py.

@@ -122,7 +122,7 @@ def local(headless: HeadlessLinuxcnc) -> Iterator[LocalLinuxCnc]:
 @pytest.fixture
 def control_stand(headless: HeadlessLinuxcnc, local: LocalLinuxCnc) -> ControlStand:
     """The program-control contract's stand: the module (linuxcncrsh's:
-    test_program_control_contract.py, a LinuxCNC of its own)."""
+    test_real_program_control_contract.py, a LinuxCNC of its own)."""
     return ControlStand(local, headless.ini.parent)
 
 
