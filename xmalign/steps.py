@@ -45,7 +45,7 @@ from xmalign.comp import Compensation, compensate
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_files
+from xmalign.formats.common import atomic_write_files, refuse_special
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
@@ -413,7 +413,9 @@ def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: P
 
 def refuse_replacing_a_foreign_program(path: Path) -> None:
     """InputError when ``path`` holds something else than a program xmalign wrote (its
-    mark in the first lines): the controller's folder may hold the shop's own programs."""
+    mark in the first lines): the controller's folder may hold the shop's own programs.
+    A folder, a device or a FIFO there is refused without being opened."""
+    refuse_special(path, "the program of units.yaml's machine_position")
     try:
         with path.open("rb") as existing:
             head = existing.read(4096)

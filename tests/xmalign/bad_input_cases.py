@@ -521,6 +521,19 @@ _POSE_CASES = [
 ]
 
 L = "plan.json"
+
+#: ``run`` on a LinuxCNC xmalign runs its program on: refused before any device is opened.
+_CONTROLLED_RUN = ("run", "--config", U, "--plan", L, "--out", "new.csv")
+
+
+def _controlled_units(program: str) -> Damage:
+    return replace(
+        U,
+        "source: prompt",
+        f"source: linuxcncrsh\n  linuxcncrsh: {{host: cnc, program: {program}}}",
+    )
+
+
 PLAN = COMMAND[L]
 
 
@@ -707,15 +720,11 @@ _CLI_CASES = [
     ),  # noqa: E501
     Case(
         "run-program-replaces-a-shop-program",  # the controller's folder holds the shop's own
-        ("run", "--config", U, "--plan", L, "--out", "new.csv"),
+        _CONTROLLED_RUN,
         ("shop.ngc", "not a program xmalign wrote", "not replaced"),
         damage=each(
             write("shop.ngc", "(the shop's own part program)\nG0 X0\nM2\n"),
-            replace(
-                U,
-                "source: prompt",
-                "source: linuxcncrsh\n  linuxcncrsh: {host: cnc, program: shop.ngc}",
-            ),
+            _controlled_units("shop.ngc"),
         ),
     ),
     Case("dry-run-seed", ("dry-run", "--seed", "-5", "--out", "dr"), ("--seed", "-5")),
@@ -1135,6 +1144,12 @@ _DEVICE_CASES = [
         node("nul", "null"),
     ),
     Case(
+        "run-controller-program-dev-null",
+        _CONTROLLED_RUN,
+        ("nul", "machine_position", "character device"),
+        each(node("nul", "null"), _controlled_units("nul")),
+    ),
+    Case(
         "comp-out-a-device-in-the-folder",
         (*ERRORS, "--force"),
         ("NC_CEC.INI", "character device"),
@@ -1149,6 +1164,18 @@ _FILES_CASES = [
         (*SESSION[:3], "--out", "ff"),
         ("ff", "--out", "FIFO"),
         node("ff", "fifo"),
+    ),
+    Case(
+        "run-controller-program-fifo",
+        _CONTROLLED_RUN,
+        ("ff", "machine_position", "FIFO"),
+        each(node("ff", "fifo"), _controlled_units("ff")),
+    ),
+    Case(
+        "run-controller-program-a-folder",
+        _CONTROLLED_RUN,
+        ("comp", "machine_position", "is a folder"),
+        each(write("comp/x", ""), _controlled_units("comp")),
     ),
     Case(
         "identify-out-socket",
