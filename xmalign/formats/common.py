@@ -216,14 +216,11 @@ def describe_problem(first: Any, secret: bool = False) -> str:
     return message
 
 
-def describe_validation_error(
-    error: ValidationError, source: str, model: type[BaseModel] | None = None
-) -> str:
+def describe_validation_error(error: ValidationError, source: str, secret: bool = False) -> str:
     """One line naming the file, the first offending key and what is wrong with it
-    (never the value of a secret field of ``model``: :func:`secret_at`)."""
+    (``secret``: the key holds a password, whose value is never shown)."""
     first = error.errors()[0]
     key = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    secret = model is not None and secret_at(model, first["loc"])
     return located(source, f"key '{key}'", describe_problem(first, secret))
 
 
@@ -258,8 +255,9 @@ def validate(model: type[M], data: object, source: str, context: dict | None = N
     try:
         validated = model.model_validate(data, context=context)
     except ValidationError as error:
-        message = describe_validation_error(error, source, model)
-        if secret_at(model, error.errors()[0]["loc"]):
+        secret = secret_at(model, error.errors()[0]["loc"])
+        message = describe_validation_error(error, source, secret)
+        if secret:
             # pydantic's own message (the cause) carries the input: not even a traceback shows it
             raise InputError(message) from None
         raise InputError(message) from error
