@@ -39,7 +39,7 @@
     timeouts:
       io_s: 1.0                    # one request to a device
       move_s: 30.0                 # one unit move
-      machine_s: 600.0             # the machine reaching its next stop (linuxcncrsh, linuxcnc)
+      machine_s: 600.0             # the machine reaching its next stop (a run on a controller)
     environment:                   # optional; see docs/environment.md
       source: serial               # fixed, file, serial, modbus-tcp or modbus-rtu
       port: /dev/ttyUSB1
@@ -302,7 +302,7 @@ class Timeouts(_Strict):
     io_s: Annotated[float, Field(gt=0, le=600)] = 1.0
     #: One unit move.
     move_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
-    #: The machine reaching its next stop while xmalign runs the program, s.
+    #: The machine reaching its next stop in a run on a controller (run or followed), s.
     machine_s: Annotated[float, Field(gt=0, le=86400)] = 600.0
 
 
