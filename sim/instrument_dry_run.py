@@ -19,18 +19,15 @@ from sim.dry_run import DryRunOptions, check_dry_run_folder, simulate_calibratio
 from sim.machine import VirtualMachine
 from sim.tracer import VirtualTracer, measure_tracer
 from sim.tracker import VirtualTracker, measure_tracker
-from trajectories.gcode import make_dialect, resolve_dialect
+from trajectories.gcode import resolve_dialect
 from trajectories.instruments import (
     InstrumentProgram,
-    point_list_csv,
     propose_tracer_places,
     tracer_points,
     tracker_place,
     tracker_points,
-    write_instrument_program,
 )
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_text
 from xmalign.formats.instruments import (
     TracerFile,
     TrackerFile,
@@ -43,9 +40,9 @@ from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import Instruments, PostResult, post_stations
+from xmalign.post.evaluate import Instruments, PostResult
 from xmalign.rigid_body import Chain, ErrorTables
-from xmalign.steps import post_step
+from xmalign.steps import fit_step, post_step, write_instrument_step
 
 INSTRUMENTS = ("xm60", "tracker", "tracer", "xm60+tracker")
 #: The tracker stands turned and tilted: the fit's start must not need it level.
@@ -80,12 +77,17 @@ class InstrumentDryRun:
     files: dict[str, Path] = field(default_factory=dict)
 
 
-def _minutes(machine: Machine, program: InstrumentProgram, path: Path, dialect: str) -> float:
-    text, time = write_instrument_program(
-        program, machine, make_dialect(dialect, machine, path.stem), "xmalign dry run"
-    )
-    atomic_write_text(path, text)
-    return time.total_s / 60
+def _minutes(
+    machine: Machine,
+    program: InstrumentProgram,
+    path: Path,
+    dialect: str,
+    points_path: Path | None = None,
+) -> float:
+    """Write the program (and the point list) as ``xmalign program --instrument`` does;
+    its machine time, min."""
+    time = write_instrument_step(machine, program, path, points_path, dialect, "xmalign dry run")
+    return time[1].total_s / 60
 
 
 def _tracker(
@@ -93,8 +95,9 @@ def _tracker(
 ) -> tuple[TrackerFile, float]:
     points = tracker_points(machine)
     program = InstrumentProgram(points_mm=points)
-    minutes = TRACKER_RUNS * _minutes(machine, program, folder / "tracker.nc", dialect)
-    atomic_write_text(folder / "points.csv", point_list_csv(program, machine.smr_offset))
+    minutes = TRACKER_RUNS * _minutes(
+        machine, program, folder / "tracker.nc", dialect, folder / "points.csv"
+    )
     tracker = VirtualTracker(tracker_place(machine), np.array(TRACKER_ROTATION_DEG), seed=seed)
     rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
     write_tracker_points(folder / "tracker.csv", rows)
@@ -106,10 +109,10 @@ def _tracers(
 ) -> tuple[TracerFile, float]:
     points = tracer_points(machine)
     program = InstrumentProgram(points_mm=points)
-    minutes = 0.0
+    places = propose_tracer_places(machine, TRACER_PLACES)
+    minutes = len(places) * _minutes(machine, program, folder / "tracer.nc", dialect)
     lengths = []
-    for i, pivot in enumerate(propose_tracer_places(machine, TRACER_PLACES)):
-        minutes += _minutes(machine, program, folder / "tracer.nc", dialect)
+    for i, pivot in enumerate(places):
         tracer = VirtualTracer(pivot, seed=seed * 10 + i)
         lengths += measure_tracer(truth, tracer, points, 1, machine.smr_offset, f"P{i + 1}")
     write_tracer_lengths(folder / "tracer.csv", lengths)
@@ -162,7 +165,7 @@ def simulate_instruments(
     grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
     offset = None if stations else machine.smr_offset
     if stations:
-        alone = post_stations(machine, stations).fit.tables.model()
+        alone = fit_step(machine, stations).fit.tables.model()
         xm60_after = volumetric_rms_um(chain, grid, alone, truth)
     assert result.instruments is not None
     return InstrumentDryRun(

@@ -27,7 +27,6 @@ from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.synthetic import SetupDisturbance, measure
 from sim.tracer import VirtualTracer, measure_tracer
 from sim.tracker import VirtualTracker, measure_tracker, measure_tracker_on_the_fly
-from trajectories.gcode import make_dialect
 from trajectories.gcode.program import estimate_machine_time
 from trajectories.instruments import (
     FLY_FEED_MM_MIN,
@@ -38,7 +37,6 @@ from trajectories.instruments import (
     tracer_points,
     tracker_place,
     tracker_points,
-    write_instrument_program,
 )
 from trajectories.planner import plan_measurement
 from xmalign.formats.instruments import TracerFile, TrackerFile
@@ -46,8 +44,9 @@ from xmalign.formats.plan import Plan
 from xmalign.formats.pose import LaunchPose
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
-from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.evaluate import Instruments, PostResult, Station
 from xmalign.rigid_body import Chain
+from xmalign.steps import fit_step, write_instrument_step
 
 STRATEGIES = ("tracker", "tracker on the fly", "tracers", "xm60", "xm60+tracker")
 TRACKER_ROTATION_DEG = (0.5, -1.0, 30.0)
@@ -57,8 +56,9 @@ GRID = 8
 
 
 def _minutes(machine: Machine, program: InstrumentProgram) -> float:
-    dialect = make_dialect("linuxcnc", machine)
-    return write_instrument_program(program, machine, dialect, "study")[1].total_s / 60
+    return (
+        write_instrument_step(machine, program, dialect="linuxcnc", title="study")[1].total_s / 60
+    )
 
 
 def _tracker(machine: Machine, seed: int) -> VirtualTracker:
@@ -139,18 +139,18 @@ def trial(
     xm60_min = estimate_machine_time(plan, machine).total_s / 60
     with_tracker = Instruments(trackers=(trackers,))
     return {
-        "tracker": (rms(post_stations(machine, [], instruments=with_tracker), True), tracker_min),
+        "tracker": (rms(fit_step(machine, [], instruments=with_tracker), True), tracker_min),
         "tracker on the fly": (
-            rms(post_stations(machine, [], instruments=Instruments(trackers=(fly,))), True),
+            rms(fit_step(machine, [], instruments=Instruments(trackers=(fly,))), True),
             fly_min,
         ),
         "tracers": (
-            rms(post_stations(machine, [], instruments=Instruments(tracers=(tracers,))), True),
+            rms(fit_step(machine, [], instruments=Instruments(tracers=(tracers,))), True),
             tracer_min,
         ),
-        "xm60": (rms(post_stations(machine, stations), False), xm60_min),
+        "xm60": (rms(fit_step(machine, stations), False), xm60_min),
         "xm60+tracker": (
-            rms(post_stations(machine, stations, instruments=with_tracker), False),
+            rms(fit_step(machine, stations, instruments=with_tracker), False),
             xm60_min + tracker_min,
         ),
     }

@@ -13,11 +13,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, PrivateAttr, field_validator, model_validator
 
 from xmalign.errors import InputError
 from xmalign.formats.common import (
@@ -31,6 +32,7 @@ from xmalign.formats.common import (
     read_yaml,
     validate,
 )
+from xmalign.formats.provenance import FileSource
 from xmalign.geometry import Vec
 
 AxisName = Literal["X", "Y", "Z"]
@@ -264,6 +266,8 @@ class Machine(_Strict):
     """A machine tool as xmalign sees it; lengths mm, angles as named.
 
     ``format`` (optional, :data:`MACHINE_FORMAT`): a file without it is version 1.
+    :attr:`source` is the file it was read from (path and SHA-256 of its bytes as
+    read), None for a machine made in code or changed since (``model_copy(update=)``).
     """
 
     format: str | None = None
@@ -284,6 +288,26 @@ class Machine(_Strict):
     smr_offset_mm: Vector3 = [0.0, 0.0, 0.0]
     tracker: TrackerUncertainty = TrackerUncertainty()
     tracer: TracerUncertainty = TracerUncertainty()
+    _source: FileSource | None = PrivateAttr(default=None)
+
+    @property
+    def source(self) -> FileSource | None:
+        """The machine file this machine was read from (role ``machine``), or None."""
+        return self._source
+
+    def __eq__(self, other: object) -> bool:
+        """The same machine: the same keys and values, whichever file they came from."""
+        return type(other) is type(self) and self.__dict__ == other.__dict__
+
+    def __hash__(self) -> int:
+        return super().__hash__()
+
+    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> Machine:
+        """A copy; one with ``update`` is a machine no file describes (no :attr:`source`)."""
+        copy = super().model_copy(update=update, deep=deep)
+        if update:
+            copy._source = None
+        return copy
 
     @property
     def transit_feed_mm_min(self) -> float:
@@ -409,8 +433,19 @@ def parse_machine(data: object, source: str = "<machine>") -> Machine:
 
 
 def load_machine(path: str | Path) -> Machine:
-    """Read and validate a machine YAML file."""
-    return parse_machine(read_yaml(path), str(path))
+    """Read and validate a machine YAML file; the machine remembers it (:attr:`Machine.source`).
+
+    Raises
+    ------
+    InputError
+        ``path`` is not a path, or the file cannot be read or is not a valid machine file.
+    """
+    if not isinstance(path, str | Path):
+        raise InputError(f"load_machine: {path!r} is not a machine file's path")
+    source = FileSource.of("machine", path)
+    machine = parse_machine(read_yaml(path), str(path))
+    machine._source = source
+    return machine
 
 
 def default_machine_path() -> Path:

@@ -7,9 +7,19 @@ or the simulator's behind the same roles (:mod:`xmalign.roles`). The step layer
 writes every pose (:func:`write_pose_step`), opens every measurement file
 (:func:`open_measurements_step`), posts one or more stations with the plan check
 (:func:`post_step`) and writes every controller's files (:func:`comp_step`,
-:func:`volumetric_comp_step`); a command adds only its output checks and what it
-shows, by hooks. Only what differs between a controller running the program and
-an operator stepping the machine is given by the caller: the *drive* of
+:func:`volumetric_comp_step`); a command adds only what it shows, by hooks.
+
+The steps keep the promises themselves, for the commands, the dry run and a
+script alike (docs/api.md, "What the steps refuse"): an output is never one of
+the step's inputs, never a device, FIFO or folder, and an existing file is
+replaced only with ``replace=True`` (the commands' ``--force``)
+(:func:`check_outputs`); a link is followed to the file it names; a plan or
+error tables made for another machine are refused (:func:`check_plan_machine`,
+:func:`check_tables_machine`); every file written names the machine file the
+:class:`~xmalign.machine.Machine` was read from (:attr:`Machine.source`).
+
+Only what differs between a controller running the program and an operator
+stepping the machine is given by the caller: the *drive* of
 :func:`run_step` (:func:`program_drive`, :func:`stepping_drive`,
 :func:`following_drive`, :func:`controlled_drive`); a run on a controller xmalign
 starts and resumes its program on is :func:`controlled_run_step`.
@@ -17,17 +27,31 @@ starts and resumes its program on is :func:`controlled_run_step`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+import os
+import warnings
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.fanuc import PROGRAM_NUMBER
+from trajectories.gcode.machine_time import MachineTime
 from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.instruments import (
+    InstrumentProgram,
+    fly_paths,
+    information_limit_um,
+    point_list_csv,
+    propose_tracer_places,
+    tracer_points,
+    tracker_place,
+    tracker_points,
+    write_instrument_program,
+)
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import (
     CalibrationRun,
@@ -36,6 +60,7 @@ from xmalign.calibration import (
     ProgramWay,
     RunOutput,
     capture_program,
+    check_run_output,
     control_program,
     follow_machine,
     open_run_output,
@@ -45,13 +70,26 @@ from xmalign.comp import Compensation, compensate
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
-from xmalign.formats.common import atomic_write_files, refuse_special
+from xmalign.formats.common import (
+    PathsOf,
+    atomic_write_files,
+    refuse_overwriting,
+    refuse_replacing,
+    refuse_special,
+    same_file,
+)
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.provenance import FileSource
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
+from xmalign.formats.spatial_analyzer import (
+    read_point_list,
+    read_spatial_analyzer,
+    tracker_points_from_export,
+)
 from xmalign.formats.studies import write_design
 from xmalign.identification_routine import (
     PoseGuess,
@@ -60,7 +98,7 @@ from xmalign.identification_routine import (
     run_identification,
 )
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
-from xmalign.machine import Machine
+from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
@@ -80,6 +118,180 @@ PROGRAM_SUFFIX = {"sinumerik": ".mpf", "heidenhain": ".h", "iso": ".nc", "linuxc
 PROGRAM_STEM = "run"
 #: Alignments after which a quick identification points the units better than the guess.
 REFINE_AFTER = 3
+#: Plan targets this far outside the machine's travel are refused, mm.
+TRAVEL_TOLERANCE_MM = 1e-3
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Caller:
+    """How the caller of a step names the step's files, and what else it reads and writes.
+
+    The Python API keeps the steps' parameter names (``errors_path``) and says
+    ``replace=True``; a command names its options (``names={"errors_path": "--out"}``)
+    and says ``--force``. ``read``, ``written`` and ``appended`` (a log) are the
+    files of the caller's own options (``--units``, ``--report``, ``--log-file``),
+    checked together with the step's own: option -> path(s), None when not given.
+    """
+
+    names: Mapping[str, str] = field(default_factory=dict)
+    read: Mapping[str, PathsOf] = field(default_factory=dict)
+    written: Mapping[str, PathsOf] = field(default_factory=dict)
+    appended: Mapping[str, PathsOf] = field(default_factory=dict)
+    replace_option: str = "replace=True"
+
+
+#: A script's call: the steps' parameter names, ``replace=True``.
+SCRIPT = Caller()
+
+
+def check_outputs(
+    outputs: Mapping[str, PathsOf],
+    inputs: Mapping[str, PathsOf],
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> None:
+    """Refuse, before any work, outputs that would destroy something.
+
+    ``outputs`` and ``inputs``: the step's files by parameter name (named in messages
+    as ``caller`` names them), with the caller's own (:class:`Caller`). Refused: an
+    output that is an input or another output (the same file once links are followed,
+    or the same device and inode), that exists and is not a regular file (a folder, a
+    device, a FIFO, a link that loops), or an existing file without ``replace``. A link
+    is followed: its target is what is checked (and written, the link left a link).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the parameters (options) involved.
+    OutputError
+        A folder, device, FIFO or looping link in an output's place.
+    """
+    caller = caller or SCRIPT
+    named_inputs = {caller.names.get(k, k): v for k, v in inputs.items()} | dict(caller.read)
+    named_outputs = {caller.names.get(k, k): v for k, v in outputs.items()} | dict(caller.written)
+    refuse_overwriting(named_inputs, named_outputs, caller.appended)
+    refuse_replacing(named_outputs, replace, caller.replace_option)
+
+
+def machine_file(machine: Machine) -> list[FileSource]:
+    """The machine file ``machine`` was read from, as a file's input (none: made in code)."""
+    return [machine.source] if machine.source is not None else []
+
+
+def _machine_path(machine: Machine) -> Path | None:
+    return Path(machine.source.path) if machine.source is not None else None
+
+
+def _argument(value: object, kind: type[T], name: str, what: str) -> T:
+    """``value`` when it is a ``kind``; else InputError naming the argument."""
+    if not isinstance(value, kind):
+        raise InputError(f"{name}: {value!r} is not {what}")
+    return value
+
+
+def _path(value: object, name: str) -> Path:
+    """A file's path given as ``str`` or ``os.PathLike``; else one line naming ``name``."""
+    if isinstance(value, str | os.PathLike) and str(value) != "":
+        return Path(value)
+    raise InputError(f"{name}: {value!r} is not a file's path (give a str or a pathlib.Path)")
+
+
+def _optional_path(value: object, name: str) -> Path | None:
+    return None if value is None else _path(value, name)
+
+
+def _machine(value: object) -> Machine:
+    return _argument(value, Machine, "machine", "a Machine (load it with load_machine)")
+
+
+def _plan(value: object, name: str = "plan") -> Plan:
+    return _argument(value, Plan, name, "a Plan (read it with read_plan)")
+
+
+def _plan_file(plan: Plan) -> Path | None:
+    return Path(plan.source.path) if plan.source is not None else None
+
+
+def _describe(machine: Machine) -> str:
+    """``machine`` as a message names it: its file, or that it was made in code."""
+    if machine.source is None:
+        return "the machine given (made in code)"
+    if same_file(Path(machine.source.path), default_machine_path()):
+        return "the reference machine"
+    return f"machine file {machine.source.path}"
+
+
+def check_plan_machine(plan: Plan, machine: Machine) -> list[str]:
+    """Refuse a plan made for another machine; warnings where only the file differs.
+
+    A plan names its machine and records ``machine_sha256``
+    (:meth:`Machine.geometry_sha256`: name, chain, travel, receiver offset, spindle
+    angle); another name or geometry is fatal (the plan's points and angles would be
+    another machine's). A machine file whose bytes differ from the one the plan was
+    made with, with the same geometry (uncertainties, feeds, ranges edited), is a
+    warning. Every target must lie within the machine's travel.
+
+    Raises
+    ------
+    InputError
+        Naming the plan's file, both machines, or the first target outside the travel.
+    """
+    where = str(_plan_file(plan) or "the plan")
+    recorded = plan.extra.get("machine_sha256")
+    if plan.machine != machine.name or recorded not in (None, machine.geometry_sha256()):
+        identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
+        raise InputError(
+            f"{where} was made for machine '{plan.machine}'{identity}, not for"
+            f" {_describe(machine)} ('{machine.name}'): give the machine file the plan was"
+            " made with"
+        )
+    for line in plan.lines:
+        outside = ~machine.within_travel(line.target_points_mm(), TRAVEL_TOLERANCE_MM)
+        if outside.any():
+            index = int(np.argmax(outside))
+            raise InputError(
+                f"{where}: line {line.id} target {index}"
+                f" {np.round(line.target_points_mm()[index], 3).tolist()} mm lies outside the"
+                f" travel of machine '{machine.name}'"
+            )
+    made_with = plan.history.input("machine") if plan.history is not None else None
+    return _other_machine_file(where, made_with, machine)
+
+
+def _other_machine_file(where: str, made_with: FileSource | None, machine: Machine) -> list[str]:
+    """A warning when ``where`` was made with a machine file other than ``machine``'s."""
+    given = machine.source
+    if made_with is None or given is None or made_with.sha256 == given.sha256:
+        return []
+    return [
+        f"{where} was made with machine file {made_with.path} (SHA-256"
+        f" {made_with.sha256[:12]}...), not {given.path} ({given.sha256[:12]}...): the same"
+        " machine (name, chain, travel), another file; check that its edits are meant"
+    ]
+
+
+def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
+    """Refuse error tables measured on another machine; warnings to be shown.
+
+    Fatal: another chain or travel (the tables' file names the machine it was
+    measured on), or a table whose positions all lie outside the travel. A
+    warning: another name, a file that does not say (version 1), or another
+    machine file with the same chain and travel. Tables not read from a file
+    (:func:`post_step`'s) are checked against the travel only.
+
+    Raises
+    ------
+    InputError
+        Naming the tables' file and what differs.
+    """
+    tables.check_within_travel(machine.travel_min_mm, machine.travel_max_mm, machine.name)
+    if tables.history is None:  # fitted in this session (post_step's), not read from a file
+        return []
+    notes = tables.check_machine(machine)
+    made_with = tables.history.input("machine") if tables.history is not None else None
+    return notes + _other_machine_file(tables.source, made_with, machine)
 
 
 def refine_guess(session: Session) -> PoseGuess | None:
@@ -98,31 +310,45 @@ def machine_guess(machine: Machine) -> PoseGuess | None:
 
 
 def design_step(
-    machine: Machine, count: int, out: Path | None = None, machine_path: Path | None = None
+    machine: Machine,
+    count: int,
+    out: str | Path | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
 ) -> IdentificationDesign:
     """The identification positions for ``count`` alignments (``warnings`` to be shown);
-    written to ``out`` (with the SHA-256 of ``machine_path``) when given."""
+    written to ``out`` (with the SHA-256 of the machine's file) when given
+    (:func:`check_outputs`, before the design)."""
+    machine, out = _machine(machine), _optional_path(out, "out")
+    _argument(count, int, "count", "a whole number of alignments")
+    check_outputs({"out": out}, {"machine": _machine_path(machine)}, replace, caller)
     design = design_identification(machine, count)
     if out is not None:
         write_design(
-            out,
-            machine.name,
-            design.machine_mm,
-            design.pose_covariance,
-            sources(machine=machine_path),
+            out, machine.name, design.machine_mm, design.pose_covariance, machine_file(machine)
         )
     return design
 
 
 def write_pose_step(
-    path: Path,
+    path: str | Path,
     result: IdentificationResult,
-    session_path: Path | None = None,
-    machine_path: Path | None = None,
+    session_path: str | Path | None = None,
+    machine: Machine | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
 ) -> Path:
     """Write the identified pose (``xmalign program`` reads it) with the SHA-256 of the
-    session it was solved from and of the machine file. Every pose file is written here."""
-    write_pose(path, result.to_pose(), sources(session=session_path, machine=machine_path))
+    session it was solved from and of ``machine``'s file. Every pose file is written
+    here, never over the session, the machine file or an existing file without
+    ``replace`` (:func:`check_outputs`)."""
+    path, session_path = _path(path, "path"), _optional_path(session_path, "session_path")
+    _argument(result, IdentificationResult, "result", "an IdentificationResult")
+    machine = None if machine is None else _machine(machine)
+    inputs = {"session_path": session_path, "machine": _machine_path(machine) if machine else None}
+    check_outputs({"path": path}, inputs, replace, caller)
+    session = [FileSource.of("session", session_path)] if session_path is not None else []
+    write_pose(path, result.to_pose(), session + (machine_file(machine) if machine else []))
     return path
 
 
@@ -150,14 +376,22 @@ def identify_step(
     on_event: Callable[[RoutineEvent], None] | None = None,
     unit_timeout_s: float = 30.0,
     pose_path: Path | None = None,
-    machine_path: Path | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
 ) -> IdentifyStepResult:
     """Align at each position (session written as it goes, resumed), then solve the pose.
 
     The units are locked on every exit. ``uncertainty`` defaults to the
     machine file's ``uncertainty`` section. With ``pose_path`` the pose is
-    written there (:func:`write_pose_step`).
+    written there (:func:`write_pose_step`; checked before the first alignment).
     """
+    machine, session_path = _machine(machine), _path(session_path, "session_path")
+    pose_path = _optional_path(pose_path, "pose_path")
+    machine_path = {"machine": _machine_path(machine)}
+    # the session is resumed, never replaced; the pose is written at the end
+    check_outputs({"session_path": session_path}, machine_path, True, caller)
+    pose_inputs = {"session_path": session_path} | machine_path
+    check_outputs({"pose_path": pose_path}, pose_inputs, replace, caller)
     with units_locked_on_exit(devices.launch, devices.receiver):
         session = run_identification(
             positions_mm,
@@ -174,8 +408,8 @@ def identify_step(
         uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
     result = identify(session, method, uncertainty, str(session_path))
     if pose_path is not None:
-        write_pose_step(pose_path, result, Path(session_path), machine_path)
-    return IdentifyStepResult(result, session, Path(session_path))
+        write_pose_step(pose_path, result, session_path, machine, replace, caller)
+    return IdentifyStepResult(result, session, session_path)
 
 
 def solve_step(
@@ -186,6 +420,8 @@ def solve_step(
 ) -> IdentifyStepResult:
     """The pose from a recorded session (``xmalign identify --input``), read with the
     machine's straightness range (the nominal one without a machine file)."""
+    session_path = _path(session_path, "session_path")
+    machine = None if machine is None else _machine(machine)
     range_um = (
         machine.interferometer.straightness_range_um
         if machine is not None
@@ -193,7 +429,7 @@ def solve_step(
     )
     session = read_session(session_path, range_um)
     result = identify(session, method, uncertainty, str(session_path))
-    return IdentifyStepResult(result, session, Path(session_path))
+    return IdentifyStepResult(result, session, session_path)
 
 
 @dataclass
@@ -237,15 +473,15 @@ def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) 
 def program_step(
     machine: Machine,
     pose: LaunchPose | IdentificationResult,
-    plan_path: Path | None,
-    program_path: Path | None = None,
+    plan_path: str | Path | None,
+    program_path: str | Path | None = None,
     dialect: str | None = None,
-    pose_path: Path | None = None,
+    pose_path: str | Path | None = None,
     line_ids: tuple[str, ...] | None = None,
-    machine_path: Path | None = None,
     write_program_file: bool = True,
     check_plan: Callable[[MeasurementPlan], None] | None = None,
-    check_outputs: Callable[[list[Path]], None] | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
@@ -256,21 +492,33 @@ def program_step(
     ``write_program_file`` False: the program is only returned (stdout). The
     program is named after its file (``XMALIGN`` without one). The plan records
     the SHA-256 of ``pose_path`` (the file the pose was written to or read from)
-    and of ``machine_path``. ``check_outputs(paths)`` may refuse the files about
-    to be written (raise) before the planning, ``check_plan(measurement)`` the
-    plan before anything is written.
+    and of the machine's file. The plan and the program are checked before the
+    planning (:func:`check_outputs`: never the pose's or the machine's file, an
+    existing file only with ``replace``); ``check_plan(measurement)`` may refuse
+    the plan before anything is written.
     """
+    machine = _machine(machine)
+    plan_path, program_path = (
+        _optional_path(plan_path, "plan_path"),
+        _optional_path(program_path, "program_path"),
+    )
+    pose_path = _optional_path(pose_path, "pose_path")
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
+    _argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
     dialect_name = resolve_dialect(machine, dialect)
     if write_program_file and program_path is None:
         if plan_path is None:
-            raise ValueError("program_step: a program file needs program_path or plan_path")
+            raise InputError("program_step: a program file needs program_path or plan_path")
         program_path = program_file(plan_path, machine, dialect_name)
     if not write_program_file:
         program_path = None
-    if check_outputs is not None:
-        check_outputs([path for path in (plan_path, program_path) if path is not None])
+    check_outputs(
+        {"plan_path": plan_path, "program_path": program_path},
+        {"pose_path": pose_path, "machine": _machine_path(machine)},
+        replace,
+        caller,
+    )
     measurement = (
         plan_measurement(machine, pose)
         if line_ids is None
@@ -281,7 +529,8 @@ def program_step(
     files: dict[str, Path] = {}
     plan = measurement.plan
     if plan_path is not None:
-        write_plan(plan_path, plan, sources(pose=pose_path, machine=machine_path))
+        pose_file = [FileSource.of("pose", pose_path)] if pose_path is not None else []
+        write_plan(plan_path, plan, pose_file + machine_file(machine))
         plan = read_plan(plan_path)
         files["plan"] = plan_path
     name = program_path.stem if program_path is not None else "XMALIGN"
@@ -440,22 +689,54 @@ class RunStepDevices:
     clock: Clock
 
 
+def check_run_step(
+    path: str | Path,
+    plan: Plan,
+    machine: Machine,
+    resume: bool = False,
+    caller: Caller | None = None,
+) -> list[str]:
+    """Refuse a run that cannot start, before any device is opened; warnings to be shown.
+
+    The plan must be for ``machine`` (:func:`check_plan_machine`); the measurement
+    file never the plan's or the machine's file (nor the caller's), never a folder,
+    device, FIFO or looping link, and an existing file with points only to
+    ``resume`` (measurements are never replaced, whatever ``replace`` a caller has).
+
+    Raises
+    ------
+    InputError
+        Naming the file and what is wrong.
+    """
+    path, plan, machine = _path(path, "path"), _plan(plan), _machine(machine)
+    notes = check_plan_machine(plan, machine)
+    inputs = {"plan": _plan_file(plan), "machine": _machine_path(machine)}
+    check_outputs({"path": path}, inputs, True, caller)
+    check_run_output(path, resume)
+    return notes
+
+
 def open_measurements_step(
-    path: Path,
+    path: str | Path,
     plan: Plan,
     machine: Machine,
     resume: bool = False,
     environment: EnvironmentMonitor | None = None,
     sim_seed: int | None = None,
+    caller: Caller | None = None,
 ) -> RunOutput:
     """Open the measurement file of a run (new, or ``resume``: the one to go on with).
 
-    Locked until closed, recorded for ``plan`` (its SHA-256 and file), with the
-    virtual machine's ``sim_seed`` and ``environment``'s columns; a resumed file
-    is read with the machine's interferometer ranges. Every run opens its file here.
+    Checked first (:func:`check_run_step`); locked until closed, recorded for
+    ``plan`` (its SHA-256 and file), with the virtual machine's ``sim_seed`` and
+    ``environment``'s columns; a resumed file is read with the machine's
+    interferometer ranges. Every run opens its file here.
     """
+    notes = check_run_step(path, plan, machine, resume, caller)
     limits = ChannelLimits.of_ranges(**machine.interferometer.ranges())
-    return open_run_output(path, plan, resume, limits, environment, sim_seed)
+    output = open_run_output(Path(path), plan, resume, limits, environment, sim_seed)
+    output.warnings[:0] = notes
+    return output
 
 
 def run_step(
@@ -480,6 +761,8 @@ class PostStepResult:
     post: PostResult
     errors_path: Path
     stations: list[Station] = field(default_factory=list)
+    #: What the checks of the inputs found (another machine file of the same machine...).
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def tables(self) -> ErrorTableSet:
@@ -497,38 +780,95 @@ def read_station(machine: Machine, plan: Plan, measurements_path: Path) -> Stati
 
 def post_step(
     machine: Machine,
-    stations: Sequence[tuple[Plan, Path]],
-    errors_path: Path,
-    machine_path: Path | None = None,
+    stations: Sequence[tuple[Plan, str | Path]],
+    errors_path: str | Path,
     instruments: Instruments | None = None,
     instrument_files: Sequence[FileSource] = (),
     on_fit: Callable[[list[Station]], None] | None = None,
     more_files: Callable[[PostResult], dict[Path, bytes]] | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
 ) -> PostStepResult:
     """Fit the 21 errors to every station's measurement (and ``instruments``' readings) and
     write the error tables.
 
     ``stations``: each station's plan (read from its file) and measurement file, in order;
-    each file must have been recorded for its plan (:func:`read_station`). The tables name
-    ``machine`` and the SHA-256 of each station's measurements and plan, ``machine_path``
-    and ``instrument_files``. ``on_fit(stations)`` is told before the fit;
-    ``more_files(result)`` adds files written together with the tables (the report): all
-    of them, or none.
+    each plan must be for ``machine`` (:func:`check_plan_machine`), each file recorded for
+    its plan (:func:`read_station`) and given once. The tables name ``machine`` and the
+    SHA-256 of each station's measurements and plan, of the machine's file and of
+    ``instrument_files``; they never replace one of these, nor an existing file without
+    ``replace`` (:func:`check_outputs`, before anything is read). ``on_fit(stations)`` is
+    told before the fit; ``more_files(result)`` adds files written together with the
+    tables (the report, named in ``caller.written``): all of them, or none.
     """
-    read = [read_station(machine, plan, path) for plan, path in stations]
+    machine, errors_path = _machine(machine), _path(errors_path, "errors_path")
+    pairs = _stations(stations)
+    notes = [note for plan, _ in pairs for note in check_plan_machine(plan, machine)]
+    inputs = _post_inputs(machine, pairs, instrument_files)
+    check_outputs({"errors_path": errors_path}, inputs, replace, caller)
+    read = [read_station(machine, plan, path) for plan, path in pairs]
     if on_fit is not None:
         on_fit(read)
-    post = post_stations(machine, read, instruments=instruments)
-    inputs: list[FileSource] = []
-    for plan, path in stations:
-        inputs += sources(measurements=path)
-        inputs += [plan.source] if plan.source is not None else []
-    inputs += sources(machine=machine_path) + list(instrument_files)
-    files = {errors_path: error_tables_text(post.fit.tables, inputs, machine).encode("utf-8")}
+    post = fit_step(machine, read, instruments)
+    history: list[FileSource] = []
+    for plan, path in pairs:
+        history += [FileSource.of("measurements", path)]
+        history += [plan.source] if plan.source is not None else []
+    history += machine_file(machine) + list(instrument_files)
+    files = {errors_path: error_tables_text(post.fit.tables, history, machine).encode("utf-8")}
     if more_files is not None:
-        files |= more_files(post)
+        more = more_files(post)
+        check_outputs({"more_files": list(more)}, inputs, True, caller)
+        files |= more
     atomic_write_files(files)
-    return PostStepResult(post, errors_path, read)
+    return PostStepResult(post, errors_path, read, notes)
+
+
+def _stations(stations: object) -> list[tuple[Plan, Path]]:
+    """The (plan, measurement file) pairs of :func:`post_step`, each file given once."""
+    if isinstance(stations, str | bytes | os.PathLike) or not isinstance(stations, Sequence):
+        raise InputError(f"stations: {stations!r} is not a list of (plan, measurement file) pairs")
+    pairs: list[tuple[Plan, Path]] = []
+    for number, pair in enumerate(stations, start=1):
+        if not isinstance(pair, tuple | list) or len(pair) != 2:
+            raise InputError(f"stations: station {number}: {pair!r} is not a (plan, file) pair")
+        plan = _plan(pair[0], f"stations: station {number}: the plan")
+        path = _path(pair[1], f"stations: station {number}: the measurement file")
+        _refuse_twice(path, [p for _, p in pairs])
+        pairs.append((plan, path))
+    return pairs
+
+
+def _refuse_twice(path: Path, earlier: list[Path]) -> None:
+    """A measurement file given for two stations, or a copy of one: its points would count
+    twice (a copy is found by its bytes' SHA-256)."""
+    for number, other in enumerate(earlier, start=1):
+        if same_file(path, other) or (
+            path.is_file()
+            and other.is_file()
+            and FileSource.of("m", path).sha256 == FileSource.of("m", other).sha256
+        ):
+            raise InputError(
+                f"{path}: given for station {len(earlier) + 1} is station {number}'s measurement"
+                f" ({other}) or a copy of it; its points would count twice (give each station's"
+                " data once)"
+            )
+
+
+def _post_inputs(
+    machine: Machine, pairs: list[tuple[Plan, Path]], instrument_files: Sequence[FileSource]
+) -> dict[str, PathsOf]:
+    """The files :func:`post_step` reads, by parameter name (never written over)."""
+    inputs: dict[str, PathsOf] = {
+        "measurements": [path for _, path in pairs],
+        "plan": [p for p in map(_plan_file, (plan for plan, _ in pairs)) if p is not None],
+        "machine": _machine_path(machine),
+    }
+    for source in instrument_files:
+        listed = inputs.setdefault(source.role, [])
+        assert isinstance(listed, list)
+        listed.append(Path(source.path))
+    return inputs
 
 
 def as_left_step(
@@ -541,52 +881,252 @@ def as_left_step(
     machine's own geometry again (as found, measured through the compensation) and
     :meth:`~xmalign.post.evaluate.PostResult.tool_point_errors` what the
     compensation leaves (as left). ``xmalign post --verify-data`` and the dry run's
-    ``--verify`` call this one function.
+    ``--verify`` call this one function. The plan must be for ``machine``
+    (:func:`check_plan_machine`).
     """
-    return post_stations(machine, [read_station(machine, plan, verification_path)], applied)
+    machine, plan = _machine(machine), _plan(plan)
+    check_plan_machine(plan, machine)
+    station = read_station(machine, plan, _path(verification_path, "verification_path"))
+    return fit_step(machine, [station], applied=applied)
 
 
 def comp_step(
     machine: Machine,
     tables: ErrorTableSet,
-    out_dir: Path,
+    out_dir: str | Path,
     controller: str | None = None,
     more_files: Callable[[Compensation], dict[str, str]] | None = None,
-    check_outputs: Callable[[list[Path]], None] | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> Compensation:
     """Fit the controller's model and write all of its files into ``out_dir`` (or none).
 
-    ``more_files(compensation)`` adds files made from the fit (a merged LinuxCNC INI);
-    ``check_outputs(paths)`` may refuse the paths about to be written (raise). The
-    returned compensation's ``files`` are all that was written. LinuxCNC's volumetric
-    component has no fitted tables: :func:`volumetric_comp_step`.
+    The tables must have been measured on ``machine`` (:func:`check_tables_machine`:
+    another chain or travel refused, another name or machine file told to
+    ``on_warning``, by default a Python warning). ``more_files(compensation)`` adds
+    files made from the fit (a merged LinuxCNC INI). No file replaces the tables' or
+    the machine's file (or the caller's inputs), nor an existing file without
+    ``replace`` (:func:`check_outputs`). The returned compensation's ``files`` are all
+    that was written. LinuxCNC's volumetric component has no fitted tables:
+    :func:`volumetric_comp_step`.
     """
+    machine, out_dir = _machine(machine), _path(out_dir, "out_dir")
+    tables = _argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    notes = check_tables_machine(tables, machine)
     compensation = compensate(machine, tables, controller or machine.controller)
     if more_files is not None:
         compensation.files.update(more_files(compensation))
-    _write_controller_files(out_dir, compensation.files, check_outputs)
+    _write_controller_files(
+        out_dir, compensation.files, _comp_inputs(machine, tables), replace, caller
+    )
+    for note in notes:
+        (on_warning or _python_warning)(note)
     return compensation
 
 
 def volumetric_comp_step(
     machine: Machine,
     tables: ErrorTableSet,
-    out_dir: Path,
-    ini: Path,
-    check_outputs: Callable[[list[Path]], None] | None = None,
+    out_dir: str | Path,
+    ini: str | Path,
+    replace: bool = False,
+    caller: Caller | None = None,
+    on_warning: Callable[[str], None] | None = None,
 ) -> MergedConfig:
     """``linuxcnc-volumetric``: the component's table file and the merged copies of the
     machine's INI and HAL files, written into ``out_dir`` (all or none) as
-    :func:`comp_step` writes a controller's tables."""
+    :func:`comp_step` writes a controller's tables, with its checks (the INI an input)."""
+    machine, out_dir, ini = _machine(machine), _path(out_dir, "out_dir"), _path(ini, "ini")
+    tables = _argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    notes = check_tables_machine(tables, machine)
     merged = merge_config(ini, tables, machine, out_dir)
-    _write_controller_files(out_dir, dict(merged.files), check_outputs)
+    inputs = _comp_inputs(machine, tables) | {"ini": ini}
+    _write_controller_files(out_dir, dict(merged.files), inputs, replace, caller)
+    for note in notes:
+        (on_warning or _python_warning)(note)
     return merged
 
 
+def _python_warning(text: str) -> None:
+    warnings.warn(text, UserWarning, stacklevel=3)
+
+
+def _comp_inputs(machine: Machine, tables: ErrorTableSet) -> dict[str, PathsOf]:
+    read_from = Path(tables.source) if tables.history is not None else None
+    return {"tables": read_from, "machine": _machine_path(machine)}
+
+
 def _write_controller_files(
-    out_dir: Path, files: dict[str, str], check_outputs: Callable[[list[Path]], None] | None
+    out_dir: Path,
+    files: dict[str, str],
+    inputs: Mapping[str, PathsOf],
+    replace: bool,
+    caller: Caller | None,
 ) -> None:
     paths = {out_dir / name: text.encode("utf-8") for name, text in files.items()}
-    if check_outputs is not None:
-        check_outputs(list(paths))
+    check_outputs({"out_dir": list(paths)}, inputs, replace, caller)
     atomic_write_files(paths)
+
+
+def fit_step(
+    machine: Machine,
+    stations: Sequence[Station],
+    instruments: Instruments | None = None,
+    applied: ErrorTables | None = None,
+) -> PostResult:
+    """The fit of :func:`post_step` with nothing read or written: the stations' lines as
+    measured (``applied``: the tables loaded while measuring) and ``instruments``'
+    readings. The studies that compare strategies on virtual machines call it."""
+    return post_stations(_machine(machine), list(stations), applied, instruments)
+
+
+#: The instruments :func:`instrument_program_step` plans for.
+INSTRUMENTS = ("tracker", "tracer")
+
+
+@dataclass
+class InstrumentProgramStepResult:
+    """An instrument's program: what it measures, its G-code and machine time (one run or
+    place), and what the operator is told (``notes``); ``files``: what was written."""
+
+    instrument: str
+    program: InstrumentProgram
+    gcode: str
+    machine_time: MachineTime
+    notes: list[str] = field(default_factory=list)
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def write_instrument_step(
+    machine: Machine,
+    program: InstrumentProgram,
+    program_path: str | Path | None = None,
+    points_path: str | Path | None = None,
+    dialect: str | None = None,
+    title: str = "xmalign",
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> tuple[str, MachineTime, dict[str, Path]]:
+    """The G-code of an instrument's program (the dialect asked for or the controller's,
+    named after its file) and its machine time; written to ``program_path``, the point
+    list for the instrument's software to ``points_path`` (each when given; checked
+    first, :func:`check_outputs`). Every instrument program is made here."""
+    machine = _machine(machine)
+    program_path = _optional_path(program_path, "program_path")
+    points_path = _optional_path(points_path, "points_path")
+    outputs = {"program_path": program_path, "points_path": points_path}
+    check_outputs(outputs, {"machine": _machine_path(machine)}, replace, caller)
+    name = program_path.stem if program_path is not None else "XMALIGN"
+    dialect_made = make_dialect(resolve_dialect(machine, dialect), machine, name)
+    gcode, time = write_instrument_program(program, machine, dialect_made, title)
+    files: dict[Path, bytes] = {}
+    if points_path is not None:
+        files[points_path] = point_list_csv(program, machine.smr_offset).encode("utf-8")
+    if program_path is not None:
+        files[program_path] = gcode.encode("utf-8")
+    atomic_write_files(files)
+    written = {key: path for key, path in outputs.items() if path is not None}
+    return gcode, time, written
+
+
+def instrument_program_step(
+    machine: Machine,
+    instrument: str,
+    on_the_fly: bool = False,
+    places: int = 4,
+    program_path: str | Path | None = None,
+    points_path: str | Path | None = None,
+    dialect: str | None = None,
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> InstrumentProgramStepResult:
+    """Plan a laser-tracker (points, or paths ``on_the_fly``) or laser-tracer (``places``
+    places, the same points from each) calibration over the whole travel, and write its
+    program and point list (:func:`write_instrument_step`).
+
+    ``notes`` say where the instrument stands, the machine time and how well the plan
+    determines the volumetric error (the machine file's instrument uncertainties).
+    """
+    machine = _machine(machine)
+    if instrument not in INSTRUMENTS:
+        raise InputError(f"instrument '{instrument}' is not known (known: tracker, tracer)")
+    if instrument == "tracker":
+        program = (
+            InstrumentProgram(paths_mm=fly_paths(machine))
+            if on_the_fly
+            else InstrumentProgram(points_mm=tracker_points(machine))
+        )
+        runs = 1 if on_the_fly else 2
+        where = tracker_place(machine)
+        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
+        what = (
+            f"{len(program.paths_mm)} paths on the fly"
+            if on_the_fly
+            else f"{len(program.points_mm)} points, run it twice (runs 0 and 1)"
+        )
+        notes = [
+            f"tracker: {what}; stand it on the table near {_triple(where)} mm (MCS),"
+            " the SMR at the machine file's smr_offset_mm"
+        ]
+    else:
+        pivots = propose_tracer_places(machine, places)
+        program = InstrumentProgram(points_mm=tracer_points(machine))
+        limit = information_limit_um(machine, [program] * len(pivots), pivots_mm=pivots)
+        notes = [
+            f"tracer place P{i + 1}: pivot near {_triple(p)} mm (MCS); run the program once"
+            for i, p in enumerate(pivots)
+        ]
+        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(pivots)} places")
+        runs = len(pivots)
+    gcode, time, files = write_instrument_step(
+        machine,
+        program,
+        program_path,
+        points_path,
+        dialect,
+        f"xmalign {instrument}",
+        replace,
+        caller,
+    )
+    notes.append(
+        f"machine time: {time.total_s / 60:.1f} min per run, {runs * time.total_s / 60:.1f} min"
+        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
+        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
+        " travel; the machine's repeatability and the tables' model error come on top)"
+    )
+    return InstrumentProgramStepResult(instrument, program, gcode, time, notes, files)
+
+
+def _triple(values: np.ndarray) -> str:
+    return ", ".join(f"{v:.0f}" for v in values)
+
+
+def import_tracker_step(
+    export_path: str | Path,
+    points_path: str | Path,
+    out: str | Path,
+    machine: Machine,
+    station: str = "T1",
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> list[TrackerPoint]:
+    """A tracker's SpatialAnalyzer export turned into the tracker-points file ``out`` (for
+    :func:`post_step`'s ``instruments``): target names are the indices of the point list
+    at ``points_path`` (:func:`write_instrument_step`), the export's groups the runs.
+    ``out`` never replaces an input, nor an existing file without ``replace``."""
+    export_path, points_path = _path(export_path, "export_path"), _path(points_path, "points_path")
+    out, machine = _path(out, "out"), _machine(machine)
+    inputs = {
+        "export_path": export_path,
+        "points_path": points_path,
+        "machine": _machine_path(machine),
+    }
+    check_outputs({"out": out}, inputs, replace, caller)
+    exported = read_spatial_analyzer(export_path)
+    rows = tracker_points_from_export(
+        exported, read_point_list(points_path), machine.smr_offset, station, str(export_path)
+    )
+    made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
+    write_tracker_points(out, rows, {source.path: source.sha256 for source in made_from})
+    return rows

@@ -278,6 +278,7 @@ def test_a_failed_report_leaves_no_error_tables(
         "errors.csv",
         "--report",
         "afile/report.html",
+        "--force",
     )
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [

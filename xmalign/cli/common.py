@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated
 
@@ -11,9 +12,9 @@ import typer
 from rich.console import Console
 
 from xmalign.errors import InputError, OutputError
-from xmalign.formats.common import located, os_problem, refuse_special
-from xmalign.formats.plan import Plan
+from xmalign.formats.common import PathsOf, located, os_problem, refuse_special
 from xmalign.machine import Machine, default_machine_path, load_machine
+from xmalign.steps import Caller
 
 console = Console()
 error_console = Console(stderr=True)
@@ -24,22 +25,21 @@ def machine_or_default(path: Path | None) -> Machine:
     return load_machine(path if path is not None else default_machine_path())
 
 
-def machine_for_plan(path: Path | None, plan: Plan, plan_path: Path) -> Machine:
-    """The machine file given (or the reference machine), refused if the plan is for another.
+def named_by_options(
+    names: Mapping[str, str],
+    read: Mapping[str, PathsOf] | None = None,
+    written: Mapping[str, PathsOf] | None = None,
+    appended: Mapping[str, PathsOf] | None = None,
+) -> Caller:
+    """How a command names a step's files in messages: by its options (``names``: the
+    step's parameter -> the option), with its own files read, written and appended to
+    (option -> path), and ``--force`` to replace (:func:`xmalign.steps.check_outputs`)."""
+    return Caller(names, read or {}, written or {}, appended or {}, "--force")
 
-    A plan names its machine and records ``machine_sha256``
-    (:meth:`Machine.geometry_sha256`); a plan without it is checked by name.
-    """
-    machine = machine_or_default(path)
-    recorded = plan.extra.get("machine_sha256")
-    if plan.machine == machine.name and recorded in (None, machine.geometry_sha256()):
-        return machine
-    given = f"--machine {path}" if path is not None else "the reference machine (no --machine)"
-    identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
-    raise InputError(
-        f"{plan_path} was made for machine '{plan.machine}'{identity}, not for {given}"
-        f" ('{machine.name}'): give the machine file the plan was made with (--machine)"
-    )
+
+def warn(warning: str) -> None:
+    """A warning on stderr (one line)."""
+    error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
 
 
 def check_output_folder(path: Path, option: str) -> None:

@@ -21,17 +21,18 @@ from xmalign.cli.common import (
     check_seed,
     console,
     machine_or_default,
+    named_by_options,
     start_log_file,
     stop_log_file,
 )
 from xmalign.errors import InputError
-from xmalign.formats.common import refuse_overwriting, refuse_replacing
 from xmalign.formats.session import Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty
 from xmalign.machine import MAX_UNCERTAINTY_UM, MAX_UNCERTAINTY_URAD, Machine
 from xmalign.steps import (
     IdentifyStepResult,
+    check_outputs,
     design_step,
     identify_step,
     solve_step,
@@ -293,12 +294,16 @@ def identify_command(
     check_seed(seed)
     if sim or live:
         check_positions(alignments, "--alignments")
-    refuse_overwriting(
-        {"--input": input, "--machine": machine, "--config": config, "--session": session_file},
-        {"--out": out, "--session-out": session_out},
-        {"--log-file": log_file},
+    session_option = "--input" if input else "--session-out" if sim else "--session"
+    caller = named_by_options(
+        {"path": "--out", "session_path": session_option, "machine": "--machine"},
+        read={"--input": input, "--machine": machine, "--config": config},
+        appended={"--log-file": log_file},
     )
-    refuse_replacing({"--out": out, "--session-out": session_out}, force)
+    # checked now, before the routine; the pose is written by the step at the end
+    check_outputs(
+        {"path": out, "--session-out": session_out}, {"--session": session_file}, force, caller
+    )
     machine_model = machine_or_default(machine) if (sim or live or machine is not None) else None
     uncertainty = _uncertainty(
         machine_model,
@@ -340,7 +345,7 @@ def identify_command(
     print_result(result, session, truth)
     if out is not None:
         session_used = input or (session_path if sim else session_file)
-        write_pose_step(out, result, session_used, machine)
+        write_pose_step(out, result, session_used, machine_model, force, caller)
         console.print(f"pose written to {out}", markup=False)
     else:
         console.print(

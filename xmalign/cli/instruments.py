@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from dataclasses import dataclass
@@ -12,35 +11,21 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table as RichTable
 
-from trajectories.gcode import make_dialect, resolve_dialect
-from trajectories.instruments import (
-    InstrumentProgram,
-    fly_paths,
-    information_limit_um,
-    point_list_csv,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
-    write_instrument_program,
+from xmalign.cli.common import (
+    ForceOption,
+    console,
+    error_console,
+    machine_or_default,
+    named_by_options,
+    output_folder,
 )
-from xmalign.cli.common import console, error_console, machine_or_default, output_folder
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
-from xmalign.formats.instruments import (
-    read_tracer_lengths,
-    read_tracker_points,
-    write_tracker_points,
-)
-from xmalign.formats.spatial_analyzer import (
-    read_point_list,
-    read_spatial_analyzer,
-    tracker_points_from_export,
-)
-from xmalign.geometry import Vec
+from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
+from xmalign.steps import INSTRUMENTS, import_tracker_step, instrument_program_step
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
@@ -74,13 +59,6 @@ def check_inputs(
         raise InputError("post: --verify-data needs --verify-plan when no --plan is given")
 
 
-def _triple(values: Vec, digits: int = 3) -> str:
-    return ", ".join(f"{v:.{digits}f}" for v in values)
-
-
-INSTRUMENTS = ("tracker", "tracer")
-
-
 @dataclass(frozen=True)
 class InstrumentRequest:
     """``xmalign program --instrument ...``: what to plan and where to write it."""
@@ -110,68 +88,31 @@ def check_instrument_options(instrument: str | None, on_the_fly: bool, places: i
         raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
 
 
-def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
-    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration.
+def program_instrument(machine: Machine, request: InstrumentRequest, force: bool) -> None:
+    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration
+    (:func:`~xmalign.steps.instrument_program_step`).
 
     Writes the G-code (stdout or ``out``), the point list for the instrument's own
     software (``points_out``), and tells on stderr where the instrument stands,
     the machine time and how well the plan determines the errors.
     """
-    refuse_overwriting({}, {"--out": request.out, "--points-out": request.points_out})
-    dialect_name = resolve_dialect(machine, request.dialect)
-    name = request.out.stem if request.out is not None else "XMALIGN"
-    dialect = make_dialect(dialect_name, machine, name)
-    if request.instrument == "tracker":
-        program = (
-            InstrumentProgram(paths_mm=fly_paths(machine))
-            if request.on_the_fly
-            else InstrumentProgram(points_mm=tracker_points(machine))
-        )
-        runs = 1 if request.on_the_fly else 2
-        where = tracker_place(machine)
-        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
-        what = (
-            f"{len(program.paths_mm)} paths on the fly"
-            if request.on_the_fly
-            else (f"{len(program.points_mm)} points, run it twice (runs 0 and 1)")
-        )
-        notes = [
-            f"tracker: {what}; stand it on the table near {_triple(where, 0)} mm (MCS),"
-            " the SMR at the machine file's smr_offset_mm"
-        ]
-        minutes = runs
-    else:
-        places = propose_tracer_places(machine, request.places)
-        program = InstrumentProgram(points_mm=tracer_points(machine))
-        limit = information_limit_um(machine, [program] * len(places), pivots_mm=places)
-        notes = [
-            f"tracer place P{i + 1}: pivot near {_triple(p, 0)} mm (MCS); run the program once"
-            for i, p in enumerate(places)
-        ]
-        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(places)} places")
-        minutes = len(places)
-    text, time = write_instrument_program(
-        program, machine, dialect, f"xmalign {request.instrument}"
+    programmed = instrument_program_step(
+        machine,
+        request.instrument,
+        request.on_the_fly,
+        request.places,
+        request.out,
+        request.points_out,
+        request.dialect,
+        replace=force,
+        caller=named_by_options(
+            {"program_path": "--out", "points_path": "--points-out", "machine": "--machine"}
+        ),
     )
-    notes.append(
-        f"machine time: {time.total_s / 60:.1f} min per run, {minutes * time.total_s / 60:.1f} min"
-        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
-        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
-        " travel; the machine's repeatability and the tables' model error come on top)"
-    )
-    for note in notes:
+    for note in programmed.notes:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
-    if request.points_out is not None:
-        atomic_write_text(request.points_out, point_list_csv(program, machine.smr_offset))
-    if request.out is not None:
-        atomic_write_text(request.out, text)
-    else:
-        sys.stdout.write(text)
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes (the provenance of what was converted)."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    if request.out is None:
+        sys.stdout.write(programmed.gcode)
 
 
 def import_points(
@@ -191,23 +132,28 @@ def import_points(
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
 
     Target names are the point indices of the point list; the export's groups
     are the runs, in the order they first appear.
     """
-    refuse_overwriting(
-        {"--spatial-analyzer": spatial_analyzer, "--points": points, "--machine": machine},
-        {"--out": out},
+    options = {
+        "export_path": "--spatial-analyzer",
+        "points_path": "--points",
+        "out": "--out",
+        "machine": "--machine",
+    }
+    rows = import_tracker_step(
+        spatial_analyzer,
+        points,
+        out,
+        machine_or_default(machine),
+        station,
+        replace=force,
+        caller=named_by_options(options),
     )
-    machine_model = machine_or_default(machine)
-    exported = read_spatial_analyzer(spatial_analyzer)
-    rows = tracker_points_from_export(
-        exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
-    )
-    inputs = {str(path): file_sha256(path) for path in (spatial_analyzer, points)}
-    write_tracker_points(out, rows, inputs)
     runs = len({row.run for row in rows})
     error_console.print(
         f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
-from xmalign.cli.common import console, error_console, output_folder
+from xmalign.cli.common import console, error_console, output_folder, warn
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.machine import Machine
-from xmalign.steps import volumetric_comp_step
+from xmalign.steps import Caller, volumetric_comp_step
 
 
 def volumetric_comp(
@@ -17,14 +16,15 @@ def volumetric_comp(
     machine: Machine,
     ini: Path | None,
     out: Path,
-    check_outputs: Callable[[list[Path]], None],
+    force: bool,
+    caller: Caller,
 ) -> None:
     """The component's table file and the merged INI/HAL copies written into ``out`` by
     the step layer (:func:`~xmalign.steps.volumetric_comp_step`), and what to do next."""
     if ini is None:
         raise InputError("--controller linuxcnc-volumetric needs --ini MACHINE.ini")
     output_folder(out, "--out")
-    merged = volumetric_comp_step(machine, tables, out, ini, check_outputs)
+    merged = volumetric_comp_step(machine, tables, out, ini, force, caller, warn)
     for warning in merged.warnings:
         error_console.print(f"xmalign: warning: {warning}", highlight=False)
     console.print(

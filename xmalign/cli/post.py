@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 from typing import Annotated
@@ -14,22 +13,17 @@ from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
     ForceOption,
+    check_output_folder,
     console,
     error_console,
-    machine_for_plan,
     machine_or_default,
-    output_folder,
+    named_by_options,
+    warn,
 )
 from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
 from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
 from xmalign.errors import InputError, MachineKeyError
-from xmalign.formats.common import (
-    PathsOf,
-    read_text,
-    refuse_overwriting,
-    refuse_replacing,
-    same_file,
-)
+from xmalign.formats.common import read_text
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
@@ -70,31 +64,27 @@ def _summary(result: PostResult) -> RichTable:
     return summary
 
 
-def _stations(
-    plans: list[Path], data: list[Path], machine: Path | None
-) -> tuple[Machine, list[tuple[Plan, Path]]]:
-    """The machine and one plan/data pair per station, in the order given.
-
-    Every plan must be for the machine given (the step checks each data file
-    against its plan).
-    """
+def _stations(plans: list[Path], data: list[Path]) -> list[tuple[Plan, Path]]:
+    """One plan/data pair per station, in the order given (the step checks each plan
+    against the machine and each data file against its plan)."""
     if len(plans) != len(data):
         raise InputError(
             f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
             " launch-unit station, in the same order"
         )
-    for later, path in enumerate(data[1:], start=1):
-        first = next(k for k, other in enumerate(data) if same_file(path, other))
-        if first < later:
-            raise InputError(
-                f"{path}: --data is given for station {first + 1} and again for station"
-                f" {later + 1}; its points would count twice (give each station's data once)"
-            )
-    read = [(read_plan(plan_path), plan_path) for plan_path in plans]
-    if not read:
-        return machine_or_default(machine), []
-    machine_ = [machine_for_plan(machine, plan_, plan_path) for plan_, plan_path in read][0]
-    return machine_, [(plan_, path) for (plan_, _), path in zip(read, data, strict=True)]
+    return [(read_plan(plan_path), path) for plan_path, path in zip(plans, data, strict=True)]
+
+
+#: What ``xmalign post`` calls :func:`~xmalign.steps.post_step`'s files.
+POST_OPTIONS = {
+    "errors_path": "--out",
+    "measurements": "--data",
+    "plan": "--plan",
+    "machine": "--machine",
+    "tracker": "--tracker",
+    "tracer": "--tracer",
+    "more_files": "--report",
+}
 
 
 def post(
@@ -145,6 +135,7 @@ def post(
             " to these errors (default: the machine file's controller)."
         ),
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
 
@@ -167,31 +158,23 @@ def post(
     if verify_data is None and (verify_plan or verify_controller):
         option = "--verify-plan" if verify_plan else "--verify-controller"
         raise InputError(f"{option} needs --verify-data (the verification measurement)")
-    refuse_overwriting(
-        {
-            "--plan": plan,
-            "--data": data,
-            "--machine": machine,
-            "--units": units,
-            "--verify-plan": verify_plan,
-            "--verify-data": verify_data,
-            "--tracker": tracker,
-            "--tracer": tracer,
-        },
-        {"--out": out, "--report": report},
+    caller = named_by_options(
+        POST_OPTIONS,
+        read={"--units": units, "--verify-plan": verify_plan, "--verify-data": verify_data},
+        written={"--report": report},
     )
-    if report is not None:
-        from xmalign.report import check_report_name
-
-        check_report_name(report)
     instruments = _instrument_serials(units) if units is not None else {}
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
-        machine_, stations = _stations(plan, data, machine)
+        machine_, stations = machine_or_default(machine), _stations(plan, data)
         readings = read_instruments(tracker, tracer)
         verification: list[PostResult] = []
 
         def on_fit(read: list[Station]) -> None:
+            if report is not None:  # after the step's checks of --out and --report
+                from xmalign.report import check_report_name
+
+                check_report_name(report)
             points = sum(len(station.rows) for station in read)
             extra = count_readings(readings)
             fitting = ([f"{points} points"] if read else []) + ([extra] if extra else [])
@@ -203,7 +186,7 @@ def post(
                 controller = verify_controller or machine_.controller
                 applied = fit_for(machine_, result.fit.tables, controller)
                 verification.append(
-                    _post_verification(verify_plan or plan[0], verify_data, machine, applied.mean)
+                    _post_verification(verify_plan or plan[0], verify_data, machine_, applied.mean)
                 )
             if report is None:
                 return {}
@@ -221,16 +204,18 @@ def post(
             return {report: report_bytes(report, machine_, result, machine_.controller, info)}
 
         # the tables and the report together, or neither (a failed report leaves no tables)
-        result = post_step(
+        posted = post_step(
             machine_,
             stations,
             out,
-            machine,
             readings,
             _instrument_inputs(tracker, tracer),
             on_fit=on_fit,
             more_files=more_files,
-        ).post
+            replace=force,
+            caller=caller,
+        )
+        result = posted.post
     console.print(_summary(result))
     if result.instruments is not None:
         for note in instrument_lines(result.instruments) + instrument_notes(result.instruments):
@@ -247,7 +232,7 @@ def post(
             markup=False,
             soft_wrap=True,
         )
-    for warning in result.warnings:
+    for warning in posted.warnings + result.warnings:
         console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
     console.print(
         f"sigma0 {result.fit.sigma0:.2f}; wrote {out}" + (f" and {report}" if report else "")
@@ -262,11 +247,10 @@ def _instrument_inputs(tracker: list[Path], tracer: list[Path]) -> list[FileSour
 
 
 def _post_verification(
-    plan: Path, data: Path, machine: Path | None, applied: ErrorTables
+    plan: Path, data: Path, machine: Machine, applied: ErrorTables
 ) -> PostResult:
     """The verification run posted on its own, with the tables ``applied`` during it."""
-    plan_ = read_plan(plan)
-    return as_left_step(machine_for_plan(machine, plan_, plan), plan_, data, applied)
+    return as_left_step(machine, read_plan(plan), data, applied)
 
 
 def _as_left(machine: Machine, result: PostResult, verification: PostResult) -> RichTable:
@@ -312,16 +296,13 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
-    tables.check_within_travel(machine_.travel_min_mm, machine_.travel_max_mm, machine_.name)
-    machine_notes = tables.check_machine(machine_)  # another chain or travel: refused here
-    inputs = {"--errors": errors, "--machine": machine, "--ini": ini}
+    caller = named_by_options(COMP_OPTIONS, read={"--ini": ini})
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_comp
 
-        volumetric_comp(tables, machine_, ini, out, partial(_check_outputs, inputs, force=force))
-        _warn(machine_notes)
+        volumetric_comp(tables, machine_, ini, out, force, caller)
         return
-    output_folder(out, "--out")
+    check_output_folder(out, "--out")  # made by the step, once its checks have passed
     try:
         result = comp_step(
             machine_,
@@ -331,7 +312,9 @@ def comp(
             more_files=None
             if ini is None
             else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-            check_outputs=partial(_check_outputs, inputs, force=force),
+            replace=force,
+            caller=caller,
+            on_warning=warn,
         )
     except MachineKeyError as error:
         raise error.in_file(str(machine or default_machine_path())) from error
@@ -351,7 +334,6 @@ def comp(
         )
     for line in result.loading.lines():
         console.print(line, highlight=False)
-    _warn(machine_notes)
     if not fit.converged:
         error_console.print(
             f"[yellow]warning:[/] {name}: some table values were left undetermined by the fit"
@@ -366,15 +348,8 @@ def comp(
         )
 
 
-def _warn(warnings: list[str]) -> None:
-    for warning in warnings:
-        error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
-
-
-def _check_outputs(inputs: Mapping[str, PathsOf], paths: list[Path], force: bool) -> None:
-    """A controller's files never replace an input, nor (without --force) a file in --out."""
-    refuse_overwriting(inputs, {"--out": paths})
-    refuse_replacing({"--out": paths}, force)
+#: What ``xmalign comp`` calls :func:`~xmalign.steps.comp_step`'s files.
+COMP_OPTIONS = {"out_dir": "--out", "tables": "--errors", "machine": "--machine", "ini": "--ini"}
 
 
 def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, out: Path) -> dict:

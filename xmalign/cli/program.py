@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
 from typing import Annotated
@@ -25,6 +24,7 @@ from xmalign.cli.common import (
     console,
     error_console,
     machine_or_default,
+    named_by_options,
 )
 from xmalign.cli.instruments import (
     InstrumentRequest,
@@ -32,7 +32,6 @@ from xmalign.cli.instruments import (
     program_instrument,
 )
 from xmalign.errors import GeometryError, InputError
-from xmalign.formats.common import PathsOf, refuse_overwriting, refuse_replacing
 from xmalign.formats.pose import read_pose
 from xmalign.machine import Machine
 from xmalign.steps import design_step, program_step
@@ -61,6 +60,14 @@ def _plan_table(measurement: MeasurementPlan) -> Table:
         )
     return table
 
+
+#: What ``xmalign program`` calls :func:`~xmalign.steps.program_step`'s files.
+PROGRAM_OPTIONS = {
+    "plan_path": "--plan-out",
+    "program_path": "--out",
+    "pose_path": "--pose",
+    "machine": "--machine",
+}
 
 #: Where ``xmalign identify --out`` is usually pointed, and ``program`` looks without --pose.
 DEFAULT_POSE = Path("pose.json")
@@ -115,9 +122,8 @@ def program(
     """
     check_instrument_options(instrument, on_the_fly, places)
     if instrument is not None:
-        refuse_replacing({"--out": out, "--points-out": points_out}, force)
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
-        program_instrument(machine_or_default(machine), request)
+        program_instrument(machine_or_default(machine), request, force)
         return
     if not pose.exists():
         raise InputError(
@@ -135,14 +141,12 @@ def program(
         dialect,
         pose_path=pose,
         line_ids=line_ids,
-        machine_path=machine,
         write_program_file=out is not None,
         check_plan=partial(
             _show_plan, machine_model, launch_pose.position_mm, line_ids == LINE_IDS, strict=strict
         ),
-        check_outputs=partial(
-            _check_outputs, {"--pose": pose, "--machine": machine}, plan_out, force=force
-        ),
+        replace=force,
+        caller=named_by_options(PROGRAM_OPTIONS),
     )
     error_console.print(
         _machine_time_text(estimate_machine_time(programmed.plan, machine_model)),
@@ -171,19 +175,6 @@ def _show_plan(
         raise GeometryError(measurement.warnings[0])
     for warning in measurement.warnings:
         error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
-
-
-def _check_outputs(
-    inputs: Mapping[str, PathsOf], plan_out: Path | None, paths: list[Path], force: bool
-) -> None:
-    """The plan (--plan-out) and the program (--out) never replace an input, nor (without
-    --force) a file."""
-    outputs = {
-        "--plan-out": [path for path in paths if path == plan_out],
-        "--out": [path for path in paths if path != plan_out],
-    }
-    refuse_overwriting(inputs, outputs)
-    refuse_replacing(outputs, force)
 
 
 def _machine_time_text(time: MachineTime) -> str:
@@ -238,13 +229,14 @@ def plan_identify(
     out: Annotated[
         Path | None, typer.Option("--out", help="Write the positions and predictions (JSON).")
     ] = None,
+    force: ForceOption = False,
 ) -> None:
     """Propose machine positions for identification that minimise the pose uncertainty."""
     check_positions(count, "--count")
-    refuse_overwriting({"--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
+    caller = named_by_options({"out": "--out", "machine": "--machine"})
     with error_console.status("optimising the identification positions"):
-        design = design_step(machine_model, count, out, machine)
+        design = design_step(machine_model, count, out, force, caller)
     std = design.std
     console.print(_design_table(design))
     for warning in design.warnings:

@@ -19,7 +19,6 @@ from xmalign.calibration import (
     RunOutput,
     RunStatistics,
     capture_sequence,
-    check_run_output,
 )
 from xmalign.cli.common import (
     LogFileOption,
@@ -27,20 +26,19 @@ from xmalign.cli.common import (
     check_seed,
     console,
     error_console,
-    machine_for_plan,
     machine_or_default,
+    named_by_options,
     start_log_file,
     stop_log_file,
 )
 from xmalign.cli.instruments import instrument_dry_run
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError, XmalignError
-from xmalign.formats.common import refuse_overwriting
 from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.machine import Machine
 from xmalign.safety import like
-from xmalign.steps import open_measurements_step
+from xmalign.steps import check_run_step, open_measurements_step
 
 if TYPE_CHECKING:
     from firmware_iface.config import MachinePositionConfig
@@ -333,14 +331,14 @@ def run_command(
     if in_process and not sim:
         raise InputError("--in-process is for --sim (a live run always uses the hardware)")
     check_seed(seed)
-    refuse_overwriting(
-        {"--plan": plan, "--machine": machine, "--config": config, "--program": program},
-        {"--out": out},
-        {"--log-file": log_file},
+    caller = named_by_options(
+        {"path": "--out", "plan": "--plan", "machine": "--machine"},
+        read={"--config": config, "--program": program},
+        appended={"--log-file": log_file},
     )
-    check_run_output(out, resume)
     plan_model = read_plan(plan)
-    machine_model = machine_for_plan(machine, plan_model, plan)
+    machine_model = machine_or_default(machine)
+    check_run_step(out, plan_model, machine_model, resume, caller)
     # the options are checked: only now are devices opened and --out created or opened
     log_handler = start_log_file(log_file)
     try:
@@ -355,6 +353,7 @@ def run_command(
                 resume,
                 measurement.environment,
                 seed if sim else None,
+                caller,
             ) as output,
         ):
             try:

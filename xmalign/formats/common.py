@@ -139,6 +139,9 @@ def line_error(source: str | Path, line: int, problem: str) -> InputError:
     return InputError(located(source, f"line {line}", problem))
 
 
+#: What a path is whose symbolic links lead back to themselves.
+LOOP = "a symbolic link that loops (it leads back to itself)"
+
 _OS_PROBLEMS = {
     errno.ENOENT: "no such file",
     errno.EISDIR: "is a folder, not a file",
@@ -149,6 +152,7 @@ _OS_PROBLEMS = {
     errno.ENOSPC: "disk full",
     errno.EDQUOT: "disk quota exceeded",
     errno.EEXIST: "exists",
+    errno.ELOOP: LOOP,
 }
 
 
@@ -424,12 +428,13 @@ _KINDS = (
 def special_kind(path: Path) -> str | None:
     """What ``path`` is when it exists and is not a regular file ("a character device"...).
 
-    Links are followed: a link to ``/dev/null`` is a character device.
+    Links are followed: a link to ``/dev/null`` is a character device; links that lead
+    back to themselves are :data:`LOOP`.
     """
     try:
         mode = os.stat(path).st_mode
-    except OSError:
-        return None
+    except OSError as error:
+        return LOOP if error.errno == errno.ELOOP else None
     return next((kind for test, kind in _KINDS if test(mode)), None)
 
 
@@ -450,6 +455,8 @@ def refuse_special(path: Path, where: str, appended: bool = False) -> None:
         return
     if kind == "a folder":
         raise OutputError(located(path, where, "is a folder; give a file name"))
+    if kind == LOOP:
+        raise OutputError(located(path, where, f"is {LOOP}; give a file name"))
     raise OutputError(
         located(
             path,
@@ -469,11 +476,19 @@ def _each(paths: PathsOf) -> Iterable[Path]:
 
 
 def same_file(a: Path, b: Path) -> bool:
-    """True when two paths name one file (links followed; a missing file by its full path)."""
+    """True when two paths name one file: the same device and inode, links followed; a
+    missing file (a dangling link's target) by its full path. Never raises (a loop is
+    compared by its path)."""
     try:
         return os.path.samefile(a, b)
     except OSError:
-        return a.resolve() == b.resolve()
+        return link_target(a) == link_target(b)
+
+
+def link_target(path: Path) -> Path:
+    """The file ``path`` names once its symbolic links are followed (the full path; a
+    dangling link's target; a loop as far as it can be followed)."""
+    return Path(os.path.realpath(path))
 
 
 def refuse_overwriting(
@@ -529,11 +544,15 @@ def _refuse_same(
             raise InputError(located(out_path, out_option, f"is also the {other_option} file"))
 
 
-def refuse_replacing(outputs: Mapping[str, PathsOf], force: bool) -> None:
-    """Refuse to replace an existing file unless the user said ``--force``.
+def refuse_replacing(
+    outputs: Mapping[str, PathsOf], force: bool, force_option: str = "--force"
+) -> None:
+    """Refuse to replace an existing file unless the user said ``--force``
+    (``force_option``: how the caller says it, ``replace=True`` in the Python API).
 
     For the files a later step was made with (a plan, a pose) or that a user
-    may have put there (a controller's tables in ``comp --out``).
+    may have put there (a controller's tables in ``comp --out``); a link's target
+    is what exists (a dangling link names a new file).
 
     Raises
     ------
@@ -549,14 +568,15 @@ def refuse_replacing(outputs: Mapping[str, PathsOf], force: bool) -> None:
                     located(
                         path,
                         option,
-                        "already exists and is not replaced; add --force to replace it,"
-                        " or give another file name",
+                        f"already exists and is not replaced; add {force_option} to replace"
+                        " it, or give another file name",
                     )
                 )
 
 
 def _write_temporary(path: Path, data: bytes) -> Path:
-    """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
+    """``data`` in a synced temporary file next to ``path`` (a link's target), mode
+    ``0666 & ~umask``."""
     refuse_special(path, "cannot write")
     folder = next((p for p in path.parents if p.exists()), None)
     if folder is not None and not folder.is_dir():
@@ -588,7 +608,9 @@ def atomic_write_files(files: Mapping[Path, bytes]) -> None:
     Every file is first written to a synced temporary file next to it (mode
     ``0666 & ~umask``, as a plain ``open`` would give: a controller running as
     another user can read it); only when all are written are they renamed
-    over their targets. Folders are created if missing.
+    over their targets. Folders are created if missing. A symbolic link is
+    followed: its target is written and the link left as it is (a dangling
+    link's target is created); a link that loops is refused.
 
     Raises
     ------
@@ -597,9 +619,13 @@ def atomic_write_files(files: Mapping[Path, bytes]) -> None:
         every old file is then left as it was and no temporary file remains.
     """
     written: dict[Path, Path] = {}
+    targets = {
+        link_target(Path(path)) if Path(path).is_symlink() else Path(path): data
+        for path, data in files.items()
+    }
     try:
-        for path, data in files.items():
-            written[Path(path)] = _write_temporary(Path(path), data)
+        for path, data in targets.items():
+            written[path] = _write_temporary(path, data)
         for path, tmp in list(written.items()):
             try:
                 os.replace(tmp, path)
@@ -610,7 +636,7 @@ def atomic_write_files(files: Mapping[Path, bytes]) -> None:
         for tmp in written.values():
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)
-    for folder in {Path(path).parent for path in files}:
+    for folder in {path.parent for path in targets}:
         sync_folder(folder)
 
 

@@ -14,8 +14,10 @@ history"), written and read here and nowhere else:
       # input measurements: 9f86d081...  m.csv
 
   an ``input`` line ends with exactly what ``sha256sum FILE`` prints, so anyone
-  can check the chain without xmalign; other ``# key: value`` lines carry
-  what a format adds (the error table's ``machine``).
+  can check the chain without xmalign (a name with a backslash, a line feed or a
+  carriage return is escaped as ``sha256sum`` escapes it: ``\\HEX  a\\nb``; a
+  name with another character that ends a line is refused); other
+  ``# key: value`` lines carry what a format adds (the error table's ``machine``).
 
 The SHA-256 is that of the file's bytes. A reader accepts every version up to
 the one it knows (``common.check_format``) and refuses a newer one with one line.
@@ -39,7 +41,14 @@ from xmalign.formats.common import check_format, located, os_problem
 SOFTWARE = f"xmalign {__version__}"
 #: The JSON keys of a file's history (besides ``format``).
 HISTORY_KEYS = ("software", "created_utc", "inputs")
-_INPUT_LINE = re.compile(r"^input (?P<role>[\w.-]+): (?P<sha256>[0-9a-f]{64})  (?P<path>.+)$")
+_INPUT_LINE = re.compile(
+    r"^input (?P<role>[\w.-]+): (?P<escaped>\\?)(?P<sha256>[0-9a-f]{64})  (?P<path>.+)$"
+)
+#: How ``sha256sum`` escapes a file name in its line (GNU coreutils 9).
+_SHA256SUM_ESCAPES = {"\\": "\\\\", "\n": "\\n", "\r": "\\r"}
+_SHA256SUM_UNESCAPES = re.compile(r"\\(.)")
+#: Characters that end a line for Python's ``str.splitlines`` besides the escaped ones.
+_OTHER_LINE_ENDS = frozenset("\v\f\x1c\x1d\x1e\x85\u2028\u2029")
 
 
 @dataclass(frozen=True)
@@ -59,11 +68,24 @@ class FileSource:
         InputError
             The file cannot be read.
         """
+        ends = sorted(_OTHER_LINE_ENDS.intersection(str(path)))
+        if ends:
+            raise InputError(
+                located(
+                    repr(str(path)),
+                    "file name",
+                    f"holds {ends[0]!r}, which ends a line of the files' history; rename the file",
+                )
+            )
         return cls(role, str(path), file_sha256(path))
 
     def sha256sum_line(self) -> str:
-        """The line ``sha256sum`` prints for the file: ``HEX  PATH``."""
-        return f"{self.sha256}  {self.path}"
+        """The line ``sha256sum`` prints for the file: ``HEX  PATH``, or ``\\HEX  PATH`` with
+        the backslashes, line feeds and carriage returns of the name escaped."""
+        if not any(char in self.path for char in _SHA256SUM_ESCAPES):
+            return f"{self.sha256}  {self.path}"
+        escaped = "".join(_SHA256SUM_ESCAPES.get(char, char) for char in self.path)
+        return f"\\{self.sha256}  {escaped}"
 
 
 @dataclass(frozen=True)
@@ -168,7 +190,10 @@ def read_csv_preamble(
         key, separator, value = text.lstrip("#").strip().partition(": ")
         match = _INPUT_LINE.match(text.lstrip("#").strip())
         if match:
-            inputs.append(FileSource(match["role"], match["path"], match["sha256"]))
+            path = match["path"]
+            if match["escaped"]:
+                path = _SHA256SUM_UNESCAPES.sub(lambda m: _unescape(m[1]), path)
+            inputs.append(FileSource(match["role"], path, match["sha256"]))
         elif separator and " " not in key:
             values.setdefault(key, value.strip())
     format_name = values.pop("format", first_format)
@@ -180,6 +205,10 @@ def read_csv_preamble(
         inputs=tuple(inputs),
         extra=values,
     )
+
+
+def _unescape(char: str) -> str:
+    return {"n": "\n", "r": "\r"}.get(char, char)
 
 
 def json_value(provenance: Provenance, key: str, source: str) -> Any:
