@@ -10,6 +10,7 @@ as dataclasses, and as pandas DataFrames with units in the column names
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,9 +126,15 @@ def load_calibration(folder: str | Path, machine: str | Path | None = None) -> C
     Raises
     ------
     InputError
-        A file is there but cannot be used (one line naming it and the key or line).
+        ``folder`` is not a folder, or a file is there but cannot be used (one line
+        naming it and the key or line), or ``machine`` cannot be read.
     """
+    if not isinstance(folder, str | os.PathLike):
+        raise InputError(f"load_calibration: {folder!r} is not a folder's path")
     folder = Path(folder)
+    if not folder.is_dir():
+        problem = "not a folder" if folder.exists() else "no such folder"
+        raise InputError(f"{folder}: {problem}; give the folder of a calibration's files")
     readers: dict[str, Callable[[Path], Any]] = {
         "session": read_session,
         "pose": read_pose,
@@ -138,7 +145,8 @@ def load_calibration(folder: str | Path, machine: str | Path | None = None) -> C
 
     def read(key: str) -> Any:
         path = folder / FILE_NAMES[key]
-        return readers[key](path) if path.is_file() else None
+        there = path.exists() or path.is_symlink()  # a link that loops: named when read
+        return readers[key](path) if there else None
 
     return Calibration(
         folder,

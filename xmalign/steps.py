@@ -187,15 +187,21 @@ def _machine_path(machine: Machine) -> Path | None:
 def _argument(value: object, kind: type[T], name: str, what: str) -> T:
     """``value`` when it is a ``kind``; else InputError naming the argument."""
     if not isinstance(value, kind):
-        raise InputError(f"{name}: {value!r} is not {what}")
+        raise InputError(f"{name}: {_shown(value)} is not {what}")
     return value
+
+
+def _shown(value: object) -> str:
+    """A value as a one-line message shows it: its repr when short, else its type."""
+    text = repr(value)
+    return text if len(text) <= 60 and "\n" not in text else f"a {type(value).__name__}"
 
 
 def _path(value: object, name: str) -> Path:
     """A file's path given as ``str`` or ``os.PathLike``; else one line naming ``name``."""
     if isinstance(value, str | os.PathLike) and str(value) != "":
         return Path(value)
-    raise InputError(f"{name}: {value!r} is not a file's path (give a str or a pathlib.Path)")
+    raise InputError(f"{name}: {_shown(value)} is not a file's path (give a str or a Path)")
 
 
 def _optional_path(value: object, name: str) -> Path | None:
@@ -827,11 +833,15 @@ def post_step(
 def _stations(stations: object) -> list[tuple[Plan, Path]]:
     """The (plan, measurement file) pairs of :func:`post_step`, each file given once."""
     if isinstance(stations, str | bytes | os.PathLike) or not isinstance(stations, Sequence):
-        raise InputError(f"stations: {stations!r} is not a list of (plan, measurement file) pairs")
+        raise InputError(
+            f"stations: {_shown(stations)} is not a list of (plan, measurement file) pairs"
+        )
     pairs: list[tuple[Plan, Path]] = []
     for number, pair in enumerate(stations, start=1):
         if not isinstance(pair, tuple | list) or len(pair) != 2:
-            raise InputError(f"stations: station {number}: {pair!r} is not a (plan, file) pair")
+            raise InputError(
+                f"stations: station {number}: {_shown(pair)} is not a (plan, file) pair"
+            )
         plan = _plan(pair[0], f"stations: station {number}: the plan")
         path = _path(pair[1], f"stations: station {number}: the measurement file")
         _refuse_twice(path, [p for _, p in pairs])

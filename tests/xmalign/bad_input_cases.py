@@ -1331,7 +1331,94 @@ _FILES_CASES = [
     # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES + _FILES_CASES
+
+def link(name: str, target: str) -> Damage:
+    """``name`` a symbolic link to ``target`` (itself: a link that loops)."""
+    return lambda folder: (folder / name).symlink_to(target)
+
+
+LOOP = "symbolic link that loops"
+#: Issue 32: data the commands damaged, and symlink loops that ended in a traceback.
+_LINK_CASES = [
+    Case(
+        "import-replaces-the-tracker-file",
+        (*COMMAND["spatial-analyzer.txt"][:5], "--out", "tracker.csv"),
+        ("tracker.csv", "--out", "--force"),
+    ),
+    Case(
+        "post-out-a-link-to-the-users-file",
+        (*PLAN[:5], "--out", "link.csv"),
+        ("link.csv", "--out", "already exists", "--force"),
+        link("link.csv", E),
+    ),
+    Case(
+        "post-out-a-link-to-the-data",
+        (*PLAN[:5], "--out", "link.csv", "--force"),
+        ("link.csv", "--out", "--data"),
+        link("link.csv", "m.csv"),
+    ),
+    Case(
+        "program-plan-out-a-link-to-the-pose",
+        (*POSE, "--plan-out", "link.json", "--force"),
+        ("link.json", "--plan-out", "--pose"),
+        link("link.json", P),
+    ),
+    Case(
+        "comp-out-a-link-in-the-folder-to-the-errors",
+        (*ERRORS, "--force"),
+        ("NC_CEC.INI", "--out", "--errors"),
+        each(remove("comp/NC_CEC.INI"), link("comp/NC_CEC.INI", f"../{E}")),
+    ),
+    Case("post-data-a-loop", (*PLAN[:4], "loop", *PLAN[5:]), ("loop", LOOP), link("loop", "loop")),
+    Case(
+        "post-tracker-a-loop",
+        ("post", "--tracker", "loop", "--out", "e-new.csv"),
+        ("loop", LOOP),
+        link("loop", "loop"),
+    ),
+    Case(
+        "post-out-a-loop",
+        (*PLAN[:5], "--out", "loop"),
+        ("loop", "--out", LOOP),
+        link("loop", "loop"),
+    ),
+    Case(
+        "run-plan-a-loop",
+        (*RUN[:4], "loop", "--out", "new.csv"),
+        ("loop", LOOP),
+        link("loop", "loop"),
+    ),
+    Case(
+        "import-points-a-loop",
+        (*COMMAND["spatial-analyzer.txt"][:4], "loop", "--out", "t-new.csv"),
+        ("loop", LOOP),
+        link("loop", "loop"),
+    ),
+    Case(
+        "identify-input-a-loop",
+        ("identify", "--input", "loop", "--out", "p-new.json"),
+        ("loop", LOOP),
+        link("loop", "loop"),
+    ),
+    Case(
+        "program-pose-a-loop", ("program", "--pose", "loop"), ("loop", LOOP), link("loop", "loop")
+    ),
+    Case(
+        "identify-out-a-loop",
+        (*SESSION[:3], "--out", "loop"),
+        ("loop", "--out", LOOP),
+        link("loop", "loop"),
+    ),
+]
+
+CASES = (
+    _generic_cases()
+    + _kind_cases()
+    + _CLI_CASES
+    + _CARELESS_USER_CASES
+    + _FILES_CASES
+    + _LINK_CASES
+)
 
 
 # -- running a case -----------------------------------------------------------------------

@@ -275,7 +275,7 @@ def test_run_and_post_refuse_a_plan_made_for_another_machine(dry, tmp_path, refe
             "e.csv",
         ),
         "made for machine 'Another gantry mill'",
-        "not for the reference machine (no --machine)",
+        "not for the reference machine",
     )
 
 

@@ -125,7 +125,7 @@ def program(
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request, force)
         return
-    if not pose.exists():
+    if not pose.exists() and not pose.is_symlink():  # a link that loops: named when read
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"
             f" (xmalign identify ... --out {pose}) or give --pose POSE.json"

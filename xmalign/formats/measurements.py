@@ -252,7 +252,7 @@ def _read_bytes(path: Path) -> bytes:
     except FileNotFoundError as error:
         raise InputError(f"{path}: no such file") from error
     except OSError as error:
-        raise InputError(f"{path}: cannot read ({error.strerror})") from error
+        raise InputError(f"{path}: cannot read: {os_problem(error)}") from error
 
 
 def _decode(data: bytes, path: Path) -> str:

@@ -49,6 +49,7 @@ def _post(files, *extra: str):
             str(files["data"]),
             "--out",
             str(files["dir"] / "errors.csv"),
+            "--force",  # the tests of this module post to one errors.csv in turn
             *extra,
         ],
     )

@@ -1,0 +1,284 @@
+"""The commands' promises kept where a script calls the steps (issue 32, point 1).
+
+Each misuse of the issue through :mod:`xmalign.api`: one line (an
+:class:`~xmalign.errors.XmalignError`), nothing written over; the same cases
+through the CLI are in tests/xmalign/bad_input_cases.py.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import warnings
+from pathlib import Path
+
+import pytest
+
+from xmalign import api
+from xmalign.errors import OutputError, XmalignError
+from xmalign.formats.measurements import load_measurements
+
+REFERENCE = Path(__file__).resolve().parents[2] / "examples" / "fyxz.yaml"
+
+
+@pytest.fixture(scope="module")
+def calibrated(dry_run_of_seed) -> Path:
+    """A calibration's folder (session, pose, plan, measurements, errors) of the reference
+    machine; each test works in a copy of it."""
+    return dry_run_of_seed(3, "promises")[1]
+
+
+@pytest.fixture
+def folder(calibrated: Path, tmp_path: Path) -> Path:
+    work = tmp_path / "work"
+    shutil.copytree(calibrated, work)
+    return work
+
+
+def _hashes(folder: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _refused(call, *fragments: str) -> str:
+    """``call()`` raises one line holding every fragment; the message."""
+    with pytest.raises(XmalignError) as raised:
+        call()
+    message = str(raised.value)
+    assert "\n" not in message, message
+    for fragment in fragments:
+        assert fragment in message, message
+    return message
+
+
+def _machine_file(tmp_path: Path, old: str, new: str) -> Path:
+    text = REFERENCE.read_text()
+    assert old in text
+    path = tmp_path / "machine.yaml"
+    path.write_text(text.replace(old, new))
+    return path
+
+
+def test_post_step_never_writes_over_its_data_plan_or_a_users_file(folder: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    plan = api.read_plan(folder / "plan.json")
+    stations = [(plan, folder / "measurements.csv")]
+    before = _hashes(folder)
+    _refused(
+        lambda: api.post_step(machine, stations, folder / "measurements.csv"),
+        "measurements.csv",
+        "errors_path",
+        "measurements",
+    )
+    _refused(lambda: api.post_step(machine, stations, folder / "plan.json"), "plan")
+    _refused(
+        lambda: api.post_step(machine, stations, REFERENCE, replace=True), "is also the machine"
+    )
+    _refused(
+        lambda: api.post_step(machine, stations, folder / "errors.csv"),
+        "errors.csv",
+        "already exists",
+        "replace=True",
+    )
+    assert _hashes(folder) == before
+    posted = api.post_step(machine, stations, folder / "errors.csv", replace=True)
+    again = api.read_error_tables(folder / "errors.csv")
+    assert again.history.input("measurements").sha256 == api.file_sha256(
+        folder / "measurements.csv"
+    )
+    assert again.history.input("machine").sha256 == api.file_sha256(REFERENCE)
+    assert posted.warnings == []
+
+
+def test_post_step_refuses_a_station_given_twice_or_its_copy(folder: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    plan = api.read_plan(folder / "plan.json")
+    shutil.copy(folder / "measurements.csv", folder / "copy.csv")
+    for second in (folder / "measurements.csv", folder / "copy.csv"):
+        stations = [(plan, folder / "measurements.csv"), (plan, second)]
+        _refused(lambda s=stations: api.post_step(machine, s, folder / "e.csv"), "count twice")
+    assert not (folder / "e.csv").exists()
+
+
+def test_program_step_never_replaces_a_plan_nor_writes_over_the_pose(folder: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    pose = api.read_pose(folder / "pose.json")
+    before = _hashes(folder)
+    _refused(
+        lambda: api.program_step(machine, pose, folder / "plan.json"),
+        "plan.json",
+        "plan_path",
+        "replace=True",
+    )
+    _refused(
+        lambda: api.program_step(
+            machine, pose, folder / "pose.json", pose_path=folder / "pose.json", replace=True
+        ),
+        "pose.json",
+        "is also the pose_path file",
+    )
+    _refused(
+        lambda: api.program_step(machine, pose, folder / "p.json", folder / "p.json", replace=True),
+        "p.json",
+        "is also the plan_path file",
+    )
+    assert _hashes(folder) == before
+    programmed = api.program_step(
+        machine, pose, folder / "plan.json", pose_path=folder / "pose.json", replace=True
+    )
+    assert programmed.files["plan"] == folder / "plan.json"
+
+
+def test_comp_step_keeps_a_users_table_and_refuses_another_machines_tables(
+    folder: Path, tmp_path: Path
+) -> None:
+    machine = api.load_machine(REFERENCE)
+    tables = api.read_error_tables(folder / "errors.csv")
+    out = tmp_path / "user"
+    out.mkdir()
+    (out / "AX_EEC.INI").write_text("; the user's own table\n")
+    _refused(lambda: api.comp_step(machine, tables, out), "AX_EEC.INI", "replace=True")
+    assert (out / "AX_EEC.INI").read_text() == "; the user's own table\n"
+    xfyz = api.load_machine(_machine_file(tmp_path, "chain: FYXZ", "chain: XFYZ"))
+    _refused(lambda: api.comp_step(xfyz, tables, tmp_path / "x"), "chain FYXZ, not XFYZ")
+    assert not (tmp_path / "x").exists()
+    compensation = api.comp_step(machine, tables, out, replace=True)
+    assert "AX_EEC.INI" in compensation.files
+
+
+def test_another_file_of_the_same_machine_is_a_warning(folder: Path, tmp_path: Path) -> None:
+    """Name, chain and travel the same, the file edited (feeds): a warning, not a refusal."""
+    edited = api.load_machine(_machine_file(tmp_path, "rapid: ", "rapid: 1"))
+    tables = api.read_error_tables(folder / "errors.csv")
+    with pytest.warns(UserWarning, match="another file"):
+        api.comp_step(edited, tables, tmp_path / "comp")
+    told: list[str] = []
+    api.comp_step(edited, tables, tmp_path / "comp2", on_warning=told.append)
+    assert len(told) == 1 and "machine.yaml" in told[0]
+    plan = api.read_plan(folder / "plan.json")
+    posted = api.post_step(edited, [(plan, folder / "measurements.csv")], tmp_path / "e.csv")
+    assert any("another file" in warning for warning in posted.warnings)
+
+
+def test_a_plan_of_another_machine_is_refused_by_every_step(folder: Path, tmp_path: Path) -> None:
+    other = api.load_machine(_machine_file(tmp_path, "X: [0, 2000]", "X: [0, 2100]"))
+    plan = api.read_plan(folder / "plan.json")
+    data = folder / "measurements.csv"
+    fragments = ("plan.json was made for machine", str(tmp_path / "machine.yaml"))
+    _refused(lambda: api.post_step(other, [(plan, data)], tmp_path / "e.csv"), *fragments)
+    _refused(lambda: api.open_measurements_step(tmp_path / "m.csv", plan, other), *fragments)
+    assert not (tmp_path / "e.csv").exists() and not (tmp_path / "m.csv").exists()
+
+
+def test_a_plan_target_outside_the_travel_is_refused(folder: Path, tmp_path: Path) -> None:
+    smaller = api.load_machine(_machine_file(tmp_path, "X: [0, 2000]", "X: [0, 1000]"))
+    plan = api.read_plan(folder / "plan.json")
+    plan.extra.pop("machine_sha256", None)
+    _refused(
+        lambda: api.open_measurements_step(tmp_path / "m.csv", plan, smaller),
+        "lies outside the travel",
+    )
+
+
+def test_a_machine_remembers_its_file(tmp_path: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    assert machine.source is not None
+    assert machine.source.path == str(REFERENCE)
+    assert machine.source.sha256 == api.file_sha256(REFERENCE)
+    assert machine.model_copy(update={"name": "other"}).source is None
+    assert machine == api.load_machine(_machine_file(tmp_path, "\n", "\n"))  # content decides
+
+
+def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    plan = api.read_plan(folder / "plan.json")
+    _refused(lambda: api.load_calibration("/nonexistent"), "/nonexistent", "no such folder")
+    _refused(lambda: api.load_calibration(folder / "plan.json"), "plan.json", "not a folder")
+    _refused(lambda: api.load_calibration(folder, "/nonexistent.yaml"), "/nonexistent.yaml")
+    _refused(lambda: api.load_machine(3), "3", "machine file")
+    _refused(lambda: api.post_step(machine, "plan.json", tmp_path / "e.csv"), "stations")
+    _refused(lambda: api.post_step(machine, [("plan.json", "m.csv")], "e.csv"), "station 1")
+    _refused(lambda: api.post_step(machine, [(plan, 3)], "e.csv"), "measurement file")
+    _refused(lambda: api.post_step("fyxz.yaml", [(plan, "m.csv")], "e.csv"), "machine")
+    _refused(lambda: api.program_step(machine, plan, tmp_path / "p.json"), "pose")
+    _refused(lambda: api.comp_step(machine, "errors.csv", tmp_path), "tables")
+    _refused(lambda: api.program_step(machine, None, 42), "plan_path", "42")
+
+
+def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    plan = api.read_plan(folder / "plan.json")
+    stations = [(plan, folder / "measurements.csv")]
+    target = tmp_path / "tables" / "errors.csv"
+    target.parent.mkdir()
+    target.write_text("old\n")
+    link = tmp_path / "link.csv"
+    link.symlink_to(target)
+    _refused(lambda: api.post_step(machine, stations, link), "link.csv", "already exists")
+    api.post_step(machine, stations, link, replace=True)
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert api.read_error_tables(target).history is not None
+    dangling = tmp_path / "dangling.csv"
+    dangling.symlink_to(tmp_path / "new.csv")
+    api.post_step(machine, stations, dangling)
+    assert dangling.is_symlink() and (tmp_path / "new.csv").is_file()
+
+
+def test_loops_fifos_and_folders_are_refused_as_outputs(folder: Path, tmp_path: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    plan = api.read_plan(folder / "plan.json")
+    stations = [(plan, folder / "measurements.csv")]
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for out, what in ((loop, "loops"), (fifo, "FIFO"), (tmp_path, "is a folder")):
+        with pytest.raises(OutputError, match=what):
+            api.post_step(machine, stations, out, replace=True)
+    assert loop.is_symlink() and not loop.exists()
+
+
+def test_a_newline_in_the_plans_name_is_escaped_as_sha256sum_does(
+    folder: Path, tmp_path: Path
+) -> None:
+    """A name with a line feed does not split the ``# input`` line: the measurement file
+    is read back (as post and --resume read it) and ``sha256sum -c`` checks the line."""
+    machine = api.load_machine(REFERENCE)
+    odd = tmp_path / "plan\nof the day\\.json"
+    shutil.copy(folder / "plan.json", odd)
+    plan = api.read_plan(odd)
+    measurements = tmp_path / "m.csv"
+    with api.open_measurements_step(measurements, plan, machine):
+        pass
+    recorded = load_measurements(measurements)
+    assert recorded.history.input("plan").path == str(odd)
+    line = next(x for x in measurements.read_text().splitlines() if x.startswith("# input plan"))
+    checked = subprocess.run(
+        ["sha256sum", "-c"],
+        input=line.removeprefix("# input plan: ") + "\n",
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert checked.returncode == 0, checked.stderr
+    with api.open_measurements_step(measurements, plan, machine, resume=True) as output:
+        assert output.warnings == []
+
+
+def test_a_name_with_another_line_end_is_refused(folder: Path, tmp_path: Path) -> None:
+    odd = tmp_path / "plan\u2028.json"
+    shutil.copy(folder / "plan.json", odd)
+    _refused(lambda: api.read_plan(odd), "ends a line", "rename the file")
+
+
+def test_writing_steps_warn_nothing_when_all_is_well(folder: Path, tmp_path: Path) -> None:
+    machine = api.load_machine(REFERENCE)
+    tables = api.read_error_tables(folder / "errors.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        api.comp_step(machine, tables, tmp_path / "comp")
