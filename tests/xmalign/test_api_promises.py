@@ -282,3 +282,56 @@ def test_writing_steps_warn_nothing_when_all_is_well(folder: Path, tmp_path: Pat
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         api.comp_step(machine, tables, tmp_path / "comp")
+
+
+# -- the same promises through the commands ------------------------------------------------
+
+
+def test_run_and_resume_agree_on_a_plan_named_with_a_newline(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``run`` records a plan whose name holds a line feed; ``--resume`` goes on with the
+    file, its ``# input`` line is one line that ``sha256sum -c`` checks."""
+    from tests.cli_helpers import run_in_process
+    from xmalign.formats.plan import write_plan
+
+    monkeypatch.chdir(tmp_path)
+    plan = api.read_plan(REFERENCE.parent / "plan.json")
+    plan.lines = [line for line in plan.lines if line.id == "Z"]
+    write_plan("pl\nan.json", plan)
+    run = ("run", "--sim", "--in-process", "--plan", "pl\nan.json", "--out", "m.csv")
+    assert run_in_process(*run).returncode == 0
+    recorded = load_measurements(tmp_path / "m.csv")
+    assert recorded.history.input("plan").path == "pl\nan.json" and recorded.rows
+    resumed = run_in_process(*run, "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    line = next(x for x in Path("m.csv").read_text().splitlines() if x.startswith("# input"))
+    checked = subprocess.run(
+        ["sha256sum", "-c"], input=line.split(": ", 1)[1] + "\n", text=True, check=False
+    )
+    assert checked.returncode == 0
+
+
+def test_force_writes_a_links_target_and_keeps_the_link(
+    calibrated: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--plan-out`` a link with ``--force``, ``--out`` a dangling link: the file the link
+    names is written, the link stays a link to it (it was replaced, the target left stale)."""
+    from tests.cli_helpers import run_in_process
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "kept").mkdir()
+    Path("kept/plan.json").write_text("{}\n")
+    Path("plan.json").symlink_to("kept/plan.json")
+    Path("pose.json").symlink_to("kept/pose.json")  # dangling
+    identified = run_in_process(
+        "identify", "--input", str(calibrated / "session.json"), "--out", "pose.json"
+    )
+    assert identified.returncode == 0, identified.stderr
+    assert Path("pose.json").is_symlink() and api.read_pose("kept/pose.json")
+    refused = run_in_process("program", "--plan-out", "plan.json", "--out", "run.mpf")
+    assert refused.returncode == 2 and "--force" in refused.stderr
+    forced = run_in_process("program", "--plan-out", "plan.json", "--out", "run.mpf", "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert Path("plan.json").is_symlink() and os.readlink("plan.json") == "kept/plan.json"
+    assert api.read_plan("kept/plan.json").history.input("pose").path == "pose.json"
