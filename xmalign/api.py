@@ -9,22 +9,23 @@ as dataclasses, and as pandas DataFrames with units in the column names
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from xmalign.calibration import open_run_output
 from xmalign.errors import InputError, XmalignError
-from xmalign.formats.error_tables import ErrorTableSet, file_unit, read_error_tables
-from xmalign.formats.measurements import MeasurementFile, load_measurements
-from xmalign.formats.plan import Plan, read_plan
-from xmalign.formats.pose import LaunchPose, read_pose
-from xmalign.formats.provenance import FileSource, Provenance, file_sha256
-from xmalign.formats.session import Session, read_session
-from xmalign.formats.studies import read_design, read_study
+from xmalign.formats import error_tables, measurements, plan, pose, provenance, session, studies
+from xmalign.formats.error_tables import ErrorTableSet, file_unit
+from xmalign.formats.measurements import MeasurementFile
+from xmalign.formats.plan import Plan
+from xmalign.formats.pose import LaunchPose
+from xmalign.formats.provenance import FileSource, Provenance
+from xmalign.formats.session import Session
 from xmalign.identify import IdentificationResult, identify
 from xmalign.machine import Machine, default_machine_path, load_machine
 from xmalign.post.evaluate import PostResult
@@ -52,6 +53,32 @@ from xmalign.steps import (
 
 if TYPE_CHECKING:
     import pandas as pd
+
+R = TypeVar("R")
+
+
+def _path_first(reader: Callable[..., R]) -> Callable[..., R]:
+    """``reader`` refusing, with one InputError naming it, a first argument that is not a
+    file's path (a number, None, a Plan...): the readers would end in a TypeError."""
+
+    @functools.wraps(reader)
+    def checked(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> R:
+        if not isinstance(path, str | os.PathLike) or str(path) == "":
+            shown = repr(path) if len(repr(path)) <= 60 else type(path).__name__
+            raise InputError(f"{reader.__name__}: {shown} is not a file's path")
+        return reader(path, *args, **kwargs)
+
+    return checked
+
+
+read_error_tables = _path_first(error_tables.read_error_tables)
+load_measurements = _path_first(measurements.load_measurements)
+read_plan = _path_first(plan.read_plan)
+read_pose = _path_first(pose.read_pose)
+file_sha256 = _path_first(provenance.file_sha256)
+read_session = _path_first(session.read_session)
+read_design = _path_first(studies.read_design)
+read_study = _path_first(studies.read_study)
 
 __all__ = [
     "Calibration",

@@ -335,3 +335,23 @@ def test_force_writes_a_links_target_and_keeps_the_link(
     assert forced.returncode == 0, forced.stderr
     assert Path("plan.json").is_symlink() and os.readlink("plan.json") == "kept/plan.json"
     assert api.read_plan("kept/plan.json").history.input("pose").path == "pose.json"
+
+
+@pytest.mark.parametrize(
+    "reader",
+    [
+        "read_plan",
+        "read_pose",
+        "read_session",
+        "read_error_tables",
+        "load_measurements",
+        "read_design",
+        "read_study",
+        "load_machine",
+        "measurements_frame",
+        "file_sha256",
+    ],
+)
+def test_every_reader_refuses_what_is_not_a_path_in_one_line(reader: str) -> None:
+    for value in (3, None, b"", ""):
+        _refused(lambda v=value: getattr(api, reader)(v), "not a")
