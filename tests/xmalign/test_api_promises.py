@@ -355,3 +355,22 @@ def test_force_writes_a_links_target_and_keeps_the_link(
 def test_every_reader_refuses_what_is_not_a_path_in_one_line(reader: str) -> None:
     for value in (3, None, b"", ""):
         _refused(lambda v=value: getattr(api, reader)(v), "not a")
+
+
+def test_identify_sim_force_writes_the_session_links_target(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from tests.cli_helpers import run_in_process
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "kept").mkdir()
+    Path("kept/session.json").write_text("{}\n")
+    Path("session.json").symlink_to("kept/session.json")
+    done = run_in_process(
+        "identify", "--sim", "--alignments", "4", "--session-out", "session.json", "--force"
+    )
+    assert done.returncode == 0, done.stderr
+    assert (
+        Path("session.json").is_symlink()
+        and len(api.read_session("kept/session.json").alignments) == 4
+    )

@@ -26,6 +26,7 @@ from xmalign.cli.common import (
     stop_log_file,
 )
 from xmalign.errors import InputError
+from xmalign.formats.common import link_target
 from xmalign.formats.session import Session, read_session
 from xmalign.identification_routine import RoutineEvent
 from xmalign.identify import METHODS, IdentificationResult, IdentificationUncertainty
@@ -323,7 +324,7 @@ def identify_command(
     if sim:
         assert machine_model is not None  # loaded above for --sim
         session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
-        session_path.unlink(missing_ok=True)
+        link_target(session_path).unlink(missing_ok=True)  # --force: a link stays a link
         result, truth = _simulated_identification(
             machine_model, alignments, seed, method, session_path, uncertainty
         )
