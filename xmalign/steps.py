@@ -274,7 +274,7 @@ def _other_machine_file(where: str, made_with: FileSource | None, machine: Machi
     return [
         f"{where} was made with machine file {made_with.path} (SHA-256"
         f" {made_with.sha256[:12]}...), not {given.path} ({given.sha256[:12]}...): the same"
-        " machine (name, chain, travel), another file; check that its edits are meant"
+        " chain and travel, another file; check that its edits are meant"
     ]
 
 
@@ -296,8 +296,7 @@ def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
     if tables.history is None:  # fitted in this session (post_step's), not read from a file
         return []
     notes = tables.check_machine(machine)
-    made_with = tables.history.input("machine") if tables.history is not None else None
-    return notes + _other_machine_file(tables.source, made_with, machine)
+    return notes + _other_machine_file(tables.source, tables.history.input("machine"), machine)
 
 
 def refine_guess(session: Session) -> PoseGuess | None:
