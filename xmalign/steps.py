@@ -1035,8 +1035,8 @@ def write_instrument_step(
     if program_path is not None:
         files[program_path] = gcode.encode("utf-8")
     atomic_write_files(files)
-    written = {key: path for key, path in outputs.items() if path is not None}
-    return gcode, time, written
+    written = {"program": program_path, "points": points_path}
+    return gcode, time, {key: path for key, path in written.items() if path is not None}
 
 
 def instrument_program_step(

@@ -374,3 +374,34 @@ def test_identify_sim_force_writes_the_session_links_target(
         Path("session.json").is_symlink()
         and len(api.read_session("kept/session.json").alignments) == 4
     )
+
+
+def test_instrument_programs_are_written_by_one_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``program --instrument`` (:func:`instrument_program_step`) and the instrument dry run
+    write their G-code and point list through :func:`write_instrument_step`; its outputs
+    keep the promises (an existing point list without replace=True)."""
+    from sim import instrument_dry_run
+    from xmalign import steps
+
+    calls: list[object] = []
+
+    def spy(*args, **kwargs):
+        calls.append(args[2])
+        return steps.write_instrument_step(*args, **kwargs)
+
+    monkeypatch.setattr(instrument_dry_run, "write_instrument_step", spy)
+    machine = api.load_machine(REFERENCE)
+    instrument_dry_run.simulate_instruments(machine, tmp_path / "dry", "tracker", 1)
+    assert calls == [tmp_path / "dry" / "tracker.nc"]
+    planned = api.instrument_program_step(
+        machine, "tracker", program_path=tmp_path / "t.nc", points_path=tmp_path / "p.csv"
+    )
+    assert planned.files == {"program": tmp_path / "t.nc", "points": tmp_path / "p.csv"}
+    assert (tmp_path / "dry" / "points.csv").read_text() == (tmp_path / "p.csv").read_text()
+    _refused(
+        lambda: api.instrument_program_step(machine, "tracker", points_path=tmp_path / "p.csv"),
+        "points_path",
+        "replace=True",
+    )
