@@ -1345,6 +1345,12 @@ _LINK_CASES = [
         (*COMMAND["spatial-analyzer.txt"][:5], "--out", "tracker.csv"),
         ("tracker.csv", "--out", "--force"),
     ),
+    Case("post-replaces-the-users-tables", (*PLAN[:5], "--out", E), (E, "--out", "--force")),
+    Case(
+        "plan-identify-replaces-the-design",
+        ("plan-identify", "--count", "4", "--out", P),
+        (P, "--out", "--force"),
+    ),
     Case(
         "post-out-a-link-to-the-users-file",
         (*PLAN[:5], "--out", "link.csv"),
