@@ -574,6 +574,18 @@ def refuse_replacing(
                 )
 
 
+#: Bytes of the target's name kept in a temporary file's name: with the dot, the random
+#: part and ``.tmp`` it stays within the 255 bytes a name may have.
+TEMPORARY_NAME_BYTES = 200
+
+
+def _temporary_prefix(path: Path) -> str:
+    """``.NAME.`` of a temporary file next to ``path``, NAME cut to
+    :data:`TEMPORARY_NAME_BYTES` (a name of 250 bytes is valid; its temporary one too)."""
+    kept = os.fsencode(path.name)[:TEMPORARY_NAME_BYTES].decode("utf-8", "ignore")
+    return f".{kept}."
+
+
 def _write_temporary(path: Path, data: bytes) -> Path:
     """``data`` in a synced temporary file next to ``path`` (a link's target), mode
     ``0666 & ~umask``."""
@@ -583,7 +595,7 @@ def _write_temporary(path: Path, data: bytes) -> Path:
         raise OutputError(located(path, "cannot write", f"{folder} is a file, not a folder"))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, name = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=".tmp", dir=path.parent)
     except OSError as error:
         raise OutputError(located(path, "cannot write", os_problem(error))) from error
     tmp = Path(name)
