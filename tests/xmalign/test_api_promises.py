@@ -414,3 +414,16 @@ def test_a_name_of_up_to_255_bytes_is_written(tmp_path: Path, name: str) -> None
 
     atomic_write_text(tmp_path / name, "x\n")
     assert [p.name for p in tmp_path.iterdir()] == [name]
+
+
+def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
+    """The dry run gets the machine's provenance from the steps: its pose, plan and error
+    tables name the machine file (its SHA-256) the machine was read from."""
+    import json
+
+    machine_sha256 = api.file_sha256(REFERENCE)
+    for name in ("pose.json", "plan.json"):
+        inputs = json.loads((calibrated / name).read_text())["inputs"]
+        assert {"role": "machine", "path": str(REFERENCE), "sha256": machine_sha256} in inputs
+    tables = api.read_error_tables(calibrated / "errors.csv")
+    assert tables.history.input("machine").sha256 == machine_sha256
