@@ -496,11 +496,11 @@ def program_step(
     of the dialect next to the plan as ``run<suffix>`` (:func:`program_file`);
     ``write_program_file`` False: the program is only returned (stdout). The
     program is named after its file (``XMALIGN`` without one). The plan records
-    the SHA-256 of ``pose_path`` (the file the pose was written to or read from)
-    and of the machine's file. The plan and the program are checked before the
-    planning (:func:`check_outputs`: never the pose's or the machine's file, an
-    existing file only with ``replace``); ``check_plan(measurement)`` may refuse
-    the plan before anything is written.
+    the SHA-256 of ``pose_path`` (the file the pose was written to or read from;
+    by default the file a ``LaunchPose`` was read from) and of the machine's file.
+    The plan and the program are checked before the planning (:func:`check_outputs`:
+    never the pose's or the machine's file, an existing file only with ``replace``);
+    ``check_plan(measurement)`` may refuse the plan before anything is written.
     """
     machine = _machine(machine)
     plan_path, program_path = (
@@ -511,6 +511,8 @@ def program_step(
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
     _argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
+    if pose_path is None and pose.source is not None:  # read from a file: that file
+        pose_path = Path(pose.source.path)
     dialect_name = resolve_dialect(machine, dialect)
     if write_program_file and program_path is None:
         if plan_path is None:

@@ -127,6 +127,10 @@ def test_program_step_never_replaces_a_plan_nor_writes_over_the_pose(folder: Pat
         "p.json",
         "is also the plan_path file",
     )
+    _refused(
+        lambda: api.program_step(machine, pose, folder / "pose.json", replace=True),
+        "is also the pose_path file",  # the file the pose was read from
+    )
     assert _hashes(folder) == before
     programmed = api.program_step(
         machine, pose, folder / "plan.json", pose_path=folder / "pose.json", replace=True

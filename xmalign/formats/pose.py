@@ -59,7 +59,8 @@ class LaunchPose:
     """Identified launch-unit pose.
 
     ``covariance`` is of ``(x mm, y mm, z mm, gamma rad)``, shape (4, 4);
-    ``encoder_offsets_rad`` holds only the offsets that were estimated.
+    ``encoder_offsets_rad`` holds only the offsets that were estimated; ``source``
+    is the file it was read from (its SHA-256), None for a pose identified now.
     """
 
     position_mm: Vec
@@ -69,6 +70,7 @@ class LaunchPose:
     method: str = "joint"
     residual_rms_um: float = 0.0
     n_alignments: int = 0
+    source: FileSource | None = field(default=None, compare=False)
 
     @property
     def offsets(self) -> EncoderOffsets:
@@ -98,8 +100,10 @@ def parse_pose(data: dict, source: str) -> LaunchPose:
 
 
 def read_pose(path: str | Path) -> LaunchPose:
-    """Read and validate a launch-pose file."""
-    return parse_pose(read_json(path, POSE_FORMAT), str(path))
+    """Read and validate a launch-pose file; ``source`` records its SHA-256."""
+    pose = parse_pose(read_json(path, POSE_FORMAT), str(path))
+    pose.source = FileSource.of("pose", path)
+    return pose
 
 
 def pose_to_dict(pose: LaunchPose) -> dict:
