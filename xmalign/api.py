@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from xmalign import identify as identification
 from xmalign.calibration import open_run_output
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats import error_tables, measurements, plan, pose, provenance, session, studies
@@ -26,13 +27,14 @@ from xmalign.formats.plan import Plan
 from xmalign.formats.pose import LaunchPose
 from xmalign.formats.provenance import FileSource, Provenance
 from xmalign.formats.session import Session
-from xmalign.identify import IdentificationResult, identify
+from xmalign.identify import IdentificationResult
 from xmalign.machine import Machine, default_machine_path, load_machine
 from xmalign.post.evaluate import PostResult
 from xmalign.post.iso230_2 import PositioningFigures
 from xmalign.roles import CHANNELS
 from xmalign.steps import (
     RunStepDevices,
+    check_argument,
     check_plan_machine,
     check_tables_machine,
     comp_step,
@@ -46,6 +48,7 @@ from xmalign.steps import (
     program_drive,
     program_step,
     run_step,
+    shown_value,
     stepping_drive,
     volumetric_comp_step,
     write_pose_step,
@@ -64,8 +67,7 @@ def _path_first(reader: Callable[..., R]) -> Callable[..., R]:
     @functools.wraps(reader)
     def checked(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> R:
         if not isinstance(path, str | os.PathLike) or str(path) == "":
-            shown = repr(path) if len(repr(path)) <= 60 else type(path).__name__
-            raise InputError(f"{reader.__name__}: {shown} is not a file's path")
+            raise InputError(f"{reader.__name__}: {shown_value(path)} is not a file's path")
         return reader(path, *args, **kwargs)
 
     return checked
@@ -79,6 +81,13 @@ file_sha256 = _path_first(provenance.file_sha256)
 read_session = _path_first(session.read_session)
 read_design = _path_first(studies.read_design)
 read_study = _path_first(studies.read_study)
+
+
+@functools.wraps(identification.identify)
+def identify(session: Session, *args: Any, **kwargs: Any) -> IdentificationResult:
+    check_argument(session, Session, "identify: session", "a Session (read it with read_session)")
+    return identification.identify(session, *args, **kwargs)
+
 
 __all__ = [
     "Calibration",
@@ -250,6 +259,7 @@ def error_table_frames(tables: ErrorTableSet) -> dict[str, pd.DataFrame]:
     ``NAME_measured`` (False beyond the measured stroke). Squareness:
     :func:`squareness_frame`.
     """
+    check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
     pd = _pandas()
     frames: dict[str, list[Any]] = {}
     for name, table in tables.tables.items():
@@ -267,6 +277,7 @@ def error_table_frames(tables: ErrorTableSet) -> dict[str, pd.DataFrame]:
 
 def squareness_frame(tables: ErrorTableSet) -> pd.DataFrame:
     """The squareness errors: index ``name`` (``EC0Y`` ...), ``value_urad``, ``u95_urad``."""
+    check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
     pd = _pandas()
     rows = {name: (value * 1e6, u95 * 1e6) for name, (value, u95) in tables.squareness.items()}
     frame = pd.DataFrame.from_dict(rows, orient="index", columns=["value_urad", "u95_urad"])
@@ -278,6 +289,8 @@ def iso230_2_frame(result: PostResult | list[PositioningFigures]) -> pd.DataFram
     """ISO 230-2 figures of every axis line, µm: one row per line (``line``), columns
     ``A_um``, ``B_um``, ``E_um``, ``M_um``, ``R_um`` ... (``_up`` / ``_down``: one
     direction; NaN where the figure needs what was not measured) and ``runs``."""
+    if not isinstance(result, list):
+        check_argument(result, PostResult, "result", "a PostResult (post_step(...).post)")
     pd = _pandas()
     figures = result.positioning if isinstance(result, PostResult) else result
     records = []

@@ -184,14 +184,15 @@ def _machine_path(machine: Machine) -> Path | None:
     return Path(machine.source.path) if machine.source is not None else None
 
 
-def _argument(value: object, kind: type[T], name: str, what: str) -> T:
-    """``value`` when it is a ``kind``; else InputError naming the argument."""
+def check_argument(value: object, kind: type[T], name: str, what: str) -> T:
+    """``value`` when it is a ``kind``; else one InputError naming the argument (a script
+    passing a path where a Plan is expected gets this, not an AttributeError)."""
     if not isinstance(value, kind):
-        raise InputError(f"{name}: {_shown(value)} is not {what}")
+        raise InputError(f"{name}: {shown_value(value)} is not {what}")
     return value
 
 
-def _shown(value: object) -> str:
+def shown_value(value: object) -> str:
     """A value as a one-line message shows it: its repr when short, else its type."""
     text = repr(value)
     return text if len(text) <= 60 and "\n" not in text else f"a {type(value).__name__}"
@@ -201,7 +202,7 @@ def _path(value: object, name: str) -> Path:
     """A file's path given as ``str`` or ``os.PathLike``; else one line naming ``name``."""
     if isinstance(value, str | os.PathLike) and str(value) != "":
         return Path(value)
-    raise InputError(f"{name}: {_shown(value)} is not a file's path (give a str or a Path)")
+    raise InputError(f"{name}: {shown_value(value)} is not a file's path (give a str or a Path)")
 
 
 def _optional_path(value: object, name: str) -> Path | None:
@@ -209,11 +210,11 @@ def _optional_path(value: object, name: str) -> Path | None:
 
 
 def _machine(value: object) -> Machine:
-    return _argument(value, Machine, "machine", "a Machine (load it with load_machine)")
+    return check_argument(value, Machine, "machine", "a Machine (load it with load_machine)")
 
 
 def _plan(value: object, name: str = "plan") -> Plan:
-    return _argument(value, Plan, name, "a Plan (read it with read_plan)")
+    return check_argument(value, Plan, name, "a Plan (read it with read_plan)")
 
 
 def _plan_file(plan: Plan) -> Path | None:
@@ -325,7 +326,7 @@ def design_step(
     written to ``out`` (with the SHA-256 of the machine's file) when given
     (:func:`check_outputs`, before the design)."""
     machine, out = _machine(machine), _optional_path(out, "out")
-    _argument(count, int, "count", "a whole number of alignments")
+    check_argument(count, int, "count", "a whole number of alignments")
     check_outputs({"out": out}, {"machine": _machine_path(machine)}, replace, caller)
     design = design_identification(machine, count)
     if out is not None:
@@ -348,7 +349,7 @@ def write_pose_step(
     here, never over the session, the machine file or an existing file without
     ``replace`` (:func:`check_outputs`)."""
     path, session_path = _path(path, "path"), _optional_path(session_path, "session_path")
-    _argument(result, IdentificationResult, "result", "an IdentificationResult")
+    check_argument(result, IdentificationResult, "result", "an IdentificationResult")
     machine = None if machine is None else _machine(machine)
     inputs = {"session_path": session_path, "machine": _machine_path(machine) if machine else None}
     check_outputs({"path": path}, inputs, replace, caller)
@@ -510,7 +511,7 @@ def program_step(
     pose_path = _optional_path(pose_path, "pose_path")
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
-    _argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
+    check_argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
     if pose_path is None and pose.source is not None:  # read from a file: that file
         pose_path = Path(pose.source.path)
     dialect_name = resolve_dialect(machine, dialect)
@@ -835,13 +836,13 @@ def _stations(stations: object) -> list[tuple[Plan, Path]]:
     """The (plan, measurement file) pairs of :func:`post_step`, each file given once."""
     if isinstance(stations, str | bytes | os.PathLike) or not isinstance(stations, Sequence):
         raise InputError(
-            f"stations: {_shown(stations)} is not a list of (plan, measurement file) pairs"
+            f"stations: {shown_value(stations)} is not a list of (plan, measurement file) pairs"
         )
     pairs: list[tuple[Plan, Path]] = []
     for number, pair in enumerate(stations, start=1):
         if not isinstance(pair, tuple | list) or len(pair) != 2:
             raise InputError(
-                f"stations: station {number}: {_shown(pair)} is not a (plan, file) pair"
+                f"stations: station {number}: {shown_value(pair)} is not a (plan, file) pair"
             )
         plan = _plan(pair[0], f"stations: station {number}: the plan")
         path = _path(pair[1], f"stations: station {number}: the measurement file")
@@ -923,7 +924,7 @@ def comp_step(
     :func:`volumetric_comp_step`.
     """
     machine, out_dir = _machine(machine), _path(out_dir, "out_dir")
-    tables = _argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
     notes = check_tables_machine(tables, machine)
     compensation = compensate(machine, tables, controller or machine.controller)
     if more_files is not None:
@@ -949,7 +950,7 @@ def volumetric_comp_step(
     machine's INI and HAL files, written into ``out_dir`` (all or none) as
     :func:`comp_step` writes a controller's tables, with its checks (the INI an input)."""
     machine, out_dir, ini = _machine(machine), _path(out_dir, "out_dir"), _path(ini, "ini")
-    tables = _argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
     notes = check_tables_machine(tables, machine)
     merged = merge_config(ini, tables, machine, out_dir)
     inputs = _comp_inputs(machine, tables) | {"ini": ini}

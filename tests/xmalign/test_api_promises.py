@@ -212,6 +212,10 @@ def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) 
     _refused(lambda: api.program_step(machine, plan, tmp_path / "p.json"), "pose")
     _refused(lambda: api.comp_step(machine, "errors.csv", tmp_path), "tables")
     _refused(lambda: api.program_step(machine, None, 42), "plan_path", "42")
+    _refused(lambda: api.identify("session.json", "joint"), "session", "Session")
+    _refused(lambda: api.error_table_frames("errors.csv"), "tables", "ErrorTableSet")
+    _refused(lambda: api.squareness_frame(3), "tables")
+    _refused(lambda: api.iso230_2_frame("x"), "result", "PostResult")
 
 
 def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:
