@@ -92,13 +92,20 @@ def test_sinumerik_step_min_max_agree_exactly_with_the_point_count():
     assert "$AA_ENC_COMP_MAX[0,AX1]=400.000002" in files["AX_EEC.INI"]
 
 
-def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to_md32450():
-    tables, _ = _errors()
-    for name in ("EXX", "EYY"):  # reversals that vary along the axis (Z's is constant)
+def _three_reversals() -> tuple[ErrorTableSet, dict[str, dict[str, np.ndarray]]]:
+    """:func:`_errors` with reversals that vary along X and Y too (Z's is a constant -2 um)."""
+    tables, truth = _errors()
+    for name in ("EXX", "EYY"):
         mean = tables.tables[name]
         half_mm = 1e-3 * (0.5 + mean.positions_mm / 200.0)
         tables.tables[name + "+"] = Table(mean.positions_mm, mean.values - half_mm, mean.u95)
         tables.tables[name + "-"] = Table(mean.positions_mm, mean.values + half_mm, mean.u95)
+        truth[name] = {"+": mean.values - half_mm, "-": mean.values + half_mm}
+    return tables, truth
+
+
+def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to_md32450():
+    tables, _ = _three_reversals()
     eight_and_more = make_machine(controller="sinumerik")
     cec = compensate(eight_and_more, tables, "sinumerik").files["NC_CEC.INI"]
     assert "$AN_CEC[8,0]" in cec  # 840D sl: 6 cross + 3 reversal tables
@@ -109,6 +116,26 @@ def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to
     # the reversal that varies least along its axis (Z's) gives way: a constant in MD32450
     assert cec.count("MD32450 $MA_BACKLASH[0] =") == 1 and "; Z: no table left" in cec
     assert "MD32450 carries it as a constant" in compensation.loading.reversal
+
+
+@pytest.mark.parametrize("returns", ["+", "-"])
+def test_sinumerik_828d_backlash_is_the_machines_play_whatever_the_return_direction(returns):
+    """MD32450 is positive when the encoder leads the machine part (the '-' approach stops
+    above the '+' one): Z's play is e- - e+ = -2 um, so -0.002 mm whichever way Z is
+    referenced (it once flipped with the direction, and doubled the play in one of them)."""
+    tables, truth = _three_reversals()
+    machine = make_machine(controller="sinumerik", series="828D", reference_return={"Z": returns})
+    files = compensate(machine, tables, "sinumerik").files
+    assert (
+        "; Z: no table left for its reversal: MD32450 $MA_BACKLASH[0] = -0.002000 on AX3"
+        in (files["NC_CEC.INI"])
+    )
+    positions = tables.tables["EZZ"].positions_mm
+    datum = np.interp(0.0, positions, truth["EZZ"][returns])  # Z's reference: 0
+    for direction in "+-":
+        at, values = taken_out("sinumerik", files, machine, direction)["EZZ"]
+        expected = np.interp(at, positions, truth["EZZ"][direction]) - datum
+        np.testing.assert_allclose(values, expected, atol=1e-6, err_msg=direction)
 
 
 def test_sinumerik_828d_refuses_more_than_200_points():

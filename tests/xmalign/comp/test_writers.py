@@ -54,12 +54,34 @@ def test_sinumerik_cec_cross_tables_reversal_and_activation():
     # the reversal: E+ - E- = -4 um, correction +4 um (6 cross tables come first)
     assert "$AN_CEC_DIRECTION[6]=1" in lines and "$AN_CEC[6,0]=0.004000" in lines
     assert not any(line.startswith("$AN_CEC[7,") for line in lines)
-    # SD41300 / SD41310 switch every table on
+    # SD41300: every table is loaded switched off (they are switched on one at a time after
+    # the sign check), SD41310 weight 1
+    assert not any("=TRUE" in line for line in lines if not line.startswith(";"))
     for t in range(7):
-        assert f"$SN_CEC_TABLE_ENABLE[{t}]=TRUE" in lines
+        assert f"$SN_CEC_TABLE_ENABLE[{t}]=FALSE" in lines
         assert f"$SN_CEC_TABLE_WEIGHT[{t}]=1.0" in lines
     # the tables carry the reversal: the control's backlash goes to 0, said in the file
     assert any("set MD32450 $MA_BACKLASH to 0 on X" in line for line in lines)
+
+
+@pytest.mark.parametrize("series", ["840D sl", "828D"])
+def test_sinumerik_files_say_the_load_order_of_k3_page_237(series):
+    """K3 03/2013 p. 237: the tables load only while MD32700 = 0 and MD32710 = 0; MD38000 /
+    MD18342 reformat the static user memory at the next start (archive first); an 828D
+    has no MD18342. The sign check measures the axis, not a compensation display."""
+    tables = with_reversal(make_tables({"EYX": [0, 10, 0, 0, 0]}), "EXX", 2.0)
+    machine = make_machine(controller="sinumerik", series=series)
+    files = compensate(machine, tables, "sinumerik").files
+    for name in ("AX_EEC.INI", "NC_CEC.INI"):
+        text = files[name]
+        assert "MD32700 $MA_ENC_COMP_ENABLE[0]=0 AND MD32710 $MA_CEC_ENABLE=0" in text
+        assert "p. 237" in text and "archive the NC" in text
+        assert "reformats the static user memory at the next start" in text
+        assert ("MD18342 $MN_MM_CEC_MAX_POINTS" in text) == (series != "828D"), name
+        assert ("828D: no MD18342" in text) == (series == "828D"), name
+    check = compensate(machine, tables, "sinumerik").loading.check
+    assert "dial gauge" in check and "encoder actual value" in check
+    assert "one at a time" in check
 
 
 def test_sinumerik_refuses_more_points_than_md38000(monkeypatch):
