@@ -4,6 +4,7 @@ reference-return direction; the family's limits; the loading notes."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -158,6 +159,40 @@ def test_heidenhain_tnc_4xx_tables_start_at_zero_at_the_datum_with_power_of_two_
     assert [float(value) for value in rows[0][2:]] == [-0.003, 0.0, 0.0, 0.0]
     readme = files["HEIDENHAIN.TXT"]
     assert "MP730" in readme and "TNC 4xx" in readme and "2^19 x 0.1 um" in readme
+
+
+@pytest.mark.parametrize("series", ["TNC 640", "TNC 4xx"])
+def test_heidenhain_txt_says_what_the_tables_hold_where_they_start(series):
+    """HEIDENHAIN.TXT once said every table is zero at the reference point while X.COM's
+    first row held the reversal: each of its statements is checked against the tables."""
+    machine = make_machine(controller="heidenhain", series=series)
+    files = compensate(machine, _errors()[0], "heidenhain").files
+    readme = files["HEIDENHAIN.TXT"]
+    assert "every table is zero" not in readme and "starts at 0" not in readme
+    for axis in "XYZ":
+        lines = files[f"{axis}.COM"].splitlines()
+        header = lines[1].split()
+        rows = np.array([[float(v) for v in line.split()] for line in lines[2:-1]])
+        at = rows[0, 1] if series == "TNC 4xx" else float(machine.cnc.reference["XYZ".index(axis)])
+        values = {
+            name: np.interp(at, rows[:, 1], rows[:, header.index(name)]) for name in header[2:]
+        }
+        stated = re.search(
+            rf"^{axis}\.COM at the \w+(?: \w+)? {axis} = (\S+) mm: (.*)$", readme, re.M
+        )
+        assert stated is not None, axis
+        assert float(stated.group(1)) == pytest.approx(at)
+        zero, _, held = stated.group(2).partition("; ")
+        for name in zero.removesuffix(" zero").split(", "):
+            assert values[name] == pytest.approx(0.0, abs=5e-6), (axis, name)
+        for name, value in re.findall(r"(\w+) ([+-]\d\.\d{5}) mm", held):
+            assert values[name] == pytest.approx(float(value), abs=5e-6), (axis, name)
+        # X and Z have a reversal (3 and -2 um): it is stated, in the other direction's column
+        assert ("the reversal there" in held) == (axis != "Y"), axis
+    if series == "TNC 4xx":
+        assert "CONFIG.CMA goes as CONFIG.S, each .COM as .V" in readme
+        assert "p. 4-31" in readme
+        assert "BACKLASH column on a TNC 4xx" in readme
 
 
 def test_heidenhain_tnc_4xx_spacing_follows_the_manuals_example():
