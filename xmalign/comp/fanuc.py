@@ -16,7 +16,9 @@ report A-77810E "Bidirectional pitch error compensation":
   the section from ``(i - 1)·interval`` to ``i·interval``, so the most distant
   point on the - side is ``R - stroke/interval + 1`` (the 0i-PB parameter
   manual's example, B-63980EN/01 p. 100);
-- the point numbers 0 .. 1023 are shared by all axes;
+- the point numbers 0 .. 1023 are shared by all axes; xmalign numbers the axes one
+  after the other and never gives an axis's reference number (3620) to a point of
+  another axis (a gap of one number where the reference lies at the negative end);
 - parameter tape format ``N<param>A<axis>P<value>...;`` (Series 30i/31i/32i:
   ``N<param>Q1A<axis>P<value>...;``) and pitch data ``N1<point>P<value>;``
   (``N10000`` is point 0), between ``%`` lines.
@@ -120,8 +122,9 @@ def _increments(correction: Vec, magnification: int) -> np.ndarray:
 def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: int) -> PitchTable:
     """Fanuc pitch data for one axis, numbered from the first free point ``next_free``.
 
-    The reference point number must not be negative, so an axis whose reference
-    lies at its negative end starts one number later. Corrections are zero at the
+    The reference point number is never a point of an axis numbered before (it is
+    ``next_free`` or above: a gap when the reference lies at the axis's negative end,
+    where it holds no section), nor negative. Corrections are zero at the
     reference approached in the reference-return direction; 3627 is the correction
     there approached the other way (A-77810E, table (a)).
     """
@@ -137,7 +140,7 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
     correction_neg = -np.interp(at, positions, own.reverse) / unit_mm
     opposite = -np.interp(reference, positions, own.table(own.opposite_direction)) / unit_mm
     count = len(sections) - 1
-    first_number = max(next_free, int(sections[0]) + 1)
+    first_number = max(next_free, next_free + int(sections[0]) + 1)
     check_count(count, MAX_POINTS_PER_AXIS, f"{axis} (per axis)", "Fanuc")
     for magnification in range(1, MAX_MAGNIFICATION + 1):
         values = _increments(correction, magnification)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.xmalign.comp.conftest import make_machine, make_tables, with_reversal
-from xmalign.comp import compensate, fanuc, heidenhain, isg, linuxcnc, sinumerik
+from xmalign.comp import compensate, fanuc, fit_for, heidenhain, isg, linuxcnc, sinumerik
 from xmalign.errors import InputError, OutOfRangeError
 
 
@@ -84,6 +84,29 @@ def test_sinumerik_files_say_the_load_order_of_k3_page_237(series):
     assert "one at a time" in check
 
 
+@pytest.mark.parametrize("reference_mm", [[0, 0, 0], [200, 150, -100], [400, 300, -200]])
+def test_fanuc_no_axis_reference_number_is_another_axis_point(reference_mm):
+    """Parameter 3620 of an axis never names a point number of another axis (Y's reference
+    3620 = 150 once was X's last negative-direction point)."""
+    tables = make_tables({"EXX": [0, -2, -3, -1, 1]})
+    with_reversal(tables, "EXX", 1.0)
+    with_reversal(tables, "EYY", 1.0)
+    returns = {"X": "+", "Y": "-", "Z": "+"}
+    machine = make_machine(controller="fanuc", reference_mm=reference_mm, reference_return=returns)
+    pitch = fanuc.pitch_tables(fit_for(machine, tables, "fanuc"), machine)
+    used = {}
+    for table in pitch:
+        used[table.axis] = set(range(table.first_number, table.last_number + 1))
+        if table.negative_first_number is not None:
+            negative = table.negative_first_number
+            used[table.axis] |= set(range(negative, negative + table.count))
+    for table in pitch:
+        for other, numbers in used.items():
+            if other != table.axis:
+                assert table.reference_number not in numbers, (table.axis, other)
+                assert not numbers & used[table.axis], (table.axis, other)
+
+
 def test_sinumerik_refuses_more_points_than_md38000(monkeypatch):
     monkeypatch.setattr(sinumerik, "MAX_EEC_POINTS", 4)
     with pytest.raises(OutOfRangeError, match="limit of 4"):
@@ -95,10 +118,11 @@ def test_fanuc_incremental_values_and_parameters():
     lines = _files("fanuc", tables)["PITCH.TXT"].splitlines()
     assert lines[0] == "%" and lines[-1] == "%"
     # X: reference (x = 0) at its negative end: point R = 0, sections 1..4 are points 1..4
-    # Y: points 5..7 (75 mm, 4 sections), reference 4; Z: -200..0, reference at its + end
-    assert "N03620A1P0A2P4A3P12;" in lines
-    assert "N03621A1P1A2P5A3P9;" in lines
-    assert "N03622A1P4A2P8A3P12;" in lines
+    # Y: reference 5, not X's last point 4 (a gap), points 6..9 (75 mm, 4 sections);
+    # Z: -200..0, reference at its + end: points 10..13, reference 13
+    assert "N03620A1P0A2P5A3P13;" in lines
+    assert "N03621A1P1A2P6A3P10;" in lines
+    assert "N03622A1P4A2P9A3P13;" in lines
     assert "N03623A1P1A2P1A3P1;" in lines
     assert "N03624A1P100000A2P75000A3P50000;" in lines
     assert not any(line.startswith("N03626") for line in lines)  # no direction data
@@ -110,9 +134,9 @@ def test_fanuc_incremental_values_and_parameters():
         "N10004P-2;",
     ]
     # Z: corrections -4, -3, -2, -1, 0 (zero at z = 0) -> increments 1, 1, 1, 1
-    assert [line for line in lines if line.startswith(("N10009", "N10012"))] == [
-        "N10009P1;",
-        "N10012P1;",
+    assert [line for line in lines if line.startswith(("N10010", "N10013"))] == [
+        "N10010P1;",
+        "N10013P1;",
     ]
 
 
