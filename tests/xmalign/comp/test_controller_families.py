@@ -268,3 +268,42 @@ def test_comp_prints_who_carries_the_reversal_and_the_check(tmp_path):
     assert "Not confirmed from a manual: the unit of 3624" in result.stdout
     readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
     assert "Check before use:" in readme and "X 0 (-)" in readme
+
+
+@pytest.mark.parametrize(
+    ("series", "controller", "expected"),
+    [
+        (None, "fanuc", "FANUC Series 0i"),
+        ("840D sl", "fanuc", "FANUC Series 0i"),
+        ("828D", "heidenhain", "HEIDENHAIN MANUALplus 620"),
+        ("828D", "sinumerik", "SINUMERIK 828D"),
+    ],
+)
+def test_controller_option_chooses_the_familys_default_series(series, controller, expected):
+    """``comp --controller fanuc`` on a Sinumerik machine file wrote "FANUC Series 840D sl"
+    (or failed on cnc.series): another family gets its own default series."""
+    cnc = {} if series is None else {"series": series}
+    machine = make_machine(controller="sinumerik", **cnc)
+    files = compensate(machine, _errors()[0], controller).files
+    assert any(expected in text for text in files.values())
+    assert not any(f"Series {series}" in text for text in files.values() if controller == "fanuc")
+
+
+def test_comp_controller_fanuc_with_the_example_machine_file(tmp_path):
+    from tests.cli_helpers import run_in_process
+
+    root = Path(__file__).resolve().parents[3] / "examples"
+    result = run_in_process(
+        "comp",
+        "--errors",
+        str(root / "errors.csv"),
+        "--machine",
+        str(root / "fyxz.yaml"),
+        "--out",
+        str(tmp_path / "comp"),
+        "--controller",
+        "fanuc",
+    )
+    assert result.returncode == 0, result.stderr
+    readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
+    assert readme.startswith("xmalign: FANUC Series 0i pitch error compensation")
