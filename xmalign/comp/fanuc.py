@@ -223,10 +223,10 @@ def render_tape(tables: list[PitchTable], machine: Machine) -> str:
 
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
     """Reversal, the check on the machine and what the manuals left open."""
-    return _loading(pitch_tables(fit, machine), machine)
+    return _loading(pitch_tables(fit, machine), machine, fit.warnings)
 
 
-def _loading(tables: list[PitchTable], machine: Machine) -> Loading:
+def _loading(tables: list[PitchTable], machine: Machine, fit_warnings: tuple[str, ...]) -> Loading:
     own = [t.reversal for t in tables]
     interval = ", ".join(
         f"{t.axis} {t.interval_units * machine.cnc.detection_unit_um * 1e-3:g} mm" for t in tables
@@ -245,12 +245,12 @@ def _loading(tables: list[PitchTable], machine: Machine) -> Loading:
             "the tape syntax of the pitch data lines (N1xxxxP...;)"
             + (" and the Q1 of a 30i tape in them" if machine.series in SERIES_WITH_PATH else ""),
         ),
-        warnings=backlash_warnings(own, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(own, BACKLASH_PARAMETER) + fit_warnings,
     )
 
 
-def render_readme(tables: list[PitchTable], machine: Machine) -> str:
-    """What to set by hand before and after loading the tape."""
+def render_readme(tables: list[PitchTable], machine: Machine, fit_warnings: tuple[str, ...]) -> str:
+    """What to set by hand before and after loading the tape (and the fit's warnings)."""
     unit = machine.cnc.detection_unit_um
     lines = [
         f"xmalign: FANUC Series {machine.series} pitch error compensation (PITCH.TXT)",
@@ -279,7 +279,7 @@ def render_readme(tables: list[PitchTable], machine: Machine) -> str:
         "switch the CNC off and on, then make a reference position return on every axis.",
         "STRAIGHTNESS.TXT: for the straightness compensation option (if the machine has it),",
         "corrections to enter by hand; set up the option by the CNC's own manual.",
-        *_loading(tables, machine).lines(),
+        *_loading(tables, machine, fit_warnings).lines(),
     ]
     return "\n".join(lines) + "\n"
 
@@ -320,6 +320,6 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     tables = pitch_tables(fit, machine)
     return {
         "PITCH.TXT": render_tape(tables, machine),
-        "PITCH_README.TXT": render_readme(tables, machine),
+        "PITCH_README.TXT": render_readme(tables, machine, fit.warnings),
         "STRAIGHTNESS.TXT": render_straightness(fit, machine),
     }

@@ -174,7 +174,7 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " run (xmalign post --verify-data): it must move by minus the table's value"
         ),
         unconfirmed=tuple(unconfirmed),
-        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER) + fit.warnings,
     )
 
 

@@ -75,4 +75,5 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " the positions with the verification run (xmalign post --verify-data)"
         ),
         unconfirmed=("a complete published parameter file (only the format page's example)",),
+        warnings=fit.warnings,
     )

@@ -85,6 +85,7 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " joint.N.backlash-filt (halcmd getp): it must equal nominal minus actual of the"
             " table for that direction"
         ),
+        warnings=fit.warnings,
     )
 
 

@@ -305,7 +305,7 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " opposite of the LEC values in AX_EEC.INI (K3: a positive LEC value moves the"
             " axis negative)",
         ),
-        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER) + fit.warnings,
     )
 
 

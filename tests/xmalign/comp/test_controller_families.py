@@ -307,3 +307,41 @@ def test_comp_controller_fanuc_with_the_example_machine_file(tmp_path):
     assert result.returncode == 0, result.stderr
     readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
     assert readme.startswith("xmalign: FANUC Series 0i pitch error compensation")
+
+
+def _extrapolated_below(tables: ErrorTableSet, axis: str, u95_um: float) -> ErrorTableSet:
+    """``axis``'s tables with their first point (the axis's lower travel end, where the
+    comp test machine's reference lies) marked extrapolated, its u95 ``u95_um`` (urad)."""
+    for name, table in list(tables.tables.items()):
+        if name[2] != axis:
+            continue
+        measured = np.ones(len(table.positions_mm), dtype=bool)
+        measured[0] = False
+        u95 = np.array(table.u95, dtype=float)
+        u95[0] = u95_um * (1e-3 if name[1] in "XYZ" else 1e-6)
+        tables.tables[name] = Table(table.positions_mm, table.values, u95, measured)
+    return tables
+
+
+@pytest.mark.parametrize("controller", ["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"])
+def test_comp_names_the_tables_whose_reference_value_is_extrapolated(controller):
+    """From one station the reference point may lie beyond the measured stroke: every
+    writer names those tables with their U95 there, in its notes and its files."""
+    tables = _extrapolated_below(_errors()[0], "X", 29.0)
+    compensation = compensate(make_machine(controller=controller), tables, controller)
+    [warning] = [w for w in compensation.loading.warnings if "outside the measured" in w]
+    assert warning.startswith("the reference point X = 0 mm lies outside the measured range")
+    assert "(100 to 400 mm)" in warning
+    assert "EXX 29.0 um" in warning and "EAX 29.0 urad" in warning and "EYY" not in warning
+    assert "A second station whose lines measure X across 0 mm removes it" in warning
+    if controller != "linuxcnc":  # LinuxCNC's comp files take no text (their notes: comp)
+        assert any(warning in text for text in compensation.files.values())
+
+
+def test_no_warning_when_the_reference_was_measured():
+    tables = _extrapolated_below(_errors()[0], "X", 29.0)
+    machine = make_machine(
+        controller="sinumerik", reference_mm=[100.0, 0.0, 0.0], reference_return={"X": "+"}
+    )
+    warnings = compensate(machine, tables, "sinumerik").loading.warnings
+    assert not any("outside the measured" in warning for warning in warnings)
