@@ -10,11 +10,11 @@ over the machine's whole travel at its tool point; a writer only formats them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import ModuleType
 
 from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
-from xmalign.comp.common import Loading
+from xmalign.comp.common import Loading, table_sources
 from xmalign.comp.fit import CompensationFit, fit_compensation
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
@@ -48,8 +48,9 @@ def for_controller(machine: Machine, controller: str) -> Machine:
 
 
 def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> CompensationFit:
-    """The controller's tables fitted over the machine's travel at its tool point."""
-    return fit_compensation(
+    """The controller's tables fitted over the machine's travel at its tool point (with
+    the error-table file they came from, for the files' history)."""
+    fit = fit_compensation(
         writer(controller).MODEL,
         tables,
         Chain.parse(machine.chain),
@@ -57,6 +58,7 @@ def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> Compens
         machine.cnc.tool_offset,
         machine.cnc.reference,
     )
+    return replace(fit, sources=table_sources(tables))
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Loading,
     Reversal,
     axis_number,
@@ -57,6 +58,7 @@ from xmalign.comp.common import (
     check_count,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import PITCH, STRAIGHTNESS, CompensationFit, CompModel
 from xmalign.errors import OutOfRangeError
@@ -74,6 +76,10 @@ MAX_MAGNIFICATION = 100
 SERIES_WITH_PATH = ("30i", "31i", "32i")
 #: The control's own backlash compensation (cutting feed; 1852 for rapid traverse).
 BACKLASH_PARAMETER = "parameters 1851 and 1852 (backlash compensation)"
+FORMAT = "xmalign.comp.fanuc/1"
+#: The notes take comments; the parameter tape gets PITCH.TXT.history (whether a parameter
+#: tape takes ``( )`` comments was not found in a manual).
+COMMENTS = {"PITCH_README.TXT": Comment("# "), "STRAIGHTNESS.TXT": Comment("# ")}
 
 
 @dataclass(frozen=True)
@@ -318,8 +324,9 @@ def render_straightness(fit: CompensationFit, machine: Machine) -> str:
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the parameter tape and its instructions."""
     tables = pitch_tables(fit, machine)
-    return {
+    files = {
         "PITCH.TXT": render_tape(tables, machine),
         "PITCH_README.TXT": render_readme(tables, machine, fit.warnings),
         "STRAIGHTNESS.TXT": render_straightness(fit, machine),
     }
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse
 
 from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.formats.provenance import FileSource
 from xmalign.geometry import Vec
 from xmalign.rigid_body import (
     AXES,
@@ -94,6 +95,8 @@ class CompensationFit:
     after_optional_um: float | None = None
     #: what the fit cannot vouch for (:func:`extrapolated_references`), said by every writer
     warnings: tuple[str, ...] = ()
+    #: the files the tables were made from (their hashes go into every controller file)
+    sources: tuple[FileSource, ...] = ()
 
     @property
     def removed_share(self) -> float:

@@ -51,6 +51,7 @@ import math
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Grid,
     Loading,
     backlash_warnings,
@@ -58,6 +59,7 @@ from xmalign.comp.common import (
     fitted,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
 from xmalign.errors import MachineKeyError
@@ -76,6 +78,10 @@ POWER_OF_TWO_SERIES = ("TNC 4xx",)
 REFUSED_SERIES = ("iTNC 530",)
 BACKLASH_PARAMETER = "the backlash machine parameter (MP710 on a TNC 4xx)"
 _WIDTH = 12
+FORMAT = "xmalign.comp.heidenhain/1"
+#: Only the notes take comments; no comment syntax of .COM / .CMA tables was found in a
+#: manual, so they get a NAME.history beside them.
+COMMENTS = {README_NAME: Comment("# ")}
 
 
 def _signed(value: float, decimals: int) -> str:
@@ -245,4 +251,4 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     files = {f"{axis}.COM": render_com(fit, machine, axis) for axis in AXES}
     files[CMA_NAME] = render_cma()
     files[README_NAME] = render_readme(fit, machine)
-    return files
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

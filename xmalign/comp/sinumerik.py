@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Grid,
     Loading,
     OwnTables,
@@ -51,6 +52,7 @@ from xmalign.comp.common import (
     fitted,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
 from xmalign.geometry import Vec
@@ -67,6 +69,9 @@ MAX_CEC_POINTS = 2000
 MAX_828D_TABLES = 8
 MAX_828D_POINTS = 200
 BACKLASH_PARAMETER = "MD32450 $MA_BACKLASH"
+FORMAT = "xmalign.comp.sinumerik/1"
+#: The history as ``;`` comments after the program name (K3's own example has them).
+COMMENTS = {"*.INI": Comment("; ", skip=1)}
 _MICRO = 1_000_000
 
 
@@ -311,4 +316,5 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
 
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the two init programs."""
-    return {"AX_EEC.INI": render_eec(fit, machine), "NC_CEC.INI": render_cec(fit, machine)}
+    files = {"AX_EEC.INI": render_eec(fit, machine), "NC_CEC.INI": render_cec(fit, machine)}
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

@@ -306,7 +306,7 @@ def test_comp_controller_fanuc_with_the_example_machine_file(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
-    assert readme.startswith("xmalign: FANUC Series 0i pitch error compensation")
+    assert "\nxmalign: FANUC Series 0i pitch error compensation (PITCH.TXT)\n" in readme
 
 
 def _extrapolated_below(tables: ErrorTableSet, axis: str, u95_um: float) -> ErrorTableSet:

@@ -246,3 +246,53 @@ def test_machine_file_keys_are_checked():
     with pytest.raises(InputError, match="detection_unit_um"):
         make_machine(detection_unit_um=0)
     assert linuxcnc.MODEL.directional and fanuc.MODEL.directional
+
+
+#: Each family's comment mark in the files that take comments (the rest get NAME.history).
+COMMENT_MARKS = {
+    "AX_EEC.INI": ";",
+    "NC_CEC.INI": ";",
+    "PITCH_README.TXT": "#",
+    "STRAIGHTNESS.TXT": "#",
+    "HEIDENHAIN.TXT": "#",
+    "joints.ini": "#",
+    "vol_comp.csv": "//",
+}
+
+
+@pytest.mark.parametrize("controller", ["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"])
+def test_every_controller_file_carries_its_history(controller, tmp_path):
+    """Format, software, time and the error-table file's SHA-256: as comments where the
+    format takes them, else in NAME.history, which ``sha256sum -c`` checks."""
+    import hashlib
+    import subprocess
+    from pathlib import Path
+
+    from tests.cli_helpers import run_in_process
+
+    errors = Path(__file__).resolve().parents[3] / "examples" / "errors.csv"
+    out = tmp_path / "comp"
+    result = run_in_process(
+        "comp", "--errors", str(errors), "--out", str(out), "--controller", controller
+    )
+    assert result.returncode == 0, result.stderr
+    input_line = f"input errors: {hashlib.sha256(errors.read_bytes()).hexdigest()}  {errors}"
+    written = sorted(path.name for path in out.iterdir())
+    assert written
+    for name in written:
+        if name.endswith(".history"):
+            continue
+        text = (out / name).read_text()
+        mark = COMMENT_MARKS.get(name)
+        if mark is None:  # a format without comments: the history beside it, checkable
+            history = (out / f"{name}.history").read_text()
+            assert f"# format: xmalign.comp.{controller}/1\n" in history
+            assert f"# {input_line}\n" in history and "# software: xmalign " in history
+            check = subprocess.run(
+                ["sha256sum", "-c", f"{name}.history"], cwd=out, capture_output=True, text=True
+            )
+            assert check.returncode == 0 and f"{name}: OK" in check.stdout, check.stderr
+        else:
+            assert f"{mark} format: xmalign.comp.{controller}/1\n" in text, name
+            assert f"{mark} {input_line}\n" in text and f"{mark} created_utc: " in text, name
+            assert not (out / f"{name}.history").exists()
