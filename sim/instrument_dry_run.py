@@ -22,12 +22,12 @@ from sim.tracker import VirtualTracker, measure_tracker
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
     InstrumentProgram,
-    point_list_csv,
     propose_tracer_places,
     tracer_points,
     tracker_place,
     tracker_points,
     write_instrument_program,
+    write_point_list,
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
@@ -94,7 +94,7 @@ def _tracker(
     points = tracker_points(machine)
     program = InstrumentProgram(points_mm=points)
     minutes = TRACKER_RUNS * _minutes(machine, program, folder / "tracker.nc", dialect)
-    atomic_write_text(folder / "points.csv", point_list_csv(program, machine.smr_offset))
+    write_point_list(folder / "points.csv", program, machine.smr_offset)
     tracker = VirtualTracker(tracker_place(machine), np.array(TRACKER_ROTATION_DEG), seed=seed)
     rows = measure_tracker(truth, tracker, points, TRACKER_RUNS, machine.smr_offset)
     write_tracker_points(folder / "tracker.csv", rows)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from dataclasses import dataclass
@@ -17,12 +16,12 @@ from trajectories.instruments import (
     InstrumentProgram,
     fly_paths,
     information_limit_um,
-    point_list_csv,
     propose_tracer_places,
     tracer_points,
     tracker_place,
     tracker_points,
     write_instrument_program,
+    write_point_list,
 )
 from xmalign.cli.common import console, error_console, machine_or_default, output_folder
 from xmalign.errors import InputError
@@ -32,6 +31,7 @@ from xmalign.formats.instruments import (
     read_tracker_points,
     write_tracker_points,
 )
+from xmalign.formats.provenance import sources
 from xmalign.formats.spatial_analyzer import (
     read_point_list,
     read_spatial_analyzer,
@@ -162,16 +162,11 @@ def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
     for note in notes:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
     if request.points_out is not None:
-        atomic_write_text(request.points_out, point_list_csv(program, machine.smr_offset))
+        write_point_list(request.points_out, program, machine.smr_offset)
     if request.out is not None:
         atomic_write_text(request.out, text)
     else:
         sys.stdout.write(text)
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes (the provenance of what was converted)."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def import_points(
@@ -206,8 +201,7 @@ def import_points(
     rows = tracker_points_from_export(
         exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
     )
-    inputs = {str(path): file_sha256(path) for path in (spatial_analyzer, points)}
-    write_tracker_points(out, rows, inputs)
+    write_tracker_points(out, rows, sources(spatial_analyzer=spatial_analyzer, points=points))
     runs = len({row.run for row in rows})
     error_console.print(
         f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
