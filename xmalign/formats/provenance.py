@@ -15,7 +15,10 @@ history"), written and read here and nowhere else:
 
   an ``input`` line ends with exactly what ``sha256sum FILE`` prints, so anyone
   can check the chain without xmalign; other ``# key: value`` lines carry
-  what a format adds (the error table's ``machine``).
+  what a format adds (the error table's ``machine``);
+- other formats write the same lines (:func:`history_lines`) in their own comment
+  syntax (G-code, controller files), and a format that takes no comment gets
+  ``NAME.history`` beside it (:func:`history_file`), which ``sha256sum -c`` checks.
 
 The SHA-256 is that of the file's bytes. A reader accepts every version up to
 the one it knows (``common.check_format``) and refuses a newer one with one line.
