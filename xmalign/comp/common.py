@@ -7,6 +7,7 @@ so the tool lands where it was commanded.
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
@@ -165,6 +166,10 @@ def own_tables(fit: CompensationFit, axis: str, machine: Machine, controller: st
     )
 
 
+#: The longest comment line a writer puts into a controller file (the notes are wrapped).
+COMMENT_WIDTH = 100
+
+
 @dataclass(frozen=True)
 class Loading:
     """What a technician must know to load a writer's files (printed by ``xmalign comp``).
@@ -181,11 +186,20 @@ class Loading:
     warnings: tuple[str, ...] = ()
 
     def lines(self, comment: str = "") -> list[str]:
-        """The loading notes as text lines, each prefixed by ``comment``."""
-        out = [f"{comment}Reversal: {self.reversal}", f"{comment}Check before use: {self.check}"]
-        out += [f"{comment}Not confirmed from a manual: {fact}" for fact in self.unconfirmed]
-        out += [f"{comment}Warning: {warning}" for warning in self.warnings]
-        return out
+        """The loading notes as text lines, each prefixed by ``comment``; in a file (a
+        ``comment`` mark given) wrapped to :data:`COMMENT_WIDTH` characters, for a control
+        whose blocks have a length limit."""
+        notes = [f"Reversal: {self.reversal}", f"Check before use: {self.check}"]
+        notes += [f"Not confirmed from a manual: {fact}" for fact in self.unconfirmed]
+        notes += [f"Warning: {warning}" for warning in self.warnings]
+        if not comment:
+            return notes
+        width = COMMENT_WIDTH - len(comment)
+        return [
+            comment + line
+            for note in notes
+            for line in textwrap.wrap(note, width, subsequent_indent="  ", break_long_words=False)
+        ]
 
 
 def backlash_warnings(tables: Sequence[Reversal], parameter: str) -> tuple[str, ...]:

@@ -322,7 +322,8 @@ def extrapolated_references(tables: ErrorTableSet, reference_mm: Vec) -> tuple[s
     warnings = []
     for axis in AXES:
         reference = float(reference_mm[AXIS_INDEX[axis]])
-        named, ranges = [], []
+        worst: dict[str, float] = {}  # table name (directions together) -> largest U95
+        ranges = []
         for name, table in sorted(tables.tables.items()):
             measured = table.positions_mm[table.measured_mask()]
             if name[2] != axis or not measured.size:
@@ -331,7 +332,8 @@ def extrapolated_references(tables: ErrorTableSet, reference_mm: Vec) -> tuple[s
             ranges.append((low, high))
             if not low - 1e-6 <= reference <= high + 1e-6:
                 u95 = float(np.interp(reference, table.positions_mm, table.u95))
-                named.append(_u95_text(name, u95))
+                worst[name[:3]] = max(u95, worst.get(name[:3], 0.0))
+        named = [_u95_text(name, u95) for name, u95 in worst.items()]
         if named:
             low = max(r[0] for r in ranges)
             high = min(r[1] for r in ranges)

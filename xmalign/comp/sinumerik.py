@@ -227,9 +227,8 @@ def render_cec(fit: CompensationFit, machine: Machine) -> str:
     limit, limit_name = _point_limit(machine)
     out = [
         "%_N_NC_CEC_INI",
-        f"; xmalign: SINUMERIK {machine.series} sag/angularity compensation; value = correction"
-        " (minus the error) in mm,",
-        "; cross tables zero at the reference point.",
+        f"; xmalign: SINUMERIK {machine.series} sag/angularity compensation;",
+        "; value = correction (minus the error) in mm, cross tables zero at the reference point.",
         *load_order(machine),
         "; Every table is loaded switched off (SD41300 $SN_CEC_TABLE_ENABLE[t]=FALSE): switch",
         "; them on one at a time for the sign check below, then all (SD41310 weight 1.0).",
@@ -261,15 +260,15 @@ def load_order(machine: Machine) -> list[str]:
     the next start, so the NC is archived first; an 828D has no MD18342 (eight fixed
     tables of 200 points, K3 p. 264).
     """
-    sizes = "MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0]"
-    if machine.series != "828D":
-        sizes += " and MD18342 $MN_MM_CEC_MAX_POINTS[t]"
+    sizes = "MD38000" if machine.series == "828D" else "MD38000 or MD18342"
     lines = [
         "; Load order (SINUMERIK K3 Compensations, 03/2013, p. 237):",
-        "; 1. archive the NC (a series start-up archive) before changing " + sizes + ":",
+        f"; 1. archive the NC (a series start-up archive) before changing {sizes}:",
         ";    a change reformats the static user memory at the next start, the archive",
         ";    restores what was there;",
-        f"; 2. set {sizes} to at least the counts below, NewConfig / power on;",
+        "; 2. set MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0]"
+        + ("" if machine.series == "828D" else " and MD18342 $MN_MM_CEC_MAX_POINTS[t]"),
+        ";    to at least the counts below, NewConfig / power on;",
         "; 3. MD32700 $MA_ENC_COMP_ENABLE[0]=0 AND MD32710 $MA_CEC_ENABLE=0 on every axis:",
         ";    the tables are written only while both compensations are off;",
         "; 4. run AX_EEC.INI and NC_CEC.INI; then MD32700=1 and MD32710=1 on the axes",

@@ -334,8 +334,21 @@ def test_comp_names_the_tables_whose_reference_value_is_extrapolated(controller)
     assert "(100 to 400 mm)" in warning
     assert "EXX 29.0 um" in warning and "EAX 29.0 urad" in warning and "EYY" not in warning
     assert "A second station whose lines measure X across 0 mm removes it" in warning
+    assert "EXX+" not in warning  # the directions' tables together: the largest U95
     if controller != "linuxcnc":  # LinuxCNC's comp files take no text (their notes: comp)
-        assert any(warning in text for text in compensation.files.values())
+        # in a file the notes are comment lines wrapped at 100 characters
+        unwrapped = [
+            " ".join(line.lstrip(";#/ ") for line in text.splitlines())
+            for text in compensation.files.values()
+        ]
+        assert any(warning in text for text in unwrapped)
+        # a Sinumerik block has a length limit: no comment line there is longer than 100
+        assert all(
+            len(line) <= 100
+            for name, text in compensation.files.items()
+            for line in text.splitlines()
+            if name.endswith(".INI")
+        )
 
 
 def test_no_warning_when_the_reference_was_measured():
