@@ -17,6 +17,7 @@ coordinates) and adds up its machine time as it goes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from xmalign.formats.instruments import (
     TrackerFile,
     TrackerPoint,
 )
+from xmalign.formats.provenance import history_file
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points
@@ -127,6 +129,9 @@ def diagonal_paths(low_mm: Vec, high_mm: Vec, n: int, seed: int = 0) -> list[tup
 
 #: Dwell at each point for a tracker or tracer reading (seed 000: 3 s), s.
 POINT_DWELL_S = 3.0
+#: The formats in the history of an instrument program and of a point list.
+INSTRUMENT_PROGRAM_FORMAT = "xmalign.instrument-program/1"
+POINT_LIST_FORMAT = "xmalign.point-list/1"
 #: Seed 000's strategy: a 5 x 4 x 3 grid over the travel and 190 random points.
 TRACKER_GRID = (5, 4, 3)
 TRACKER_RANDOM = 190
@@ -214,7 +219,12 @@ def write_instrument_program(
     rapid = machine.feed_mm_min.rapid
     timer = MachineTimer(program_start_mm(machine), machine.cnc.acceleration_mm_s2)
     top = float(machine.travel_max_mm[2])
-    blocks = [*dialect.begin(), dialect.comment(title), dialect.retract({"Z": top})]
+    blocks = [
+        *dialect.begin(),
+        dialect.comment(title),
+        *dialect.history(INSTRUMENT_PROGRAM_FORMAT),
+        dialect.retract({"Z": top}),
+    ]
     for index, point in enumerate(plan.points_mm):
         blocks.append(dialect.comment(f"point {index}"))
         blocks.append(dialect.feed(_axes(point), rapid))
@@ -229,6 +239,15 @@ def write_instrument_program(
         timer.move(end, plan.fly_feed_mm_min)
     blocks.extend(dialect.end({"Z": top}))
     return dialect.render(blocks), timer.result()
+
+
+def point_list_files(path: Path, plan: InstrumentProgram, smr_offset_mm: Vec) -> dict[Path, bytes]:
+    """The point list (:func:`point_list_csv`) and ``NAME.history`` beside it, as bytes to
+    write: a tracker's software reads the list, so it takes no comment (docs/formats.md)."""
+    data = point_list_csv(plan, smr_offset_mm).encode("utf-8")
+    history = history_file(POINT_LIST_FORMAT, path.name, data, ())
+    return {path: data, path.with_name(f"{path.name}.history"): history.encode()}
+
 
 
 def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:

@@ -45,7 +45,7 @@ from trajectories.instruments import (
     InstrumentProgram,
     fly_paths,
     information_limit_um,
-    point_list_csv,
+    point_list_files,
     propose_tracer_places,
     tracer_points,
     tracker_place,
@@ -1034,7 +1034,7 @@ def write_instrument_step(
     gcode, time = write_instrument_program(program, machine, dialect_made, title)
     files: dict[Path, bytes] = {}
     if points_path is not None:
-        files[points_path] = point_list_csv(program, machine.smr_offset).encode("utf-8")
+        files.update(point_list_files(points_path, program, machine.smr_offset))
     if program_path is not None:
         files[program_path] = gcode.encode("utf-8")
     atomic_write_files(files)
@@ -1140,5 +1140,5 @@ def import_tracker_step(
         exported, read_point_list(points_path), machine.smr_offset, station, str(export_path)
     )
     made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
-    write_tracker_points(out, rows, {source.path: source.sha256 for source in made_from})
+    write_tracker_points(out, rows, made_from)
     return rows

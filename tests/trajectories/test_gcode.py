@@ -244,3 +244,38 @@ def test_target_outside_travel_is_refused(machine, plan):
     plan.lines[0].targets_mm = plan.lines[0].targets_mm + 100.0
     with pytest.raises(OutOfRangeError, match=r"line X: target \d+ .* outside the travel"):
         write_program(plan, machine, DIALECTS["iso"]())
+
+
+@pytest.mark.parametrize("dialect", sorted(DIALECTS))
+def test_every_program_carries_its_history_and_still_runs(dialect, tmp_path, machine, plan):
+    """Format, software, time and the plan file's SHA-256 as the dialect's own comments
+    (the file named without its folder, a long name cut short); the program still runs on
+    the simulated CNC and, for LinuxCNC, in LinuxCNC's own rs274."""
+    import hashlib
+
+    from xmalign.formats.plan import read_plan, write_plan
+
+    path = tmp_path / ("p" * 120 + ".json")
+    write_plan(path, plan)
+    text = write_program(read_plan(path), machine, DIALECTS[dialect]("RUN"))
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    mark = {"iso": "(", "linuxcnc": "(", "sinumerik": "; ", "heidenhain": "; "}[dialect]
+    assert f"{mark}format: xmalign.program/1" in text
+    assert f"{mark}software: xmalign " in text and f"{mark}created_utc: 20" in text
+    assert f"{mark}input plan: {digest}  {'p' * 80}..." in text
+    assert f"{mark}dialect: {dialect}" in text
+    assert all(len(line) < 200 for line in text.splitlines())
+    events = list(SimulatedCnc(machine, SimClock()).run_program(text, dialect))
+    assert events[-1].kind == "end"
+    if dialect == "linuxcnc" and not RS274_MISSING:
+        program = tmp_path / "run.ngc"
+        program.write_text(text)
+        result = subprocess.run(
+            ["rs274", "-g", str(program)],
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert result.returncode == 0, result.stdout[-2000:] + result.stderr
+        assert f'COMMENT("input plan: {digest}' in result.stdout

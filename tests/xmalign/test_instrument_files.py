@@ -22,6 +22,7 @@ from xmalign.formats.instruments import (
     write_tracer_lengths,
     write_tracker_points,
 )
+from xmalign.formats.provenance import FileSource
 
 coordinate = st.floats(-5000, 5000, allow_nan=False)
 point = st.tuples(coordinate, coordinate, coordinate).map(np.array)
@@ -69,12 +70,12 @@ def _same_tracker(a: TrackerPoint, b: TrackerPoint) -> None:
 @given(tracker_points())
 def test_tracker_points_round_trip(tmp_path_factory: pytest.TempPathFactory, points) -> None:
     path = tmp_path_factory.mktemp("t") / "tracker.csv"
-    write_tracker_points(path, points, {"plan.json": "ab" * 32})
+    write_tracker_points(path, points, [FileSource("plan", "plan.json", "ab" * 32)])
     read = read_tracker_points(path)
     assert len(read.points) == len(points)
     for a, b in zip(points, read.points, strict=True):
         _same_tracker(a, b)
-    assert any("sha256=" in line for line in read.comments)
+    assert f"# input plan: {'ab' * 32}  plan.json" in read.comments
 
 
 @settings(max_examples=40, deadline=None)
@@ -195,3 +196,29 @@ def test_machine_keys_for_tracker_and_tracer(tmp_path: Path) -> None:
         load_machine(bad)
     assert str(bad) in str(caught.value) and "tracer" in str(caught.value)
     assert "\n" not in str(caught.value)
+
+
+def test_tracker_and_tracer_files_carry_the_common_history_sha256sum_checks(tmp_path) -> None:
+    """The history form of every CSV xmalign writes: format, software, created_utc, and
+    ``# input ROLE: SHA-256  PATH`` lines that ``sha256sum -c`` checks once the prefix is
+    taken off."""
+    import subprocess
+
+    export = tmp_path / "export.txt"
+    export.write_text("any bytes\n")
+    tracker = tmp_path / "tracker.csv"
+    point = TrackerPoint("T1", 0, 0, np.zeros(3), np.ones(3))
+    write_tracker_points(tracker, [point], [FileSource.of("spatial_analyzer", export)])
+    tracer = tmp_path / "tracer.csv"
+    write_tracer_lengths(tracer, [], inputs=[FileSource.of("plan", export)])
+    for path, name in ((tracker, "tracker-points"), (tracer, "tracer-lengths")):
+        lines = path.read_text().splitlines()
+        assert lines[1:3] == [f"# format: xmalign.{name}/1", lines[2]]
+        assert lines[2].startswith("# software: xmalign ") and lines[3].startswith(
+            "# created_utc: "
+        )
+        checks = [line.split(": ", 1)[1] for line in lines if line.startswith("# input ")]
+        result = subprocess.run(
+            ["sha256sum", "-c"], input="\n".join(checks) + "\n", capture_output=True, text=True
+        )
+        assert result.returncode == 0 and f"{export}: OK" in result.stdout, result.stderr

@@ -51,6 +51,12 @@ def test_round_trip_keeps_the_plan_identity_setups_and_segments(tmp_path):
             writer.append(MeasurementRow(**{**row.__dict__, "segment": 1}))
     back = load_measurements(path)
     assert back.plan_sha256 == "ab" * 32
+    # one meaning per name: the identity is plan_identity, the file's bytes '# input plan:'
+    first = path.read_text().splitlines()[0]
+    assert first == f"# xmalign measurements plan_identity={'ab' * 32}"
+    # a file written under the old name (plan_sha256=, the same identity) reads alike
+    path.write_text(path.read_text().replace("plan_identity=", "plan_sha256=", 1))
+    assert load_measurements(path).plan_sha256 == "ab" * 32
     assert [r.key() for r in back.rows] == [r.key() for r in _rows(3)]
     assert {r.segment for r in back.rows} == {1}
     np.testing.assert_allclose(back.rows[2].channels, np.arange(6.0) + 2)

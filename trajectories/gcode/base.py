@@ -16,17 +16,31 @@ from __future__ import annotations
 
 import re
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
+from pathlib import PurePath
 
+from xmalign.formats.provenance import FileSource, history_lines
 from xmalign.machine import AXES, WorkOffset
 
 #: Characters a comment or message may keep; the rest (parentheses, quotes) end comments.
 _UNSAFE = re.compile(r"[^A-Za-z0-9 .,:;+\-=/_%#*]")
 
 
+#: The longest file name a history comment names in full (a block has a length limit).
+MAX_NAME_CHARS = 80
+
+
 def plain_text(text: str) -> str:
     """``text`` without characters that would end a comment or message early."""
     return _UNSAFE.sub("", text)
+
+
+def _short(source: FileSource) -> FileSource:
+    """The source named by its file name only (the program lies beside it), cut short."""
+    name = PurePath(source.path).name
+    if len(name) > MAX_NAME_CHARS:
+        name = name[:MAX_NAME_CHARS] + "..."
+    return FileSource(source.role, name, source.sha256)
 
 
 class Dialect(ABC):
@@ -77,6 +91,12 @@ class Dialect(ABC):
 
     @abstractmethod
     def comment(self, text: str) -> str: ...
+
+    def history(self, format_name: str, inputs: Iterable[FileSource] = ()) -> list[str]:
+        """The program's history as comment blocks: format, software, time, the dialect and
+        each input's ``input ROLE: SHA-256  FILE NAME`` (docs/formats.md)."""
+        lines = history_lines(format_name, map(_short, inputs), {"dialect": self.name})
+        return [self.comment(line) for line in lines]
 
     @abstractmethod
     def message(self, text: str) -> str:

@@ -40,6 +40,8 @@ from xmalign.machine import AXES, Machine
 
 #: The comment near the top of every program xmalign writes (how it knows its own files).
 PROGRAM_MARK = "xmalign measurement program"
+#: The format of the measurement program, in its history comments.
+PROGRAM_FORMAT = "xmalign.program/1"
 
 
 @dataclass(frozen=True)
@@ -186,6 +188,7 @@ def _program_blocks(
     blocks = [
         *dialect.begin(),
         dialect.comment(f"{PROGRAM_MARK} for {plan.machine}"),
+        *dialect.history(PROGRAM_FORMAT, [plan.source] if plan.source is not None else []),
         dialect.comment(f"{len(plan.lines)} lines: {' '.join(line.id for line in plan.lines)}"),
         dialect.retract({"Z": safe_z}),
     ]
@@ -197,7 +200,8 @@ def _program_blocks(
 
 
 def write_program(plan: Plan, machine: Machine, dialect: Dialect) -> str:
-    """The measurement program of ``plan`` in ``dialect``.
+    """The measurement program of ``plan`` in ``dialect``, with its history in comments
+    (the plan file's SHA-256 when the plan was read from one).
 
     Parameters
     ----------

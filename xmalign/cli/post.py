@@ -360,7 +360,8 @@ def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, 
     joints = linuxcnc.resolve_joints(machine, text.splitlines(), str(ini))
     files = linuxcnc.render(result.fit, machine, joints)
     merged = f"{ini.stem}-xmalign{ini.suffix}"
-    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini), ini.resolve().parent)
+    inputs = (*result.fit.sources, FileSource.of("ini", ini))
+    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini), ini.resolve().parent, inputs)
     for joint in linuxcnc.backlash_joints(text, joints):
         error_console.print(
             f"[yellow]warning:[/] {ini}: [JOINT_{joint}] BACKLASH is set; the COMP_FILE\x27s"

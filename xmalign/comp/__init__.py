@@ -10,15 +10,15 @@ over the machine's whole travel at its tool point; a writer only formats them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import ModuleType
 
 from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
-from xmalign.comp.common import Loading
+from xmalign.comp.common import Loading, table_sources
 from xmalign.comp.fit import CompensationFit, fit_compensation
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
-from xmalign.machine import Machine
+from xmalign.machine import SERIES, Machine
 from xmalign.rigid_body import Chain, ErrorModel, RemainingErrors
 
 WRITERS: dict[str, ModuleType] = {
@@ -36,9 +36,21 @@ def writer(controller: str) -> ModuleType:
         ) from None
 
 
+def for_controller(machine: Machine, controller: str) -> Machine:
+    """``machine`` as seen by ``controller``'s writer: another family than the machine
+    file's ``controller`` (``xmalign comp --controller``) gets that family's default series
+    unless ``cnc.series`` is one of its own (docs/controllers.md)."""
+    if controller == machine.controller or controller not in SERIES:
+        return machine
+    series = machine.cnc.series if machine.cnc.series in SERIES[controller] else None
+    cnc = machine.cnc.model_copy(update={"series": series})
+    return machine.model_copy(update={"controller": controller, "cnc": cnc})
+
+
 def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> CompensationFit:
-    """The controller's tables fitted over the machine's travel at its tool point."""
-    return fit_compensation(
+    """The controller's tables fitted over the machine's travel at its tool point (with
+    the error-table file they came from, for the files' history)."""
+    fit = fit_compensation(
         writer(controller).MODEL,
         tables,
         Chain.parse(machine.chain),
@@ -46,6 +58,7 @@ def fit_for(machine: Machine, tables: ErrorTableSet, controller: str) -> Compens
         machine.cnc.tool_offset,
         machine.cnc.reference,
     )
+    return replace(fit, sources=table_sources(tables))
 
 
 @dataclass(frozen=True)
@@ -59,9 +72,11 @@ class Compensation:
 
 
 def compensate(machine: Machine, tables: ErrorTableSet, controller: str) -> Compensation:
-    """Fit the controller's model and format its files."""
-    fit = fit_for(machine, tables, controller)
+    """Fit the controller's model and format its files (the family's default series when
+    ``controller`` is not the machine file's, :func:`for_controller`)."""
     module = writer(controller)
+    machine = for_controller(machine, controller)
+    fit = fit_for(machine, tables, controller)
     return Compensation(controller, fit, module.render(fit, machine), module.loading(fit, machine))
 
 
@@ -76,6 +91,7 @@ __all__ = [
     "Loading",
     "compensate",
     "fit_for",
+    "for_controller",
     "remaining_errors",
     "writer",
 ]

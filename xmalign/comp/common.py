@@ -7,13 +7,17 @@ so the tool lands where it was commanded.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import textwrap
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from fnmatch import fnmatchcase
 
 import numpy as np
 
 from xmalign.comp.fit import CompensationFit
 from xmalign.errors import MachineKeyError, OutOfRangeError
+from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.formats.provenance import FileSource, history_file, history_lines
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXIS_INDEX
@@ -162,6 +166,10 @@ def own_tables(fit: CompensationFit, axis: str, machine: Machine, controller: st
     )
 
 
+#: The longest comment line a writer puts into a controller file (the notes are wrapped).
+COMMENT_WIDTH = 100
+
+
 @dataclass(frozen=True)
 class Loading:
     """What a technician must know to load a writer's files (printed by ``xmalign comp``).
@@ -178,11 +186,20 @@ class Loading:
     warnings: tuple[str, ...] = ()
 
     def lines(self, comment: str = "") -> list[str]:
-        """The loading notes as text lines, each prefixed by ``comment``."""
-        out = [f"{comment}Reversal: {self.reversal}", f"{comment}Check before use: {self.check}"]
-        out += [f"{comment}Not confirmed from a manual: {fact}" for fact in self.unconfirmed]
-        out += [f"{comment}Warning: {warning}" for warning in self.warnings]
-        return out
+        """The loading notes as text lines, each prefixed by ``comment``; in a file (a
+        ``comment`` mark given) wrapped to :data:`COMMENT_WIDTH` characters, for a control
+        whose blocks have a length limit."""
+        notes = [f"Reversal: {self.reversal}", f"Check before use: {self.check}"]
+        notes += [f"Not confirmed from a manual: {fact}" for fact in self.unconfirmed]
+        notes += [f"Warning: {warning}" for warning in self.warnings]
+        if not comment:
+            return notes
+        width = COMMENT_WIDTH - len(comment)
+        return [
+            comment + line
+            for note in notes
+            for line in textwrap.wrap(note, width, subsequent_indent="  ", break_long_words=False)
+        ]
 
 
 def backlash_warnings(tables: Sequence[Reversal], parameter: str) -> tuple[str, ...]:
@@ -215,3 +232,42 @@ def reversal_statement(tables: Sequence[Reversal], parameter: str) -> str:
             f" directions; keep {parameter} on {', '.join(kept)} as it was during the measurement"
         )
     return "; ".join(parts)
+
+
+@dataclass(frozen=True)
+class Comment:
+    """How a file takes comment lines: ``prefix`` before each, after its first ``skip``
+    lines (a Sinumerik init program starts with its ``%_N_`` name)."""
+
+    prefix: str
+    skip: int = 0
+
+
+def table_sources(tables: ErrorTableSet) -> tuple[FileSource, ...]:
+    """The error-table file the tables were read from (none when they were not)."""
+    return () if tables.history is None else (FileSource.of("errors", tables.source),)
+
+
+def with_history(
+    files: Mapping[str, str],
+    format_name: str,
+    inputs: Sequence[FileSource],
+    comments: Mapping[str, Comment],
+) -> dict[str, str]:
+    """``files`` with their history (format, software, time, the inputs' SHA-256).
+
+    A file whose name matches a pattern of ``comments`` carries it as comment lines in
+    that syntax; any other file (a format that takes no comment, or none confirmed from
+    its manual) gets ``NAME.history`` beside it (:func:`history_file`).
+    """
+    out: dict[str, str] = {}
+    for name, text in files.items():
+        comment = next((c for pattern, c in comments.items() if fnmatchcase(name, pattern)), None)
+        if comment is None:
+            out[name] = text
+            out[f"{name}.history"] = history_file(format_name, name, text.encode(), inputs)
+            continue
+        lines = text.splitlines(keepends=True)
+        block = [f"{comment.prefix}{line}\n" for line in history_lines(format_name, inputs)]
+        out[name] = "".join(lines[: comment.skip] + block + lines[comment.skip :])
+    return out

@@ -16,7 +16,9 @@ report A-77810E "Bidirectional pitch error compensation":
   the section from ``(i - 1)·interval`` to ``i·interval``, so the most distant
   point on the - side is ``R - stroke/interval + 1`` (the 0i-PB parameter
   manual's example, B-63980EN/01 p. 100);
-- the point numbers 0 .. 1023 are shared by all axes;
+- the point numbers 0 .. 1023 are shared by all axes; xmalign numbers the axes one
+  after the other and never gives an axis's reference number (3620) to a point of
+  another axis (a gap of one number where the reference lies at the negative end);
 - parameter tape format ``N<param>A<axis>P<value>...;`` (Series 30i/31i/32i:
   ``N<param>Q1A<axis>P<value>...;``) and pitch data ``N1<point>P<value>;``
   (``N10000`` is point 0), between ``%`` lines.
@@ -48,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Loading,
     Reversal,
     axis_number,
@@ -55,6 +58,7 @@ from xmalign.comp.common import (
     check_count,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import PITCH, STRAIGHTNESS, CompensationFit, CompModel
 from xmalign.errors import OutOfRangeError
@@ -72,6 +76,10 @@ MAX_MAGNIFICATION = 100
 SERIES_WITH_PATH = ("30i", "31i", "32i")
 #: The control's own backlash compensation (cutting feed; 1852 for rapid traverse).
 BACKLASH_PARAMETER = "parameters 1851 and 1852 (backlash compensation)"
+FORMAT = "xmalign.comp.fanuc/1"
+#: The notes take comments; the parameter tape gets PITCH.TXT.history (whether a parameter
+#: tape takes ``( )`` comments was not found in a manual).
+COMMENTS = {"PITCH_README.TXT": Comment("# "), "STRAIGHTNESS.TXT": Comment("# ")}
 
 
 @dataclass(frozen=True)
@@ -120,8 +128,9 @@ def _increments(correction: Vec, magnification: int) -> np.ndarray:
 def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: int) -> PitchTable:
     """Fanuc pitch data for one axis, numbered from the first free point ``next_free``.
 
-    The reference point number must not be negative, so an axis whose reference
-    lies at its negative end starts one number later. Corrections are zero at the
+    The reference point number is never a point of an axis numbered before (it is
+    ``next_free`` or above: a gap when the reference lies at the axis's negative end,
+    where it holds no section), nor negative. Corrections are zero at the
     reference approached in the reference-return direction; 3627 is the correction
     there approached the other way (A-77810E, table (a)).
     """
@@ -137,7 +146,7 @@ def pitch_table(axis: str, fit: CompensationFit, machine: Machine, next_free: in
     correction_neg = -np.interp(at, positions, own.reverse) / unit_mm
     opposite = -np.interp(reference, positions, own.table(own.opposite_direction)) / unit_mm
     count = len(sections) - 1
-    first_number = max(next_free, int(sections[0]) + 1)
+    first_number = max(next_free, next_free + int(sections[0]) + 1)
     check_count(count, MAX_POINTS_PER_AXIS, f"{axis} (per axis)", "Fanuc")
     for magnification in range(1, MAX_MAGNIFICATION + 1):
         values = _increments(correction, magnification)
@@ -220,10 +229,10 @@ def render_tape(tables: list[PitchTable], machine: Machine) -> str:
 
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
     """Reversal, the check on the machine and what the manuals left open."""
-    return _loading(pitch_tables(fit, machine), machine)
+    return _loading(pitch_tables(fit, machine), machine, fit.warnings)
 
 
-def _loading(tables: list[PitchTable], machine: Machine) -> Loading:
+def _loading(tables: list[PitchTable], machine: Machine, fit_warnings: tuple[str, ...]) -> Loading:
     own = [t.reversal for t in tables]
     interval = ", ".join(
         f"{t.axis} {t.interval_units * machine.cnc.detection_unit_um * 1e-3:g} mm" for t in tables
@@ -242,12 +251,12 @@ def _loading(tables: list[PitchTable], machine: Machine) -> Loading:
             "the tape syntax of the pitch data lines (N1xxxxP...;)"
             + (" and the Q1 of a 30i tape in them" if machine.series in SERIES_WITH_PATH else ""),
         ),
-        warnings=backlash_warnings(own, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(own, BACKLASH_PARAMETER) + fit_warnings,
     )
 
 
-def render_readme(tables: list[PitchTable], machine: Machine) -> str:
-    """What to set by hand before and after loading the tape."""
+def render_readme(tables: list[PitchTable], machine: Machine, fit_warnings: tuple[str, ...]) -> str:
+    """What to set by hand before and after loading the tape (and the fit's warnings)."""
     unit = machine.cnc.detection_unit_um
     lines = [
         f"xmalign: FANUC Series {machine.series} pitch error compensation (PITCH.TXT)",
@@ -276,7 +285,7 @@ def render_readme(tables: list[PitchTable], machine: Machine) -> str:
         "switch the CNC off and on, then make a reference position return on every axis.",
         "STRAIGHTNESS.TXT: for the straightness compensation option (if the machine has it),",
         "corrections to enter by hand; set up the option by the CNC's own manual.",
-        *_loading(tables, machine).lines(),
+        *_loading(tables, machine, fit_warnings).lines(),
     ]
     return "\n".join(lines) + "\n"
 
@@ -315,8 +324,9 @@ def render_straightness(fit: CompensationFit, machine: Machine) -> str:
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the parameter tape and its instructions."""
     tables = pitch_tables(fit, machine)
-    return {
+    files = {
         "PITCH.TXT": render_tape(tables, machine),
-        "PITCH_README.TXT": render_readme(tables, machine),
+        "PITCH_README.TXT": render_readme(tables, machine, fit.warnings),
         "STRAIGHTNESS.TXT": render_straightness(fit, machine),
     }
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

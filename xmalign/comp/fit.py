@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse
 
 from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.formats.provenance import FileSource
 from xmalign.geometry import Vec
 from xmalign.rigid_body import (
     AXES,
@@ -92,6 +93,10 @@ class CompensationFit:
     converged: bool
     optional: ErrorTables | None = None
     after_optional_um: float | None = None
+    #: what the fit cannot vouch for (:func:`extrapolated_references`), said by every writer
+    warnings: tuple[str, ...] = ()
+    #: the files the tables were made from (their hashes go into every controller file)
+    sources: tuple[FileSource, ...] = ()
 
     @property
     def removed_share(self) -> float:
@@ -296,7 +301,50 @@ def fit_compensation(
         converged=converged,
         optional=optional,
         after_optional_um=after_optional_um,
+        warnings=extrapolated_references(tables, np.asarray(reference_mm, dtype=float)),
     )
+
+
+def _u95_text(name: str, u95: float) -> str:
+    """``EXX 29.4 um`` (linear errors, stored in mm) or ``EAX 3.1 urad`` (angular, rad)."""
+    return f"{name} {u95 * 1e3:.1f} um" if name[1] in AXES else f"{name} {u95 * 1e6:.1f} urad"
+
+
+def extrapolated_references(tables: ErrorTableSet, reference_mm: Vec) -> tuple[str, ...]:
+    """One warning per axis whose reference point lies outside the measured range of its
+    tables (the error-table file's ``range`` column), naming those tables and their U95
+    at the reference.
+
+    Every controller table is zero at the reference point, so the value ``post``'s tables
+    have there shifts them all: from an extrapolated stretch it is only as good as that
+    U95. A second station whose lines measure across the reference removes it.
+    """
+    warnings = []
+    for axis in AXES:
+        reference = float(reference_mm[AXIS_INDEX[axis]])
+        worst: dict[str, float] = {}  # table name (directions together) -> largest U95
+        ranges = []
+        for name, table in sorted(tables.tables.items()):
+            measured = table.positions_mm[table.measured_mask()]
+            if name[2] != axis or not measured.size:
+                continue
+            low, high = float(measured[0]), float(measured[-1])
+            ranges.append((low, high))
+            if not low - 1e-6 <= reference <= high + 1e-6:
+                u95 = float(np.interp(reference, table.positions_mm, table.u95))
+                worst[name[:3]] = max(u95, worst.get(name[:3], 0.0))
+        named = [_u95_text(name, u95) for name, u95 in worst.items()]
+        if named:
+            low = max(r[0] for r in ranges)
+            high = min(r[1] for r in ranges)
+            warnings.append(
+                f"the reference point {axis} = {reference:g} mm lies outside the measured"
+                f" range of {axis} ({low:g} to {high:g} mm): the reference values of these"
+                f" tables come from their extrapolated stretch, U95 there: {', '.join(named)};"
+                f" every {axis} table the control gets is shifted by that value. A second"
+                f" station whose lines measure {axis} across {reference:g} mm removes it"
+            )
+    return tuple(warnings)
 
 
 def fit_tables(

@@ -8,16 +8,18 @@ Two layouts, by the control's series (the machine file's ``cnc.series``):
   respect to the machine datum*, in the column of each compensated axis (names
   from ``CfgAxes/axisList``) the compensation values, and the values measured in
   the negative direction of traverse in column ``BACKLASH``; at most 256 entries.
-  Every table is zero at the reference point (the axis's own table approached in
-  its reference-return direction).
+  Every column is zero at the reference point but the axis's own column of the
+  direction against its reference return, which holds the reversal there.
 - **TNC 4xx** (TNC 407/415/425 Technical Manual, 01.98, pp. 4-28 to 4-31): the
   compensation points lie at a power-of-two spacing (2^n um) from a datum, the
   error curve starts at 0 at the datum, and the compensation acts only once MP730
   selects nonlinear compensation for the axis and a valid ``.CMA`` file exists.
   xmalign puts the datum at the start of the travel and, as that manual's example
   does, the largest spacing 2^n x 0.1 um not above the measured one (coarser if 256
-  points would not span the travel); every column is zero at the datum (the axis's
-  own, approached in its reference-return direction).
+  points would not span the travel); every column is zero at the datum but the
+  axis's own column of the direction against its reference return (the reversal).
+  Through the data interface the ``.CMA`` file travels as ``.S``, a ``.COM`` as ``.V``
+  (p. 4-31). The ``BACKLASH`` column is not in that manual: said in the notes.
 
 The ``*.CMA`` table assigns the ``*.COM`` tables: ``[axis column in .COM] =
 F(axis column of .CMA in which the .COM is entered)``; a ``*`` in column
@@ -49,6 +51,7 @@ import math
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Grid,
     Loading,
     backlash_warnings,
@@ -56,6 +59,7 @@ from xmalign.comp.common import (
     fitted,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
 from xmalign.errors import MachineKeyError
@@ -74,6 +78,10 @@ POWER_OF_TWO_SERIES = ("TNC 4xx",)
 REFUSED_SERIES = ("iTNC 530",)
 BACKLASH_PARAMETER = "the backlash machine parameter (MP710 on a TNC 4xx)"
 _WIDTH = 12
+FORMAT = "xmalign.comp.heidenhain/1"
+#: Only the notes take comments; no comment syntax of .COM / .CMA tables was found in a
+#: manual, so they get a NAME.history beside them.
+COMMENTS = {README_NAME: Comment("# ")}
 
 
 def _signed(value: float, decimals: int) -> str:
@@ -157,7 +165,12 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
         " published file",
     ]
     if machine.series in POWER_OF_TWO_SERIES:
-        unconfirmed.append("the TNC 4xx .COM layout (AXISPOS column at the 2^n spacing)")
+        unconfirmed += [
+            "the TNC 4xx .COM layout (AXISPOS column at the 2^n spacing)",
+            "the BACKLASH column on a TNC 4xx: the MANUALplus 620 Technical Manual (p. 716)"
+            " describes it, the TNC 407/415/425 Technical Manual (01.98) does not; if the"
+            " control does not accept the column, do not load these tables",
+        ]
     return Loading(
         reversal=reversal_statement(carriers, BACKLASH_PARAMETER)
         + " (Heidenhain adds its backlash parameter at every reversal, tables or not)",
@@ -167,32 +180,62 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " run (xmalign post --verify-data): it must move by minus the table's value"
         ),
         unconfirmed=tuple(unconfirmed),
-        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER) + fit.warnings,
     )
 
 
+def _zero_point(fit: CompensationFit, machine: Machine, axis: str) -> str:
+    """What ``<axis>.COM`` holds where it starts from (reference point or TNC 4xx datum),
+    read from the table itself: the columns that are zero there, and the one that holds
+    the reversal (the own axis's column of the direction against the reference return)."""
+    own = own_tables(fit, axis, machine, "Heidenhain")
+    positions, columns = _com_columns(fit, machine, axis)
+    if machine.series in POWER_OF_TWO_SERIES:
+        where, at_mm = "at the datum", float(positions[0])
+    else:
+        at_mm = float(machine.cnc.reference[AXES.index(axis)])
+        where = "at the reference point"
+    values = {name: float(np.interp(at_mm, positions, column)) for name, column in columns.items()}
+    zero = [name for name, value in values.items() if round(value, 5) == 0.0]
+    held = [f"{name} {_signed(value, 5)} mm" for name, value in values.items() if name not in zero]
+    text = f"{axis}.COM {where} {axis} = {at_mm:g} mm: {', '.join(zero)} zero"
+    if held:
+        reversal = "BACKLASH" if own.return_direction == "+" else axis
+        text += (
+            f"; {', '.join(held)} (the reversal there: {axis} returns to its reference in"
+            f" '{own.return_direction}', the {reversal} column is the other direction's)"
+        )
+    return text
+
+
 def render_readme(fit: CompensationFit, machine: Machine) -> str:
-    """Which control the tables are for and how they are activated."""
+    """Which control the tables are for, what each holds at its start and how they are
+    activated (every statement read from the tables themselves)."""
     lines = [f"xmalign: HEIDENHAIN {machine.series} nonlinear axis error compensation"]
     if machine.series in POWER_OF_TWO_SERIES:
         for axis in AXES:
             positions = render_positions(fit, machine, axis)
             exponent = round(math.log2((positions[1] - positions[0]) * 1e4))
             lines.append(
-                f"{axis}.COM: datum {positions[0]:g} mm, spacing 2^{exponent} x 0.1 um ="
-                f" {positions[1] - positions[0]:g} mm, {len(positions)} points; every column"
-                " starts at 0 at the datum"
+                f"{axis}.COM: datum {positions[0]:g} mm (the start of the travel), spacing"
+                f" 2^{exponent} x 0.1 um = {positions[1] - positions[0]:g} mm,"
+                f" {len(positions)} points"
             )
         lines.append(
             "Activation: MP730 bit per axis = 1 (nonlinear axis error compensation) and"
             " CONFIG.CMA with its line selected (TNC 407/415/425 Technical Manual, p. 4-28)."
         )
+        lines.append(
+            "Transfer through the data interface (PLC Programming mode): CONFIG.CMA goes as"
+            " CONFIG.S, each .COM as .V (X.COM as X.V; TNC 407/415/425 Technical Manual,"
+            " 01.98, p. 4-31)."
+        )
     else:
         lines.append(
-            "AXISPOS is the position from the machine datum; every table is zero at the"
-            " reference point. Activation: CONFIG.CMA with '*' in ACTIVE (MANUALplus 620"
-            " Technical Manual, p. 718)."
+            "AXISPOS is the position from the machine datum. Activation: CONFIG.CMA with '*'"
+            " in ACTIVE (MANUALplus 620 Technical Manual, p. 718)."
         )
+    lines += [_zero_point(fit, machine, axis) for axis in AXES]
     lines += loading(fit, machine).lines()
     return "\n".join(lines) + "\n"
 
@@ -208,4 +251,4 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     files = {f"{axis}.COM": render_com(fit, machine, axis) for axis in AXES}
     files[CMA_NAME] = render_cma()
     files[README_NAME] = render_readme(fit, machine)
-    return files
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

@@ -20,7 +20,7 @@ axis assignment, ``Chain``, ``max_records``) is configured in the CNC.
 
 from __future__ import annotations
 
-from xmalign.comp.common import Loading
+from xmalign.comp.common import Comment, Loading, with_history
 from xmalign.comp.fit import CompensationFit, CompModel
 from xmalign.machine import Machine
 from xmalign.rigid_body import AXES, ROTATION_NAMES, SQUARENESS_NAMES, TRANSLATION_NAMES, Chain
@@ -28,6 +28,7 @@ from xmalign.rigid_body import AXES, ROTATION_NAMES, SQUARENESS_NAMES, TRANSLATI
 NAME = "isg"
 MODEL = CompModel(pairs=(), directional=False, volumetric=True)
 FILE_NAME = "vol_comp.csv"
+FORMAT = "xmalign.comp.isg/1"
 
 
 def _number(value: float) -> str:
@@ -60,7 +61,8 @@ def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
         records += len(positions)
     lines.insert(1, f"// records: {records} (vol_comp[i].max_records must be at least this)")
     lines[2:2] = loading(fit, machine).lines("// ")
-    return {FILE_NAME: "\n".join(lines) + "\n"}
+    files = {FILE_NAME: "\n".join(lines) + "\n"}
+    return with_history(files, FORMAT, fit.sources, {FILE_NAME: Comment("// ", skip=1)})
 
 
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
@@ -75,4 +77,5 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " the positions with the verification run (xmalign post --verify-data)"
         ),
         unconfirmed=("a complete published parameter file (only the format page's example)",),
+        warnings=fit.warnings,
     )

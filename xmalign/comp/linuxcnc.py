@@ -27,16 +27,22 @@ sections would be ignored silently).
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
-from xmalign.comp.common import Loading, check_count, has_reversal
+from xmalign.comp.common import Comment, Loading, check_count, has_reversal, with_history
 from xmalign.comp.fit import PITCH, CompensationFit, CompModel
 from xmalign.errors import InputError
+from xmalign.formats.provenance import FileSource
 from xmalign.machine import AXES, Machine
 
 NAME = "linuxcnc"
 MODEL = CompModel(pairs=PITCH, directional=True)
 MAX_TRIPLETS = 256
+FORMAT = "xmalign.comp.linuxcnc/1"
+#: INI files take ``#`` comments; a COMP_FILE takes none (LinuxCNC 2.9 stops reading it
+#: at the first line that is not three numbers), so each gets ``x.comp.history``.
+COMMENTS = {"*.ini": Comment("# ")}
 _SECTION = re.compile(r"^\s*\[([^\]]+)\]")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(.*?)\s*$")
 
@@ -65,7 +71,7 @@ def render(
     keys = render_keys(list(joints or machine.cnc.joints or AXES))
     notes = "\n".join(loading(fit, machine).lines("# "))
     files["joints.ini"] = keys.replace("\n\n", f"\n{notes}\n\n", 1)
-    return files
+    return with_history(files, FORMAT, fit.sources, COMMENTS)
 
 
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
@@ -85,6 +91,7 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
             " joint.N.backlash-filt (halcmd getp): it must equal nominal minus actual of the"
             " table for that direction"
         ),
+        warnings=fit.warnings,
     )
 
 
@@ -167,7 +174,12 @@ def absolute_path(value: str, folder: Path) -> str:
 
 
 def merge_ini(
-    text: str, joints: list[str], folder: Path, source: str, ini_folder: Path | None = None
+    text: str,
+    joints: list[str],
+    folder: Path,
+    source: str,
+    ini_folder: Path | None = None,
+    inputs: Sequence[FileSource] = (),
 ) -> str:
     """The INI with ``COMP_FILE`` (absolute paths in ``folder``) in each ``[JOINT_n]`` section.
 
@@ -176,7 +188,8 @@ def merge_ini(
     original INI's folder) every relative path naming an existing file there
     (HAL files, the display, the tool table) is made absolute, so the copy
     can live in another folder. InputError naming the INI when a joint's
-    section is missing.
+    section is missing. The copy starts with its history (``#`` lines: ``inputs``, the
+    INI and the error tables, hashed).
     """
     lines = text.splitlines()
     sections = _sections(lines)
@@ -209,7 +222,8 @@ def merge_ini(
         if index not in dropped:
             out.append(_absolute_line(line, ini_folder) if ini_folder is not None else line)
         out.extend(inserts.get(index, []))
-    return "\n".join(out) + "\n"
+    merged = "\n".join(out) + "\n"
+    return with_history({"merged.ini": merged}, FORMAT, inputs, COMMENTS)["merged.ini"]
 
 
 def _absolute_line(line: str, folder: Path) -> str:

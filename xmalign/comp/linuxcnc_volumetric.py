@@ -32,8 +32,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from xmalign.comp import linuxcnc
+from xmalign.comp.common import Comment, table_sources, with_history
 from xmalign.errors import FormatError, InputError
 from xmalign.formats.error_tables import ErrorTableSet
+from xmalign.formats.provenance import FileSource
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.rigid_body import (
@@ -51,6 +53,10 @@ INSTANCE = "xmalign-volcomp.0"
 TABLE_FILE = "xmalign_volcomp.tbl"
 WIRING_FILE = "xmalign_volcomp.hal"
 FORMAT_LINE = "xmalign-volcomp 1"
+#: The history of the merged files: ``#`` comments in the INI and HAL copies; the table
+#: file (its lines have a fixed length in the component) gets its ``.history``.
+FORMAT = "xmalign.comp.linuxcnc-volumetric/1"
+COMMENTS = {"*.hal": Comment("# "), "*.ini": Comment("# ")}
 MAX_POINTS = 4096
 #: Fixed-point steps of ``c = -dp(k + c)``, as the component takes them.
 ITERATIONS = 3
@@ -453,7 +459,8 @@ def merge_config(
     ini_name = _merged_name(ini_path.name)
     files[ini_name], warnings = _merged_ini(lines, folder)
     warnings += _coverage_warnings(lines, parse_table(table_text), ini_path)
-    return MergedConfig(files, ini_name, warnings)
+    inputs = (*table_sources(tables), FileSource.of("ini", ini_path))
+    return MergedConfig(with_history(files, FORMAT, inputs, COMMENTS), ini_name, warnings)
 
 
 #: Per-joint pitch tables: the component corrects positioning too, so they would count twice.

@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from xmalign.comp.common import (
+    Comment,
     Grid,
     Loading,
     OwnTables,
@@ -51,6 +52,7 @@ from xmalign.comp.common import (
     fitted,
     own_tables,
     reversal_statement,
+    with_history,
 )
 from xmalign.comp.fit import CROSS, CompensationFit, CompModel
 from xmalign.geometry import Vec
@@ -67,6 +69,9 @@ MAX_CEC_POINTS = 2000
 MAX_828D_TABLES = 8
 MAX_828D_POINTS = 200
 BACKLASH_PARAMETER = "MD32450 $MA_BACKLASH"
+FORMAT = "xmalign.comp.sinumerik/1"
+#: The history as ``;`` comments after the program name (K3's own example has them).
+COMMENTS = {"*.INI": Comment("; ", skip=1)}
 _MICRO = 1_000_000
 
 
@@ -118,8 +123,7 @@ def render_eec(fit: CompensationFit, machine: Machine) -> str:
         " positioning error in mm",
         "; (a positive value moves the axis negative), zero at the reference point approached",
         "; in the axis's reference-return direction (the reversal is in NC_CEC.INI).",
-        "; Activation: MD32700 $MA_ENC_COMP_ENABLE[0]=0 while loading this program,",
-        "; then 1 on each axis below, reset (NewConfig); acts after referencing.",
+        *load_order(machine),
         "CHANDATA(1)",
     ]
     for own in _own(fit, machine):
@@ -141,10 +145,10 @@ CecTable = tuple[str, str, str, Grid, Vec, int]
 def _reversal_tables(
     owns: list[OwnTables], room: int | None
 ) -> tuple[list[CecTable], dict[str, float]]:
-    """The reversal CEC tables that fit in ``room`` (None: all), and the rest's mean, mm.
+    """The reversal CEC tables that fit in ``room`` (None: all), and the rest's MD32450, mm.
 
     Where tables are short, the axes whose reversal varies least along the travel
-    give way: their mean reversal goes into MD32450.
+    give way: their mean play goes into MD32450 (:func:`backlash_mm`).
     """
     carried = sorted(
         (own for own in owns if own.bidirectional), key=lambda own: -float(np.std(own.reversal))
@@ -156,8 +160,21 @@ def _reversal_tables(
         direction = 1 if own.opposite_direction == "+" else -1
         what = f"E{own.axis}{own.axis} reversal ({own.opposite_direction} only)"
         tables.append((what, own.axis, own.axis, grid, correction, direction))
-    constant = {own.axis: float(np.mean(own.reversal)) for own in carried if own not in kept}
+    constant = {own.axis: backlash_mm(own) for own in carried if own not in kept}
     return tables, constant
+
+
+def backlash_mm(own: OwnTables) -> float:
+    """MD32450 ``$MA_BACKLASH`` for an axis's reversal, mm: the machine's play.
+
+    The mean of the error moving ``-`` minus the error moving ``+``: positive when the
+    encoder leads the machine part (the ``-`` approach stops above the ``+`` approach),
+    MD32450's "normal case" (SINUMERIK 808D Parameter Manual, 08/2013, MD32450; MANUALplus
+    620 Technical Manual, p. 707, defines positive backlash alike). A property of the
+    machine: the reference-return direction does not change it (the control applies it
+    at every reversal, whichever way the axis was referenced).
+    """
+    return float(np.mean(own.reverse - own.forward))
 
 
 def _cross_tables(fit: CompensationFit) -> list[CecTable]:
@@ -210,12 +227,11 @@ def render_cec(fit: CompensationFit, machine: Machine) -> str:
     limit, limit_name = _point_limit(machine)
     out = [
         "%_N_NC_CEC_INI",
-        f"; xmalign: SINUMERIK {machine.series} sag/angularity compensation; value = correction"
-        " (minus the error) in mm,",
-        "; cross tables zero at the reference point. Activation: MD18342 $MN_MM_CEC_MAX_POINTS[t]"
-        " as below,",
-        "; MD32710 $MA_CEC_ENABLE=1 on every output axis, reset (NewConfig); the tables are",
-        "; switched on at the end (SD41300 $SN_CEC_TABLE_ENABLE, SD41310 $SN_CEC_TABLE_WEIGHT).",
+        f"; xmalign: SINUMERIK {machine.series} sag/angularity compensation;",
+        "; value = correction (minus the error) in mm, cross tables zero at the reference point.",
+        *load_order(machine),
+        "; Every table is loaded switched off (SD41300 $SN_CEC_TABLE_ENABLE[t]=FALSE): switch",
+        "; them on one at a time for the sign check below, then all (SD41310 weight 1.0).",
         *loading(fit, machine).lines("; "),
         "CHANDATA(1)",
     ]
@@ -227,14 +243,42 @@ def render_cec(fit: CompensationFit, machine: Machine) -> str:
     for index, (what, axis, output, grid, values, direction) in enumerate(tables):
         check_count(grid.count, limit, f"{what} ({limit_name})", "Sinumerik")
         names = (axis_name(machine, axis), axis_name(machine, output))
-        out.append(
-            f"; table {index}: {what}, {output} = f({axis}); MD18342[{index}] >= {grid.count}"
-        )
+        size = "" if machine.series == "828D" else f"; MD18342[{index}] >= {grid.count}"
+        out.append(f"; table {index}: {what}, {output} = f({axis}), {grid.count} points{size}")
         out.extend(_cec_block(index, names, grid, values, direction))
     for index in range(len(tables)):
-        out += [f"$SN_CEC_TABLE_ENABLE[{index}]=TRUE", f"$SN_CEC_TABLE_WEIGHT[{index}]=1.0"]
+        out += [f"$SN_CEC_TABLE_ENABLE[{index}]=FALSE", f"$SN_CEC_TABLE_WEIGHT[{index}]=1.0"]
     out.append("M17")
     return "\n".join(out) + "\n"
+
+
+def load_order(machine: Machine) -> list[str]:
+    """The order of loading, as comment lines (K3 03/2013 p. 237; docs/controllers.md).
+
+    The tables are written only while both compensations are off (MD32700 = 0 and
+    MD32710 = 0); a change of MD38000 or MD18342 reformats the static user memory at
+    the next start, so the NC is archived first; an 828D has no MD18342 (eight fixed
+    tables of 200 points, K3 p. 264).
+    """
+    sizes = "MD38000" if machine.series == "828D" else "MD38000 or MD18342"
+    lines = [
+        "; Load order (SINUMERIK K3 Compensations, 03/2013, p. 237):",
+        f"; 1. archive the NC (a series start-up archive) before changing {sizes}:",
+        ";    a change reformats the static user memory at the next start, the archive",
+        ";    restores what was there;",
+        "; 2. set MD38000 $MA_MM_ENC_COMP_MAX_POINTS[0]"
+        + ("" if machine.series == "828D" else " and MD18342 $MN_MM_CEC_MAX_POINTS[t]"),
+        ";    to at least the counts below, NewConfig / power on;",
+        "; 3. MD32700 $MA_ENC_COMP_ENABLE[0]=0 AND MD32710 $MA_CEC_ENABLE=0 on every axis:",
+        ";    the tables are written only while both compensations are off;",
+        "; 4. run AX_EEC.INI and NC_CEC.INI; then MD32700=1 and MD32710=1 on the axes",
+        ";    named below, reset (NewConfig), reference every axis.",
+    ]
+    if machine.series == "828D":
+        lines.append(
+            "; 828D: no MD18342 (eight CEC tables of 200 points, fixed: K3 03/2013 p. 264)."
+        )
+    return lines
 
 
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
@@ -251,20 +295,25 @@ def loading(fit: CompensationFit, machine: Machine) -> Loading:
     return Loading(
         reversal=reversal,
         check=(
-            "switch on one cross table only (SD41300), move its input axis to where the table's"
-            " correction is largest and read the output axis's 'Sag/temperature' compensation value"
-            " (System > Service display > Service axes): it must equal the table's value (a"
-            " correction, minus the error); if it has the opposite sign, do not use NC_CEC.INI"
+            "the sign of one cross table, on the machine itself: with every table off, set a"
+            " dial gauge (or read the output axis's encoder actual value, not a compensation"
+            " display, which shows the table's value whichever way it is applied) on the output"
+            " axis, move the input axis to where the table's correction is largest, note the"
+            " reading, then switch on that one table (SD41300 $SN_CEC_TABLE_ENABLE[t]=TRUE) and"
+            " let the axes settle: the output axis must move by the table's value there (a"
+            " correction: minus the error); if it moves the other way, switch the table off"
+            " and do not use NC_CEC.INI. Then switch the tables on one at a time"
         ),
         unconfirmed=(
             "the sign of $AN_CEC: written as a set-point correction (minus the error), the"
             " opposite of the LEC values in AX_EEC.INI (K3: a positive LEC value moves the"
             " axis negative)",
         ),
-        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER),
+        warnings=backlash_warnings(carriers, BACKLASH_PARAMETER) + fit.warnings,
     )
 
 
 def render(fit: CompensationFit, machine: Machine) -> dict[str, str]:
     """File name -> text of the two init programs."""
-    return {"AX_EEC.INI": render_eec(fit, machine), "NC_CEC.INI": render_cec(fit, machine)}
+    files = {"AX_EEC.INI": render_eec(fit, machine), "NC_CEC.INI": render_cec(fit, machine)}
+    return with_history(files, FORMAT, fit.sources, COMMENTS)

@@ -13,17 +13,16 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
-import xmalign
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, line_error, os_problem
+from xmalign.formats.provenance import FileSource, csv_preamble
 from xmalign.geometry import Vec
 
 TRACKER_FORMAT = "# xmalign tracker-points/1"
@@ -317,18 +316,18 @@ def _guess(text: str, source: str, number: int) -> tuple[str, Vec]:
     return parts[0], guess
 
 
-def _provenance(inputs: Mapping[str, str]) -> list[str]:
-    time = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-    lines = [f"# software xmalign {xmalign.__version__} written {time}"]
-    lines += [f"# input {name} sha256={digest}" for name, digest in inputs.items()]
-    return lines
+def _provenance(format_line: str, inputs: Iterable[FileSource]) -> list[str]:
+    """The common history lines after the format line (``# format: xmalign.tracker-points/1``,
+    software, ``created_utc``, ``# input ROLE: SHA-256  PATH`` as ``sha256sum`` prints it)."""
+    name, version = format_line.removeprefix("# xmalign ").split("/")
+    return csv_preamble(f"xmalign.{name}/{version}", inputs).splitlines()
 
 
 def _number_text(value: float) -> str:
     return repr(float(value))
 
 
-def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | None = None) -> str:
+def tracker_points_text(points: list[TrackerPoint], inputs: Iterable[FileSource] = ()) -> str:
     """The CSV text of tracker points (extra columns only where a point uses them)."""
     columns = list(TRACKER_COLUMNS)
     if any(p.to_mm is not None for p in points):
@@ -338,7 +337,8 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
     if any(p.u_radial_um is not None or p.u_transverse_um is not None for p in points):
         columns += UNCERTAINTY_COLUMNS
     out = io.StringIO()
-    out.write("\n".join([TRACKER_FORMAT, *_provenance(inputs or {}), ",".join(columns)]) + "\n")
+    history = _provenance(TRACKER_FORMAT, inputs)
+    out.write("\n".join([TRACKER_FORMAT, *history, ",".join(columns)]) + "\n")
     writer = csv.writer(out, lineterminator="\n")
     for p in points:
         values = {
@@ -364,7 +364,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
 def tracer_lengths_text(
     lengths: list[TracerLength],
     guesses_mm: Mapping[str, Vec] | None = None,
-    inputs: Mapping[str, str] | None = None,
+    inputs: Iterable[FileSource] = (),
 ) -> str:
     """The CSV text of tracer lengths, with the pivot guesses as ``# station`` lines."""
     columns = list(TRACER_COLUMNS)
@@ -376,7 +376,8 @@ def tracer_lengths_text(
     ]
     out = io.StringIO()
     out.write(
-        "\n".join([TRACER_FORMAT, *_provenance(inputs or {}), *guesses, ",".join(columns)]) + "\n"
+        "\n".join([TRACER_FORMAT, *_provenance(TRACER_FORMAT, inputs), *guesses, ",".join(columns)])
+        + "\n"
     )
     writer = csv.writer(out, lineterminator="\n")
     for r in lengths:
@@ -389,7 +390,7 @@ def tracer_lengths_text(
 
 
 def write_tracker_points(
-    path: str | Path, points: list[TrackerPoint], inputs: Mapping[str, str] | None = None
+    path: str | Path, points: list[TrackerPoint], inputs: Iterable[FileSource] = ()
 ) -> None:
     atomic_write_text(path, tracker_points_text(points, inputs))
 
@@ -398,6 +399,6 @@ def write_tracer_lengths(
     path: str | Path,
     lengths: list[TracerLength],
     guesses_mm: Mapping[str, Vec] | None = None,
-    inputs: Mapping[str, str] | None = None,
+    inputs: Iterable[FileSource] = (),
 ) -> None:
     atomic_write_text(path, tracer_lengths_text(lengths, guesses_mm, inputs))

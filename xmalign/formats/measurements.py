@@ -5,10 +5,13 @@ loses nothing; the reader names the line of any row it cannot use. Besides the
 columns of docs/formats.md a file written by ``xmalign run`` carries (see
 docs/measurement-files.md):
 
-- a first comment line ``# xmalign measurements plan_sha256=<hex>``, the
-  identity of the plan the points were measured for (``--resume`` refuses a
-  file from another plan), followed by ``sim_seed=<n>`` for a run on the
-  virtual machine (``--resume`` refuses another ``--seed``);
+- a first comment line ``# xmalign measurements plan_identity=<hex>``, the
+  identity of the plan the points were measured for (:func:`plan_sha256`, the
+  SHA-256 of the plan's canonical content, not of the plan file's bytes: that one
+  is the ``# input plan:`` line of the history; ``--resume`` refuses a file from
+  another plan), followed by ``sim_seed=<n>`` for a run on the virtual machine
+  (``--resume`` refuses another ``--seed``). Files written before the name was
+  changed say ``plan_sha256=<hex>`` for the same identity: read alike;
 - a ``segment`` column: 0 for a line's first setup, 1, 2, ... for the rows
   measured after the units had to be re-aligned on a resume (``post`` fits
   each segment with its own setup terms);
@@ -91,7 +94,9 @@ WRITTEN_COLUMNS = (*HEADER, SEGMENT_COLUMN, TIME_COLUMN)
 MAX_COORDINATE_MM = 100_000.0
 #: A recorded point farther than this from its plan target belongs to another plan, mm.
 POINT_TOLERANCE_MM = 0.01
-PLAN_KEY = "plan_sha256"
+PLAN_KEY = "plan_identity"
+#: The name :data:`PLAN_KEY` had before (the same identity), read alike.
+OLD_PLAN_KEYS = ("plan_sha256",)
 SEED_KEY = "sim_seed"
 PREAMBLE = "# xmalign measurements"
 SETUP_TAG = "# setup"
@@ -283,7 +288,7 @@ class _Reader:
         if text.startswith(PREAMBLE) and not self.file.columns:
             for item in text[len(PREAMBLE) :].split():
                 key, _, value = item.partition("=")
-                if key == PLAN_KEY:
+                if key == PLAN_KEY or key in OLD_PLAN_KEYS:
                     self.file.plan_sha256 = value
                 elif key == SEED_KEY:
                     self.file.sim_seed = self._seed(value, number)
@@ -665,7 +670,7 @@ def check_recorded_plan(
     expected = plan_sha256(plan)
     if recorded.plan_sha256 is not None and recorded.plan_sha256 != expected:
         raise InputError(
-            f"{path} was recorded for another plan (plan_sha256 {recorded.plan_sha256[:12]}...,"
+            f"{path} was recorded for another plan ({PLAN_KEY} {recorded.plan_sha256[:12]}...,"
             f" this plan is {expected[:12]}...): give the plan it was recorded with"
         )
     points = {line.id: line.target_points_mm() for line in plan.lines}

@@ -1,7 +1,8 @@
 """Measurement plan (``xmalign.plan/1``) of docs/formats.md.
 
 The history keys (:mod:`xmalign.formats.provenance`) are kept apart from the
-plan's content: they are not part of its identity (``plan_sha256``).
+plan's content: they are not part of its identity (``plan_identity`` in a
+measurement file, :func:`xmalign.formats.measurements.plan_sha256`).
 """
 
 from __future__ import annotations

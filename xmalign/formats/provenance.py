@@ -17,7 +17,10 @@ history"), written and read here and nowhere else:
   can check the chain without xmalign (a name with a backslash, a line feed or a
   carriage return is escaped as ``sha256sum`` escapes it: ``\\HEX  a\\nb``; a
   name with another character that ends a line is refused); other
-  ``# key: value`` lines carry what a format adds (the error table's ``machine``).
+  ``# key: value`` lines carry what a format adds (the error table's ``machine``);
+- other formats write the same lines (:func:`history_lines`) in their own comment
+  syntax (G-code, controller files), and a format that takes no comment gets
+  ``NAME.history`` beside it (:func:`history_file`), which ``sha256sum -c`` checks.
 
 The SHA-256 is that of the file's bytes. A reader accepts every version up to
 the one it knows (``common.check_format``) and refuses a newer one with one line.
@@ -162,18 +165,39 @@ def without_history(data: Mapping[str, Any]) -> dict[str, Any]:
     return {key: value for key, value in data.items() if key not in HISTORY_KEYS}
 
 
+def history_lines(
+    format_name: str, inputs: Iterable[FileSource] = (), extra: Mapping[str, str] | None = None
+) -> list[str]:
+    """A file's history as ``key: value`` lines, without a comment mark: ``format``,
+    ``software``, ``created_utc``, one ``input ROLE: HEX  PATH`` per input (what
+    ``sha256sum`` prints) and the ``extra`` keys. Every format writes these lines in its
+    own comment syntax (:func:`csv_preamble`; G-code and controller files)."""
+    return [
+        f"format: {format_name}",
+        f"software: {SOFTWARE}",
+        f"created_utc: {now_utc()}",
+        *(f"input {s.role}: {s.sha256sum_line()}" for s in inputs),
+        *(f"{key}: {value}" for key, value in (extra or {}).items()),
+    ]
+
+
 def csv_preamble(
     format_name: str, inputs: Iterable[FileSource] = (), extra: Mapping[str, str] | None = None
 ) -> str:
     """The ``#`` lines a CSV file starts with (each ends with a line end)."""
-    lines = [
-        f"# format: {format_name}",
-        f"# software: {SOFTWARE}",
-        f"# created_utc: {now_utc()}",
-        *(f"# input {s.role}: {s.sha256sum_line()}" for s in inputs),
-        *(f"# {key}: {value}" for key, value in (extra or {}).items()),
-    ]
-    return "".join(line + "\n" for line in lines)
+    return "".join(f"# {line}\n" for line in history_lines(format_name, inputs, extra))
+
+
+def history_file(format_name: str, name: str, data: bytes, inputs: Iterable[FileSource]) -> str:
+    """``NAME.history``: the history of a file whose format takes no comment, beside it.
+
+    The ``#`` lines of :func:`csv_preamble` (with ``file: NAME``), then the file's own
+    ``sha256sum`` line: ``sha256sum -c NAME.history`` in its folder checks the file (it
+    skips the ``#`` lines), and the ``# input`` lines, without their ``# input ROLE:``,
+    check the inputs the same way.
+    """
+    preamble = csv_preamble(format_name, inputs, {"file": name})
+    return preamble + f"{hashlib.sha256(data).hexdigest()}  {name}\n"
 
 
 def read_csv_preamble(

@@ -7,7 +7,10 @@ alone with each family's documented rules (docs/controllers.md):
 - Sinumerik: LEC ``$AA_ENC_COMP`` values are errors (K3: "a positive compensation value
   moves the axis negative"); CEC ``$AN_CEC`` values are corrections (xmalign's reading,
   not confirmed from the manual), each table acting in the directions ``$AN_CEC_DIRECTION``
-  gives; ``(MAX - MIN) / STEP`` must equal the number of points minus one exactly.
+  gives; ``(MAX - MIN) / STEP`` must equal the number of points minus one exactly;
+  a reversal left to MD32450 ``$MA_BACKLASH`` (the 828D's) acts when the axis moves
+  against its reference-return direction, positive when the encoder leads the machine
+  part (the ``-`` approach stops above the ``+`` approach).
 - Fanuc: incremental corrections per section, the table of the reference-return
   direction zero at the reference position, the other direction's table there at
   parameter 3627 (A-77810E, table (a)); values x magnification x detection unit.
@@ -62,6 +65,13 @@ def sinumerik(files: dict[str, str], machine: Machine, direction: str) -> Tables
         positions = _grid(meta["_MIN"], meta["_STEP"], meta["_MAX"], len(values))
         _add(tables, f"E{axis}{axis}", positions, np.array(values, dtype=float))
     cec = files["NC_CEC.INI"]
+    for value, name in re.findall(r"MD32450 \$MA_BACKLASH\[0\] = (\S+) on (\w+)$", cec, re.M):
+        axis = names[name]
+        if direction != (machine.reference_return(axis) or "+"):
+            # a positive backlash: the - approach stops above the + approach (808D MD32450)
+            play = float(value) if direction == "-" else -float(value)
+            positions, values = tables[f"E{axis}{axis}"]
+            tables[f"E{axis}{axis}"] = (positions, values + play)
     for t in sorted({int(i) for i in re.findall(r"^\$AN_CEC\[(\d+),", cec, re.M)}):
 
         def value(key: str, t: int = t) -> str:

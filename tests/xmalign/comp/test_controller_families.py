@@ -4,6 +4,7 @@ reference-return direction; the family's limits; the loading notes."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -92,13 +93,20 @@ def test_sinumerik_step_min_max_agree_exactly_with_the_point_count():
     assert "$AA_ENC_COMP_MAX[0,AX1]=400.000002" in files["AX_EEC.INI"]
 
 
-def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to_md32450():
-    tables, _ = _errors()
-    for name in ("EXX", "EYY"):  # reversals that vary along the axis (Z's is constant)
+def _three_reversals() -> tuple[ErrorTableSet, dict[str, dict[str, np.ndarray]]]:
+    """:func:`_errors` with reversals that vary along X and Y too (Z's is a constant -2 um)."""
+    tables, truth = _errors()
+    for name in ("EXX", "EYY"):
         mean = tables.tables[name]
         half_mm = 1e-3 * (0.5 + mean.positions_mm / 200.0)
         tables.tables[name + "+"] = Table(mean.positions_mm, mean.values - half_mm, mean.u95)
         tables.tables[name + "-"] = Table(mean.positions_mm, mean.values + half_mm, mean.u95)
+        truth[name] = {"+": mean.values - half_mm, "-": mean.values + half_mm}
+    return tables, truth
+
+
+def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to_md32450():
+    tables, _ = _three_reversals()
     eight_and_more = make_machine(controller="sinumerik")
     cec = compensate(eight_and_more, tables, "sinumerik").files["NC_CEC.INI"]
     assert "$AN_CEC[8,0]" in cec  # 840D sl: 6 cross + 3 reversal tables
@@ -109,6 +117,26 @@ def test_sinumerik_828d_keeps_eight_tables_and_moves_the_rest_of_the_reversal_to
     # the reversal that varies least along its axis (Z's) gives way: a constant in MD32450
     assert cec.count("MD32450 $MA_BACKLASH[0] =") == 1 and "; Z: no table left" in cec
     assert "MD32450 carries it as a constant" in compensation.loading.reversal
+
+
+@pytest.mark.parametrize("returns", ["+", "-"])
+def test_sinumerik_828d_backlash_is_the_machines_play_whatever_the_return_direction(returns):
+    """MD32450 is positive when the encoder leads the machine part (the '-' approach stops
+    above the '+' one): Z's play is e- - e+ = -2 um, so -0.002 mm whichever way Z is
+    referenced (it once flipped with the direction, and doubled the play in one of them)."""
+    tables, truth = _three_reversals()
+    machine = make_machine(controller="sinumerik", series="828D", reference_return={"Z": returns})
+    files = compensate(machine, tables, "sinumerik").files
+    assert (
+        "; Z: no table left for its reversal: MD32450 $MA_BACKLASH[0] = -0.002000 on AX3"
+        in (files["NC_CEC.INI"])
+    )
+    positions = tables.tables["EZZ"].positions_mm
+    datum = np.interp(0.0, positions, truth["EZZ"][returns])  # Z's reference: 0
+    for direction in "+-":
+        at, values = taken_out("sinumerik", files, machine, direction)["EZZ"]
+        expected = np.interp(at, positions, truth["EZZ"][direction]) - datum
+        np.testing.assert_allclose(values, expected, atol=1e-6, err_msg=direction)
 
 
 def test_sinumerik_828d_refuses_more_than_200_points():
@@ -131,6 +159,40 @@ def test_heidenhain_tnc_4xx_tables_start_at_zero_at_the_datum_with_power_of_two_
     assert [float(value) for value in rows[0][2:]] == [-0.003, 0.0, 0.0, 0.0]
     readme = files["HEIDENHAIN.TXT"]
     assert "MP730" in readme and "TNC 4xx" in readme and "2^19 x 0.1 um" in readme
+
+
+@pytest.mark.parametrize("series", ["TNC 640", "TNC 4xx"])
+def test_heidenhain_txt_says_what_the_tables_hold_where_they_start(series):
+    """HEIDENHAIN.TXT once said every table is zero at the reference point while X.COM's
+    first row held the reversal: each of its statements is checked against the tables."""
+    machine = make_machine(controller="heidenhain", series=series)
+    files = compensate(machine, _errors()[0], "heidenhain").files
+    readme = files["HEIDENHAIN.TXT"]
+    assert "every table is zero" not in readme and "starts at 0" not in readme
+    for axis in "XYZ":
+        lines = files[f"{axis}.COM"].splitlines()
+        header = lines[1].split()
+        rows = np.array([[float(v) for v in line.split()] for line in lines[2:-1]])
+        at = rows[0, 1] if series == "TNC 4xx" else float(machine.cnc.reference["XYZ".index(axis)])
+        values = {
+            name: np.interp(at, rows[:, 1], rows[:, header.index(name)]) for name in header[2:]
+        }
+        stated = re.search(
+            rf"^{axis}\.COM at the \w+(?: \w+)? {axis} = (\S+) mm: (.*)$", readme, re.M
+        )
+        assert stated is not None, axis
+        assert float(stated.group(1)) == pytest.approx(at)
+        zero, _, held = stated.group(2).partition("; ")
+        for name in zero.removesuffix(" zero").split(", "):
+            assert values[name] == pytest.approx(0.0, abs=5e-6), (axis, name)
+        for name, value in re.findall(r"(\w+) ([+-]\d\.\d{5}) mm", held):
+            assert values[name] == pytest.approx(float(value), abs=5e-6), (axis, name)
+        # X and Z have a reversal (3 and -2 um): it is stated, in the other direction's column
+        assert ("the reversal there" in held) == (axis != "Y"), axis
+    if series == "TNC 4xx":
+        assert "CONFIG.CMA goes as CONFIG.S, each .COM as .V" in readme
+        assert "p. 4-31" in readme
+        assert "BACKLASH column on a TNC 4xx" in readme
 
 
 def test_heidenhain_tnc_4xx_spacing_follows_the_manuals_example():
@@ -206,3 +268,93 @@ def test_comp_prints_who_carries_the_reversal_and_the_check(tmp_path):
     assert "Not confirmed from a manual: the unit of 3624" in result.stdout
     readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
     assert "Check before use:" in readme and "X 0 (-)" in readme
+
+
+@pytest.mark.parametrize(
+    ("series", "controller", "expected"),
+    [
+        (None, "fanuc", "FANUC Series 0i"),
+        ("840D sl", "fanuc", "FANUC Series 0i"),
+        ("828D", "heidenhain", "HEIDENHAIN MANUALplus 620"),
+        ("828D", "sinumerik", "SINUMERIK 828D"),
+    ],
+)
+def test_controller_option_chooses_the_familys_default_series(series, controller, expected):
+    """``comp --controller fanuc`` on a Sinumerik machine file wrote "FANUC Series 840D sl"
+    (or failed on cnc.series): another family gets its own default series."""
+    cnc = {} if series is None else {"series": series}
+    machine = make_machine(controller="sinumerik", **cnc)
+    files = compensate(machine, _errors()[0], controller).files
+    assert any(expected in text for text in files.values())
+    assert not any(f"Series {series}" in text for text in files.values() if controller == "fanuc")
+
+
+def test_comp_controller_fanuc_with_the_example_machine_file(tmp_path):
+    from tests.cli_helpers import run_in_process
+
+    root = Path(__file__).resolve().parents[3] / "examples"
+    result = run_in_process(
+        "comp",
+        "--errors",
+        str(root / "errors.csv"),
+        "--machine",
+        str(root / "fyxz.yaml"),
+        "--out",
+        str(tmp_path / "comp"),
+        "--controller",
+        "fanuc",
+    )
+    assert result.returncode == 0, result.stderr
+    readme = (tmp_path / "comp" / "PITCH_README.TXT").read_text()
+    assert "\nxmalign: FANUC Series 0i pitch error compensation (PITCH.TXT)\n" in readme
+
+
+def _extrapolated_below(tables: ErrorTableSet, axis: str, u95_um: float) -> ErrorTableSet:
+    """``axis``'s tables with their first point (the axis's lower travel end, where the
+    comp test machine's reference lies) marked extrapolated, its u95 ``u95_um`` (urad)."""
+    for name, table in list(tables.tables.items()):
+        if name[2] != axis:
+            continue
+        measured = np.ones(len(table.positions_mm), dtype=bool)
+        measured[0] = False
+        u95 = np.array(table.u95, dtype=float)
+        u95[0] = u95_um * (1e-3 if name[1] in "XYZ" else 1e-6)
+        tables.tables[name] = Table(table.positions_mm, table.values, u95, measured)
+    return tables
+
+
+@pytest.mark.parametrize("controller", ["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"])
+def test_comp_names_the_tables_whose_reference_value_is_extrapolated(controller):
+    """From one station the reference point may lie beyond the measured stroke: every
+    writer names those tables with their U95 there, in its notes and its files."""
+    tables = _extrapolated_below(_errors()[0], "X", 29.0)
+    compensation = compensate(make_machine(controller=controller), tables, controller)
+    [warning] = [w for w in compensation.loading.warnings if "outside the measured" in w]
+    assert warning.startswith("the reference point X = 0 mm lies outside the measured range")
+    assert "(100 to 400 mm)" in warning
+    assert "EXX 29.0 um" in warning and "EAX 29.0 urad" in warning and "EYY" not in warning
+    assert "A second station whose lines measure X across 0 mm removes it" in warning
+    assert "EXX+" not in warning  # the directions' tables together: the largest U95
+    if controller != "linuxcnc":  # LinuxCNC's comp files take no text (their notes: comp)
+        # in a file the notes are comment lines wrapped at 100 characters
+        unwrapped = [
+            " ".join(line.lstrip(";#/ ") for line in text.splitlines())
+            for text in compensation.files.values()
+        ]
+        assert any(warning in text for text in unwrapped)
+        # a Sinumerik block has a length limit: no comment line there is longer than 100
+        assert all(
+            len(line) <= 100
+            for name, text in compensation.files.items()
+            for line in text.splitlines()
+            if name.endswith(".INI")
+        )
+
+
+def test_no_warning_when_the_reference_was_measured():
+    tables = _extrapolated_below(_errors()[0], "X", 29.0)
+    machine = make_machine(
+        controller="sinumerik", reference_mm=[100.0, 0.0, 0.0], reference_return={"X": "+"}
+    )
+    warnings = compensate(machine, tables, "sinumerik").loading.warnings
+    assert not any("outside the measured" in warning for warning in warnings)

@@ -118,3 +118,15 @@ def test_comp_with_an_ini_that_lacks_a_joint_section_exits_with_one_line(tmp_pat
     )
     assert_one_line_error(result, str(ini), "[JOINT_3]")
     assert not (tmp_path / "out" / "x.comp").exists()  # nothing half written
+
+
+def test_the_merged_ini_starts_with_its_history(tmp_path):
+    from xmalign.formats.provenance import FileSource
+
+    ini = tmp_path / "mill.ini"
+    ini.write_text(_ini())
+    merged = merge_ini(_ini(), ["X", "Y", "Z"], OUT, str(ini), inputs=(FileSource.of("ini", ini),))
+    lines = merged.splitlines()
+    assert lines[0] == "# format: xmalign.comp.linuxcnc/1"
+    assert any(line.startswith("# input ini: ") and line.endswith(f"  {ini}") for line in lines)
+    assert merged.endswith(merge_ini(_ini(), ["X", "Y", "Z"], OUT, str(ini)).split("\n", 3)[3])

@@ -5,6 +5,7 @@ The component itself is tested in a real LinuxCNC in tests/linuxcnc/.
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -153,7 +154,9 @@ def test_merge_rewires_the_drives_through_the_component(tmp_path):
     ini = _config(tmp_path)
     merged = merge_config(ini, _tables(np.random.default_rng(3)), _machine(), tmp_path / "out")
     hal = merged.files["machine_volcomp.hal"].splitlines()
+    assert hal[0] == "# format: xmalign.comp.linuxcnc-volumetric/1"  # the copy's history
     # loaded before its pins are named; feedback in before motion reads it, command after
+    hal = [line for line in hal if not line.startswith("#")]
     assert hal[0] == f"loadrt xmalign_volcomp table={(tmp_path / 'out').resolve()}/{TABLE_FILE}"
     motion = hal.index("addf motion-controller servo-thread")
     assert hal[motion - 1] == f"addf {INSTANCE}.feedback servo-thread"
@@ -261,7 +264,16 @@ def test_cli_writes_the_merged_configuration(tmp_path):
     written = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert written == sorted(
         ["machine_volcomp.hal", "machine_volcomp.ini", TABLE_FILE, WIRING_FILE]
+        + [f"{TABLE_FILE}.history"]  # the table file's lines are the component's: no comment
     )
+    check = subprocess.run(
+        ["sha256sum", "-c", f"{TABLE_FILE}.history"],
+        cwd=tmp_path / "out",
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert check.returncode == 0 and f"{TABLE_FILE}: OK" in check.stdout, check.stderr
 
 
 def test_cli_writes_through_the_comp_step(tmp_path, monkeypatch):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.xmalign.comp.conftest import make_machine, make_tables, with_reversal
-from xmalign.comp import compensate, fanuc, heidenhain, isg, linuxcnc, sinumerik
+from xmalign.comp import compensate, fanuc, fit_for, heidenhain, isg, linuxcnc, sinumerik
 from xmalign.errors import InputError, OutOfRangeError
 
 
@@ -54,12 +54,57 @@ def test_sinumerik_cec_cross_tables_reversal_and_activation():
     # the reversal: E+ - E- = -4 um, correction +4 um (6 cross tables come first)
     assert "$AN_CEC_DIRECTION[6]=1" in lines and "$AN_CEC[6,0]=0.004000" in lines
     assert not any(line.startswith("$AN_CEC[7,") for line in lines)
-    # SD41300 / SD41310 switch every table on
+    # SD41300: every table is loaded switched off (they are switched on one at a time after
+    # the sign check), SD41310 weight 1
+    assert not any("=TRUE" in line for line in lines if not line.startswith(";"))
     for t in range(7):
-        assert f"$SN_CEC_TABLE_ENABLE[{t}]=TRUE" in lines
+        assert f"$SN_CEC_TABLE_ENABLE[{t}]=FALSE" in lines
         assert f"$SN_CEC_TABLE_WEIGHT[{t}]=1.0" in lines
     # the tables carry the reversal: the control's backlash goes to 0, said in the file
     assert any("set MD32450 $MA_BACKLASH to 0 on X" in line for line in lines)
+
+
+@pytest.mark.parametrize("series", ["840D sl", "828D"])
+def test_sinumerik_files_say_the_load_order_of_k3_page_237(series):
+    """K3 03/2013 p. 237: the tables load only while MD32700 = 0 and MD32710 = 0; MD38000 /
+    MD18342 reformat the static user memory at the next start (archive first); an 828D
+    has no MD18342. The sign check measures the axis, not a compensation display."""
+    tables = with_reversal(make_tables({"EYX": [0, 10, 0, 0, 0]}), "EXX", 2.0)
+    machine = make_machine(controller="sinumerik", series=series)
+    files = compensate(machine, tables, "sinumerik").files
+    for name in ("AX_EEC.INI", "NC_CEC.INI"):
+        text = files[name]
+        assert "MD32700 $MA_ENC_COMP_ENABLE[0]=0 AND MD32710 $MA_CEC_ENABLE=0" in text
+        assert "p. 237" in text and "archive the NC" in text
+        assert "reformats the static user memory at the next start" in text
+        assert ("MD18342 $MN_MM_CEC_MAX_POINTS" in text) == (series != "828D"), name
+        assert ("828D: no MD18342" in text) == (series == "828D"), name
+    check = compensate(machine, tables, "sinumerik").loading.check
+    assert "dial gauge" in check and "encoder actual value" in check
+    assert "one at a time" in check
+
+
+@pytest.mark.parametrize("reference_mm", [[0, 0, 0], [200, 150, -100], [400, 300, -200]])
+def test_fanuc_no_axis_reference_number_is_another_axis_point(reference_mm):
+    """Parameter 3620 of an axis never names a point number of another axis (Y's reference
+    3620 = 150 once was X's last negative-direction point)."""
+    tables = make_tables({"EXX": [0, -2, -3, -1, 1]})
+    with_reversal(tables, "EXX", 1.0)
+    with_reversal(tables, "EYY", 1.0)
+    returns = {"X": "+", "Y": "-", "Z": "+"}
+    machine = make_machine(controller="fanuc", reference_mm=reference_mm, reference_return=returns)
+    pitch = fanuc.pitch_tables(fit_for(machine, tables, "fanuc"), machine)
+    used = {}
+    for table in pitch:
+        used[table.axis] = set(range(table.first_number, table.last_number + 1))
+        if table.negative_first_number is not None:
+            negative = table.negative_first_number
+            used[table.axis] |= set(range(negative, negative + table.count))
+    for table in pitch:
+        for other, numbers in used.items():
+            if other != table.axis:
+                assert table.reference_number not in numbers, (table.axis, other)
+                assert not numbers & used[table.axis], (table.axis, other)
 
 
 def test_sinumerik_refuses_more_points_than_md38000(monkeypatch):
@@ -73,10 +118,11 @@ def test_fanuc_incremental_values_and_parameters():
     lines = _files("fanuc", tables)["PITCH.TXT"].splitlines()
     assert lines[0] == "%" and lines[-1] == "%"
     # X: reference (x = 0) at its negative end: point R = 0, sections 1..4 are points 1..4
-    # Y: points 5..7 (75 mm, 4 sections), reference 4; Z: -200..0, reference at its + end
-    assert "N03620A1P0A2P4A3P12;" in lines
-    assert "N03621A1P1A2P5A3P9;" in lines
-    assert "N03622A1P4A2P8A3P12;" in lines
+    # Y: reference 5, not X's last point 4 (a gap), points 6..9 (75 mm, 4 sections);
+    # Z: -200..0, reference at its + end: points 10..13, reference 13
+    assert "N03620A1P0A2P5A3P13;" in lines
+    assert "N03621A1P1A2P6A3P10;" in lines
+    assert "N03622A1P4A2P9A3P13;" in lines
     assert "N03623A1P1A2P1A3P1;" in lines
     assert "N03624A1P100000A2P75000A3P50000;" in lines
     assert not any(line.startswith("N03626") for line in lines)  # no direction data
@@ -88,9 +134,9 @@ def test_fanuc_incremental_values_and_parameters():
         "N10004P-2;",
     ]
     # Z: corrections -4, -3, -2, -1, 0 (zero at z = 0) -> increments 1, 1, 1, 1
-    assert [line for line in lines if line.startswith(("N10009", "N10012"))] == [
-        "N10009P1;",
-        "N10012P1;",
+    assert [line for line in lines if line.startswith(("N10010", "N10013"))] == [
+        "N10010P1;",
+        "N10013P1;",
     ]
 
 
@@ -200,3 +246,53 @@ def test_machine_file_keys_are_checked():
     with pytest.raises(InputError, match="detection_unit_um"):
         make_machine(detection_unit_um=0)
     assert linuxcnc.MODEL.directional and fanuc.MODEL.directional
+
+
+#: Each family's comment mark in the files that take comments (the rest get NAME.history).
+COMMENT_MARKS = {
+    "AX_EEC.INI": ";",
+    "NC_CEC.INI": ";",
+    "PITCH_README.TXT": "#",
+    "STRAIGHTNESS.TXT": "#",
+    "HEIDENHAIN.TXT": "#",
+    "joints.ini": "#",
+    "vol_comp.csv": "//",
+}
+
+
+@pytest.mark.parametrize("controller", ["sinumerik", "fanuc", "heidenhain", "linuxcnc", "isg"])
+def test_every_controller_file_carries_its_history(controller, tmp_path):
+    """Format, software, time and the error-table file's SHA-256: as comments where the
+    format takes them, else in NAME.history, which ``sha256sum -c`` checks."""
+    import hashlib
+    import subprocess
+    from pathlib import Path
+
+    from tests.cli_helpers import run_in_process
+
+    errors = Path(__file__).resolve().parents[3] / "examples" / "errors.csv"
+    out = tmp_path / "comp"
+    result = run_in_process(
+        "comp", "--errors", str(errors), "--out", str(out), "--controller", controller
+    )
+    assert result.returncode == 0, result.stderr
+    input_line = f"input errors: {hashlib.sha256(errors.read_bytes()).hexdigest()}  {errors}"
+    written = sorted(path.name for path in out.iterdir())
+    assert written
+    for name in written:
+        if name.endswith(".history"):
+            continue
+        text = (out / name).read_text()
+        mark = COMMENT_MARKS.get(name)
+        if mark is None:  # a format without comments: the history beside it, checkable
+            history = (out / f"{name}.history").read_text()
+            assert f"# format: xmalign.comp.{controller}/1\n" in history
+            assert f"# {input_line}\n" in history and "# software: xmalign " in history
+            check = subprocess.run(
+                ["sha256sum", "-c", f"{name}.history"], cwd=out, capture_output=True, text=True
+            )
+            assert check.returncode == 0 and f"{name}: OK" in check.stdout, check.stderr
+        else:
+            assert f"{mark} format: xmalign.comp.{controller}/1\n" in text, name
+            assert f"{mark} {input_line}\n" in text and f"{mark} created_utc: " in text, name
+            assert not (out / f"{name}.history").exists()
