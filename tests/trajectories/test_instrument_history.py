@@ -12,9 +12,9 @@ from trajectories.instruments import (
     point_list_csv,
     tracker_points,
     write_instrument_program,
-    write_point_list,
 )
 from xmalign.formats.spatial_analyzer import read_point_list
+from xmalign.steps import write_instrument_step
 
 
 def test_the_point_list_gets_a_history_beside_it_that_sha256sum_checks(tmp_path, machine):
@@ -22,7 +22,7 @@ def test_the_point_list_gets_a_history_beside_it_that_sha256sum_checks(tmp_path,
     points.csv.history, whose last line is the list's own sha256sum line."""
     program = InstrumentProgram(points_mm=tracker_points(machine)[:5])
     path = tmp_path / "points.csv"
-    write_point_list(path, program, machine.smr_offset)
+    write_instrument_step(machine, program, points_path=path)
     assert path.read_text() == point_list_csv(program, machine.smr_offset)
     assert len(read_point_list(path)) == 5
     history = (tmp_path / "points.csv.history").read_text().splitlines()
