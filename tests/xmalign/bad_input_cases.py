@@ -1331,7 +1331,91 @@ _FILES_CASES = [
     # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES + _FILES_CASES
+
+def _alias_bomb() -> str:
+    """Nine levels of nine aliases: 9**9 values once expanded, a few hundred bytes written."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{n}: &a{n} [{', '.join([f'*a{n - 1}'] * 9)}]" for n in range(1, 9)]
+    return "\n".join(lines) + "\n"
+
+
+_UNITS_CANOPEN_LAUNCH = "launch:\n  transport: canopen\n  channel: can0\n  node_ids: "
+#: Issue 32's careless list: numbers as a person writes them, aliases, travel, node ids.
+_ISSUE_32_CASES = [
+    Case(
+        "yaml-octal-travel",
+        MACHINE,
+        (M, "travel_mm.X.1' (line 7)", "leading zero"),
+        replace(M, "X: [0, 2000]", "X: [0, 02000]"),
+    ),
+    Case(
+        "yaml-octal-negative",
+        MACHINE,
+        (M, "travel_mm.Z.0", "leading zero"),
+        replace(M, "Z: [-500, 0]", "Z: [-0500, 0]"),
+    ),
+    Case(
+        "yaml-octal-backlash",
+        MACHINE,
+        (M, "cnc.backlash_um.X", "leading zero"),
+        replace(M, _CNC, _CNC + "\n  backlash_um: {X: 010}"),
+    ),
+    Case(
+        "yaml-sexagesimal-feed",
+        MACHINE,
+        (M, "feed_mm_min.measure", "colon"),
+        replace(M, "measure: 2000", "measure: 33:20"),
+    ),
+    Case(
+        "yaml-sexagesimal-travel",
+        MACHINE,
+        (M, "travel_mm.Y.1", "colon"),
+        replace(M, "Y: [0, 1500]", "Y: [0, 1:30]"),
+    ),
+    Case("yaml-alias-bomb", MACHINE, (M, "aliases expand to more than"), append(M, _alias_bomb())),
+    Case(
+        "units-octal-port",
+        UNITS,
+        (U, "launch.port", "leading zero"),
+        replace(U, "port: 502", "port: 0502"),
+    ),
+    Case("units-alias-bomb", UNITS, (U, "aliases expand"), append(U, _alias_bomb())),
+    Case(
+        "machine-reference-outside-travel",
+        MACHINE,
+        (M, "cnc.reference_mm", "X = 2500", "travel"),
+        replace(M, _CNC, _CNC + "\n  reference_mm: [2500, 0, 0]"),
+    ),
+    Case(
+        "units-one-node-id-twice",
+        UNITS,
+        (U, "receiver.node_ids", "node 3", "launch unit"),
+        replace(
+            U,
+            "launch:\n  transport: modbus-tcp\n  host: 192.168.10.11\n  port: 502\n  device_id: 1",
+            _UNITS_CANOPEN_LAUNCH + "[3, 9]",
+        ),
+    ),
+    Case(
+        "units-node-id-twice-in-a-unit",
+        UNITS,
+        (U, "launch.node_ids", "node 7"),
+        replace(
+            U,
+            "launch:\n  transport: modbus-tcp\n  host: 192.168.10.11\n  port: 502\n  device_id: 1",
+            _UNITS_CANOPEN_LAUNCH + "[7, 7]",
+        ),
+    ),
+]
+
+CASES = (
+    _generic_cases()
+    + _kind_cases()
+    + _CLI_CASES
+    + _CARELESS_USER_CASES
+    + _FILES_CASES
+    + _ISSUE_32_CASES
+)
 
 
 # -- running a case -----------------------------------------------------------------------
