@@ -50,7 +50,7 @@ from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.provenance import FileSource, file_sha256, sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.studies import write_design
 from xmalign.identification_routine import (
@@ -515,6 +515,7 @@ def post_step(
     ``more_files(result)`` adds files written together with the tables (the report): all
     of them, or none.
     """
+    refuse_repeated_measurements([path for _, path in stations])
     read = [read_station(machine, plan, path) for plan, path in stations]
     if on_fit is not None:
         on_fit(read)
@@ -590,3 +591,24 @@ def _write_controller_files(
     if check_outputs is not None:
         check_outputs(list(paths))
     atomic_write_files(paths)
+
+
+def refuse_repeated_measurements(paths: Sequence[Path]) -> None:
+    """Refuse one measurement given for two stations: the same path, a link to it or a
+    byte-identical copy (found by the SHA-256 of the bytes); its points would count
+    twice and the u95 shrink by 1/sqrt(2).
+
+    Raises
+    ------
+    InputError
+        Naming both files and their stations (1-based), or a file that cannot be read.
+    """
+    first_of: dict[str, int] = {}
+    for index, path in enumerate(paths):
+        first = first_of.setdefault(file_sha256(path), index)
+        if first != index:
+            raise InputError(
+                f"{path}: the measurements of station {index + 1} are those of station"
+                f" {first + 1} ({paths[first]}), byte for byte; its points would count twice"
+                " (give each station's data once)"
+            )

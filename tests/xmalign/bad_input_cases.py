@@ -1408,6 +1408,33 @@ _ISSUE_32_CASES = [
     ),
 ]
 
+
+def _second_station(make: Callable[[Path, Path], None]) -> Damage:
+    """m.csv measured, and m2.csv made from it by ``make(m.csv, m2.csv)``."""
+
+    def apply(folder: Path) -> None:
+        measured()(folder)
+        make(folder / "m.csv", folder / "m2.csv")
+
+    return apply
+
+
+_TWO_STATIONS = ("post", "--plan", L, "--data", "m.csv", "--plan", L, "--data", "m2.csv")
+_ISSUE_32_CASES += [
+    Case(
+        "post-second-station-a-copy",
+        (*_TWO_STATIONS, "--out", "e-new.csv"),
+        ("m2.csv", "station 2", "station 1 (m.csv)", "byte for byte"),
+        _second_station(lambda a, b: shutil.copy(a, b)),
+    ),
+    Case(
+        "post-second-station-a-symlink",
+        (*_TWO_STATIONS, "--out", "e-new.csv"),
+        ("m2.csv", "station 2", "station 1 (m.csv)", "byte for byte"),
+        _second_station(lambda a, b: b.symlink_to(a.name)),
+    ),
+]
+
 CASES = (
     _generic_cases()
     + _kind_cases()

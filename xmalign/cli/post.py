@@ -28,7 +28,6 @@ from xmalign.formats.common import (
     read_text,
     refuse_overwriting,
     refuse_replacing,
-    same_file,
 )
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import Plan, read_plan
@@ -37,7 +36,7 @@ from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station
 from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
-from xmalign.steps import as_left_step, comp_step, post_step
+from xmalign.steps import as_left_step, comp_step, post_step, refuse_repeated_measurements
 
 MachineOption = Annotated[
     Path | None, typer.Option("--machine", help="Machine YAML (default: the reference machine).")
@@ -83,13 +82,7 @@ def _stations(
             f"post: {len(plans)} --plan but {len(data)} --data; give one --plan/--data pair per"
             " launch-unit station, in the same order"
         )
-    for later, path in enumerate(data[1:], start=1):
-        first = next(k for k, other in enumerate(data) if same_file(path, other))
-        if first < later:
-            raise InputError(
-                f"{path}: --data is given for station {first + 1} and again for station"
-                f" {later + 1}; its points would count twice (give each station's data once)"
-            )
+    refuse_repeated_measurements(data)
     read = [(read_plan(plan_path), plan_path) for plan_path in plans]
     if not read:
         return machine_or_default(machine), []
