@@ -1,11 +1,12 @@
 """Monte Carlo planning: strategies, trials, the study loop, Dask, and ``xmalign mc``."""
 
 import json
+import sys
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 
 from sim.machine import ErrorAmplitudes
 from sim.mc import (
@@ -251,3 +252,20 @@ def test_cli_runs_on_a_dask_scheduler(tmp_path):
 def test_cli_bad_options_are_one_line(tmp_path, args, fragment):
     result = run_cli("mc", "--trials", "2", "--out", str(tmp_path), *args)
     assert_one_line_error(result, fragment)
+
+
+@pytest.mark.parametrize(
+    ("scheduler", "fragment"),
+    [("tcp://127.0.0.1:9", "cannot connect"), ("no-dask", "needs dask.distributed")],
+)
+def test_a_scheduler_that_cannot_be_used_leaves_no_folder(
+    tmp_path, monkeypatch, scheduler, fragment
+):
+    """Issue 32: ``mc --scheduler`` without dask made --out and left it empty."""
+    if scheduler == "no-dask":
+        monkeypatch.setitem(sys.modules, "dask.distributed", None)  # import fails as if absent
+        scheduler = "tcp://127.0.0.1:9"
+    out = tmp_path / "study"
+    result = run_in_process("mc", "--trials", "2", "--out", str(out), "--scheduler", scheduler)
+    assert_one_line_error(result, "--scheduler", fragment)
+    assert not out.exists()

@@ -1435,6 +1435,29 @@ _ISSUE_32_CASES += [
     ),
 ]
 
+_ISSUE_32_CASES += [
+    Case(
+        "program-points-out-without-instrument",
+        ("program", "--pose", P, "--out", "run.mpf", "--points-out", "points-new.csv"),
+        ("--points-out", "not used without --instrument"),
+    ),
+    Case(
+        "program-tracker-with-lines",
+        ("program", "--instrument", "tracker", "--lines", "X,Y", "--out", "t.nc"),
+        ("--lines", "not used with --instrument tracker"),
+    ),
+    Case(
+        "dry-run-tracker-two-stations",
+        ("dry-run", "--instrument", "tracker", "--stations", "2", "--out", "dr"),
+        ("--stations", "not used with --instrument tracker"),
+    ),
+    Case(
+        "dry-run-tracer-verify",
+        ("dry-run", "--instrument", "tracer", "--verify", "--out", "dr"),
+        ("--verify", "not used with --instrument tracer"),
+    ),
+]
+
 CASES = (
     _generic_cases()
     + _kind_cases()

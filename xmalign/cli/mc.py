@@ -271,7 +271,6 @@ def mc(
     )
     chosen_machine = machine_or_default(machine)
     chosen = strategies(chosen_machine, vary.split(","))
-    output_folder(out, "--out")
     progress = Progress(
         TextColumn("trials"),
         BarColumn(),
@@ -279,7 +278,9 @@ def mc(
         TimeElapsedColumn(),
         console=console,
     )
-    with progress, _executor(scheduler, workers or os.cpu_count() or 1) as executor:
+    # the executor first: no dask, or no scheduler there, leaves no empty folder behind
+    with _executor(scheduler, workers or os.cpu_count() or 1) as executor, progress:
+        output_folder(out, "--out")
         task = progress.add_task("trials", total=trials * len(chosen))
         results = run_study(
             chosen_machine, chosen, settings, executor, lambda: progress.advance(task)
