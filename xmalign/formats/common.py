@@ -636,6 +636,20 @@ def refuse_replacing(outputs: Mapping[str, PathsOf], force: bool) -> None:
                 )
 
 
+#: Longest file name most file systems take, bytes (NAME_MAX).
+NAME_MAX = 255
+#: What ``mkstemp`` adds to the prefix: eight random characters and ``.tmp``.
+_TEMPORARY_TAIL = 8 + len(".tmp")
+
+
+def _temporary_prefix(path: Path) -> str:
+    """``.NAME.``, NAME shortened (at a character boundary) so that the temporary file's
+    name fits :data:`NAME_MAX` bytes whenever ``path``'s own name does."""
+    room = NAME_MAX - _TEMPORARY_TAIL - len(b"..")
+    name = path.name.encode("utf-8", "surrogateescape")[:room]
+    return f".{name.decode('utf-8', 'ignore')}."
+
+
 def _write_temporary(path: Path, data: bytes) -> Path:
     """``data`` in a synced temporary file next to ``path``, mode ``0666 & ~umask``."""
     refuse_special(path, "cannot write")
@@ -644,7 +658,7 @@ def _write_temporary(path: Path, data: bytes) -> Path:
         raise OutputError(located(path, "cannot write", f"{folder} is a file, not a folder"))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, name = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=".tmp", dir=path.parent)
     except OSError as error:
         raise OutputError(located(path, "cannot write", os_problem(error))) from error
     tmp = Path(name)
