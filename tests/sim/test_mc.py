@@ -102,6 +102,34 @@ def test_identification_trial_is_reproducible_and_sensible(machine):
     assert first.failure is None
 
 
+def test_a_trial_identifies_and_plans_through_the_steps(machine, monkeypatch):
+    """Issue 32: the trials ran identify and plan_measurement themselves."""
+    import sim.dry_run as dry_run
+    import sim.mc as mc
+    from xmalign import steps
+
+    calls: list[str] = []
+
+    def spy(name):
+        real = getattr(steps, name)
+
+        def call(*args, **kwargs):
+            calls.append(name)
+            return real(*args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(mc, "plan_session_step", spy("plan_session_step"))
+    monkeypatch.setattr(steps, "program_step", spy("program_step"))
+    identification_trial(_spec(machine))
+    assert calls == ["plan_session_step", "program_step"]
+    calls.clear()
+    monkeypatch.setattr(dry_run, "station_step", spy("station_step"))
+    spec = _spec(machine, seed=5, mode="calibration")
+    mc.calibration_trial(TrialSpec(**{**spec.__dict__, "amplitudes": ErrorAmplitudes(scale=0.5)}))
+    assert calls == ["station_step", "program_step"]
+
+
 def test_an_impossible_trial_is_recorded_as_a_failure(machine):
     spec = TrialSpec("identification", machine, np.array([[1000.0, 750.0, -250.0]]), 1)
     outcome = run_trial(spec)
