@@ -1452,6 +1452,11 @@ _ISSUE_32_CASES += [
         ("--stations", "not used with --instrument tracker"),
     ),
     Case(
+        "mc-instruments-on-a-scheduler",
+        ("mc", "--mode", "instruments", "--trials", "1", "--scheduler", "tcp://127.0.0.1:9"),
+        ("--scheduler", "not used with --mode instruments"),
+    ),
+    Case(
         "dry-run-tracer-verify",
         ("dry-run", "--instrument", "tracer", "--verify", "--out", "dr"),
         ("--verify", "not used with --instrument tracer"),
