@@ -62,6 +62,15 @@ FAULT_CODE_BASE = 0xFF00
 HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S = 0x77F, b"\x05", 0.1
 #: docs/conventions.md numbers the axes across both units: launch a1, a2; receiver a3, a4, a5.
 FIRST_AXIS = {"launch": 1, "receiver": 3}
+#: Number of axes of each unit.
+AXIS_COUNT = {"launch": 2, "receiver": 3}
+
+
+def unit_node_ids(kind: Literal["launch", "receiver"], node_ids: Sequence[int] | None) -> list[int]:
+    """The CANopen node id of each axis of a unit: ``node_ids``, else its axis numbers."""
+    first = FIRST_AXIS[kind]
+    return list(node_ids) if node_ids is not None else list(range(first, first + AXIS_COUNT[kind]))
+
 
 T = TypeVar("T")
 
@@ -278,11 +287,7 @@ class CanopenUnit(AxisGroup, ClosesOnExit):
         self.device_name = device_name or f"{kind} unit"
         self.clock = clock or WallClock()
         first = FIRST_AXIS[kind]
-        ids = (
-            list(node_ids)
-            if node_ids is not None
-            else [first, first + 1, first + 2][: 2 if kind == "launch" else 3]
-        )
+        ids = unit_node_ids(kind, node_ids)
         self.network = network
         self._heartbeat_task = (
             network.send_periodic(HOST_HEARTBEAT_ID, HOST_HEARTBEAT_DATA, HOST_HEARTBEAT_PERIOD_S)

@@ -69,7 +69,7 @@ from firmware_iface.can_bus import (
     multicast_group,
     open_can_bus,
 )
-from firmware_iface.canopen_axis import CanopenUnit
+from firmware_iface.canopen_axis import CanopenUnit, unit_node_ids
 from firmware_iface.controller_config import (
     MTConnectConfig,
     Seconds,
@@ -317,6 +317,25 @@ class UnitsConfig(_Strict):
     timeouts: Timeouts = Timeouts()
     environment: EnvironmentConfig | None = None
     instruments: dict[str, str] = {}
+
+    @model_validator(mode="after")
+    def _one_node_per_id(self) -> UnitsConfig:
+        """Two axes on one CAN bus with one node id would both answer every request."""
+        owners: dict[tuple[str, str, int], str] = {}
+        for kind in ("launch", "receiver"):
+            unit = getattr(self, kind)
+            if not isinstance(unit, CanopenUnitConfig):
+                continue
+            for node_id in unit_node_ids(kind, unit.node_ids):
+                key = (unit.interface, unit.channel, node_id)
+                if key in owners:
+                    whose = "another axis" if owners[key] == kind else f"the {owners[key]} unit"
+                    raise ValueError(
+                        f"{kind}.node_ids: node {node_id} on {unit.channel} is already"
+                        f" {whose}'s: give every axis its own node id"
+                    )
+                owners[key] = kind
+        return self
 
 
 def parse_units_config(data: object, source: str, base_dir: Path | None = None) -> UnitsConfig:

@@ -211,8 +211,14 @@ class LinuxCnc(LinuxCncControl):
         if enable_password is not None:
             check_password(enable_password, "enable password")
         reply = self.link.ask(f"hello {connect_password} {CLIENT} {PROTOCOL_VERSION}")
-        if not reply.upper().startswith("HELLO ACK"):
+        if reply.upper().startswith("HELLO NAK"):
             raise DeviceError(f"{self.name} refused the connect password (hello: {reply})")
+        if not reply.upper().startswith("HELLO ACK"):
+            shown = reply if len(reply) <= 60 else reply[:57] + "..."
+            raise DeviceError(
+                f"{self.name} does not speak linuxcncrsh: answered '{shown}' to hello"
+                " (another server on that port? linuxcncrsh listens on 5007 by default)"
+            )
         self.link.ask("set echo off")  # the reply is the echo of this very request
         self._set("verbose on")
         if enable_password is not None:

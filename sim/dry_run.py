@@ -46,7 +46,12 @@ from xmalign.post.evaluate import PostResult, post_process
 from xmalign.rigid_body import Chain, ErrorTables, RemainingErrors
 from xmalign.steps import (
     PROGRAM_SUFFIX,
+    Measure,
+    ProgramStepResult,
     RunStepDevices,
+    StationFiles,
+    StationOptions,
+    StationStepResult,
     as_left_step,
     comp_step,
     controlled_run_step,
@@ -56,8 +61,8 @@ from xmalign.steps import (
     open_measurements_step,
     post_step,
     program_drive,
-    program_step,
     run_step,
+    station_step,
 )
 
 #: How far the simulated launch unit stands from the machine file's coarse guess, mm:
@@ -430,6 +435,54 @@ def _no_operator(prompt: str) -> str:
     raise EOFError(prompt)
 
 
+def station_measure(
+    setup: VirtualSetup,
+    machine: Machine,
+    served: bool,
+    on_point: Callable[[int], None] | None = None,
+) -> Measure:
+    """How a dry run's station captures its plan: over the served devices with xmalign
+    running its program on a simulated LinuxCNC (:func:`measure_controlled`), or
+    in-process with the G-code on the virtual CNC (:func:`measure_virtually`)."""
+
+    def measure(programmed: ProgramStepResult, output: RunOutput) -> CalibrationRun:
+        if on_point is not None:
+            output.on_saved = on_point
+        if served:
+            return measure_controlled(setup, machine, programmed.plan, output)
+        plan, program, dialect = programmed.plan, programmed.program, programmed.dialect
+        return measure_virtually(setup, plan, program, dialect, output)
+
+    return measure
+
+
+def simulate_station(
+    setup: VirtualSetup,
+    machine: Machine,
+    positions_mm: Vec,
+    files: StationFiles,
+    options: DryRunOptions,
+    monitor: EnvironmentMonitor,
+    line_ids: tuple[str, ...] | None = None,
+    on_stage: Callable[[str], None] | None = None,
+    on_point: Callable[[int], None] | None = None,
+) -> StationStepResult:
+    """One station of a dry run through :func:`~xmalign.steps.station_step`: identified at
+    ``positions_mm`` with a simulated technician aligning by hand where needed (seeded by
+    ``options.seed``), programmed, and measured as :func:`station_measure` says."""
+    return station_step(
+        machine,
+        positions_mm,
+        virtual_devices(setup),
+        files,
+        station_measure(setup, machine, options.served, on_point),
+        StationOptions(options.method, options.dialect, line_ids, options.seed),
+        manual_align=_operator(setup, machine, np.random.default_rng(options.seed)),
+        environment=monitor,
+        on_stage=on_stage,
+    )
+
+
 def _margins(plan: MeasurementPlan, rows: list, machine: Machine) -> list[LineMargin]:
     """Room left in the straightness and angle ranges: predicted (95 %) and measured."""
     ranges = machine.interferometer
@@ -485,9 +538,7 @@ def simulate_calibration(
     check_dry_run_folder(workdir)
     setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
     station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)
-    clock = setup.world.clock
 
-    stage("identify")
     positions = options.identification_mm
     design_warnings: list[str] = []
     if positions is None:
@@ -495,42 +546,18 @@ def simulate_calibration(
         positions, design_warnings = design.machine_mm, list(design.warnings)
     # only now, with the options found good, is the folder made
     workdir.mkdir(parents=True, exist_ok=True)
-    result = identify_virtually(
-        setup,
-        machine,
-        positions,
-        workdir / "session.json",
-        options.method,
-        options.seed,
-        pose_path=workdir / "pose.json",
-    )
-    identification_s = clock.now()
-
-    stage("program")
-    programmed = program_step(
-        machine,
-        result,
-        workdir / "plan.json",
-        dialect=options.dialect,
-        pose_path=workdir / "pose.json",
-    )
-    measurement_plan, plan = programmed.measurement, programmed.plan
-
-    def measure(output: RunOutput) -> CalibrationRun:
-        if options.served:
-            return measure_controlled(setup, machine, plan, output)
-        return measure_virtually(setup, plan, programmed.program, programmed.dialect, output)
-
-    stage("run")
-    started = clock.now()
-    csv_path = workdir / "measurements.csv"
     monitor = EnvironmentMonitor(station, "simulated weather station")
-    with open_measurements_step(
-        csv_path, plan, machine, environment=monitor, sim_seed=options.seed
-    ) as output:
-        output.on_saved = on_point or (lambda saved: None)
-        run = measure(output)
-    run_s = clock.now() - started
+    files = StationFiles(
+        workdir / "session.json",
+        workdir / "pose.json",
+        workdir / "plan.json",
+        workdir / "measurements.csv",
+    )
+    measured = simulate_station(
+        setup, machine, positions, files, options, monitor, on_stage=stage, on_point=on_point
+    )
+    result, programmed, run = measured.identification, measured.programmed, measured.run
+    measurement_plan, plan, csv_path = programmed.measurement, programmed.plan, files.measurements
 
     stage("post")
     posted = post_step(machine, [(plan, csv_path)], workdir / "errors.csv")
@@ -552,7 +579,7 @@ def simulate_calibration(
         setup.world.machine.load_compensation(applied)
         verification = workdir / "verification.csv"
         with open_measurements_step(verification, plan, machine, environment=monitor) as output:
-            measure(output)
+            station_measure(setup, machine, options.served)(programmed, output)
         left = as_left_step(machine, plan, verification, applied)
         remaining = RemainingErrors(truth, applied)
         as_left = AsLeft(
@@ -574,9 +601,9 @@ def simulate_calibration(
         volumetric_before_um=volumetric_rms_um(chain, points, truth, ErrorTables()),
         volumetric_after_um=volumetric_rms_um(chain, points, truth, tables.model()),
         volumetric_uncompensated_um=volumetric_rms_um(chain, points, truth, uncompensated.model()),
-        identification_s=identification_s,
+        identification_s=measured.identify_s,
         alignment_s=run.statistics.alignment_s,
-        measuring_s=run_s - run.statistics.alignment_s,
+        measuring_s=measured.run_s - run.statistics.alignment_s,
         points=run.statistics.points,
         design_warnings=design_warnings,
         files={

@@ -39,21 +39,19 @@ from sim.dry_run import (
 from sim.identification import SessionImperfections, simulate_session, spread_positions
 from sim.machine import ErrorAmplitudes
 from trajectories.identification_design import MIN_POSITIONS, count_problem
-from trajectories.planner import MeasurementPlan, plan_measurement
+from trajectories.planner import MeasurementPlan
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.geometry import Vec, wrap_angle
 from xmalign.identify import (
     METHODS,
     IdentificationResult,
-    IdentificationUncertainty,
-    identify,
 )
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.montecarlo import AdaptiveStudy
 from xmalign.post.compare import grid_points, remove_rigid_motion
 from xmalign.rigid_body import Chain, ErrorModel, deviation
-from xmalign.steps import design_step
+from xmalign.steps import design_step, plan_session_step
 
 MODES = ("identification", "calibration")
 #: Points along a line at which the predicted beam envelope is kept (fractions 0..1).
@@ -302,7 +300,8 @@ def _plan_outcome(plan: MeasurementPlan, strategy_index: int) -> TrialOutcome:
 
 
 def identification_trial(spec: TrialSpec) -> TrialOutcome:
-    """Identification only: closed-form session, identify, plan the lines."""
+    """Identification only: closed-form session, then identify and plan the lines through
+    the step layer (:func:`~xmalign.steps.plan_session_step`)."""
     machine = spec.machine
     truth = placement(machine, spec.seed)  # where the dry run of this seed places the unit
     position_mm, gamma_rad = truth.launch2mcs_mm, truth.gamma_rad
@@ -316,9 +315,8 @@ def identification_trial(spec: TrialSpec) -> TrialOutcome:
         imperfections,
         rng,
     )
-    uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
-    result = identify(session, spec.method, uncertainty)
-    outcome = _plan_outcome(plan_measurement(machine, result.to_pose()), spec.strategy_index)
+    result, plan = plan_session_step(session, machine, spec.method)
+    outcome = _plan_outcome(plan, spec.strategy_index)
     outcome.values = _pose_values(result, position_mm, gamma_rad) | outcome.values
     return outcome
 

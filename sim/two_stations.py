@@ -21,10 +21,8 @@ from sim.dry_run import (
     PLACEMENT_SCATTER_MM,
     DryRunOptions,
     VirtualSetup,
-    identify_virtually,
-    measure_served,
-    measure_virtually,
     measured_strokes,
+    simulate_station,
     virtual_setup,
 )
 from sim.environment import SHOPS, attach_shop
@@ -38,13 +36,7 @@ from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult
 from xmalign.rigid_body import Chain
-from xmalign.steps import (
-    design_step,
-    open_measurements_step,
-    post_step,
-    program_file,
-    program_step,
-)
+from xmalign.steps import StationFiles, design_step, post_step, program_file
 
 
 @dataclass
@@ -82,37 +74,28 @@ def _measure_station(
     monitor: EnvironmentMonitor,
     line_ids: tuple[str, ...] | None = None,
 ) -> StationRun:
-    """Identify, program and run one station through the step layer (served or in-process)."""
-    clock = setup.world.clock
-    started = clock.now()
+    """Identify, program and run one station as the one-station dry run does
+    (:func:`sim.dry_run.simulate_station`: served, xmalign runs its program on a
+    simulated LinuxCNC; or in-process), its files prefixed with ``name``."""
     design = design_step(machine, options.identification_positions)
-    session = workdir / f"{name}-session.json"
-    session.unlink(missing_ok=True)
-    pose = workdir / f"{name}-pose.json"
-    result = identify_virtually(
-        setup, machine, design.machine_mm, session, options.method, options.seed, pose_path=pose
-    )
     plan_path = workdir / f"{name}-plan.json"
-    programmed = program_step(
-        machine,
-        result,
-        plan_path,
-        plan_path.with_name(f"{name}-{program_file(plan_path, machine, options.dialect).name}"),
-        options.dialect,
-        pose,
-        line_ids or LINE_IDS,
+    program = program_file(plan_path, machine, options.dialect)
+    files = StationFiles(
+        session=workdir / f"{name}-session.json",
+        pose=workdir / f"{name}-pose.json",
+        plan=plan_path,
+        measurements=workdir / f"{name}-measurements.csv",
+        program=program.with_name(f"{name}-{program.name}"),
     )
-    csv_path = workdir / f"{name}-measurements.csv"
-    plan, program, dialect = programmed.plan, programmed.program, programmed.dialect
-    with open_measurements_step(
-        csv_path, plan, machine, environment=monitor, sim_seed=options.seed
-    ) as output:
-        if options.served:
-            measure_served(setup, machine, plan, program, dialect, output)
-        else:
-            measure_virtually(setup, plan, program, dialect, output)
+    files.session.unlink(missing_ok=True)
+    measured = simulate_station(
+        setup, machine, design.machine_mm, files, options, monitor, line_ids or LINE_IDS
+    )
     return StationRun(
-        programmed.measurement, csv_path, clock.now() - started, list(design.warnings)
+        measured.programmed.measurement,
+        files.measurements,
+        measured.identify_s + measured.run_s,
+        list(design.warnings),
     )
 
 

@@ -326,6 +326,17 @@ class Machine(_Strict):
             )
         return self
 
+    @model_validator(mode="after")
+    def _reference_in_the_travel(self) -> Machine:
+        for axis, (low, high) in self.travel_mm.items():
+            reference = float(self.cnc.reference["XYZ".index(axis)])
+            if not low <= reference <= high:
+                raise ValueError(
+                    f"cnc.reference_mm: {axis} = {reference:g} mm is outside the travel"
+                    f" [{low:g}, {high:g}] mm of travel_mm.{axis}"
+                )
+        return self
+
     @property
     def series(self) -> str:
         """The controller's series: ``cnc.series``, else the family's default."""

@@ -238,8 +238,7 @@ def iso_table(result: PostResult) -> Table:
 def vdi_figures(result: PostResult) -> list[VdiFigures]:
     return [
         vdi3441_figures(data.line.id, data.index, data.sign, data.channels[:, 0] * UM_PER_MM)
-        for data in result.lines
-        if data.axis() is not None
+        for data in result.figure_lines()
     ]
 
 

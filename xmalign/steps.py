@@ -1142,3 +1142,111 @@ def import_tracker_step(
     made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
     write_tracker_points(out, rows, made_from)
     return rows
+
+
+# -- one launch-unit station: identify -> program -> run ------------------------------------
+
+
+@dataclass(frozen=True)
+class StationFiles:
+    """Where one launch-unit station's files go; ``program`` None: ``run<suffix>`` next to
+    the plan (:func:`program_file`)."""
+
+    session: Path
+    pose: Path
+    plan: Path
+    measurements: Path
+    program: Path | None = None
+
+
+@dataclass(frozen=True)
+class StationOptions:
+    """How a station is identified, planned and recorded (the defaults of ``xmalign``)."""
+
+    method: str = "joint"
+    dialect: str | None = None
+    #: The lines to plan (default: all six).
+    line_ids: tuple[str, ...] | None = None
+    #: The virtual machine's seed, recorded in the measurement file (dry runs).
+    sim_seed: int | None = None
+
+
+#: How a station's run captures: the programmed plan into its open measurement file (the
+#: caller's way of driving the machine: a controller running the program, a followed CNC).
+Measure = Callable[[ProgramStepResult, RunOutput], CalibrationRun]
+
+
+@dataclass
+class StationStepResult:
+    """One station identified, programmed and measured; durations on the devices' clock."""
+
+    identification: IdentificationResult
+    programmed: ProgramStepResult
+    run: CalibrationRun
+    files: StationFiles
+    identify_s: float
+    run_s: float
+
+
+def station_step(
+    machine: Machine,
+    positions_mm: np.ndarray,
+    devices: RoutineDevices,
+    files: StationFiles,
+    measure: Measure,
+    options: StationOptions = StationOptions(),
+    manual_align: Callable[[], None] | None = None,
+    environment: EnvironmentMonitor | None = None,
+    on_stage: Callable[[str], None] | None = None,
+) -> StationStepResult:
+    """One launch-unit station: identify at ``positions_mm`` (CNC points (N, 3), mm; session
+    and pose written), plan its lines (plan and G-code written), then capture them into
+    ``files.measurements`` with ``measure``. ``on_stage`` is told ``identify``, ``program``
+    and ``run`` as each starts. The dry run and the two-station dry run measure here.
+    """
+    stage = on_stage or (lambda name: None)
+    clock = devices.clock
+    started = clock.now()
+    stage("identify")
+    identified = identify_step(
+        positions_mm,
+        machine,
+        devices,
+        files.session,
+        options.method,
+        manual_align=manual_align,
+        pose_path=files.pose,
+    ).result
+    identify_s = clock.now() - started
+    stage("program")
+    programmed = program_step(
+        machine,
+        identified,
+        files.plan,
+        files.program,
+        options.dialect,
+        files.pose,
+        options.line_ids,
+    )
+    stage("run")
+    started = clock.now()
+    with open_measurements_step(
+        files.measurements,
+        programmed.plan,
+        machine,
+        environment=environment,
+        sim_seed=options.sim_seed,
+    ) as output:
+        run = measure(programmed, output)
+    return StationStepResult(identified, programmed, run, files, identify_s, clock.now() - started)
+
+
+def plan_session_step(
+    session: Session, machine: Machine, method: str = "joint"
+) -> tuple[IdentificationResult, MeasurementPlan]:
+    """The pose solved from a session held in memory (the machine file's uncertainty) and
+    the lines planned for it, no file written: a Monte Carlo identification trial."""
+    uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
+    result = identify(session, method, uncertainty)
+    planned = program_step(machine, result, None, write_program_file=False)
+    return result, planned.measurement

@@ -45,6 +45,13 @@ from xmalign.machine import Machine
 LOOPBACK = "127.0.0.1"
 #: How long the simulated operator lets the CNC reach a programmed stop, virtual s.
 REACH_STOP_S = 600.0
+#: How long the host waits for one reply of a served device, wall-clock s (``units.yaml``
+#: ``timeouts.io_s``). In lockstep a server answers at the present virtual time whenever
+#: its thread gets the CPU, and virtual time does not pass meanwhile; with the default 1 s
+#: a computer busy for a second made the host take a late reply for a lost one: a Modbus
+#: request sent again (the alignment, then every reading, differed between two runs of one
+#: seed) or a serial or linuxcncrsh read that failed the run. A dead server still ends it.
+LOCKSTEP_IO_S = 60.0
 
 
 def served_cnc(
@@ -74,13 +81,15 @@ def units_yaml(
     launch_port: int, receiver_port: int, interferometer_port: str, machine_position: str
 ) -> str:
     """The ``units.yaml`` of the served devices (docs/hardware.md); ``machine_position``
-    is its ``machine_position`` block in flow style."""
+    is its ``machine_position`` block in flow style. Replies are waited for
+    :data:`LOCKSTEP_IO_S` (wall clock)."""
     return (
         "format: xmalign.units/1\n"
         f"launch: {{transport: modbus-tcp, host: {LOOPBACK}, port: {launch_port}}}\n"
         f"receiver: {{transport: modbus-tcp, host: {LOOPBACK}, port: {receiver_port}}}\n"
         f"interferometer: {{port: {interferometer_port}, rate_hz: 50}}\n"
         f"machine_position: {machine_position}\n"
+        f"timeouts: {{io_s: {LOCKSTEP_IO_S:g}}}\n"
     )
 
 

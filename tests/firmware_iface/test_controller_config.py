@@ -253,6 +253,8 @@ def _units_with(tmp_path: Path, section: str) -> Path:
         ("{pin: 4711}", "4711"),
         ("'s3cr3t-but-\u00e4'", "s3cr3t"),  # linuxcncrsh: ASCII only
         ("'two words'", "two"),  # linuxcncrsh: one word
+        ("0123", "123"),  # YAML 1.1: the octal number 83
+        ("12:34", "12:34"),  # YAML 1.1: 754, in base 60
     ],
 )
 def test_a_bad_secret_is_refused_without_showing_it(

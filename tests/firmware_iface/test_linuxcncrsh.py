@@ -65,6 +65,29 @@ def test_a_wrong_password_is_one_clear_error() -> None:
     assert "WRONG" not in str(error.value)
 
 
+def test_an_http_server_is_named_for_what_it_is_not_a_wrong_password() -> None:
+    """Issue 32: a web server on the port was reported as a wrong connect password."""
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    with ThreadingHTTPServer(("127.0.0.1", 0), BaseHTTPRequestHandler) as server:
+        serving = threading.Thread(target=server.serve_forever, daemon=True)
+        serving.start()
+        link = LinuxcncrshLink("127.0.0.1", server.server_address[1], 5.0)
+        try:
+            with pytest.raises(DeviceError, match="does not speak linuxcncrsh") as error:
+                _cnc(link).open("EMC", None)
+        finally:
+            link.close()
+            server.shutdown()
+    assert "answered '<!DOCTYPE HTML>'" in str(error.value)  # http.server's HTTP/0.9 reply
+    assert "password" not in str(error.value) and "EMC" not in str(error.value)
+    with (
+        ExpectedRshLines([("hello EMC xmalign 1.0", "HTTP/1.1 400 Bad Request")]) as scripted,
+        pytest.raises(DeviceError, match="linuxcncrsh: answered 'HTTP/1.1 400 Bad Request'"),
+    ):
+        _cnc(scripted).open("EMC", None)
+
+
 def test_position_is_abs_act_pos_and_standstill_needs_a_still_command_and_in_position() -> None:
     values = "100.000000 200.000000 -50.000000 0.000000 0.000000 0.000000"
     moving = "100.100000 200.000000 -50.000000 0.000000 0.000000 0.000000"

@@ -1,11 +1,12 @@
 """Monte Carlo planning: strategies, trials, the study loop, Dask, and ``xmalign mc``."""
 
 import json
+import sys
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 
 from sim.machine import ErrorAmplitudes
 from sim.mc import (
@@ -99,6 +100,34 @@ def test_identification_trial_is_reproducible_and_sensible(machine):
         margin = first.values[f"straightness_margin_um:{line}"]
         assert first.envelope_limit_um - first.envelope_um[line].max() == pytest.approx(margin)
     assert first.failure is None
+
+
+def test_a_trial_identifies_and_plans_through_the_steps(machine, monkeypatch):
+    """Issue 32: the trials ran identify and plan_measurement themselves."""
+    import sim.dry_run as dry_run
+    import sim.mc as mc
+    from xmalign import steps
+
+    calls: list[str] = []
+
+    def spy(name):
+        real = getattr(steps, name)
+
+        def call(*args, **kwargs):
+            calls.append(name)
+            return real(*args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(mc, "plan_session_step", spy("plan_session_step"))
+    monkeypatch.setattr(steps, "program_step", spy("program_step"))
+    identification_trial(_spec(machine))
+    assert calls == ["plan_session_step", "program_step"]
+    calls.clear()
+    monkeypatch.setattr(dry_run, "station_step", spy("station_step"))
+    spec = _spec(machine, seed=5, mode="calibration")
+    mc.calibration_trial(TrialSpec(**{**spec.__dict__, "amplitudes": ErrorAmplitudes(scale=0.5)}))
+    assert calls == ["station_step", "program_step"]
 
 
 def test_an_impossible_trial_is_recorded_as_a_failure(machine):
@@ -251,3 +280,20 @@ def test_cli_runs_on_a_dask_scheduler(tmp_path):
 def test_cli_bad_options_are_one_line(tmp_path, args, fragment):
     result = run_cli("mc", "--trials", "2", "--out", str(tmp_path), *args)
     assert_one_line_error(result, fragment)
+
+
+@pytest.mark.parametrize(
+    ("scheduler", "fragment"),
+    [("tcp://127.0.0.1:9", "cannot connect"), ("no-dask", "needs dask.distributed")],
+)
+def test_a_scheduler_that_cannot_be_used_leaves_no_folder(
+    tmp_path, monkeypatch, scheduler, fragment
+):
+    """Issue 32: ``mc --scheduler`` without dask made --out and left it empty."""
+    if scheduler == "no-dask":
+        monkeypatch.setitem(sys.modules, "dask.distributed", None)  # import fails as if absent
+        scheduler = "tcp://127.0.0.1:9"
+    out = tmp_path / "study"
+    result = run_in_process("mc", "--trials", "2", "--out", str(out), "--scheduler", scheduler)
+    assert_one_line_error(result, "--scheduler", fragment)
+    assert not out.exists()

@@ -1,14 +1,20 @@
 """The served world: host and servers in lockstep on one virtual clock, over the real protocols."""
 
 import dataclasses
+import inspect
 import threading
+import time
 
 import numpy as np
 import pytest
 from cli_helpers import run_cli
 
+import sim.servers.modbus as modbus_server
+from firmware_iface.config import Timeouts
 from sim.clock import LockstepClock
 from sim.dry_run import measure_controlled, measure_served, measure_virtually, virtual_setup
+from sim.servers.linuxcncrsh import LinuxcncrshServer
+from sim.servers.serial_pty import PtyInterferometerServer
 from trajectories.gcode import DIALECTS
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence, open_run_output
@@ -181,17 +187,57 @@ def _measured_lines(path):
     return [line for line in lines if not line.startswith(("# created_utc:", RUN_START_TAG))]
 
 
+#: A server thread held this long (wall clock): longer than the default ``timeouts.io_s``.
+LATE_S = Timeouts().io_s + 0.5
+
+
+def _late(monkeypatch, owner, name, nth):
+    """``owner.name`` (a server's reply) held :data:`LATE_S` at its ``nth`` call: the
+    schedule of a busy computer, where a server's thread gets the CPU a second late."""
+    original = getattr(owner, name)
+    calls = iter(range(1, 10**9))
+
+    def hold() -> None:
+        if next(calls) == nth:
+            time.sleep(LATE_S)
+
+    if inspect.iscoroutinefunction(original):
+
+        async def late_async(*args, **kwargs):
+            hold()
+            return await original(*args, **kwargs)
+
+        monkeypatch.setattr(owner, name, late_async)
+    else:
+
+        def late(*args, **kwargs):
+            hold()
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(owner, name, late)
+
+
 @pytest.mark.parametrize("path", ["controlled", "position-file"])
 def test_a_served_run_is_repeatable_to_the_last_digit(
-    reference_machine, short_plan, tmp_path, path
+    reference_machine, short_plan, tmp_path, monkeypatch, path
 ):
     """Two served runs of one seed write the same file, however the threads of the host and
     the servers are scheduled (the host's waits for streamed samples go through its clock,
-    docs/simulator.md); the dry run's path (LinuxCNC) and ``run --sim``'s (position file)."""
+    docs/simulator.md); the dry run's path (LinuxCNC) and ``run --sim``'s (position file).
+
+    The second run has a Modbus reply, an interferometer sample and (LinuxCNC) a
+    linuxcncrsh reply each come 1.5 s late. Issue 32: under load the first run's
+    host took such a late Modbus reply for a lost one (the 1 s ``io_s``) and sent the
+    request again: the alignment and every reading differed (a late sample or
+    linuxcncrsh reply failed the run)."""
     plan = read_plan(short_plan)
     program = write_program(plan, reference_machine, DIALECTS["linuxcnc"]())
     files = []
     for name in ("first.csv", "second.csv"):
+        if name == "second.csv":
+            _late(monkeypatch, modbus_server._Handler, "_answer", 200)
+            _late(monkeypatch, PtyInterferometerServer, "_send", 50)
+            _late(monkeypatch, LinuxcncrshServer, "_answer", 30)
         setup = virtual_setup(reference_machine, SEED, lockstep=True)
         with open_run_output(tmp_path / name, plan, resume=False) as output:
             if path == "controlled":

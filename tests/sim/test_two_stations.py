@@ -24,8 +24,11 @@ def test_two_stations_cover_the_travel(reference_machine, tmp_path):
 def test_two_stations_call_the_steps_in_the_shop_and_mode_asked_for(
     reference_machine, tmp_path, monkeypatch
 ):
-    """``dry-run --stations 2`` runs, opens, programs and posts through the step layer, in
-    the shop given, and measures over the served devices unless in-process is asked for."""
+    """``dry-run --stations 2`` measures each station through the one station step of the
+    dry run (identify, program, open, run), posts through the step layer, in the shop
+    given, and served as the one-station dry run is: xmalign running its program on a
+    LinuxCNC (issue 32: two stations served went through the position file)."""
+    import sim.dry_run as dry
     import sim.two_stations as two
     from xmalign import steps
     from xmalign.formats.measurements import load_measurements
@@ -41,22 +44,29 @@ def test_two_stations_call_the_steps_in_the_shop_and_mode_asked_for(
 
         return call
 
-    for name in ("program_step", "open_measurements_step", "post_step"):
-        monkeypatch.setattr(two, name, spy(name, getattr(steps, name)))
+    for name in ("identify_step", "program_step", "open_measurements_step"):
+        monkeypatch.setattr(steps, name, spy(name, getattr(steps, name)))
+    monkeypatch.setattr(dry, "station_step", spy("station_step", steps.station_step))
+    monkeypatch.setattr(two, "post_step", spy("post_step", steps.post_step))
 
-    def served_here(setup, machine, plan, program, dialect, output):
-        return two.measure_virtually(setup, plan, program, dialect, output)
+    def served_here(setup, machine, plan, output):
+        _, program = steps.program_gcode(plan, machine, "linuxcnc", "XMALIGN")
+        return dry.measure_virtually(setup, plan, program, "linuxcnc", output)
 
-    # served: measure_served is called (measured in-process here, the served path has its
+    # served: measure_controlled is called (measured in-process here, the served path has its
     # own tests in tests/sim/test_served_world.py and the CLI's served dry run)
-    monkeypatch.setattr(two, "measure_served", spy("measure_served", served_here))
+    monkeypatch.setattr(dry, "measure_controlled", spy("measure_controlled", served_here))
+    monkeypatch.setattr(dry, "measure_served", spy("measure_served", None))
     options = DryRunOptions(seed=2, shop="reference", served=True)
     simulate_two_stations(reference_machine, tmp_path, options)
     assert {name: len(made) for name, made in calls.items()} == {
+        "identify_step": 2,
         "program_step": 2,
         "open_measurements_step": 2,
+        "station_step": 2,
         "post_step": 1,
-        "measure_served": 2,
+        "measure_controlled": 2,
+        "measure_served": 0,
     }
     recorded = load_measurements(tmp_path / "station2-measurements.csv")
     air = [row.environment["air_temp_c"] for row in recorded.rows]

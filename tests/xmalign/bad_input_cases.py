@@ -1417,6 +1417,138 @@ _LINK_CASES = [
     ),
 ]
 
+
+def _alias_bomb() -> str:
+    """Nine levels of nine aliases: 9**9 values once expanded, a few hundred bytes written."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{n}: &a{n} [{', '.join([f'*a{n - 1}'] * 9)}]" for n in range(1, 9)]
+    return "\n".join(lines) + "\n"
+
+
+_UNITS_CANOPEN_LAUNCH = "launch:\n  transport: canopen\n  channel: can0\n  node_ids: "
+#: Issue 32's careless list: numbers as a person writes them, aliases, travel, node ids.
+_ISSUE_32_CASES = [
+    Case(
+        "yaml-octal-travel",
+        MACHINE,
+        (M, "travel_mm.X.1' (line 7)", "leading zero"),
+        replace(M, "X: [0, 2000]", "X: [0, 02000]"),
+    ),
+    Case(
+        "yaml-octal-negative",
+        MACHINE,
+        (M, "travel_mm.Z.0", "leading zero"),
+        replace(M, "Z: [-500, 0]", "Z: [-0500, 0]"),
+    ),
+    Case(
+        "yaml-octal-backlash",
+        MACHINE,
+        (M, "cnc.backlash_um.X", "leading zero"),
+        replace(M, _CNC, _CNC + "\n  backlash_um: {X: 010}"),
+    ),
+    Case(
+        "yaml-sexagesimal-feed",
+        MACHINE,
+        (M, "feed_mm_min.measure", "colon"),
+        replace(M, "measure: 2000", "measure: 33:20"),
+    ),
+    Case(
+        "yaml-sexagesimal-travel",
+        MACHINE,
+        (M, "travel_mm.Y.1", "colon"),
+        replace(M, "Y: [0, 1500]", "Y: [0, 1:30]"),
+    ),
+    Case("yaml-alias-bomb", MACHINE, (M, "aliases expand to more than"), append(M, _alias_bomb())),
+    Case(
+        "units-octal-port",
+        UNITS,
+        (U, "launch.port", "leading zero"),
+        replace(U, "port: 502", "port: 0502"),
+    ),
+    Case("units-alias-bomb", UNITS, (U, "aliases expand"), append(U, _alias_bomb())),
+    Case(
+        "machine-reference-outside-travel",
+        MACHINE,
+        (M, "cnc.reference_mm", "X = 2500", "travel"),
+        replace(M, _CNC, _CNC + "\n  reference_mm: [2500, 0, 0]"),
+    ),
+    Case(
+        "units-one-node-id-twice",
+        UNITS,
+        (U, "receiver.node_ids", "node 3", "launch unit"),
+        replace(
+            U,
+            "launch:\n  transport: modbus-tcp\n  host: 192.168.10.11\n  port: 502\n  device_id: 1",
+            _UNITS_CANOPEN_LAUNCH + "[3, 9]",
+        ),
+    ),
+    Case(
+        "units-node-id-twice-in-a-unit",
+        UNITS,
+        (U, "launch.node_ids", "node 7"),
+        replace(
+            U,
+            "launch:\n  transport: modbus-tcp\n  host: 192.168.10.11\n  port: 502\n  device_id: 1",
+            _UNITS_CANOPEN_LAUNCH + "[7, 7]",
+        ),
+    ),
+]
+
+
+def _second_station(make: Callable[[Path, Path], None]) -> Damage:
+    """m.csv measured, and m2.csv made from it by ``make(m.csv, m2.csv)``."""
+
+    def apply(folder: Path) -> None:
+        measured()(folder)
+        make(folder / "m.csv", folder / "m2.csv")
+
+    return apply
+
+
+_TWO_STATIONS = ("post", "--plan", L, "--data", "m.csv", "--plan", L, "--data", "m2.csv")
+_ISSUE_32_CASES += [
+    Case(
+        "post-second-station-a-copy",
+        (*_TWO_STATIONS, "--out", "e-new.csv"),
+        ("m2.csv", "station 2", "station 1", "m.csv", "copy of it"),
+        _second_station(lambda a, b: shutil.copy(a, b)),
+    ),
+    Case(
+        "post-second-station-a-symlink",
+        (*_TWO_STATIONS, "--out", "e-new.csv"),
+        ("m2.csv", "station 2", "station 1", "m.csv", "copy of it"),
+        _second_station(lambda a, b: b.symlink_to(a.name)),
+    ),
+]
+
+_ISSUE_32_CASES += [
+    Case(
+        "program-points-out-without-instrument",
+        ("program", "--pose", P, "--out", "run.mpf", "--points-out", "points-new.csv"),
+        ("--points-out", "not used without --instrument"),
+    ),
+    Case(
+        "program-tracker-with-lines",
+        ("program", "--instrument", "tracker", "--lines", "X,Y", "--out", "t.nc"),
+        ("--lines", "not used with --instrument tracker"),
+    ),
+    Case(
+        "dry-run-tracker-two-stations",
+        ("dry-run", "--instrument", "tracker", "--stations", "2", "--out", "dr"),
+        ("--stations", "not used with --instrument tracker"),
+    ),
+    Case(
+        "mc-instruments-on-a-scheduler",
+        ("mc", "--mode", "instruments", "--trials", "1", "--scheduler", "tcp://127.0.0.1:9"),
+        ("--scheduler", "not used with --mode instruments"),
+    ),
+    Case(
+        "dry-run-tracer-verify",
+        ("dry-run", "--instrument", "tracer", "--verify", "--out", "dr"),
+        ("--verify", "not used with --instrument tracer"),
+    ),
+]
+
 CASES = (
     _generic_cases()
     + _kind_cases()
@@ -1424,6 +1556,7 @@ CASES = (
     + _CARELESS_USER_CASES
     + _FILES_CASES
     + _LINK_CASES
+    + _ISSUE_32_CASES
 )
 
 

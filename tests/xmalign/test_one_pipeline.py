@@ -134,20 +134,24 @@ def test_run_sim_runs_the_program_steps_gcode_into_the_steps_file(dry, tmp_path,
 def test_the_dry_run_calls_every_step(reference_machine, tmp_path, monkeypatch):
     import sim.dry_run as dry_run
 
-    names = ("design_step", "identify_step", "program_step", "open_measurements_step")
+    names = ("design_step", "station_step", "open_measurements_step", "post_step", "comp_step")
     calls = {name: _spy(monkeypatch, dry_run, name) for name in names}
-    calls |= {name: _spy(monkeypatch, dry_run, name) for name in ("post_step", "comp_step")}
+    # the station step (identify -> program -> run, issue 32) calls these in the step layer
+    station = ("identify_step", "program_step", "open_measurements_step")
+    calls |= {f"station: {name}": _spy(monkeypatch, steps, name) for name in station}
     poses = _spy(monkeypatch, steps, "write_pose_step")  # identify_step writes the pose
     dry_run.simulate_calibration(
         reference_machine, tmp_path / "dry", dry_run.DryRunOptions(seed=5, verify=True)
     )
     assert {name: len(made) for name, made in calls.items()} == {
         "design_step": 1,
-        "identify_step": 1,
-        "program_step": 1,
-        "open_measurements_step": 2,  # the calibration and the verification
+        "station_step": 1,
+        "open_measurements_step": 1,  # the verification
         "post_step": 1,
         "comp_step": 1,
+        "station: identify_step": 1,
+        "station: program_step": 1,
+        "station: open_measurements_step": 1,  # the calibration
     }
     assert [args[0] for args, _ in poses] == [tmp_path / "dry" / "pose.json"]
 

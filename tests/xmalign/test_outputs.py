@@ -370,3 +370,17 @@ def test_a_read_only_folder_keeps_the_old_file_as_root(tmp_path: Path) -> None:
         f"xmalign: error: {locked / 'pose.json'}: cannot write: read-only file system"
     )
     assert kept == (ROOT / "examples" / "pose.json").read_bytes() and left == ["pose.json"]
+
+
+@pytest.mark.parametrize("stem", ["p" * 246, "ä" * 123], ids=["250-ascii", "250-bytes-utf8"])
+def test_a_name_that_fits_the_file_system_is_written(tmp_path: Path, stem: str) -> None:
+    """Issue 32: a valid 250-byte name was refused with "File name too long": the
+    temporary file's name (``.NAME.XXXXXXXX.tmp``) was 14 bytes longer."""
+    name = f"{stem}.mpf"
+    assert len(name.encode()) == 250
+    result = run_in_process(
+        "program", "--pose", str(ROOT / "examples" / "pose.json"), "--out", str(tmp_path / name)
+    )
+    assert result.returncode == 0, result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    assert (tmp_path / name).read_text(encoding="utf-8").strip()

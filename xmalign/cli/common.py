@@ -42,6 +42,19 @@ def warn(warning: str) -> None:
     error_console.print(f"[yellow]warning:[/] {warning}", highlight=False)
 
 
+def refuse_unused_options(given: dict[str, bool], why: str) -> None:
+    """Refuse the first option that is given (``given[option]``) but would be ignored.
+
+    Raises
+    ------
+    InputError
+        ``OPTION is not used WHY: leave it out``.
+    """
+    unused = next((option for option, is_given in given.items() if is_given), None)
+    if unused is not None:
+        raise InputError(f"{unused} is not used {why}: leave it out")
+
+
 def check_output_folder(path: Path, option: str) -> None:
     """Refuse a file in the place of an output folder (nothing is created yet).
 

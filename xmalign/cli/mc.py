@@ -24,6 +24,7 @@ from xmalign.cli.common import (
     error_console,
     machine_or_default,
     output_folder,
+    refuse_unused_options,
 )
 from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
@@ -254,6 +255,18 @@ def mc(
 
     check_seed(seed)
     if mode == "instruments":
+        refuse_unused_options(
+            {
+                "--vary": bool(vary),
+                "--scheduler": scheduler is not None,
+                "--workers": workers != 0,
+                "--batch": batch != 20,
+                "--digits": digits != 1,
+                "--method": method != "joint",
+                "--tolerance-um": tolerance_um is not None,
+            },
+            "with --mode instruments (each instrument is simulated here, one after the other)",
+        )
         amplitudes = ErrorAmplitudes(scale=error_scale, squareness_urad=squareness_urad)
         compare_instruments_command(machine_or_default(machine), trials, seed, amplitudes, out)
         return
@@ -271,7 +284,6 @@ def mc(
     )
     chosen_machine = machine_or_default(machine)
     chosen = strategies(chosen_machine, vary.split(","))
-    output_folder(out, "--out")
     progress = Progress(
         TextColumn("trials"),
         BarColumn(),
@@ -279,7 +291,9 @@ def mc(
         TimeElapsedColumn(),
         console=console,
     )
-    with progress, _executor(scheduler, workers or os.cpu_count() or 1) as executor:
+    # the executor first: no dask, or no scheduler there, leaves no empty folder behind
+    with _executor(scheduler, workers or os.cpu_count() or 1) as executor, progress:
+        output_folder(out, "--out")
         task = progress.add_task("trials", total=trials * len(chosen))
         results = run_study(
             chosen_machine, chosen, settings, executor, lambda: progress.advance(task)

@@ -25,6 +25,7 @@ from xmalign.cli.common import (
     error_console,
     machine_or_default,
     named_by_options,
+    refuse_unused_options,
 )
 from xmalign.cli.instruments import (
     InstrumentRequest,
@@ -121,7 +122,20 @@ def program(
     or paths of a laser-tracker or laser-tracer calibration over the whole travel.
     """
     check_instrument_options(instrument, on_the_fly, places)
-    if instrument is not None:
+    if instrument is None:
+        refuse_unused_options(
+            {"--points-out": points_out is not None}, "without --instrument tracker or tracer"
+        )
+    else:
+        refuse_unused_options(
+            {
+                "--pose": pose != DEFAULT_POSE,
+                "--lines": lines is not None,
+                "--plan-out": plan_out is not None,
+                "--strict": strict,
+            },
+            f"with --instrument {instrument} (it plans the whole travel, without a launch unit)",
+        )
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request, force)
         return

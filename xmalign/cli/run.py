@@ -28,6 +28,7 @@ from xmalign.cli.common import (
     error_console,
     machine_or_default,
     named_by_options,
+    refuse_unused_options,
     start_log_file,
     stop_log_file,
 )
@@ -509,6 +510,15 @@ def dry_run_command(
 
     check_seed(seed)
     if instrument != "xm60":
+        refuse_unused_options(
+            {
+                "--stations": stations != 1,
+                "--verify": verify,
+                "--identification-positions": identification_positions != 6,
+                "--shop": shop != "drifting",
+            },
+            f"with --instrument {instrument} (a launch unit's options)",
+        )
         instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
         return
     check_positions(identification_positions, "--identification-positions")

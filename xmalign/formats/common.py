@@ -28,6 +28,7 @@ import errno
 import json
 import math
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
@@ -295,12 +296,90 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+#: Most values a YAML document may hold once its aliases are expanded: far more than
+#: any xmalign file, far fewer than an alias bomb (``a: &a [x, x, ...]``, ``b: [*a, *a, ...]``).
+MAX_YAML_VALUES = 100_000
+
+#: Unquoted numbers that YAML 1.1 (PyYAML) reads other than a person means: a leading
+#: zero is octal (``010`` is 8, ``-0500`` is -320), colons are base 60 (``1:30`` is 90).
+#: YAML 1.2 reads both as text; xmalign refuses them (docs/formats.md, "YAML numbers").
+_YAML_1_1_NUMBERS = (
+    (
+        re.compile(r"[-+]?0[0-9_]+"),
+        "a number with a leading zero (YAML 1.1 reads it as octal): drop the zero",
+    ),
+    (
+        re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?"),
+        "a number with a colon (YAML 1.1 reads it in base 60): write it in one unit",
+    ),
+)
+
+
+def _yaml_number_problem(node: yaml.Node) -> str | None:
+    """Why an unquoted scalar is refused as a number, or None."""
+    if not isinstance(node, yaml.ScalarNode) or node.style is not None:
+        return None
+    for pattern, problem in _YAML_1_1_NUMBERS:
+        if pattern.fullmatch(node.value):
+            return problem + ", or quote it if it is text"
+    return None
+
+
+def _check_yaml_nodes(root: yaml.Node, path: Path) -> None:
+    """Refuse YAML 1.1 numbers (naming line and key) and aliases that expand without bound.
+
+    Walks the node tree as the data will be walked, aliases expanded, and stops
+    once :data:`MAX_YAML_VALUES` values have been seen.
+    """
+    stack: list[tuple[yaml.Node, str]] = [(root, "")]
+    seen = 0
+    while stack:
+        node, key = stack.pop()
+        seen += 1
+        if seen > MAX_YAML_VALUES:
+            raise InputError(
+                located(
+                    path,
+                    "not valid YAML",
+                    f"its aliases expand to more than {MAX_YAML_VALUES} values",
+                )
+            )
+        problem = _yaml_number_problem(node)
+        if problem is not None:
+            where = f"key '{key or '(top level)'}' (line {node.start_mark.line + 1})"
+            raise InputError(located(path, where, problem))
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                name = key_node.value if isinstance(key_node, yaml.ScalarNode) else "?"
+                stack.append((key_node, key))
+                stack.append((value_node, f"{key}.{name}" if key else str(name)))
+        elif isinstance(node, yaml.SequenceNode):
+            stack += [(item, f"{key}.{i}" if key else str(i)) for i, item in enumerate(node.value)]
+
+
+def _load_yaml(text: str, path: Path) -> object:
+    loader = _UniqueKeyLoader(text)
+    try:
+        root = loader.get_single_node()
+        if root is None:
+            return None
+        _check_yaml_nodes(root, path)
+        return loader.construct_document(root)
+    finally:
+        loader.dispose()
+
+
 def read_yaml(path: str | Path) -> object:
-    """Parse a YAML file; errors name the file and the line (duplicate keys refused)."""
+    """Parse a YAML file; errors name the file and the line.
+
+    Refused, besides syntax errors: a key given twice, an unquoted number that
+    YAML 1.1 would change (``010``, ``1:30``; see :data:`_YAML_1_1_NUMBERS`) and
+    aliases that expand to more than :data:`MAX_YAML_VALUES` values.
+    """
     path = Path(path)
     text = read_text(path)
     try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+        data = _load_yaml(text, path)
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark or error.context_mark
         where = f"line {mark.line + 1}" if mark is not None else "not valid YAML"
@@ -310,6 +389,8 @@ def read_yaml(path: str | Path) -> object:
         ) from error
     except RecursionError as error:
         raise InputError(located(path, "not valid YAML", "nested too deeply")) from error
+    except InputError:
+        raise
     except (yaml.YAMLError, ValueError) as error:  # e.g. a date like 2024-13-45
         raise InputError(located(path, "not valid YAML", str(error).splitlines()[0])) from error
     return data

@@ -16,8 +16,15 @@ from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
 from xmalign.post.instruments import JointFit, fit_joint, tracer_places, tracker_stations
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
-from xmalign.post.lines import CHANNEL_TO_SI, UM_PER_MM, LineData, group_by_line
-from xmalign.post.solve import TableFit, fit_error_tables
+from xmalign.post.lines import (
+    CHANNEL_TO_SI,
+    UM_PER_MM,
+    LineData,
+    dead_row_warning,
+    group_by_line,
+    is_dead_row,
+)
+from xmalign.post.solve import Outlier, TableFit, fit_error_tables
 from xmalign.rigid_body import Chain, ErrorModel, ErrorTables, RemainingErrors, deviation
 from xmalign.roles import CHANNELS
 
@@ -66,6 +73,12 @@ class PostResult:
     def notes(self) -> list[str]:
         """One line per station on how its linear readings were treated."""
         return [c.note for c in self.compensation]
+
+    def figure_lines(self) -> list[LineData]:
+        """The axis lines the ISO 230-2 and VDI/DGQ 3441 figures are taken from: ``lines``
+        without the linear readings the fit left out as gross outliers."""
+        kept = without_linear_outliers(self.lines, self.fit.outliers)
+        return [data for data in kept if data.axis() is not None]
 
 
 def channel_sigma(machine: Machine) -> Vec:
@@ -124,6 +137,11 @@ def post_stations(
     for index, station in enumerate(stations):  # the rows as read: checked before any use
         for data in group_by_line(station.plan, station.rows, station.source, index):
             refuse_dead_channels(data, station.source)
+    dead = [dead_row_warning(s.source, row) for s in stations for row in s.rows if is_dead_row(row)]
+    stations = [
+        replace(station, rows=[row for row in station.rows if not is_dead_row(row)])
+        for station in stations
+    ]
     compensation = [compensate(machine, station) for station in stations]
     lines = [
         data
@@ -162,23 +180,31 @@ def post_stations(
         fit = joint.fit
     else:
         fit = fit_error_tables(fitted, chain, channel_sigma(machine), travel)
-    positioning = [
-        positioning_figures(
-            data.label, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
-        )
-        for data in lines
-        if data.axis() is not None
-    ]
     drift = [check.message() for c in compensation for check in c.drift if check.exceeded]
-    return PostResult(
+    result = PostResult(
         fit=fit,
-        positioning=positioning,
+        positioning=[],
         lines=lines,
-        warnings=datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
+        warnings=dead + datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
         compensation=compensation,
         applied=applied,
         instruments=joint,
     )
+    result.positioning = [
+        positioning_figures(
+            data.label, data.index, data.sign, data.run, data.channels[:, 0] * UM_PER_MM
+        )
+        for data in result.figure_lines()
+    ]
+    return result
+
+
+def without_linear_outliers(lines: list[LineData], outliers: list[Outlier]) -> list[LineData]:
+    """``lines`` without their linear readings that the fit left out as gross outliers."""
+    return [
+        data.without([o.point for o in outliers if o.line == k and o.channel == 0])
+        for k, data in enumerate(lines)
+    ]
 
 
 def refuse_dead_channels(data: LineData, source: str) -> None:

@@ -12,7 +12,9 @@ estimator ``s_i`` (n - 1), reversal ``B_i = x̄_i↑ - x̄_i↓`` and
 - accuracy ``A↑ = max(x̄_i↑ + 2 s_i↑) - min(x̄_i↑ - 2 s_i↑)``, ``A`` over both directions.
 
 Figures that need a quantity the data lacks (one run: no ``s``; one direction:
-no reversal) are NaN.
+no reversal) are NaN. A target left with one reading in a direction (a reading
+left out of the fit as a gross outlier or a dead row is left out here too) has
+no ``s_i`` there: the figures that need it are taken over the other targets.
 """
 
 from __future__ import annotations
@@ -69,8 +71,18 @@ def _statistics(index: np.ndarray, deviation_um: Vec, n: int) -> _Direction:
     return _Direction(mean, std)
 
 
+def _max(values: Vec) -> float:
+    """The largest value that is not NaN (NaN if none is: the data cannot give it)."""
+    finite = values[~np.isnan(values)]
+    return float(np.max(finite)) if finite.size else NAN
+
+
+def _min(values: Vec) -> float:
+    return -_max(-values)
+
+
 def _span(values: Vec) -> float:
-    return float(np.max(values) - np.min(values))
+    return _max(values) - _min(values)
 
 
 def positioning_figures(
@@ -97,20 +109,19 @@ def positioning_figures(
         if s in passes:
             d = passes[s]
             values[f"E_{suffix}"] = _span(d.mean)
-            values[f"R_{suffix}"] = float(np.max(4 * d.std))
-            values[f"A_{suffix}"] = float(np.max(d.mean + 2 * d.std) - np.min(d.mean - 2 * d.std))
+            values[f"R_{suffix}"] = _max(4 * d.std)
+            values[f"A_{suffix}"] = _max(d.mean + 2 * d.std) - _min(d.mean - 2 * d.std)
     if len(passes) == 2:
         up, down = passes[1.0], passes[-1.0]
         reversal = up.mean - down.mean
-        values["B"] = float(np.max(np.abs(reversal)))
-        values["B_mean"] = float(np.mean(reversal))
+        values["B"] = _max(np.abs(reversal))
+        values["B_mean"] = float(np.nanmean(reversal))
         values["E"] = _span(np.concatenate([up.mean, down.mean]))
         values["M"] = _span(0.5 * (up.mean + down.mean))
         bidirectional = 2 * up.std + 2 * down.std + np.abs(reversal)
-        values["R"] = float(np.max(np.maximum(bidirectional, 4 * np.maximum(up.std, down.std))))
-        values["A"] = float(
-            np.max(np.maximum(up.mean + 2 * up.std, down.mean + 2 * down.std))
-            - np.min(np.minimum(up.mean - 2 * up.std, down.mean - 2 * down.std))
+        values["R"] = _max(np.maximum(bidirectional, 4 * np.maximum(up.std, down.std)))
+        values["A"] = _max(np.maximum(up.mean + 2 * up.std, down.mean + 2 * down.std)) - _min(
+            np.minimum(up.mean - 2 * up.std, down.mean - 2 * down.std)
         )
     return PositioningFigures(line_id=line_id, runs=runs, **values)
 
@@ -168,8 +179,8 @@ def vdi3441_figures(line_id: str, index: np.ndarray, sign: Vec, deviation_um: Ve
     half = 0.5 * (reversal + scatter)
     return VdiFigures(
         line_id,
-        P=float(np.max(mean + half) - np.min(mean - half)),
-        Ps=float(np.max(scatter)),
-        U=float(np.max(reversal)),
+        P=_max(mean + half) - _min(mean - half),
+        Ps=_max(scatter),
+        U=_max(reversal),
         Pa=_span(mean),
     )

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -84,6 +85,21 @@ class LineData:
         """Axes whose coordinate changes along the line."""
         return [name for i, name in enumerate(AXES) if abs(self.frame[0][i]) > 1e-9]
 
+    def without(self, points: Sequence[int]) -> LineData:
+        """The line without the points numbered ``points`` (0-based, in row order)."""
+        kept = np.ones(len(self.run), dtype=bool)
+        kept[list(points)] = False
+        return replace(
+            self,
+            run=self.run[kept],
+            sign=self.sign[kept],
+            index=self.index[kept],
+            distance_mm=self.distance_mm[kept],
+            machine_mm=self.machine_mm[kept],
+            channels=self.channels[kept],
+            segment=self.segment[kept],
+        )
+
 
 def tool_offset_mm(plan: Plan) -> Vec:
     """Receiver cp from the CNC tool point in the MCS during the measurement, mm (3,)."""
@@ -93,6 +109,21 @@ def tool_offset_mm(plan: Plan) -> Vec:
 def _at(source: str, row: MeasurementRow) -> str:
     """The file and, for a row read from it, its line: where a row's problem is."""
     return f"{source}: line {row.file_line}" if row.file_line else source
+
+
+def is_dead_row(row: MeasurementRow) -> bool:
+    """All six channels exactly zero: no instrument reads that (its noise alone moves the
+    last digit); the beam was lost or the software wrote a row it had no reading for."""
+    return not np.any(row.channels)
+
+
+def dead_row_warning(source: str, row: MeasurementRow) -> str:
+    """The warning naming a dead row (:func:`is_dead_row`), left out of the fit."""
+    return (
+        f"{_at(source, row)}: line {row.line} run {row.run} direction {row.direction} index"
+        f" {row.index}: all six channels read exactly 0 (a dead row: a lost beam or a"
+        " reading the instrument did not take): left out of the fit and the figures"
+    )
 
 
 def _line_data(

@@ -62,6 +62,46 @@ def test_a_linear_reading_500_um_off_is_named_and_left_out(reference_machine, me
         assert abs(result.fit.tables.squareness[name][0] - value) < u95 / 10, name
 
 
+def _figures_of(result: PostResult, line: str) -> dict[str, float]:
+    return next(f for f in result.positioning if f.line_id == line).as_dict()
+
+
+def test_a_reading_left_out_of_the_fit_is_left_out_of_the_iso_figures_too(
+    reference_machine, measurement, clean
+):
+    """Issue 32: the 500 um reading left the fit but stayed in ISO 230-2 (A 18 -> 1407 um)."""
+    from xmalign.report import vdi_figures
+
+    plan, rows = measurement
+    bad = _changed(rows, ("Y", 1, "+", 5), "linear_um", 500.0)
+    result = post_process(reference_machine, plan, bad, "m.csv")
+    figures, before = _figures_of(result, "Y"), _figures_of(clean, "Y")
+    assert figures["A"] == pytest.approx(before["A"], abs=2.0)  # one s_i fewer, not 1400 um
+    assert figures["E"] == pytest.approx(before["E"], abs=2.0)
+    assert all(np.isfinite(list(figures.values())))
+    p_um = {v.line_id: v.P for v in vdi_figures(result)}
+    p_clean_um = {v.line_id: v.P for v in vdi_figures(clean)}
+    assert p_um["Y"] == pytest.approx(p_clean_um["Y"], abs=2.0)
+
+
+def test_a_row_with_all_six_channels_at_zero_is_named_and_left_out(
+    reference_machine, measurement, clean
+):
+    """Issue 32: its zeros stayed in the fit, as a perfect machine at that point."""
+    plan, rows = measurement
+    dead = [
+        replace(row, channels=np.zeros(6)) if row.key() == ("Y", 1, "+", 5) else row for row in rows
+    ]
+    result = post_process(reference_machine, plan, dead, "m.csv")
+    (warning,) = [w for w in result.warnings if "dead row" in w]
+    assert warning.startswith("m.csv: line Y run 1 direction + index 5: all six channels")
+    assert "left out of the fit" in warning
+    (line_y,) = [data for data in result.lines if data.line.id == "Y"]
+    assert len(line_y.run) == len([row for row in rows if row.line == "Y"]) - 1
+    assert _figures_of(result, "Y")["A"] == pytest.approx(_figures_of(clean, "Y")["A"], abs=2.0)
+    assert result.fit.sigma0 == pytest.approx(clean.fit.sigma0, rel=0.1)
+
+
 @pytest.mark.parametrize("channels", [CHANNELS, ("angle_u_urad",)], ids=["all-six", "roll"])
 def test_a_dead_channel_is_refused_naming_line_and_channel(
     reference_machine, measurement, channels
