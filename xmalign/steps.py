@@ -29,6 +29,7 @@ from trajectories.gcode.fanuc import PROGRAM_NUMBER
 from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.planner import MeasurementPlan, plan_measurement
+from xmalign.beam_search import BeamSearchSettings
 from xmalign.calibration import (
     CalibrationRun,
     ControlledProgram,
@@ -151,9 +152,12 @@ def identify_step(
     unit_timeout_s: float = 30.0,
     pose_path: Path | None = None,
     machine_path: Path | None = None,
+    search: BeamSearchSettings | None = None,
 ) -> IdentifyStepResult:
     """Align at each position (session written as it goes, resumed), then solve the pose.
 
+    With ``search``, the first alignment finds the beam itself where the machine
+    file gives no azimuth (:func:`~xmalign.beam_search.search_first_beam`).
     The units are locked on every exit. ``uncertainty`` defaults to the
     machine file's ``uncertainty`` section. With ``pose_path`` the pose is
     written there (:func:`write_pose_step`).
@@ -169,6 +173,7 @@ def identify_step(
             refine_guess=refine_guess,
             on_event=on_event,
             unit_timeout_s=unit_timeout_s,
+            search=search,
         )
     if uncertainty is None:
         uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)

@@ -195,6 +195,7 @@ def _live_identification(
     is written to ``session_path`` at once, so an interrupted routine resumes."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.alignment import AlignmentDevices
+    from xmalign.beam_search import BeamSearchSettings
     from xmalign.cli.align import manual_alignment
     from xmalign.identification_routine import RoutineDevices
     from xmalign.roles import WallClock
@@ -217,6 +218,7 @@ def _live_identification(
                 manual_align=lambda: manual_alignment(jog, machine, config.timeouts.move_s),
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
+                search=BeamSearchSettings(),
             )
 
 
