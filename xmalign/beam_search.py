@@ -7,10 +7,10 @@ circle. :func:`search_first_beam`
 1. aims the receiver at the rough place (and the launch unit's elevation at the
    receiver);
 2. turns the launch azimuth a1 once round at the unit's speed, reading the
-   receiver's signal strength every ``step_s`` (a few ms) and the angle a1 has
-   reached; wherever a1 moved more than half the beam's capture aperture (as seen
-   from the launch unit) between two readings, that stretch is stepped through
-   again at rest, so the beam cannot pass the aperture unseen;
+   receiver's signal strength every few ms and the angle a1 has reached;
+   wherever a1 moved more than the beam's capture aperture (its radius, as seen
+   from the launch unit) between two readings, that stretch is stepped through again
+   at rest, so the beam cannot pass the aperture unseen;
 3. sweeps again at elevations above and below (rows ``capture_row`` apart, nearest
    first, out to what the rough place's uncertainty allows), and, where that
    uncertainty exceeds the receiver's capture angle, with the receiver aimed
@@ -62,8 +62,9 @@ class BeamSearchSettings:
         the receiver's aims reach.
     timeout_s : float
         The whole search, clock time.
-    step_s : float
-        Wait between two readings while a1 turns.
+    max_speed_rad_s : float
+        The fastest a1 turns (the units' 30 °/s, docs/registers.md): while it
+        turns, the signal is read every half capture aperture at this speed.
     min_signal_pct : float
         A signal at least this strong counts as the beam seen.
     edge_precision : float
@@ -77,7 +78,7 @@ class BeamSearchSettings:
 
     position_uncertainty_mm: float = 25.0
     timeout_s: float = 600.0
-    step_s: float = 0.002
+    max_speed_rad_s: float = math.radians(30.0)
     min_signal_pct: float = 1.0
     edge_precision: float = 0.01
     move_timeout_s: float = 20.0
@@ -132,8 +133,9 @@ def _sweep(
     ``elevation_rad``, reading the signal all the way; the a1 angle where the beam was
     seen (a1 then stops), or None.
 
-    a1 runs at its own speed; where a reading came late (a slow host) and a1 moved
-    more than ``step_rad`` since the one before, that stretch is stepped through again.
+    a1 runs at its own speed, read every ``step_rad`` at the units' top speed; where a
+    reading came late (a slow host) and a1 moved more than twice ``step_rad`` since the
+    one before, that stretch is stepped through again.
     """
     azimuth, elevation = search.launch.axes[:2]
     search.move([azimuth, elevation], np.array([start_rad, elevation_rad]))
@@ -143,13 +145,13 @@ def _sweep(
     last_rad, gaps = start_rad, []
     while abs(last_rad - end_rad) > abs(step_rad) * 1e-3:
         search.check_time()
-        search.clock.sleep(search.settings.step_s)
+        search.clock.sleep(abs(step_rad) / search.settings.max_speed_rad_s)
         seen = search.sees()
         here_rad = azimuth.position_rad()
         if seen:
             azimuth.stop()
             return here_rad
-        if abs(here_rad - last_rad) > abs(step_rad):
+        if abs(here_rad - last_rad) > 2.0 * abs(step_rad):
             gaps.append((last_rad, here_rad))
         last_rad = here_rad
     for gap in gaps:
