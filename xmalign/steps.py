@@ -28,6 +28,7 @@ from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.gcode.fanuc import PROGRAM_NUMBER
 from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
+from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.beam_search import BeamSearchSettings
 from xmalign.calibration import (
@@ -251,9 +252,11 @@ def program_step(
     write_program_file: bool = True,
     check_plan: Callable[[MeasurementPlan], None] | None = None,
     check_outputs: Callable[[list[Path]], None] | None = None,
+    max_length_mm: float | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
+    ``max_length_mm`` cuts every line to at most that length (a try-out).
     The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
     (the same plan identity); with ``plan_path`` None it is not written and the
     program is made from the plan as planned. ``program_path`` None: the suffix
@@ -276,10 +279,8 @@ def program_step(
         program_path = None
     if check_outputs is not None:
         check_outputs([path for path in (plan_path, program_path) if path is not None])
-    measurement = (
-        plan_measurement(machine, pose)
-        if line_ids is None
-        else plan_measurement(machine, pose, line_ids)
+    measurement = plan_measurement(
+        machine, pose, LINE_IDS if line_ids is None else line_ids, max_length_mm
     )
     if check_plan is not None:
         check_plan(measurement)

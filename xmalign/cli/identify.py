@@ -249,7 +249,12 @@ def identify_command(
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML (uncertainty defaults; --sim machine).")
     ] = None,
-    alignments: Annotated[int, typer.Option(min=3, help="Alignments to simulate.")] = 6,
+    alignments: Annotated[
+        int,
+        typer.Option(
+            min=3, help="How many alignments (identification positions), with --sim or --live."
+        ),
+    ] = 6,
     seed: Annotated[int, typer.Option(help="Seed of the simulation.")] = 1,
     session_out: Annotated[
         Path | None, typer.Option(help="With --sim: also write the simulated session.")
