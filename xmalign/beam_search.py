@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,6 +106,7 @@ class _Search:
     clock: Clock
     settings: BeamSearchSettings
     started_s: float
+    on_sweep: Callable[[int], None] | None = None
     sweeps: int = 0
 
     def sees(self) -> bool:
@@ -140,6 +142,8 @@ def _sweep(
     azimuth, elevation = search.launch.axes[:2]
     search.move([azimuth, elevation], np.array([start_rad, elevation_rad]))
     search.sweeps += 1
+    if search.on_sweep is not None:
+        search.on_sweep(search.sweeps)
     end_rad = start_rad + math.copysign(2.0 * math.pi, step_rad)
     azimuth.move_to(end_rad)
     last_rad, gaps = start_rad, []
@@ -232,6 +236,7 @@ def search_first_beam(
     ranges: InterferometerRanges,
     settings: BeamSearchSettings | None = None,
     receiver_roll_rad: float = 0.0,
+    on_sweep: Callable[[int], None] | None = None,
 ) -> BeamSearchResult:
     """Find the beam with the launch azimuth unknown, and centre it on the receiver.
 
@@ -253,6 +258,8 @@ def search_first_beam(
     settings : BeamSearchSettings, optional
     receiver_roll_rad : float
         The a5 angle to hold.
+    on_sweep : callable, optional
+        Called with the turn's number as each turn of a1 starts (progress).
 
     Returns
     -------
@@ -268,7 +275,7 @@ def search_first_beam(
     """
     settings = settings or BeamSearchSettings()
     started_s = clock.now()
-    search = _Search(launch, receiver, interferometer, clock, settings, started_s)
+    search = _Search(launch, receiver, interferometer, clock, settings, started_s, on_sweep)
     nominal = aligned_angles(launch2mcs_mm, 0.0, receiver_cp_mm, spindle_angle_rad)
     distance_mm = max(nominal.distance_mm - settings.position_uncertainty_mm * math.sqrt(3), 1.0)
     # the capture aperture as seen from the launch unit (at the nearest it may be), rad

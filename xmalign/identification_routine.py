@@ -62,7 +62,8 @@ Stage = Literal["skipped", "moving", "pointing", "searching", "manual", "alignin
 
 @dataclass(frozen=True)
 class RoutineEvent:
-    """Progress of the routine: position ``index`` of ``total`` reached ``stage``."""
+    """Progress of the routine: position ``index`` of ``total`` reached ``stage``
+    (``searching``: once per turn of the first alignment's search)."""
 
     index: int
     total: int
@@ -184,6 +185,7 @@ def _search(
     machine: Machine,
     devices: RoutineDevices,
     settings: BeamSearchSettings,
+    on_sweep: Callable[[], None],
 ) -> float:
     """The first alignment with the launch azimuth unknown: find the beam from the launch
     unit's rough place (:func:`~xmalign.beam_search.search_first_beam`); returns the
@@ -199,6 +201,7 @@ def _search(
         machine.interferometer,
         settings,
         guess.receiver_roll_rad,
+        lambda _: on_sweep(),
     )
     return float(np.linalg.norm(cp_mm - guess.launch2mcs_mm))
 
@@ -339,16 +342,17 @@ def run_identification(
                 event("pointing", machine_mm)
                 distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
             elif searched:
-                assert guess is not None  # searched: a position without an azimuth
-                event("searching", machine_mm)
+                assert guess is not None and search is not None  # see searched
                 distance_mm = _search(
-                    guess, cp_mm, machine, devices, search or BeamSearchSettings()
+                    guess, cp_mm, machine, devices, search, partial(event, "searching", machine_mm)
                 )
             # Pointed from the coarse guess alone, a beam out of range may be centimetres
-            # off: beyond any search, so a person aligns. From a refined guess, search.
+            # off: beyond fine alignment's search, so a person aligns. From a refined guess,
+            # or with no one there (``search`` given), fine alignment searches.
             coarse_miss = (
                 usable is not None
                 and not refined
+                and search is None
                 and manual_align is not None
                 and not devices.interferometer.read().beam_ok
             )

@@ -148,7 +148,7 @@ def test_the_routine_needs_no_one_for_the_first_alignment(machine: Machine, tmp_
         search=BeamSearchSettings(position_uncertainty_mm=NEAR_MM),
     )
     assert len(session.alignments) == 3
-    assert stages.count("searching") == 1 and "manual" not in stages
+    assert stages.count("searching") >= 1 and "manual" not in stages
 
 
 def test_over_the_served_protocols(machine: Machine) -> None:

@@ -176,6 +176,14 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
 
         def on_event(event: RoutineEvent) -> None:
             progress.update(task, description=f"identification: {event.stage}")
+            if event.stage == "searching":
+                progress.console.print(
+                    f"position {event.index}: searching the beam (no launch azimuth in the"
+                    " machine file): the launch unit turns once round, at several elevations"
+                    " if needed (at most 600 s)",
+                    markup=False,
+                    highlight=False,
+                )
             if event.stage in ("recorded", "skipped"):
                 progress.advance(task)
 
