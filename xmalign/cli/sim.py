@@ -403,6 +403,7 @@ def publish_position(
     from firmware_iface.linuxcnc_module import open_local_linuxcnc
     from sim.position_publisher import publish_positions
 
+    refuse_overwriting({"--nml-file": nml_file}, {"FILE": file})
     _check_position_file(file, "FILE")
     cnc = open_local_linuxcnc(module_dir, nml_file)
     stopped = threading.Event()
