@@ -254,7 +254,7 @@ def search_first_beam(
         The receiver's control point where the machine stands, MCS mm.
     spindle_angle_rad : float
     ranges : InterferometerRanges
-        The capture aperture and angle size the steps; ``max_range_mm`` the reach.
+        Its ``capture_radius_mm`` and ``capture_angle_mrad`` size the steps, rows and aims.
     settings : BeamSearchSettings, optional
     receiver_roll_rad : float
         The a5 angle to hold.
