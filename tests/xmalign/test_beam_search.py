@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim.alignment_setup import point_by_truth
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
 from sim.units import SimPositioningUnit
@@ -151,13 +152,76 @@ def test_the_routine_needs_no_one_for_the_first_alignment(machine: Machine, tmp_
     assert stages.count("searching") >= 1 and "manual" not in stages
 
 
-def test_over_the_served_protocols(machine: Machine) -> None:
+def test_the_receiver_sees_the_beam_only_on_its_aperture_and_facing_it(machine: Machine) -> None:
+    """What the search relies on in the simulated interferometer: the signal needs the
+    beam within the capture radius of the receiver's centre and the receiver facing it
+    within the capture angle; the channels' ranges are much narrower."""
+    world = _world(machine, 41, np.zeros(3))
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    point_by_truth(world, machine, launch, receiver)
+    aligned = np.concatenate([launch.angles_rad(), receiver.angles_rad()])
+    distance_mm = world.interferometer.geometry().distance_mm
+    ranges = machine.interferometer
+    aperture_rad = ranges.capture_radius_mm / distance_mm
+    elevation = math.cos(aligned[1])
+
+    def signal(offset_rad: np.ndarray) -> float:
+        target = aligned + offset_rad
+        launch.move_to(target[:2], 30.0)
+        receiver.move_to(target[2:], 30.0)
+        return world.interferometer.geometry().signal_pct
+
+    assert signal(np.zeros(5)) > 99.0 and world.interferometer.geometry().beam_ok
+    # the beam half the capture radius off: seen, but far out of the measuring range
+    assert 50.0 < signal(np.array([0.5 * aperture_rad / elevation, 0, 0, 0, 0])) < 90.0
+    assert not world.interferometer.geometry().beam_ok
+    assert signal(np.array([1.1 * aperture_rad / elevation, 0, 0, 0, 0])) == 0.0
+    assert signal(np.array([0, 1.1 * aperture_rad, 0, 0, 0])) == 0.0
+    # the launch on target, the receiver facing away by more than its capture angle
+    facing = ranges.capture_angle_mrad * 1e-3
+    assert signal(np.array([0, 0, 0, 0.5 * facing, 0])) > 50.0
+    assert signal(np.array([0, 0, 0, 1.1 * facing, 0])) == 0.0
+    assert signal(np.array([0, 0, 1.1 * facing / math.cos(aligned[3]), 0, 0])) == 0.0
+
+
+class _SlowHost:
+    """The world's clock, but every wait of the host lasts 30 ms longer (a computer busy
+    with other work): a1 turns some 16 mrad between two readings, farther than the
+    beam's width at the receiver (some 6 mrad), so most of the turn is made up at rest."""
+
+    def __init__(self, clock) -> None:
+        self.clock = clock
+
+    def now(self) -> float:
+        return self.clock.now()
+
+    def sleep(self, seconds: float) -> None:
+        self.clock.sleep(seconds + 0.03)
+
+    def await_stream(self) -> None:
+        self.clock.await_stream()
+
+
+def test_readings_that_come_late_are_made_up_at_rest(machine: Machine) -> None:
+    world = _world(machine, 12, np.zeros(3))
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    slow = _SlowHost(world.clock)
+    result = _search(
+        world, machine, launch, receiver, world.interferometer, slow,
+        position_uncertainty_mm=NEAR_MM,
+    )  # fmt: skip
+    assert world.interferometer.read().signal_pct > 90.0
+    assert result.sweeps <= 2
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_over_the_served_protocols(machine: Machine, seed: int) -> None:
     """The units over Modbus TCP and the interferometer's serial line (its S lines carry
     the signal strength), served as the dry run serves them, on its virtual clock."""
     from firmware_iface.config import open_devices
     from sim.servers.served_world import serve_world_with_linuxcnc
 
-    world = _world(machine, 31, np.array([1.0, -1.5, 0.5]), clock=LockstepClock())
+    world = _world(machine, seed, np.array([1.0, -1.5, 0.5]), clock=LockstepClock())
     cnc = SimulatedCnc(machine, world.clock, world.interferometer.position.position_mm())
     world.interferometer.position = cnc
     with (
