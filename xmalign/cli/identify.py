@@ -14,6 +14,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
+from xmalign.beam_search import BeamSearchSettings
 from xmalign.cli.common import (
     ForceOption,
     LogFileOption,
@@ -180,7 +181,7 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
                 progress.console.print(
                     f"position {event.index}: searching the beam (no launch azimuth in the"
                     " machine file): the launch unit turns once round, at several elevations"
-                    " if needed (at most 600 s)",
+                    f" if needed (at most {BeamSearchSettings().timeout_s:.0f} s)",
                     markup=False,
                     highlight=False,
                 )
@@ -203,7 +204,6 @@ def _live_identification(
     is written to ``session_path`` at once, so an interrupted routine resumes."""
     from firmware_iface.config import load_units_config, open_devices
     from xmalign.alignment import AlignmentDevices
-    from xmalign.beam_search import BeamSearchSettings
     from xmalign.cli.align import manual_alignment
     from xmalign.identification_routine import RoutineDevices
     from xmalign.roles import WallClock
