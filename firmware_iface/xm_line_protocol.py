@@ -6,7 +6,7 @@ Every line from the instrument ends in ``*HH``, the XOR of all bytes before the
 
 Instrument to host::
 
-    S,<time_s>,<linear_um>,<sv_um>,<sw_um>,<au_urad>,<av_urad>,<aw_urad>,<beam>*HH
+    S,<time_s>,<linear_um>,<sv_um>,<sw_um>,<au_urad>,<av_urad>,<aw_urad>,<beam>[,<signal>]*HH
     OK <COMMAND>[ <value>]*HH
     ERR <text>*HH
 
@@ -35,6 +35,8 @@ RATE_MIN_HZ = 1.0
 RATE_MAX_HZ = 1000.0
 COMMANDS = ("ID?", "ZERO", "READ", "STREAM", "RATE", "RATE?")
 _SAMPLE_FIELDS = 1 + 1 + len(CHANNELS) + 1
+#: Signal strength, %: the optional last field of an ``S`` line.
+SIGNAL_RANGE_PCT = (0.0, 100.0)
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,8 @@ def _frame(payload: str) -> bytes:
 def encode_sample(reading: InterferometerReading) -> bytes:
     """One ``S`` line for a reading (µm and µrad with 4 decimals, time with 6)."""
     values = ",".join(f"{v:.4f}" for v in np.asarray(reading.channels, dtype=float))
-    return _frame(f"S,{reading.time_s:.6f},{values},{int(reading.beam_ok)}")
+    signal = "" if reading.signal_pct is None else f",{reading.signal_pct:.1f}"
+    return _frame(f"S,{reading.time_s:.6f},{values},{int(reading.beam_ok)}{signal}")
 
 
 def encode_reply(reply: Reply) -> bytes:
@@ -95,6 +98,8 @@ def decode_line(line: bytes) -> InterferometerReading | Reply:
     payload = _unframe(line)
     if payload.startswith("S,"):
         fields = payload.split(",")
+        signal_pct = _signal_pct(fields, payload) if len(fields) == _SAMPLE_FIELDS + 1 else None
+        fields = fields[:_SAMPLE_FIELDS] if signal_pct is not None else fields
         if len(fields) != _SAMPLE_FIELDS or fields[-1] not in ("0", "1"):
             raise FormatError(f"interferometer sample line with bad fields: {payload[:60]!r}")
         try:
@@ -102,12 +107,27 @@ def decode_line(line: bytes) -> InterferometerReading | Reply:
         except ValueError as error:
             raise FormatError(f"interferometer sample line: {error}") from error
         return InterferometerReading(
-            time_s=numbers[0], channels=np.array(numbers[1:]), beam_ok=fields[-1] == "1"
+            time_s=numbers[0],
+            channels=np.array(numbers[1:]),
+            beam_ok=fields[-1] == "1",
+            signal_pct=signal_pct,
         )
     status, _, text = payload.partition(" ")
     if status not in ("OK", "ERR"):
         raise FormatError(f"unknown interferometer line: {payload[:60]!r}")
     return Reply(ok=status == "OK", text=text)
+
+
+def _signal_pct(fields: list[str], payload: str) -> float:
+    """The signal strength of an ``S`` line's last field, checked against 0..100 %."""
+    try:
+        signal = float(fields[-1])
+    except ValueError as error:
+        raise FormatError(f"interferometer sample line: {error}") from error
+    low, high = SIGNAL_RANGE_PCT
+    if not low <= signal <= high:
+        raise FormatError(f"interferometer sample line with bad signal: {payload[:60]!r}")
+    return signal
 
 
 def encode_command(command: Command) -> bytes:

@@ -12,6 +12,13 @@ straightness the receiver's optical centre relative to the beam, angles the
 receiver's rotation relative to the launch head (zero when the units face each
 other with roll 0).
 
+The receiver sees the beam (its signal strength, 0 to 100 %) wider than the
+channels' ranges: while the beam passes within the machine file's
+``interferometer.capture_radius_mm`` of the receiver's optical centre and the
+receiver faces it within ``capture_angle_mrad``, the strength falls from 100 %
+(centred, facing) to 0 at either edge, ``(1 - (r/R)^2) (1 - (theta/Theta)^2)``;
+a blocked beam gives none. The search for the first alignment looks for it.
+
 Like a real interferometer it loses its linear count when the beam is
 interrupted: when a reading finds the beam out of range after it was in
 range, the datum moves by an unknown amount (up to a millimetre), until
@@ -60,12 +67,14 @@ class InterferometerNoise:
 class Geometry:
     """True, noise-free state: channels (6,) with the full optical path in ``linear``, beam status.
 
-    ``distance_mm`` is the geometric launch-to-receiver distance along the beam.
+    ``distance_mm`` is the geometric launch-to-receiver distance along the beam,
+    ``signal_pct`` the receiver's signal strength.
     """
 
     distance_mm: float
     channels: Vec
     beam_ok: bool
+    signal_pct: float = 0.0
 
     @property
     def optical_mm(self) -> float:
@@ -152,7 +161,22 @@ class SimInterferometer:
         channels = np.concatenate([[along, across_v, across_w], angles * URAD_PER_RAD])
         channels[:3] *= UM_PER_MM
         channels[0] *= index
-        return Geometry(float(along), channels, self._in_range(float(along), channels))
+        return Geometry(
+            float(along),
+            channels,
+            self._in_range(float(along), channels),
+            self._signal_pct(float(along), np.hypot(across_v, across_w), angles[1:]),
+        )
+
+    def _signal_pct(self, along_mm: float, off_centre_mm: float, tilt_rad: Vec) -> float:
+        """Signal strength of a beam ``off_centre_mm`` from the receiver's centre reaching a
+        receiver tilted by ``tilt_rad`` (v, w) from facing it, %."""
+        r = self.ranges
+        if self.clock.now() < self._blocked_until_s or not 0.0 < along_mm <= r.max_range_mm:
+            return 0.0
+        aperture = 1.0 - (off_centre_mm / r.capture_radius_mm) ** 2
+        facing = 1.0 - (float(np.hypot(*tilt_rad)) * 1e3 / r.capture_angle_mrad) ** 2
+        return 100.0 * max(aperture, 0.0) * max(facing, 0.0)
 
     def interrupt(self, duration_s: float) -> None:
         """Block the beam from now for ``duration_s`` (someone or something crosses it)."""
@@ -179,7 +203,12 @@ class SimInterferometer:
         self._counting = geometry.beam_ok
         channels = geometry.channels + noise
         channels[0] -= self._datum_mm * UM_PER_MM
-        return InterferometerReading(time_s=time_s, channels=channels, beam_ok=geometry.beam_ok)
+        return InterferometerReading(
+            time_s=time_s,
+            channels=channels,
+            beam_ok=geometry.beam_ok,
+            signal_pct=geometry.signal_pct,
+        )
 
     def read(self) -> InterferometerReading:
         noise = self._rng.normal(0.0, self.noise.sigmas())

@@ -227,8 +227,13 @@ def _coverage(line_id: str, length_mm: float, machine: Machine) -> float:
     return length_mm / float(np.linalg.norm(stroke[indices]))
 
 
-def plan_line(line_id: str, launch_cp_mm: Vec, machine: Machine) -> LineLayout:
+def plan_line(
+    line_id: str, launch_cp_mm: Vec, machine: Machine, max_length_mm: float | None = None
+) -> LineLayout:
     """Longest usable measuring line ``line_id`` through the launch cp.
+
+    ``max_length_mm`` cuts it to at most that length from its end nearest the
+    launch unit (a try-out before the real run: ``xmalign program --max-length-mm``).
 
     Raises
     ------
@@ -253,6 +258,7 @@ def plan_line(line_id: str, launch_cp_mm: Vec, machine: Machine) -> LineLayout:
     inside = min(
         best.length - float((start - exact_start) @ u),
         _travel_interval(start, u, machine)[1] - measurement.overrun_mm,
+        math.inf if max_length_mm is None else max_length_mm,
     )
     targets = snap_targets(
         target_distances(inside, measurement.target_spacing_mm, measurement.irregular_spacing),

@@ -87,8 +87,11 @@ def _pose_vector(pose: LaunchPose) -> Vec:
     return np.concatenate([pose.position_mm, [pose.gamma_rad], pose.offsets.as_array()])
 
 
-def plan_one_line(line_id: str, pose: LaunchPose, machine: Machine) -> PlannedLine:
-    """Lay out one line, command its angles and predict its beam envelope.
+def plan_one_line(
+    line_id: str, pose: LaunchPose, machine: Machine, max_length_mm: float | None = None
+) -> PlannedLine:
+    """Lay out one line (at most ``max_length_mm`` long), command its angles and predict
+    its beam envelope.
 
     Raises
     ------
@@ -96,7 +99,7 @@ def plan_one_line(line_id: str, pose: LaunchPose, machine: Machine) -> PlannedLi
         The line is too short, or it cannot pass through the launch cp and the
         closest parallel line is too far off for the beam even with a perfect pose.
     """
-    layout = plan_line(line_id, pose.position_mm, machine)
+    layout = plan_line(line_id, pose.position_mm, machine, max_length_mm)
     frame = line_frame(layout.u)
     angles = aligned_angles(
         pose.position_mm,
@@ -173,10 +176,18 @@ def _line_extra(layout: LineLayout, envelope: BeamEnvelope, machine: Machine) ->
 
 
 def plan_measurement(
-    machine: Machine, pose: LaunchPose, line_ids: tuple[str, ...] = LINE_IDS
+    machine: Machine,
+    pose: LaunchPose,
+    line_ids: tuple[str, ...] = LINE_IDS,
+    max_length_mm: float | None = None,
 ) -> MeasurementPlan:
-    """Plan the measuring lines (default: X, Y, Z, XY, YZ, XZ) for an identified pose."""
-    planned = [plan_one_line(line_id, pose, machine) for line_id in line_ids]
+    """Plan the measuring lines (default: X, Y, Z, XY, YZ, XZ) for an identified pose.
+
+    ``max_length_mm`` cuts every line to at most that length (a try-out; the plan
+    records it as ``max_length_mm``).
+    """
+    planned = [plan_one_line(line_id, pose, machine, max_length_mm) for line_id in line_ids]
+    cut = {} if max_length_mm is None else {"max_length_mm": float(max_length_mm)}
     plan = Plan(
         machine=machine.name,
         receiver_offset_mm=machine.receiver_offset,
@@ -189,6 +200,7 @@ def plan_measurement(
             "encoder_offsets_deg": {
                 k: float(np.degrees(v)) for k, v in pose.encoder_offsets_rad.items()
             },
+            **cut,
         },
     )
     return MeasurementPlan(plan=plan, lines=planned)

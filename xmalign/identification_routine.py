@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
+from xmalign.beam_search import BeamSearchSettings, search_first_beam
 from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
 from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
@@ -56,12 +57,13 @@ class PoseGuess:
     receiver_roll_rad: float = 0.0
 
 
-Stage = Literal["skipped", "moving", "pointing", "manual", "aligning", "recorded"]
+Stage = Literal["skipped", "moving", "pointing", "searching", "manual", "aligning", "recorded"]
 
 
 @dataclass(frozen=True)
 class RoutineEvent:
-    """Progress of the routine: position ``index`` of ``total`` reached ``stage``."""
+    """Progress of the routine: position ``index`` of ``total`` reached ``stage``
+    (``searching``: once per turn of the first alignment's search)."""
 
     index: int
     total: int
@@ -177,6 +179,33 @@ def _point_units(
     return predicted.distance_mm
 
 
+def _search(
+    guess: PoseGuess,
+    cp_mm: Vec,
+    machine: Machine,
+    devices: RoutineDevices,
+    settings: BeamSearchSettings,
+    on_sweep: Callable[[], None],
+) -> float:
+    """The first alignment with the launch azimuth unknown: find the beam from the launch
+    unit's rough place (:func:`~xmalign.beam_search.search_first_beam`); returns the
+    distance to the rough place, mm."""
+    search_first_beam(
+        devices.launch,
+        devices.receiver,
+        devices.interferometer,
+        devices.clock,
+        guess.launch2mcs_mm,
+        cp_mm,
+        machine.spindle_angle_rad,
+        machine.interferometer,
+        settings,
+        guess.receiver_roll_rad,
+        lambda _: on_sweep(),
+    )
+    return float(np.linalg.norm(cp_mm - guess.launch2mcs_mm))
+
+
 def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual_um: Vec) -> None:
     devices.launch.lock()
     devices.receiver.lock()
@@ -232,6 +261,7 @@ def run_identification(
     refine_guess: Callable[[Session], PoseGuess | None] | None = None,
     on_event: Callable[[RoutineEvent], None] | None = None,
     unit_timeout_s: float = 30.0,
+    search: BeamSearchSettings | None = None,
 ) -> Session:
     """Align the units at each position and record every alignment as it is taken.
 
@@ -247,17 +277,24 @@ def run_identification(
         Session file; written after every alignment, resumed from if it exists.
     guess : PoseGuess, optional
         Prior launch pose for coarse pointing (e.g. the machine file's ``launch_unit``).
+        With its position but no azimuth and ``search`` given, the first alignment
+        searches the beam itself (:func:`~xmalign.beam_search.search_first_beam`);
+        no one is asked.
     settings : FineAlignmentSettings, optional
     manual_align : callable, optional
         Lets the operator jog the units into range; used where no guess can point
-        them and where fine alignment's own beam search (back to the last in-range
-        angles, then a spiral) does not find the beam.
+        them (no launch position at all), where the coarse guess misses, and where
+        fine alignment's own beam search (back to the last in-range angles, then a
+        spiral) does not find the beam.
     refine_guess : callable, optional
         Given the session so far, a better guess (e.g. a quick identification).
     on_event : callable, optional
         Progress callback.
     unit_timeout_s : float
         Timeout of each coarse unit move.
+    search : BeamSearchSettings, optional
+        Bounds of the first alignment's search; None: no search (an operator aligns
+        the first position, ``manual_align``).
 
     Returns
     -------
@@ -270,6 +307,9 @@ def run_identification(
         A position outside the machine's travel (checked before anything moves).
     GeometryError
         Neither a guess nor an operator can point the units.
+    BeamLostError, DeviceTimeoutError
+        The first alignment's search did not find the beam (the message says what
+        to check).
     """
     positions = np.atleast_2d(np.asarray(positions_mm, dtype=float))
     outside = np.flatnonzero(~machine.within_travel(positions))
@@ -297,18 +337,26 @@ def run_identification(
             machine_mm = np.asarray(devices.mover.position_mm(), dtype=float)
             cp_mm = receiver_cp(machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
             usable = _usable_guess(guess, session)
+            searched = usable is None and guess is not None and search is not None
             if usable is not None:
                 event("pointing", machine_mm)
                 distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
+            elif searched:
+                assert guess is not None and search is not None  # see searched
+                distance_mm = _search(
+                    guess, cp_mm, machine, devices, search, partial(event, "searching", machine_mm)
+                )
             # Pointed from the coarse guess alone, a beam out of range may be centimetres
-            # off: beyond any search, so a person aligns. From a refined guess, search.
+            # off: beyond fine alignment's search, so a person aligns. From a refined guess,
+            # or with no one there (``search`` given), fine alignment searches.
             coarse_miss = (
                 usable is not None
                 and not refined
+                and search is None
                 and manual_align is not None
                 and not devices.interferometer.read().beam_ok
             )
-            if usable is None or coarse_miss:
+            if (usable is None and not searched) or coarse_miss:
                 if manual_align is None:
                     raise GeometryError(
                         f"cannot point the units at identification position {index}: no pose"

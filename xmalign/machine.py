@@ -89,6 +89,12 @@ class InterferometerRanges(_Strict):
     #: xmalign's own: the fastest the interferometer tracks the receiver, mm/min
     #: (``program`` moves between targets no faster; None: the rapid feed).
     max_speed_mm_min: Feed_mm_min | None = None
+    #: xmalign's own: how far off the receiver's centre the beam still gives a signal
+    #: (beam present, any strength), mm; sizes the search for the first alignment.
+    capture_radius_mm: Annotated[float, Field(gt=0, le=50, allow_inf_nan=False)] = 6.0
+    #: xmalign's own: how far the receiver may face away from the beam and still see
+    #: it, mrad (the same search).
+    capture_angle_mrad: Annotated[float, Field(gt=0, le=500, allow_inf_nan=False)] = 35.0
 
     def ranges(self) -> dict[str, float]:
         """The three ranges by name (the arguments of ``ChannelLimits.of_ranges``)."""

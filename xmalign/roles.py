@@ -34,11 +34,21 @@ class InterferometerReading:
 
     ``channels`` holds the six values in the order of :data:`CHANNELS`
     (um and urad); ``beam_ok`` is False when any channel is out of range.
+    ``signal_pct`` is the receiver's signal strength (0 to 100 %), where the
+    instrument reports it: above 0 the beam enters the receiver, whether or not
+    the channels are in range (None: not reported; ``beam_ok`` stands for it).
     """
 
     time_s: float
     channels: Vec
     beam_ok: bool = True
+    signal_pct: float | None = None
+
+    def sees_beam(self, min_signal_pct: float) -> bool:
+        """Whether the receiver sees the beam at all (signal at least ``min_signal_pct``)."""
+        if self.signal_pct is None:
+            return self.beam_ok
+        return self.beam_ok or self.signal_pct >= min_signal_pct
 
     def channel(self, name: str) -> float:
         return float(self.channels[CHANNELS.index(name)])
@@ -279,10 +289,12 @@ def move_axes(
 def mean_reading(readings: list[InterferometerReading]) -> InterferometerReading:
     """Average of readings (time of the last one); ``beam_ok`` only if all were."""
     channels = np.mean([r.channels for r in readings], axis=0)
+    signals = [r.signal_pct for r in readings if r.signal_pct is not None]
     return InterferometerReading(
         time_s=readings[-1].time_s,
         channels=channels,
         beam_ok=all(r.beam_ok for r in readings),
+        signal_pct=float(np.mean(signals)) if len(signals) == len(readings) else None,
     )
 
 

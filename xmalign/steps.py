@@ -52,7 +52,9 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
+from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
+from xmalign.beam_search import BeamSearchSettings
 from xmalign.calibration import (
     CalibrationRun,
     ControlledProgram,
@@ -384,9 +386,12 @@ def identify_step(
     pose_path: Path | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    search: BeamSearchSettings | None = None,
 ) -> IdentifyStepResult:
     """Align at each position (session written as it goes, resumed), then solve the pose.
 
+    With ``search``, the first alignment finds the beam itself where the machine
+    file gives no azimuth (:func:`~xmalign.beam_search.search_first_beam`).
     The units are locked on every exit. ``uncertainty`` defaults to the
     machine file's ``uncertainty`` section. With ``pose_path`` the pose is
     written there (:func:`write_pose_step`; checked before the first alignment).
@@ -409,6 +414,7 @@ def identify_step(
             refine_guess=refine_guess,
             on_event=on_event,
             unit_timeout_s=unit_timeout_s,
+            search=search,
         )
     if uncertainty is None:
         uncertainty = IdentificationUncertainty.from_machine(machine.uncertainty)
@@ -488,9 +494,11 @@ def program_step(
     check_plan: Callable[[MeasurementPlan], None] | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    max_length_mm: float | None = None,
 ) -> ProgramStepResult:
     """Plan the lines for the identified pose, write the plan and the G-code.
 
+    ``max_length_mm`` cuts every line to at most that length (a try-out).
     The plan is read back from ``plan_path`` as ``xmalign run --plan`` reads it
     (the same plan identity); with ``plan_path`` None it is not written and the
     program is made from the plan as planned. ``program_path`` None: the suffix
@@ -527,10 +535,8 @@ def program_step(
         replace,
         caller,
     )
-    measurement = (
-        plan_measurement(machine, pose)
-        if line_ids is None
-        else plan_measurement(machine, pose, line_ids)
+    measurement = plan_measurement(
+        machine, pose, LINE_IDS if line_ids is None else line_ids, max_length_mm
     )
     if check_plan is not None:
         check_plan(measurement)

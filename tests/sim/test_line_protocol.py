@@ -89,3 +89,26 @@ def test_lines_with_a_good_checksum_but_bad_content_are_refused(payload, fragmen
 def test_rate_needs_exactly_one_number():
     with pytest.raises(FormatError, match="RATE takes one number"):
         parse_command(b"RATE 10 20\n")
+
+
+@given(st.floats(0.0, 100.0), st.booleans())
+def test_the_signal_strength_field_round_trips(signal_pct, beam_ok):
+    """The optional 10th field (docs/serial-protocol.md): 0 to 100 %, 1 decimal."""
+    reading = InterferometerReading(1.0, np.zeros(6), beam_ok, signal_pct)
+    decoded = decode_line(encode_sample(reading))
+    assert isinstance(decoded, InterferometerReading)
+    assert decoded.signal_pct == pytest.approx(signal_pct, abs=0.05)
+    assert decoded.sees_beam(1.0) == (beam_ok or decoded.signal_pct >= 1.0)
+
+
+def test_a_line_without_the_signal_field_gives_none_and_beam_stands_for_it():
+    decoded = decode_line(encode_sample(InterferometerReading(1.0, np.zeros(6), False)))
+    assert isinstance(decoded, InterferometerReading)
+    assert decoded.signal_pct is None and not decoded.sees_beam(1.0)
+
+
+@pytest.mark.parametrize("signal", ["100.5", "-1", "x"])
+def test_a_signal_out_of_its_range_is_a_corrupted_line(signal):
+    payload = "S,1.000000," + ",".join(["0.0000"] * 6) + f",1,{signal}"
+    with pytest.raises(FormatError):
+        decode_line(f"{payload}*{checksum(payload.encode())}\n".encode())

@@ -118,3 +118,39 @@ def test_unknown_lines_are_refused(tmp_path):
     write_pose(pose_path, make_pose())
     result = runner.invoke(app, ["program", "--pose", str(pose_path), "--lines", "X,Q"])
     assert result.exit_code != 0 and "--lines 'X,Q'" in str(result.exception)
+
+
+def test_max_length_cuts_every_line_for_a_try_out_and_the_plan_records_it(tmp_path):
+    """``--max-length-mm 20``: every line from its end nearest the launch unit, 20 mm
+    long; the plan says so (``max_length_mm``), and its program is as short."""
+    pose_path, full_path, cut_path = (tmp_path / n for n in ("pose.json", "a.json", "b.json"))
+    write_pose(pose_path, make_pose())
+    for plan_path, extra in ((full_path, []), (cut_path, ["--max-length-mm", "20"])):
+        result = runner.invoke(
+            app,
+            ["program", "--pose", str(pose_path), "--plan-out", str(plan_path), "--out"]
+            + [str(plan_path.with_suffix(".ngc")), "--dialect", "linuxcnc", *extra],
+        )
+        assert result.exit_code == 0, result.output
+    full, cut = read_plan(full_path), read_plan(cut_path)
+    assert json.loads(cut_path.read_text())["max_length_mm"] == 20.0
+    assert "max_length_mm" not in json.loads(full_path.read_text())
+    for long, short in zip(full.lines, cut.lines, strict=True):
+        assert long.id == short.id and long.targets_mm[-1] > 100.0
+        assert 0.0 < short.targets_mm[-1] <= 20.0 and short.targets_mm[0] == 0.0
+        np.testing.assert_allclose(short.start_mm, long.start_mm)
+        assert np.linalg.norm(short.end_mm - short.start_mm) <= 20.0 + 1e-9
+
+
+def test_max_length_must_be_positive(tmp_path):
+    pose_path = tmp_path / "pose.json"
+    write_pose(pose_path, make_pose())
+    result = subprocess.run(
+        [sys.executable, "-m", "xmalign", "program", "--pose", str(pose_path)]
+        + ["--max-length-mm", "0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.strip().count("\n") == 0 and "--max-length-mm" in result.stderr

@@ -1272,6 +1272,17 @@ _FILES_CASES = [
         (L, "--position-file", "machine position"),
         write("run.mpf", "G0 X0\n"),
     ),
+    Case(
+        "publish-position-file-is-a-plan",
+        ("sim", "publish-position", L),
+        (L, "FILE", "machine position"),
+    ),
+    Case(
+        "publish-position-file-fifo",
+        ("sim", "publish-position", "ff"),
+        ("ff", "FILE", "FIFO"),
+        node("ff", "fifo"),
+    ),
     # files a later step or the user relies on: replaced only with --force
     Case("comp-replaces-the-users-table", ERRORS, ("NC_CEC.INI", "--out", "--force")),
     Case(

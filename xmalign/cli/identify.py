@@ -14,6 +14,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
+from xmalign.beam_search import BeamSearchSettings
 from xmalign.cli.common import (
     ForceOption,
     LogFileOption,
@@ -178,6 +179,14 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
 
         def on_event(event: RoutineEvent) -> None:
             progress.update(task, description=f"identification: {event.stage}")
+            if event.stage == "searching":
+                progress.console.print(
+                    f"position {event.index}: searching the beam (no launch azimuth in the"
+                    " machine file): the launch unit turns once round, at several elevations"
+                    f" if needed (at most {BeamSearchSettings().timeout_s:.0f} s)",
+                    markup=False,
+                    highlight=False,
+                )
             if event.stage in ("recorded", "skipped"):
                 progress.advance(task)
 
@@ -219,6 +228,7 @@ def _live_identification(
                 manual_align=lambda: manual_alignment(jog, machine, config.timeouts.move_s),
                 on_event=on_event,
                 unit_timeout_s=config.timeouts.move_s,
+                search=BeamSearchSettings(),
             )
 
 
@@ -249,7 +259,12 @@ def identify_command(
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML (uncertainty defaults; --sim machine).")
     ] = None,
-    alignments: Annotated[int, typer.Option(min=3, help="Alignments to simulate.")] = 6,
+    alignments: Annotated[
+        int,
+        typer.Option(
+            min=3, help="How many alignments (identification positions), with --sim or --live."
+        ),
+    ] = 6,
     seed: Annotated[int, typer.Option(help="Seed of the simulation.")] = 1,
     session_out: Annotated[
         Path | None, typer.Option(help="With --sim: also write the simulated session.")

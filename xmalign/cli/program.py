@@ -111,6 +111,14 @@ def program(
         Path | None,
         typer.Option(help="With --instrument: the point list for the instrument's software."),
     ] = None,
+    max_length_mm: Annotated[
+        float | None,
+        typer.Option(
+            min=1.0,
+            help="Cut every line to at most this length, mm, from its end nearest the launch"
+            " unit: a try-out before the real run (recorded in the plan).",
+        ),
+    ] = None,
     force: ForceOption = False,
 ) -> None:
     """Plan the 3 axis lines and 3 face diagonals through the launch unit; write G-code.
@@ -155,6 +163,7 @@ def program(
         dialect,
         pose_path=pose,
         line_ids=line_ids,
+        max_length_mm=max_length_mm,
         write_program_file=out is not None,
         check_plan=partial(
             _show_plan, machine_model, launch_pose.position_mm, line_ids == LINE_IDS, strict=strict

@@ -42,8 +42,9 @@ def _host_port(text: str, default_host: str) -> tuple[str, int]:
     return host or default_host, int(port)
 
 
-def _check_position_file(path: Path) -> None:
-    """An existing ``--position-file`` must be one: anything else would be overwritten."""
+def _check_position_file(path: Path, option: str = "--position-file") -> None:
+    """An existing position file (``option``) must be one: anything else would be
+    overwritten."""
     if not path.is_file() or path.stat().st_size == 0:
         return
     from firmware_iface.machine_position import parse_position
@@ -53,7 +54,7 @@ def _check_position_file(path: Path) -> None:
         raise InputError(
             located(
                 path,
-                "--position-file",
+                option,
                 "holds something other than a machine position ('x y z'); the simulated"
                 " CNC would overwrite it: give a new file name",
             )
@@ -381,6 +382,39 @@ def _press_cycle_start_on_enter(served_cnc: ServedCnc) -> None:
             served_cnc.cycle_start()
 
     threading.Thread(target=read, name="cycle-start", daemon=True).start()
+
+
+@sim_app.command("publish-position")
+def publish_position(
+    file: Annotated[Path, typer.Argument(help="The position file to keep up to date.")],
+    module_dir: Annotated[
+        Path | None,
+        typer.Option(help="Where LinuxCNC's Python module is (default: Debian's place)."),
+    ] = None,
+    nml_file: Annotated[
+        Path | None, typer.Option(help="LinuxCNC's NML file, only if its INI sets one.")
+    ] = None,
+    period_ms: Annotated[
+        float, typer.Option(min=1.0, max=1000.0, help="How often the position is read, ms.")
+    ] = 5.0,
+) -> None:
+    """Publish a LinuxCNC's actual position (machine coordinates, mm) to FILE for
+    'sim serve --follow-position-file'; ends by itself when LinuxCNC stops."""
+    from firmware_iface.linuxcnc_module import open_local_linuxcnc
+    from sim.position_publisher import publish_positions
+
+    refuse_overwriting({"--nml-file": nml_file}, {"FILE": file})
+    _check_position_file(file, "FILE")
+    cnc = open_local_linuxcnc(module_dir, nml_file)
+    stopped = threading.Event()
+    for number in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(number, lambda *_: stopped.set())
+    console.print(f"publishing the position of {cnc.name} to {file}", highlight=False)
+    try:
+        reason = publish_positions(cnc, file, stopped, period_ms / 1000.0)
+    except KeyboardInterrupt:
+        reason = "interrupted"
+    console.print(f"publishing ended: {reason}", highlight=False, markup=False)
 
 
 def register(app: typer.Typer) -> None:

@@ -1,0 +1,332 @@
+"""The first alignment by itself: find the beam when the launch unit's azimuth is unknown.
+
+The machine file gives the launch unit's rough place, the CNC where the
+receiver is; only the launch unit's azimuth (gamma) is unknown, over the whole
+circle. :func:`search_first_beam`
+
+1. aims the receiver at the rough place (and the launch unit's elevation at the
+   receiver);
+2. turns the launch azimuth a1 once round at the unit's speed, reading the
+   receiver's signal strength every few ms and the angle a1 has reached;
+   wherever a1 moved more than the beam's capture aperture (its radius, as seen
+   from the launch unit) between two readings, that stretch is stepped through again
+   at rest, so the beam cannot pass the aperture unseen;
+3. sweeps again at elevations above and below (rows ``capture_row`` apart, nearest
+   first, out to what the rough place's uncertainty allows), and, where that
+   uncertainty exceeds the receiver's capture angle, with the receiver aimed
+   around the rough direction (a square spiral, nearest first);
+4. once the receiver sees the beam, centres it: each of a1, a2, a3, a4 in turn
+   finds the two angles where the signal ends and goes to their middle (the
+   signal falls off symmetrically), which leaves the channels in or near their
+   ranges for fine alignment.
+
+Bounded in angle (one turn per row, the rows and aims above) and in time
+(``timeout_s``); when it finds nothing it raises a :class:`BeamLostError`
+saying what to check. Pure control logic on roles (core code).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from xmalign.alignment import search_offsets_urad
+from xmalign.errors import BeamLostError, DeviceTimeoutError
+from xmalign.geometry import Vec
+from xmalign.kinematics import aligned_angles
+from xmalign.machine import InterferometerRanges
+from xmalign.roles import Clock, Interferometer, PositioningUnit, RotaryAxis, move_axes
+
+logger = logging.getLogger(__name__)
+
+#: What the operator checks when the search finds nothing (the one line's end).
+WHAT_TO_CHECK = (
+    "check that the beam shutter is open, the receiver faces the launch unit, the launch"
+    " unit stands where launch_unit.position_mm in the machine file says (within the"
+    " search's reach), and nothing blocks the beam between them"
+)
+
+
+@dataclass(frozen=True)
+class BeamSearchSettings:
+    """Bounds and steps of :func:`search_first_beam`.
+
+    Attributes
+    ----------
+    position_uncertainty_mm : float
+        How far the launch unit may stand from the machine file's
+        ``launch_unit.position_mm`` along each axis: sets how far the rows and
+        the receiver's aims reach.
+    timeout_s : float
+        The whole search, clock time.
+    max_speed_rad_s : float
+        The fastest a1 turns (the units' 30 °/s, docs/registers.md): while it
+        turns, the signal is read every half capture aperture at this speed.
+    min_signal_pct : float
+        A signal at least this strong counts as the beam seen.
+    edge_precision : float
+        Centring ends when an edge is known within this fraction of the capture
+        aperture (or angle).
+    move_timeout_s : float
+        Each unit move of the centring.
+    settle_s : float
+        Wait after a centring move before reading.
+    """
+
+    position_uncertainty_mm: float = 25.0
+    timeout_s: float = 600.0
+    max_speed_rad_s: float = math.radians(30.0)
+    min_signal_pct: float = 1.0
+    edge_precision: float = 0.01
+    move_timeout_s: float = 20.0
+    settle_s: float = 0.02
+
+
+@dataclass(frozen=True)
+class BeamSearchResult:
+    """Where the search found and centred the beam: unit angles (rad), time (s), rows swept."""
+
+    launch_rad: Vec
+    receiver_rad: Vec
+    elapsed_s: float
+    sweeps: int
+
+
+@dataclass
+class _Search:
+    """The devices and limits of one search."""
+
+    launch: PositioningUnit
+    receiver: PositioningUnit
+    interferometer: Interferometer
+    clock: Clock
+    settings: BeamSearchSettings
+    started_s: float
+    on_sweep: Callable[[int], None] | None = None
+    sweeps: int = 0
+
+    def sees(self) -> bool:
+        return self.interferometer.read().sees_beam(self.settings.min_signal_pct)
+
+    def check_time(self) -> None:
+        if self.clock.now() >= self.started_s + self.settings.timeout_s:
+            raise DeviceTimeoutError(
+                f"no beam found within {self.settings.timeout_s:g} s of searching; {WHAT_TO_CHECK}"
+            )
+
+    def move(self, axes: list[RotaryAxis], angles_rad: Vec) -> None:
+        move_axes(axes, angles_rad, self.settings.move_timeout_s, "positioning units", self.clock)
+
+
+def _row_offsets(half_width_rad: float, spacing_rad: float) -> Vec:
+    """0, +s, -s, +2s, -2s, ... out to ``half_width_rad`` (at least the centre), rad."""
+    n = math.ceil(half_width_rad / spacing_rad - 1e-9)
+    return np.array([0.0] + [k * sign * spacing_rad for k in range(1, n + 1) for sign in (1, -1)])
+
+
+def _sweep(
+    search: _Search, elevation_rad: float, start_rad: float, step_rad: float
+) -> float | None:
+    """Turn a1 once round from ``start_rad`` (in the direction of ``step_rad``) at
+    ``elevation_rad``, reading the signal all the way; the a1 angle where the beam was
+    seen (a1 then stops), or None.
+
+    a1 runs at its own speed, read every ``step_rad`` at the units' top speed; where a
+    reading came late (a slow host) and a1 moved more than twice ``step_rad`` since the
+    one before, that stretch is stepped through again.
+    """
+    azimuth, elevation = search.launch.axes[:2]
+    search.move([azimuth, elevation], np.array([start_rad, elevation_rad]))
+    search.sweeps += 1
+    if search.on_sweep is not None:
+        search.on_sweep(search.sweeps)
+    end_rad = start_rad + math.copysign(2.0 * math.pi, step_rad)
+    azimuth.move_to(end_rad)
+    last_rad, gaps = start_rad, []
+    while abs(last_rad - end_rad) > abs(step_rad) * 1e-3:
+        search.check_time()
+        search.clock.sleep(abs(step_rad) / search.settings.max_speed_rad_s)
+        seen = search.sees()
+        here_rad = azimuth.position_rad()
+        if seen:
+            azimuth.stop()
+            return here_rad
+        if abs(here_rad - last_rad) > 2.0 * abs(step_rad):
+            gaps.append((last_rad, here_rad))
+        last_rad = here_rad
+    for gap in gaps:
+        found_rad = _step_through(search, *gap, step_rad)
+        if found_rad is not None:
+            return found_rad
+    return None
+
+
+def _step_through(search: _Search, from_rad: float, to_rad: float, step_rad: float) -> float | None:
+    """Step a1 from ``from_rad`` to ``to_rad`` (``step_rad`` a step), reading at rest; the
+    angle where the beam was seen, or None."""
+    azimuth = search.launch.axes[0]
+    for angle in np.arange(from_rad, to_rad, step_rad)[1:]:
+        search.check_time()
+        search.move([azimuth], np.array([angle]))
+        if search.sees():
+            return float(angle)
+    return None
+
+
+def _back_to_beam(search: _Search, seen_rad: float, step_rad: float) -> bool:
+    """Put a1 back where the sweep saw the beam (the reading came before the angle, and
+    the axis ran on while stopping); whether the receiver sees it there."""
+    azimuth = search.launch.axes[0]
+    for back in (0.0, 0.5, 1.0, 1.5):
+        search.move([azimuth], np.array([seen_rad - back * step_rad]))
+        search.clock.sleep(search.settings.settle_s)
+        if search.sees():
+            return True
+    return False
+
+
+def _edge(
+    search: _Search, axis: RotaryAxis, inside_rad: float, step_rad: float, precision_rad: float
+) -> float:
+    """The angle of ``axis`` where the signal ends beyond ``inside_rad`` in the direction
+    of ``step_rad`` (the beam is seen at ``inside_rad``), within ``precision_rad``."""
+    outside = inside_rad + step_rad
+    while True:
+        search.check_time()
+        search.move([axis], np.array([outside]))
+        search.clock.sleep(search.settings.settle_s)
+        if not search.sees():
+            break
+        inside_rad, outside = outside, outside + step_rad
+    while abs(outside - inside_rad) > precision_rad:
+        search.check_time()
+        middle = 0.5 * (inside_rad + outside)
+        search.move([axis], np.array([middle]))
+        search.clock.sleep(search.settings.settle_s)
+        if search.sees():
+            inside_rad = middle
+        else:
+            outside = middle
+    return 0.5 * (inside_rad + outside)
+
+
+def _centre(search: _Search, axis: RotaryAxis, half_width_rad: float) -> None:
+    """Move ``axis`` to the middle of the angles where the beam is seen (seen where it is)."""
+    here = axis.position_rad()
+    step = 0.25 * half_width_rad
+    precision = search.settings.edge_precision * half_width_rad
+    upper = _edge(search, axis, here, step, precision)
+    lower = _edge(search, axis, here, -step, precision)
+    search.move([axis], np.array([0.5 * (upper + lower)]))
+    search.clock.sleep(search.settings.settle_s)
+
+
+def search_first_beam(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    launch2mcs_mm: Vec,
+    receiver_cp_mm: Vec,
+    spindle_angle_rad: float,
+    ranges: InterferometerRanges,
+    settings: BeamSearchSettings | None = None,
+    receiver_roll_rad: float = 0.0,
+    on_sweep: Callable[[int], None] | None = None,
+) -> BeamSearchResult:
+    """Find the beam with the launch azimuth unknown, and centre it on the receiver.
+
+    Parameters
+    ----------
+    launch, receiver : PositioningUnit
+        Launch unit (a1, a2) and receiver unit (a3, a4[, a5]).
+    interferometer : Interferometer
+        Its ``signal_pct`` tells whether the receiver sees the beam (``beam_ok``
+        where the instrument gives no signal strength).
+    clock : Clock
+    launch2mcs_mm : ndarray, shape (3,)
+        The launch unit's rough place (the machine file's ``launch_unit``), MCS mm.
+    receiver_cp_mm : ndarray, shape (3,)
+        The receiver's control point where the machine stands, MCS mm.
+    spindle_angle_rad : float
+    ranges : InterferometerRanges
+        Its ``capture_radius_mm`` and ``capture_angle_mrad`` size the steps, rows and aims.
+    settings : BeamSearchSettings, optional
+    receiver_roll_rad : float
+        The a5 angle to hold.
+    on_sweep : callable, optional
+        Called with the turn's number as each turn of a1 starts (progress).
+
+    Returns
+    -------
+    BeamSearchResult
+
+    Raises
+    ------
+    BeamLostError
+        The beam was not seen anywhere in the search's reach (the message says
+        what to check).
+    DeviceTimeoutError
+        Not found within ``settings.timeout_s`` (the same advice).
+    """
+    settings = settings or BeamSearchSettings()
+    started_s = clock.now()
+    search = _Search(launch, receiver, interferometer, clock, settings, started_s, on_sweep)
+    nominal = aligned_angles(launch2mcs_mm, 0.0, receiver_cp_mm, spindle_angle_rad)
+    distance_mm = max(nominal.distance_mm - settings.position_uncertainty_mm * math.sqrt(3), 1.0)
+    # the capture aperture as seen from the launch unit (at the nearest it may be), rad
+    aperture_rad = ranges.capture_radius_mm / distance_mm
+    capture_angle_rad = ranges.capture_angle_mrad * 1e-3
+    uncertainty_rad = math.atan(settings.position_uncertainty_mm * math.sqrt(2) / distance_mm)
+    rows = _row_offsets(uncertainty_rad, 1.4 * aperture_rad)
+    cos_e = max(abs(math.cos(nominal.launch_rad[1])), 0.05)
+    step_rad = 0.5 * aperture_rad / cos_e
+    aims = np.vstack(
+        [np.zeros((1, 2)), search_offsets_urad(capture_angle_rad * 1e6, uncertainty_rad * 1e6)]
+    )
+    logger.info(
+        "searching the beam: up to %d rows, %d receiver aims, a1 read every %.2f mrad",
+        len(rows),
+        len(aims),
+        step_rad * 1e3,
+    )
+    start = -math.pi
+    for aim_urad in aims:
+        receiver_target = np.array(
+            [*(nominal.receiver_rad[:2] + aim_urad * 1e-6), receiver_roll_rad]
+        )[: len(receiver.axes)]
+        search.move(list(receiver.axes), receiver_target)
+        for row in rows:
+            direction = 1.0 if start < 0 else -1.0
+            seen_rad = _sweep(search, nominal.launch_rad[1] + row, start, direction * step_rad)
+            start = -start
+            if seen_rad is not None and _back_to_beam(search, seen_rad, step_rad):
+                return _centred(search, aperture_rad / cos_e, aperture_rad, capture_angle_rad)
+    raise BeamLostError(
+        f"no beam found: the launch azimuth swept once round at {len(rows)} elevation(s) with"
+        f" the receiver aimed {len(aims)} way(s) ({clock.now() - started_s:.0f} s); {WHAT_TO_CHECK}"
+    )
+
+
+def _centred(
+    search: _Search, azimuth_rad: float, elevation_rad: float, capture_angle_rad: float
+) -> BeamSearchResult:
+    """Centre the seen beam on a1, a2, a3, a4 in turn; the result."""
+    a1, a2 = search.launch.axes[:2]
+    a3, a4 = search.receiver.axes[:2]
+    for axis, half_width in ((a1, azimuth_rad), (a2, elevation_rad)):
+        _centre(search, axis, half_width)
+    cos_e = max(abs(math.cos(float(search.receiver.angles_rad()[1]))), 0.05)
+    for axis, half_width in ((a3, capture_angle_rad / cos_e), (a4, capture_angle_rad)):
+        _centre(search, axis, half_width)
+    logger.info("beam found and centred after %d sweep(s)", search.sweeps)
+    return BeamSearchResult(
+        launch_rad=search.launch.angles_rad(),
+        receiver_rad=search.receiver.angles_rad(),
+        elapsed_s=search.clock.now() - search.started_s,
+        sweeps=search.sweeps,
+    )
