@@ -249,7 +249,6 @@ def point_list_files(path: Path, plan: InstrumentProgram, smr_offset_mm: Vec) ->
     return {path: data, path.with_name(f"{path.name}.history"): history.encode()}
 
 
-
 def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:
     """The nominal SMR positions for a tracker's own software: ``name,x_mm,y_mm,z_mm``.
 
