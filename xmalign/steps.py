@@ -78,7 +78,7 @@ from xmalign.formats.common import (
     refuse_special,
     same_file,
 )
-from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.error_tables import ErrorTableSet, error_tables_text, read_error_tables
 from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
@@ -285,8 +285,8 @@ def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
     Fatal: another chain or travel (the tables' file names the machine it was
     measured on), or a table whose positions all lie outside the travel. A
     warning: another name, a file that does not say (version 1), or another
-    machine file with the same chain and travel. Tables not read from a file
-    (:func:`post_step`'s) are checked against the travel only.
+    machine file with the same chain and travel. Tables not read from a file (made in
+    code) are checked against the travel only.
 
     Raises
     ------
@@ -294,7 +294,7 @@ def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
         Naming the tables' file and what differs.
     """
     tables.check_within_travel(machine.travel_min_mm, machine.travel_max_mm, machine.name)
-    if tables.history is None:  # fitted in this session (post_step's), not read from a file
+    if tables.history is None:  # made in code, not read from a file
         return []
     notes = tables.check_machine(machine)
     return notes + _other_machine_file(tables.source, tables.history.input("machine"), machine)
@@ -764,17 +764,15 @@ def run_step(
 
 @dataclass
 class PostStepResult:
-    """The fitted error tables, the stations they were fitted to, where they were written."""
+    """The fit, the error tables as written (read back from ``errors_path``, as ``xmalign
+    comp`` reads them: their history names the file), the stations they were fitted to."""
 
     post: PostResult
     errors_path: Path
+    tables: ErrorTableSet
     stations: list[Station] = field(default_factory=list)
     #: What the checks of the inputs found (another machine file of the same machine...).
     warnings: list[str] = field(default_factory=list)
-
-    @property
-    def tables(self) -> ErrorTableSet:
-        return self.post.fit.tables
 
 
 def read_station(machine: Machine, plan: Plan, measurements_path: Path) -> Station:
@@ -807,7 +805,9 @@ def post_step(
     ``instrument_files``; they never replace one of these, nor an existing file without
     ``replace`` (:func:`check_outputs`, before anything is read). ``on_fit(stations)`` is
     told before the fit; ``more_files(result)`` adds files written together with the
-    tables (the report, named in ``caller.written``): all of them, or none.
+    tables (the report, named in ``caller.written``): all of them, or none. The result's
+    ``tables`` are read back from ``errors_path``: given to :func:`comp_step`, the
+    controller files' history names that file.
     """
     machine, errors_path = _machine(machine), _path(errors_path, "errors_path")
     pairs = _stations(stations)
@@ -829,7 +829,7 @@ def post_step(
         check_outputs({"more_files": list(more)}, inputs, True, caller)
         files |= more
     atomic_write_files(files)
-    return PostStepResult(post, errors_path, read, notes)
+    return PostStepResult(post, errors_path, read_error_tables(errors_path), read, notes)
 
 
 def _stations(stations: object) -> list[tuple[Plan, Path]]:

@@ -435,3 +435,18 @@ def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
         assert {"role": "machine", "path": str(REFERENCE), "sha256": machine_sha256} in inputs
     tables = api.read_error_tables(calibrated / "errors.csv")
     assert tables.history.input("machine").sha256 == machine_sha256
+
+
+def test_the_dry_runs_controller_files_name_the_error_tables(calibrated: Path) -> None:
+    """comp_step is given the tables post_step wrote, read back: every controller file's
+    history (in it, or in NAME.history beside it) names errors.csv by its SHA-256."""
+    errors_sha256 = api.file_sha256(calibrated / "errors.csv")
+    written = sorted((calibrated / "comp").iterdir())
+    assert written
+    for path in written:
+        history = path.with_name(f"{path.name}.history")
+        text = (history if history.exists() else path).read_text()
+        named = [line for line in text.splitlines() if "input errors: " in line]
+        assert len(named) == 1, path.name
+        assert f"input errors: {errors_sha256}  " in named[0], named[0]
+        assert named[0].endswith("errors.csv"), named[0]
