@@ -1547,6 +1547,43 @@ _ISSUE_32_CASES += [
         ("dry-run", "--instrument", "tracer", "--verify", "--out", "dr"),
         ("--verify", "not used with --instrument tracer"),
     ),
+    # an ignored option given with its default value is refused too (it was not: only a
+    # value other than the default was seen)
+    Case(
+        "dry-run-tracker-shop-given-as-the-default",
+        ("dry-run", "--instrument", "tracker", "--shop", "drifting", "--out", "dr"),
+        ("--shop", "not used with --instrument tracker"),
+    ),
+    Case(
+        "dry-run-tracer-one-station-given",
+        ("dry-run", "--instrument", "tracer", "--stations", "1", "--out", "dr"),
+        ("--stations", "not used with --instrument tracer"),
+    ),
+    Case(
+        "dry-run-tracker-six-positions-given",
+        ("dry-run", "--instrument", "tracker", "--identification-positions", "6", "--out", "dr"),
+        ("--identification-positions", "not used with --instrument tracker"),
+    ),
+    Case(
+        "mc-instruments-batch-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--batch", "20", "--out", "mc-new"),
+        ("--batch", "not used with --mode instruments"),
+    ),
+    Case(
+        "mc-instruments-method-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--method", "joint", "--out", "mc-new"),
+        ("--method", "not used with --mode instruments"),
+    ),
+    Case(
+        "mc-instruments-workers-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--workers", "0", "--out", "mc-new"),
+        ("--workers", "not used with --mode instruments"),
+    ),
+    Case(
+        "program-tracker-with-the-default-pose",
+        ("program", "--instrument", "tracker", "--pose", "pose.json", "--out", "t.nc"),
+        ("--pose", "not used with --instrument tracker"),
+    ),
 ]
 
 CASES = (

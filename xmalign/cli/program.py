@@ -76,11 +76,11 @@ DEFAULT_POSE = Path("pose.json")
 
 def program(
     pose: Annotated[
-        Path,
+        Path | None,
         typer.Option(
             "--pose", help="Launch pose from xmalign identify (default: pose.json in this folder)."
         ),
-    ] = DEFAULT_POSE,
+    ] = None,
     machine: MachineOption = None,
     plan_out: Annotated[
         Path | None, typer.Option("--plan-out", help="Write the measurement plan (JSON).")
@@ -129,7 +129,7 @@ def program(
     else:
         refuse_unused_options(
             {
-                "--pose": pose != DEFAULT_POSE,
+                "--pose": pose is not None,
                 "--lines": lines is not None,
                 "--plan-out": plan_out is not None,
                 "--strict": strict,
@@ -139,6 +139,7 @@ def program(
         request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request, force)
         return
+    pose = DEFAULT_POSE if pose is None else pose
     if not pose.exists() and not pose.is_symlink():  # a link that loops: named when read
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"

@@ -51,7 +51,10 @@ _SHOP_HELP = (
     " machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
 )
 ShopOption = Annotated[str, typer.Option(help=f"With --sim: {_SHOP_HELP}")]
-DryRunShopOption = Annotated[str, typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:])]
+DryRunShopOption = Annotated[
+    str | None,
+    typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:-1] + " (default: drifting)."),
+]
 InProcessOption = Annotated[
     bool,
     typer.Option(
@@ -475,14 +478,18 @@ def dry_run_command(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect (default: controller's).")
     ] = None,
-    identification_positions: Annotated[int, typer.Option(min=3, help="Alignments.")] = 6,
+    identification_positions: Annotated[
+        int | None, typer.Option(min=3, help="Alignments (default 6).")
+    ] = None,
     stations: Annotated[
-        int,
+        int | None,
         typer.Option(
-            min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
+            min=1,
+            max=2,
+            help="Launch-unit stations: 2 adds the proposed second station (default 1).",
         ),
-    ] = 1,
-    shop: DryRunShopOption = "drifting",
+    ] = None,
+    shop: DryRunShopOption = None,
     verify: Annotated[
         bool,
         typer.Option(
@@ -512,15 +519,19 @@ def dry_run_command(
     if instrument != "xm60":
         refuse_unused_options(
             {
-                "--stations": stations != 1,
+                "--stations": stations is not None,
                 "--verify": verify,
-                "--identification-positions": identification_positions != 6,
-                "--shop": shop != "drifting",
+                "--identification-positions": identification_positions is not None,
+                "--shop": shop is not None,
             },
             f"with --instrument {instrument} (a launch unit's options)",
         )
         instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
         return
+    # the launch unit's options: None until here, so that one given with --instrument is refused
+    identification_positions = 6 if identification_positions is None else identification_positions
+    stations = 1 if stations is None else stations
+    shop = "drifting" if shop is None else shop
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
