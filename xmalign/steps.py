@@ -246,14 +246,7 @@ def check_plan_machine(plan: Plan, machine: Machine) -> list[str]:
         Naming the plan's file, both machines, or the first target outside the travel.
     """
     where = str(_plan_file(plan) or "the plan")
-    recorded = plan.extra.get("machine_sha256")
-    if plan.machine != machine.name or recorded not in (None, machine.geometry_sha256()):
-        identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
-        raise InputError(
-            f"{where} was made for machine '{plan.machine}'{identity}, not for"
-            f" {_describe(machine)} ('{machine.name}'): give the machine file the plan was"
-            " made with"
-        )
+    _refuse_another_machine(where, "plan", plan.machine, plan.extra.get("machine_sha256"), machine)
     for line in plan.lines:
         outside = ~machine.within_travel(line.target_points_mm(), TRAVEL_TOLERANCE_MM)
         if outside.any():
@@ -265,6 +258,41 @@ def check_plan_machine(plan: Plan, machine: Machine) -> list[str]:
             )
     made_with = plan.history.input("machine") if plan.history is not None else None
     return _other_machine_file(where, made_with, machine)
+
+
+def check_pose_machine(pose: LaunchPose, machine: Machine) -> list[str]:
+    """Refuse a pose identified on another machine; warnings where only the file differs.
+
+    A pose written with a machine names it and records ``machine_sha256``, as a plan
+    does (:func:`check_plan_machine`: another name or geometry is fatal, another machine
+    file of the same geometry a warning). A pose that does not name its machine (written
+    before poses did, or ``identify --input`` without ``--machine``) is not checked.
+
+    Raises
+    ------
+    InputError
+        Naming the pose's file and both machines.
+    """
+    if pose.machine is None:
+        return []
+    where = str(pose.source.path) if pose.source is not None else "the pose"
+    _refuse_another_machine(where, "pose", pose.machine, pose.machine_sha256, machine)
+    made_with = pose.history.input("machine") if pose.history is not None else None
+    return _other_machine_file(where, made_with, machine)
+
+
+def _refuse_another_machine(
+    where: str, what: str, name: str, recorded: object, machine: Machine
+) -> None:
+    """InputError when ``what`` (a plan, a pose) at ``where`` names another machine than
+    ``machine``, or records another geometry (``recorded``: its ``machine_sha256``)."""
+    if name != machine.name or recorded not in (None, machine.geometry_sha256()):
+        identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
+        raise InputError(
+            f"{where} was made for machine '{name}'{identity}, not for"
+            f" {_describe(machine)} ('{machine.name}'): give the machine file the {what} was"
+            " made with"
+        )
 
 
 def _other_machine_file(where: str, made_with: FileSource | None, machine: Machine) -> list[str]:
@@ -345,16 +373,20 @@ def write_pose_step(
     caller: Caller | None = None,
 ) -> Path:
     """Write the identified pose (``xmalign program`` reads it) with the SHA-256 of the
-    session it was solved from and of ``machine``'s file. Every pose file is written
-    here, never over the session, the machine file or an existing file without
-    ``replace`` (:func:`check_outputs`)."""
+    session it was solved from and of ``machine``'s file, naming ``machine``
+    (:func:`check_pose_machine`). Every pose file is written here, never over the
+    session, the machine file or an existing file without ``replace``
+    (:func:`check_outputs`)."""
     path, session_path = _path(path, "path"), _optional_path(session_path, "session_path")
     check_argument(result, IdentificationResult, "result", "an IdentificationResult")
     machine = None if machine is None else _machine(machine)
     inputs = {"session_path": session_path, "machine": _machine_path(machine) if machine else None}
     check_outputs({"path": path}, inputs, replace, caller)
     session = [FileSource.of("session", session_path)] if session_path is not None else []
-    write_pose(path, result.to_pose(), session + (machine_file(machine) if machine else []))
+    pose = result.to_pose()
+    if machine is not None:
+        pose.machine, pose.machine_sha256 = machine.name, machine.geometry_sha256()
+    write_pose(path, pose, session + (machine_file(machine) if machine else []))
     return path
 
 
@@ -447,10 +479,12 @@ class ProgramStepResult:
     dialect: str
     program: str
     files: dict[str, Path] = field(default_factory=dict)
+    #: What the check of the pose found (another machine file of the same machine).
+    checks: list[str] = field(default_factory=list)
 
     @property
     def warnings(self) -> list[str]:
-        return list(self.measurement.warnings)
+        return self.checks + list(self.measurement.warnings)
 
 
 def program_gcode(
@@ -499,7 +533,9 @@ def program_step(
     program is named after its file (``XMALIGN`` without one). The plan records
     the SHA-256 of ``pose_path`` (the file the pose was written to or read from;
     by default the file a ``LaunchPose`` was read from) and of the machine's file.
-    The plan and the program are checked before the planning (:func:`check_outputs`:
+    The pose must have been identified on ``machine`` (:func:`check_pose_machine`; the
+    result's ``warnings`` hold what it found). The plan and the program are checked
+    before the planning (:func:`check_outputs`:
     never the pose's or the machine's file, an existing file only with ``replace``);
     ``check_plan(measurement)`` may refuse the plan before anything is written.
     """
@@ -512,6 +548,7 @@ def program_step(
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
     check_argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
+    checks = check_pose_machine(pose, machine)
     if pose_path is None and pose.source is not None:  # read from a file: that file
         pose_path = Path(pose.source.path)
     dialect_name = resolve_dialect(machine, dialect)
@@ -546,7 +583,7 @@ def program_step(
     if program_path is not None:
         atomic_write_files({program_path: program.encode("utf-8")})
         files["program"] = program_path
-    return ProgramStepResult(measurement, plan, dialect_name, program, files)
+    return ProgramStepResult(measurement, plan, dialect_name, program, files, checks)
 
 
 #: How a run captures: given the CalibrationRun, capture every point of its plan.

@@ -1580,6 +1580,21 @@ _ISSUE_32_CASES += [
         ("--workers", "not used with --mode instruments"),
     ),
     Case(
+        "program-a-pose-of-another-machine",
+        POSE,
+        (P, "was made for machine 'Other mill'", "the reference machine", "pose was made with"),
+        edit_json(P, sets("machine", value="Other mill")),
+    ),
+    Case(
+        "program-a-pose-of-another-geometry",
+        POSE,
+        (P, "machine_sha256 000000000000...", "pose was made with"),
+        edit_json(
+            P,
+            lambda d: d.update(machine="Example FYXZ gantry mill", machine_sha256="0" * 64),
+        ),
+    ),
+    Case(
         "program-tracker-with-the-default-pose",
         ("program", "--instrument", "tracker", "--pose", "pose.json", "--out", "t.nc"),
         ("--pose", "not used with --instrument tracker"),

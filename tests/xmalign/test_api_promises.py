@@ -179,6 +179,38 @@ def test_a_plan_of_another_machine_is_refused_by_every_step(folder: Path, tmp_pa
     assert not (tmp_path / "e.csv").exists() and not (tmp_path / "m.csv").exists()
 
 
+def test_a_pose_names_its_machine_and_program_step_checks_it(folder: Path, tmp_path: Path) -> None:
+    """The pose written by the steps names the machine it was identified on (name and
+    geometry, the machine file among its inputs); program_step refuses it for another
+    machine, warns for another file of the same machine, and reads an older pose."""
+    import json
+
+    machine = api.load_machine(REFERENCE)
+    pose = api.read_pose(folder / "pose.json")
+    assert (pose.machine, pose.machine_sha256) == (machine.name, machine.geometry_sha256())
+    assert pose.history.input("machine").sha256 == api.file_sha256(REFERENCE)
+    other = api.load_machine(_machine_file(tmp_path, "X: [0, 2000]", "X: [0, 2100]"))
+    _refused(
+        lambda: api.program_step(other, pose, tmp_path / "plan.json"),
+        "pose.json was made for machine",
+        str(tmp_path / "machine.yaml"),
+        "give the machine file the pose was made with",
+    )
+    renamed = api.load_machine(_machine_file(tmp_path, "name: ", "name: Other "))
+    _refused(lambda: api.program_step(renamed, pose, tmp_path / "plan.json"), "made for machine")
+    assert not (tmp_path / "plan.json").exists()
+    edited = api.load_machine(_machine_file(tmp_path, "rapid: ", "rapid: 1"))
+    programmed = api.program_step(edited, pose, tmp_path / "plan.json")
+    assert any("another file" in warning for warning in programmed.warnings)
+    document = json.loads((folder / "pose.json").read_text())
+    for key in ("machine", "machine_sha256", "software", "created_utc", "inputs"):
+        del document[key]
+    (tmp_path / "old-pose.json").write_text(json.dumps(document))
+    older = api.read_pose(tmp_path / "old-pose.json")
+    assert older.machine is None
+    assert api.program_step(other, older, None, write_program_file=False).checks == []
+
+
 def test_a_plan_target_outside_the_travel_is_refused(folder: Path, tmp_path: Path) -> None:
     smaller = api.load_machine(_machine_file(tmp_path, "X: [0, 2000]", "X: [0, 1000]"))
     plan = api.read_plan(folder / "plan.json")

@@ -26,6 +26,7 @@ from xmalign.cli.common import (
     machine_or_default,
     named_by_options,
     refuse_unused_options,
+    warn,
 )
 from xmalign.cli.instruments import (
     InstrumentRequest,
@@ -163,6 +164,8 @@ def program(
         replace=force,
         caller=named_by_options(PROGRAM_OPTIONS),
     )
+    for check in programmed.checks:
+        warn(check)
     error_console.print(
         _machine_time_text(estimate_machine_time(programmed.plan, machine_model)),
         highlight=False,
