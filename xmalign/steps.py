@@ -52,6 +52,7 @@ from trajectories.instruments import (
     tracker_points,
     write_instrument_program,
 )
+from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan, plan_measurement
 from xmalign.calibration import (
     CalibrationRun,
@@ -510,6 +511,25 @@ def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) 
     return plan_path.with_name(f"{PROGRAM_STEM}{suffix}")
 
 
+def _line_ids(value: object, caller: Caller) -> tuple[str, ...] | None:
+    """``line_ids`` as given when they are distinct lines of :data:`LINE_IDS`; else one
+    line naming the argument (the command's ``--lines``)."""
+    if value is None:
+        return None
+    name = caller.names.get("line_ids", "line_ids")
+    chosen = tuple(value) if isinstance(value, tuple | list) else None
+    if (
+        not chosen
+        or any(line not in LINE_IDS for line in chosen)
+        or len(set(chosen)) != len(chosen)
+    ):
+        shown = f"'{','.join(map(str, chosen))}'" if chosen is not None else shown_value(value)
+        raise InputError(
+            f"{name} {shown}: give distinct lines out of {', '.join(LINE_IDS)}, comma-separated"
+        )
+    return chosen
+
+
 def program_step(
     machine: Machine,
     pose: LaunchPose | IdentificationResult,
@@ -545,6 +565,7 @@ def program_step(
         _optional_path(program_path, "program_path"),
     )
     pose_path = _optional_path(pose_path, "pose_path")
+    line_ids = _line_ids(line_ids, caller or SCRIPT)
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
     check_argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")

@@ -248,6 +248,14 @@ def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) 
     _refused(lambda: api.error_table_frames("errors.csv"), "tables", "ErrorTableSet")
     _refused(lambda: api.squareness_frame(3), "tables")
     _refused(lambda: api.iso230_2_frame("x"), "result", "PostResult")
+    pose = api.read_pose(folder / "pose.json")
+    for line_ids, shown in ((("X", "Q"), "'X,Q'"), (("X", "X"), "'X,X'"), ((), "''"), ("X", "'X'")):
+        _refused(
+            lambda ids=line_ids: api.program_step(machine, pose, tmp_path / "l.json", line_ids=ids),
+            f"line_ids {shown}",
+            "give distinct lines out of X, Y, Z",
+        )
+    assert not (tmp_path / "l.json").exists()
 
 
 def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:
