@@ -101,6 +101,7 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.instruments import MIN_TRACER_PLACES
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -1100,11 +1101,47 @@ def write_instrument_step(
     return gcode, time, {key: path for key, path in written.items() if path is not None}
 
 
+#: Tracer places :func:`instrument_program_step` plans: the fewest that place the points
+#: in space (the fit needs them), the most it proposes, and the default.
+TRACER_PLACES = (MIN_TRACER_PLACES, 12, 4)
+
+
+def check_instrument_request(
+    instrument: object, on_the_fly: bool, places: object, caller: Caller | None = None
+) -> int:
+    """The tracer places to plan (:data:`TRACER_PLACES`' default when ``places`` is None);
+    one line naming the argument (the command's option) for an unknown instrument,
+    ``on_the_fly`` with a tracer, ``places`` with a tracker or outside 4 to 12."""
+    name = (caller or SCRIPT).names.get
+    if instrument not in INSTRUMENTS:
+        raise InputError(
+            f"{name('instrument', 'instrument')} {shown_value(instrument)} is not known"
+            f" (known: {', '.join(INSTRUMENTS)})"
+        )
+    if instrument == "tracer" and on_the_fly:
+        raise InputError(
+            f"{name('on_the_fly', 'on_the_fly')} is for {name('instrument', 'instrument')}"
+            " tracker (a tracer measures lengths)"
+        )
+    if places is None:
+        return TRACER_PLACES[2]
+    if instrument == "tracker":
+        raise InputError(
+            f"{name('places', 'places')} is for {name('instrument', 'instrument')} tracer"
+        )
+    low, high, _ = TRACER_PLACES
+    if isinstance(places, bool) or not isinstance(places, int) or not low <= places <= high:
+        raise InputError(
+            f"{name('places', 'places')} {shown_value(places)}: give {low} to {high} tracer places"
+        )
+    return places
+
+
 def instrument_program_step(
     machine: Machine,
     instrument: str,
     on_the_fly: bool = False,
-    places: int = 4,
+    places: int | None = None,
     program_path: str | Path | None = None,
     points_path: str | Path | None = None,
     dialect: str | None = None,
@@ -1112,15 +1149,15 @@ def instrument_program_step(
     caller: Caller | None = None,
 ) -> InstrumentProgramStepResult:
     """Plan a laser-tracker (points, or paths ``on_the_fly``) or laser-tracer (``places``
-    places, the same points from each) calibration over the whole travel, and write its
-    program and point list (:func:`write_instrument_step`).
+    places, 4 by default, the same points from each) calibration over the whole travel,
+    and write its program and point list (:func:`write_instrument_step`); the request is
+    checked first (:func:`check_instrument_request`).
 
     ``notes`` say where the instrument stands, the machine time and how well the plan
     determines the volumetric error (the machine file's instrument uncertainties).
     """
     machine = _machine(machine)
-    if instrument not in INSTRUMENTS:
-        raise InputError(f"instrument '{instrument}' is not known (known: tracker, tracer)")
+    places = check_instrument_request(instrument, on_the_fly, places, caller)
     if instrument == "tracker":
         program = (
             InstrumentProgram(paths_mm=fly_paths(machine))

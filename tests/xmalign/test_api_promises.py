@@ -256,6 +256,14 @@ def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) 
             "give distinct lines out of X, Y, Z",
         )
     assert not (tmp_path / "l.json").exists()
+    for kind, options, fragments in (
+        ("laser", {}, ("instrument 'laser' is not known",)),
+        ("tracer", {"on_the_fly": True}, ("on_the_fly is for instrument tracker",)),
+        ("tracker", {"places": 6}, ("places is for instrument tracer",)),
+        ("tracer", {"places": 0}, ("places 0: give 4 to 12",)),  # was: fit_joint needs ...
+        ("tracer", {"places": "4"}, ("places '4': give 4 to 12",)),  # was a TypeError
+    ):
+        _refused(lambda k=kind, o=options: api.instrument_program_step(machine, k, **o), *fragments)
 
 
 def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:

@@ -138,7 +138,7 @@ def program(
             },
             f"with --instrument {instrument} (it plans the whole travel, without a launch unit)",
         )
-        request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
+        request = InstrumentRequest(instrument, on_the_fly, places, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request, force)
         return
     pose = DEFAULT_POSE if pose is None else pose
