@@ -585,8 +585,6 @@ def _two_station_dry_run(machine: Machine, out: Path, options: DryRunOptions) ->
     """``dry-run --stations 2``: both stations, one post, the residuals against the truth."""
     from sim.two_stations import simulate_two_stations
 
-    if (out / "station1-plan.json").exists():
-        raise InputError(f"{out}/ already holds a two-station dry run; give another --out")
     with console.status("dry run, two stations"):
         report = simulate_two_stations(machine, out, options)
     proposal = report.proposal
