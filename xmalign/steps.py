@@ -78,7 +78,9 @@ from xmalign.formats.common import (
     refuse_replacing,
     refuse_special,
     same_file,
+    shown_value,
 )
+from xmalign.formats.common import path_argument as _path
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text, read_error_tables
 from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
@@ -192,19 +194,6 @@ def check_argument(value: object, kind: type[T], name: str, what: str) -> T:
     if not isinstance(value, kind):
         raise InputError(f"{name}: {shown_value(value)} is not {what}")
     return value
-
-
-def shown_value(value: object) -> str:
-    """A value as a one-line message shows it: its repr when short, else its type."""
-    text = repr(value)
-    return text if len(text) <= 60 and "\n" not in text else f"a {type(value).__name__}"
-
-
-def _path(value: object, name: str) -> Path:
-    """A file's path given as ``str`` or ``os.PathLike``; else one line naming ``name``."""
-    if isinstance(value, str | os.PathLike) and str(value) != "":
-        return Path(value)
-    raise InputError(f"{name}: {shown_value(value)} is not a file's path (give a str or a Path)")
 
 
 def _optional_path(value: object, name: str) -> Path | None:
