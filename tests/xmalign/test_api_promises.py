@@ -463,15 +463,6 @@ def test_instrument_programs_are_written_by_one_step(
     )
 
 
-@pytest.mark.parametrize("name", ["b" * 250, "é" * 127])
-def test_a_name_of_up_to_255_bytes_is_written(tmp_path: Path, name: str) -> None:
-    """The temporary file next to it keeps a shorter name (it was "File name too long")."""
-    from xmalign.formats.common import atomic_write_text
-
-    atomic_write_text(tmp_path / name, "x\n")
-    assert [p.name for p in tmp_path.iterdir()] == [name]
-
-
 def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
     """The dry run gets the machine's provenance from the steps: its pose, plan and error
     tables name the machine file (its SHA-256) the machine was read from."""
