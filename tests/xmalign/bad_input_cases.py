@@ -1580,6 +1580,21 @@ _ISSUE_32_CASES += [
         ("--workers", "not used with --mode instruments"),
     ),
     Case(
+        "run-live-with-a-seed",
+        (*_CONTROLLED_RUN, "--seed", "1"),
+        ("--seed", "not used without --sim"),
+    ),
+    Case(
+        "run-live-with-a-shop",
+        (*_CONTROLLED_RUN, "--shop", "drifting"),
+        ("--shop", "not used without --sim"),
+    ),
+    Case(
+        "run-live-with-a-program",
+        (*_CONTROLLED_RUN, "--program", "run.mpf", "--dialect", "sinumerik"),
+        ("--program", "not used without --sim"),
+    ),
+    Case(
         "program-a-pose-of-another-machine",
         POSE,
         (P, "was made for machine 'Other mill'", "the reference machine", "pose was made with"),

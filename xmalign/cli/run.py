@@ -50,7 +50,9 @@ _SHOP_HELP = (
     "the virtual shop's air and machine temperature: 'drifting' (air 22 -> 25 °C,"
     " machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
 )
-ShopOption = Annotated[str, typer.Option(help=f"With --sim: {_SHOP_HELP}")]
+ShopOption = Annotated[
+    str | None, typer.Option(help=f"With --sim: {_SHOP_HELP[:-1]} (default: drifting).")
+]
 DryRunShopOption = Annotated[
     str | None,
     typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:-1] + " (default: drifting)."),
@@ -315,13 +317,18 @@ def run_command(
         typer.Option("--resume", help="Go on with the points already in --out (same plan)."),
     ] = False,
     seed: Annotated[
-        int, typer.Option(help="With --sim: the virtual machine's seed (the same to resume).")
-    ] = 1,
+        int | None,
+        typer.Option(
+            help="With --sim: the virtual machine's seed (the same to resume; default 1)."
+        ),
+    ] = None,
     program: Annotated[
         Path | None, typer.Option(help="With --sim: execute this G-code (default: from the plan).")
     ] = None,
-    dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
-    shop: ShopOption = "drifting",
+    dialect: Annotated[
+        str | None, typer.Option(help="With --sim: G-code dialect of --program.")
+    ] = None,
+    shop: ShopOption = None,
     in_process: InProcessOption = False,
     log_file: LogFileOption = None,
 ) -> None:
@@ -334,6 +341,17 @@ def run_command(
         raise InputError("give either --sim or --config UNITS.yaml")
     if in_process and not sim:
         raise InputError("--in-process is for --sim (a live run always uses the hardware)")
+    if not sim:
+        refuse_unused_options(
+            {
+                "--seed": seed is not None,
+                "--program": program is not None,
+                "--dialect": dialect is not None,
+                "--shop": shop is not None,
+            },
+            "without --sim (a live run measures the machine, with the program it runs)",
+        )
+    seed, shop = (1 if seed is None else seed), (shop or "drifting")
     check_seed(seed)
     caller = named_by_options(
         {"path": "--out", "plan": "--plan", "machine": "--machine"},
