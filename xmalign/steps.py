@@ -501,6 +501,11 @@ def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) 
     return plan_path.with_name(f"{PROGRAM_STEM}{suffix}")
 
 
+def _dialect_name(caller: Caller | None) -> str:
+    """How ``caller`` names the dialect argument (``--dialect`` for a command)."""
+    return (caller or SCRIPT).names.get("dialect", "dialect")
+
+
 def _line_ids(value: object, caller: Caller) -> tuple[str, ...] | None:
     """``line_ids`` as given when they are distinct lines of :data:`LINE_IDS`; else one
     line naming the argument (the command's ``--lines``)."""
@@ -562,7 +567,7 @@ def program_step(
     checks = check_pose_machine(pose, machine)
     if pose_path is None and pose.source is not None:  # read from a file: that file
         pose_path = Path(pose.source.path)
-    dialect_name = resolve_dialect(machine, dialect)
+    dialect_name = resolve_dialect(machine, dialect, _dialect_name(caller))
     if write_program_file and program_path is None:
         if plan_path is None:
             raise InputError("program_step: a program file needs program_path or plan_path")
@@ -1078,7 +1083,8 @@ def write_instrument_step(
     outputs = {"program_path": program_path, "points_path": points_path}
     check_outputs(outputs, {"machine": _machine_path(machine)}, replace, caller)
     name = program_path.stem if program_path is not None else "XMALIGN"
-    dialect_made = make_dialect(resolve_dialect(machine, dialect), machine, name)
+    dialect_name = resolve_dialect(machine, dialect, _dialect_name(caller))
+    dialect_made = make_dialect(dialect_name, machine, name)
     gcode, time = write_instrument_program(program, machine, dialect_made, title)
     files: dict[Path, bytes] = {}
     if points_path is not None:

@@ -264,6 +264,11 @@ def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) 
         ("tracer", {"places": "4"}, ("places '4': give 4 to 12",)),  # was a TypeError
     ):
         _refused(lambda k=kind, o=options: api.instrument_program_step(machine, k, **o), *fragments)
+    _refused(  # named as the script names it, not as the command's --dialect
+        lambda: api.program_step(machine, pose, tmp_path / "d.json", dialect="fanucc"),
+        "dialect 'fanucc' is not known",
+    )
+    _refused(lambda: api.instrument_program_step(machine, "tracer", dialect=3), "dialect '3'")
 
 
 def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:

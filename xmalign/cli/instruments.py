@@ -78,6 +78,7 @@ INSTRUMENT_OPTIONS = {
     "instrument": "--instrument",
     "on_the_fly": "--on-the-fly",
     "places": "--places",
+    "dialect": "--dialect",
     "program_path": "--out",
     "points_path": "--points-out",
     "machine": "--machine",

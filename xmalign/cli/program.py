@@ -70,6 +70,7 @@ PROGRAM_OPTIONS = {
     "pose_path": "--pose",
     "machine": "--machine",
     "line_ids": "--lines",
+    "dialect": "--dialect",
 }
 
 #: Where ``xmalign identify --out`` is usually pointed, and ``program`` looks without --pose.
