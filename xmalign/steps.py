@@ -86,7 +86,7 @@ from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.formats.provenance import FileSource
+from xmalign.formats.provenance import FileSource, history_path
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.spatial_analyzer import (
     read_point_list,
@@ -1075,12 +1075,14 @@ def write_instrument_step(
 ) -> tuple[str, MachineTime, dict[str, Path]]:
     """The G-code of an instrument's program (the dialect asked for or the controller's,
     named after its file) and its machine time; written to ``program_path``, the point
-    list for the instrument's software to ``points_path`` (each when given; checked
-    first, :func:`check_outputs`). Every instrument program is made here."""
+    list for the instrument's software to ``points_path`` with its ``NAME.history`` (each
+    when given; checked first, :func:`check_outputs`). Every instrument program is made
+    here."""
     machine = _machine(machine)
     program_path = _optional_path(program_path, "program_path")
     points_path = _optional_path(points_path, "points_path")
-    outputs = {"program_path": program_path, "points_path": points_path}
+    points = [points_path, history_path(points_path)] if points_path is not None else None
+    outputs = {"program_path": program_path, "points_path": points}
     check_outputs(outputs, {"machine": _machine_path(machine)}, replace, caller)
     name = program_path.stem if program_path is not None else "XMALIGN"
     dialect_name = resolve_dialect(machine, dialect, _dialect_name(caller))

@@ -1580,6 +1580,12 @@ _ISSUE_32_CASES += [
         ("--workers", "not used with --mode instruments"),
     ),
     Case(
+        "program-points-out-history-exists",
+        ("program", "--instrument", "tracker", "--out", "t.nc", "--points-out", "pts.csv"),
+        ("pts.csv.history", "--points-out", "--force"),
+        write("pts.csv.history", "the user's notes\n"),
+    ),
+    Case(
         "run-live-with-a-seed",
         (*_CONTROLLED_RUN, "--seed", "1"),
         ("--seed", "not used without --sim"),

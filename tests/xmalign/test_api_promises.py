@@ -466,6 +466,15 @@ def test_instrument_programs_are_written_by_one_step(
         "points_path",
         "replace=True",
     )
+    (tmp_path / "q.csv.history").write_text("the user's notes\n")  # the list's history's place
+    _refused(
+        lambda: api.instrument_program_step(machine, "tracker", points_path=tmp_path / "q.csv"),
+        "q.csv.history",
+        "points_path",
+        "replace=True",
+    )
+    assert (tmp_path / "q.csv.history").read_text() == "the user's notes\n"
+    assert not (tmp_path / "q.csv").exists()
 
 
 def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
