@@ -74,6 +74,7 @@ from xmalign.errors import InputError
 from xmalign.formats.common import (
     PathsOf,
     atomic_write_files,
+    check_output_folder,
     refuse_overwriting,
     refuse_replacing,
     refuse_special,
@@ -978,6 +979,7 @@ def comp_step(
     """
     machine, out_dir = _machine(machine), _path(out_dir, "out_dir")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
     notes = check_tables_machine(tables, machine)
     compensation = compensate(machine, tables, controller or machine.controller)
     if more_files is not None:
@@ -1004,6 +1006,7 @@ def volumetric_comp_step(
     :func:`comp_step` writes a controller's tables, with its checks (the INI an input)."""
     machine, out_dir, ini = _machine(machine), _path(out_dir, "out_dir"), _path(ini, "ini")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
     notes = check_tables_machine(tables, machine)
     merged = merge_config(ini, tables, machine, out_dir)
     inputs = _comp_inputs(machine, tables) | {"ini": ini}

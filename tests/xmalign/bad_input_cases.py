@@ -696,6 +696,11 @@ _CLI_CASES = [
     Case("program-out-is-plan", ("program", "--pose", P, "--out", "x", "--plan-out", "x"), ("x",)),
     Case("plan-identify-machine", ("plan-identify", "--machine", M, "--out", M), (M, "--machine")),
     Case("comp-out-a-file", ("comp", "--errors", E, "--out", P), (P, "--out", "folder")),
+    Case(
+        "comp-volumetric-out-a-file",
+        ("comp", "--errors", E, "--out", P, "--controller", "linuxcnc-volumetric", "--ini", M),
+        (P, "--out", "folder"),
+    ),
     Case("comp-out-the-errors", ("comp", "--errors", E, "--out", E), (E, "--out")),
     Case("mc-out-a-file", ("mc", "--trials", "2", "--out", P), (P, "--out")),
     Case(

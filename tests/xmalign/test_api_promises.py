@@ -153,6 +153,14 @@ def test_comp_step_keeps_a_users_table_and_refuses_another_machines_tables(
     assert not (tmp_path / "x").exists()
     compensation = api.comp_step(machine, tables, out, replace=True)
     assert "AX_EEC.INI" in compensation.files
+    a_file = tmp_path / "a-file"
+    a_file.write_text("kept\n")
+    _refused(lambda: api.comp_step(machine, tables, a_file), "a-file: out_dir: is a file")
+    _refused(
+        lambda: api.volumetric_comp_step(machine, tables, a_file, "machine.ini"),
+        "a-file: out_dir: is a file",
+    )
+    assert a_file.read_text() == "kept\n"
 
 
 def test_another_file_of_the_same_machine_is_a_warning(folder: Path, tmp_path: Path) -> None:

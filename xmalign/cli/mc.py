@@ -18,7 +18,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
-    check_output_folder,
     check_seed,
     console,
     error_console,
@@ -28,7 +27,12 @@ from xmalign.cli.common import (
 )
 from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
-from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text, refuse_overwriting
+from xmalign.formats.common import (
+    MAX_ERROR_RAD,
+    atomic_write_text,
+    check_output_folder,
+    refuse_overwriting,
+)
 from xmalign.formats.provenance import FileSource, sources
 from xmalign.formats.studies import study_document
 

@@ -586,6 +586,18 @@ def link_target(path: Path) -> Path:
     return Path(os.path.realpath(path))
 
 
+def check_output_folder(path: Path, option: str) -> None:
+    """Refuse a file in the place of an output folder (nothing is created yet).
+
+    Raises
+    ------
+    InputError
+        ``path`` is an existing file.
+    """
+    if path.exists() and not path.is_dir():
+        raise InputError(located(path, option, "is a file; give a folder for the output files"))
+
+
 def refuse_overwriting(
     inputs: Mapping[str, PathsOf],
     outputs: Mapping[str, PathsOf],
