@@ -32,6 +32,7 @@ from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan
 from trajectories.stations import StationProposal, propose_second_station
 from xmalign.environment import EnvironmentMonitor
+from xmalign.errors import InputError
 from xmalign.formats.plan import read_plan
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
@@ -144,9 +145,12 @@ def simulate_two_stations(
 
     Files go to ``workdir`` with the prefixes ``station1-`` and ``station2-``,
     and ``errors.csv`` (:data:`TWO_STATION_FILES`); a folder holding one of them is
-    refused (never replaced, nor an earlier session resumed).
+    refused (never replaced, nor an earlier session resumed), and so is
+    ``options.verify`` (a verification run is one station's).
     """
     options = options or DryRunOptions()
+    if options.verify:  # the verification run is one station's (sim.dry_run)
+        raise InputError("--verify is for one station (give --stations 1)")
     check_dry_run_folder(workdir, TWO_STATION_FILES)
     workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)

@@ -86,3 +86,11 @@ def test_a_folder_with_an_earlier_stations_file_is_refused_before_anything(
         simulate_two_stations(reference_machine, tmp_path, DryRunOptions(seed=2))
     assert [p.name for p in tmp_path.iterdir()] == ["station1-session.json"]
     assert (tmp_path / "station1-session.json").read_text() == "the earlier run's alignments\n"
+
+
+def test_a_verification_is_refused_for_two_stations(reference_machine, tmp_path):
+    """verify was refused by the command alone: the simulation ignored it."""
+    options = DryRunOptions(seed=2, verify=True)
+    with pytest.raises(InputError, match="--verify is for one station"):
+        simulate_two_stations(reference_machine, tmp_path / "two", options)
+    assert not (tmp_path / "two").exists()

@@ -1591,6 +1591,11 @@ _ISSUE_32_CASES += [
         write("pts.csv.history", "the user's notes\n"),
     ),
     Case(
+        "dry-run-two-stations-verify",
+        ("dry-run", "--stations", "2", "--verify", "--out", "dr"),
+        ("--verify is for one station",),
+    ),
+    Case(
         "run-live-with-a-seed",
         (*_CONTROLLED_RUN, "--seed", "1"),
         ("--seed", "not used without --sim"),
