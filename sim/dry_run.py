@@ -10,7 +10,7 @@ simulator's truth.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -90,11 +90,12 @@ DRY_RUN_FILES = (
 )
 
 
-def check_dry_run_folder(workdir: Path) -> None:
-    """Refuse a folder that is a file or already holds a dry run's files (never replaced)."""
+def check_dry_run_folder(workdir: Path, names: Sequence[str] = DRY_RUN_FILES) -> None:
+    """Refuse a folder that is a file or already holds one of a dry run's files ``names``
+    (never replaced)."""
     if workdir.exists() and not workdir.is_dir():
         raise InputError(f"{workdir}: is a file; give a folder for the dry run's files")
-    found = [name for name in DRY_RUN_FILES if (workdir / name).exists()]
+    found = [name for name in names if (workdir / name).exists()]
     if found:
         raise InputError(
             f"{workdir}/ already holds a dry run ({', '.join(found)}); give another --out"

@@ -86,8 +86,10 @@ def _minutes(
 ) -> float:
     """Write the program (and the point list) as ``xmalign program --instrument`` does;
     its machine time, min."""
-    time = write_instrument_step(machine, program, path, points_path, dialect, "xmalign dry run")
-    return time[1].total_s / 60
+    _, machine_time, _ = write_instrument_step(
+        machine, program, path, points_path, dialect, "xmalign dry run"
+    )
+    return machine_time.total_s / 60
 
 
 def _tracker(

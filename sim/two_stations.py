@@ -21,6 +21,7 @@ from sim.dry_run import (
     PLACEMENT_SCATTER_MM,
     DryRunOptions,
     VirtualSetup,
+    check_dry_run_folder,
     measured_strokes,
     simulate_station,
     virtual_setup,
@@ -31,12 +32,34 @@ from trajectories.lines import LINE_IDS
 from trajectories.planner import MeasurementPlan
 from trajectories.stations import StationProposal, propose_second_station
 from xmalign.environment import EnvironmentMonitor
+from xmalign.errors import InputError
 from xmalign.formats.plan import read_plan
 from xmalign.machine import LaunchUnitGuess, Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import PostResult
 from xmalign.rigid_body import Chain
-from xmalign.steps import StationFiles, design_step, post_step, program_file
+from xmalign.steps import (
+    PROGRAM_STEM,
+    PROGRAM_SUFFIX,
+    StationFiles,
+    design_step,
+    post_step,
+    program_file,
+)
+
+#: The stations' file names (each prefixed ``station1-`` and ``station2-``).
+STATION_FILES = (
+    "session.json",
+    "pose.json",
+    "plan.json",
+    "measurements.csv",
+    *(f"{PROGRAM_STEM}{suffix}" for suffix in PROGRAM_SUFFIX.values()),
+)
+#: What a two-station dry run writes into its folder.
+TWO_STATION_FILES = (
+    *(f"station{n}-{name}" for n in (1, 2) for name in STATION_FILES),
+    "errors.csv",
+)
 
 
 @dataclass
@@ -87,7 +110,6 @@ def _measure_station(
         measurements=workdir / f"{name}-measurements.csv",
         program=program.with_name(f"{name}-{program.name}"),
     )
-    files.session.unlink(missing_ok=True)
     measured = simulate_station(
         setup, machine, design.machine_mm, files, options, monitor, line_ids or LINE_IDS
     )
@@ -122,9 +144,14 @@ def simulate_two_stations(
     """Identify, program and run both stations, post both together, compare with the truth.
 
     Files go to ``workdir`` with the prefixes ``station1-`` and ``station2-``,
-    and ``errors.csv``.
+    and ``errors.csv`` (:data:`TWO_STATION_FILES`); a folder holding one of them is
+    refused (never replaced, nor an earlier session resumed), and so is
+    ``options.verify`` (a verification run is one station's).
     """
     options = options or DryRunOptions()
+    if options.verify:  # the verification run is one station's (sim.dry_run)
+        raise InputError("--verify is for one station (give --stations 1)")
+    check_dry_run_folder(workdir, TWO_STATION_FILES)
     workdir.mkdir(parents=True, exist_ok=True)
     setup = virtual_setup(machine, options.seed, options.amplitudes, lockstep=options.served)
     station = attach_shop(setup.world, SHOPS[options.shop](), options.seed)

@@ -29,7 +29,7 @@ from xmalign.formats.instruments import (
     TrackerFile,
     TrackerPoint,
 )
-from xmalign.formats.provenance import history_file
+from xmalign.formats.provenance import history_file, history_path
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points
@@ -246,8 +246,7 @@ def point_list_files(path: Path, plan: InstrumentProgram, smr_offset_mm: Vec) ->
     write: a tracker's software reads the list, so it takes no comment (docs/formats.md)."""
     data = point_list_csv(plan, smr_offset_mm).encode("utf-8")
     history = history_file(POINT_LIST_FORMAT, path.name, data, ())
-    return {path: data, path.with_name(f"{path.name}.history"): history.encode()}
-
+    return {path: data, history_path(path): history.encode()}
 
 
 def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:

@@ -21,6 +21,7 @@ from xmalign import identify as identification
 from xmalign.calibration import open_run_output
 from xmalign.errors import InputError, XmalignError
 from xmalign.formats import error_tables, measurements, plan, pose, provenance, session, studies
+from xmalign.formats.common import path_argument
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.measurements import MeasurementFile
 from xmalign.formats.plan import Plan
@@ -36,6 +37,7 @@ from xmalign.steps import (
     RunStepDevices,
     check_argument,
     check_plan_machine,
+    check_pose_machine,
     check_tables_machine,
     comp_step,
     design_step,
@@ -48,7 +50,6 @@ from xmalign.steps import (
     program_drive,
     program_step,
     run_step,
-    shown_value,
     stepping_drive,
     volumetric_comp_step,
     write_pose_step,
@@ -66,9 +67,7 @@ def _path_first(reader: Callable[..., R]) -> Callable[..., R]:
 
     @functools.wraps(reader)
     def checked(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> R:
-        if not isinstance(path, str | os.PathLike) or str(path) == "":
-            raise InputError(f"{reader.__name__}: {shown_value(path)} is not a file's path")
-        return reader(path, *args, **kwargs)
+        return reader(path_argument(path, reader.__name__), *args, **kwargs)
 
     return checked
 
@@ -105,6 +104,7 @@ __all__ = [
     "Session",
     "XmalignError",
     "check_plan_machine",
+    "check_pose_machine",
     "check_tables_machine",
     "comp_step",
     "default_machine_path",
@@ -173,9 +173,7 @@ def load_calibration(folder: str | Path, machine: str | Path | None = None) -> C
         ``folder`` is not a folder, or a file is there but cannot be used (one line
         naming it and the key or line), or ``machine`` cannot be read.
     """
-    if not isinstance(folder, str | os.PathLike):
-        raise InputError(f"load_calibration: {folder!r} is not a folder's path")
-    folder = Path(folder)
+    folder = path_argument(folder, "load_calibration", "a folder's path")
     if not folder.is_dir():
         problem = "not a folder" if folder.exists() else "no such folder"
         raise InputError(f"{folder}: {problem}; give the folder of a calibration's files")

@@ -29,6 +29,7 @@ from xmalign.formats.common import (
     Vector3_mm,
     format_problem,
     located,
+    path_argument,
     read_yaml,
     validate,
 )
@@ -457,8 +458,7 @@ def load_machine(path: str | Path) -> Machine:
     InputError
         ``path`` is not a path, or the file cannot be read or is not a valid machine file.
     """
-    if not isinstance(path, str | Path):
-        raise InputError(f"load_machine: {path!r} is not a machine file's path")
+    path = path_argument(path, "load_machine", "a machine file's path")
     source = FileSource.of("machine", path)
     machine = parse_machine(read_yaml(path), str(path))
     machine._source = source

@@ -75,17 +75,20 @@ from xmalign.errors import InputError
 from xmalign.formats.common import (
     PathsOf,
     atomic_write_files,
+    check_output_folder,
     refuse_overwriting,
     refuse_replacing,
     refuse_special,
     same_file,
+    shown_value,
 )
-from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.common import path_argument as _path
+from xmalign.formats.error_tables import ErrorTableSet, error_tables_text, read_error_tables
 from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.formats.provenance import FileSource
+from xmalign.formats.provenance import FileSource, history_path
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.spatial_analyzer import (
     read_point_list,
@@ -102,6 +105,7 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.instruments import MIN_TRACER_PLACES
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -194,19 +198,6 @@ def check_argument(value: object, kind: type[T], name: str, what: str) -> T:
     return value
 
 
-def shown_value(value: object) -> str:
-    """A value as a one-line message shows it: its repr when short, else its type."""
-    text = repr(value)
-    return text if len(text) <= 60 and "\n" not in text else f"a {type(value).__name__}"
-
-
-def _path(value: object, name: str) -> Path:
-    """A file's path given as ``str`` or ``os.PathLike``; else one line naming ``name``."""
-    if isinstance(value, str | os.PathLike) and str(value) != "":
-        return Path(value)
-    raise InputError(f"{name}: {shown_value(value)} is not a file's path (give a str or a Path)")
-
-
 def _optional_path(value: object, name: str) -> Path | None:
     return None if value is None else _path(value, name)
 
@@ -248,14 +239,7 @@ def check_plan_machine(plan: Plan, machine: Machine) -> list[str]:
         Naming the plan's file, both machines, or the first target outside the travel.
     """
     where = str(_plan_file(plan) or "the plan")
-    recorded = plan.extra.get("machine_sha256")
-    if plan.machine != machine.name or recorded not in (None, machine.geometry_sha256()):
-        identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
-        raise InputError(
-            f"{where} was made for machine '{plan.machine}'{identity}, not for"
-            f" {_describe(machine)} ('{machine.name}'): give the machine file the plan was"
-            " made with"
-        )
+    _refuse_another_machine(where, "plan", plan.machine, plan.extra.get("machine_sha256"), machine)
     for line in plan.lines:
         outside = ~machine.within_travel(line.target_points_mm(), TRAVEL_TOLERANCE_MM)
         if outside.any():
@@ -267,6 +251,41 @@ def check_plan_machine(plan: Plan, machine: Machine) -> list[str]:
             )
     made_with = plan.history.input("machine") if plan.history is not None else None
     return _other_machine_file(where, made_with, machine)
+
+
+def check_pose_machine(pose: LaunchPose, machine: Machine) -> list[str]:
+    """Refuse a pose identified on another machine; warnings where only the file differs.
+
+    A pose written with a machine names it and records ``machine_sha256``, as a plan
+    does (:func:`check_plan_machine`: another name or geometry is fatal, another machine
+    file of the same geometry a warning). A pose that does not name its machine (written
+    before poses did, or ``identify --input`` without ``--machine``) is not checked.
+
+    Raises
+    ------
+    InputError
+        Naming the pose's file and both machines.
+    """
+    if pose.machine is None:
+        return []
+    where = str(pose.source.path) if pose.source is not None else "the pose"
+    _refuse_another_machine(where, "pose", pose.machine, pose.machine_sha256, machine)
+    made_with = pose.history.input("machine") if pose.history is not None else None
+    return _other_machine_file(where, made_with, machine)
+
+
+def _refuse_another_machine(
+    where: str, what: str, name: str, recorded: object, machine: Machine
+) -> None:
+    """InputError when ``what`` (a plan, a pose) at ``where`` names another machine than
+    ``machine``, or records another geometry (``recorded``: its ``machine_sha256``)."""
+    if name != machine.name or recorded not in (None, machine.geometry_sha256()):
+        identity = f", machine_sha256 {str(recorded)[:12]}..." if recorded else ""
+        raise InputError(
+            f"{where} was made for machine '{name}'{identity}, not for"
+            f" {_describe(machine)} ('{machine.name}'): give the machine file the {what} was"
+            " made with"
+        )
 
 
 def _other_machine_file(where: str, made_with: FileSource | None, machine: Machine) -> list[str]:
@@ -287,8 +306,8 @@ def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
     Fatal: another chain or travel (the tables' file names the machine it was
     measured on), or a table whose positions all lie outside the travel. A
     warning: another name, a file that does not say (version 1), or another
-    machine file with the same chain and travel. Tables not read from a file
-    (:func:`post_step`'s) are checked against the travel only.
+    machine file with the same chain and travel. Tables not read from a file (made in
+    code) are checked against the travel only.
 
     Raises
     ------
@@ -296,7 +315,7 @@ def check_tables_machine(tables: ErrorTableSet, machine: Machine) -> list[str]:
         Naming the tables' file and what differs.
     """
     tables.check_within_travel(machine.travel_min_mm, machine.travel_max_mm, machine.name)
-    if tables.history is None:  # fitted in this session (post_step's), not read from a file
+    if tables.history is None:  # made in code, not read from a file
         return []
     notes = tables.check_machine(machine)
     return notes + _other_machine_file(tables.source, tables.history.input("machine"), machine)
@@ -347,16 +366,20 @@ def write_pose_step(
     caller: Caller | None = None,
 ) -> Path:
     """Write the identified pose (``xmalign program`` reads it) with the SHA-256 of the
-    session it was solved from and of ``machine``'s file. Every pose file is written
-    here, never over the session, the machine file or an existing file without
-    ``replace`` (:func:`check_outputs`)."""
+    session it was solved from and of ``machine``'s file, naming ``machine``
+    (:func:`check_pose_machine`). Every pose file is written here, never over the
+    session, the machine file or an existing file without ``replace``
+    (:func:`check_outputs`)."""
     path, session_path = _path(path, "path"), _optional_path(session_path, "session_path")
     check_argument(result, IdentificationResult, "result", "an IdentificationResult")
     machine = None if machine is None else _machine(machine)
     inputs = {"session_path": session_path, "machine": _machine_path(machine) if machine else None}
     check_outputs({"path": path}, inputs, replace, caller)
     session = [FileSource.of("session", session_path)] if session_path is not None else []
-    write_pose(path, result.to_pose(), session + (machine_file(machine) if machine else []))
+    pose = result.to_pose()
+    if machine is not None:
+        pose.machine, pose.machine_sha256 = machine.name, machine.geometry_sha256()
+    write_pose(path, pose, session + (machine_file(machine) if machine else []))
     return path
 
 
@@ -453,10 +476,12 @@ class ProgramStepResult:
     dialect: str
     program: str
     files: dict[str, Path] = field(default_factory=dict)
+    #: What the check of the pose found (another machine file of the same machine).
+    checks: list[str] = field(default_factory=list)
 
     @property
     def warnings(self) -> list[str]:
-        return list(self.measurement.warnings)
+        return self.checks + list(self.measurement.warnings)
 
 
 def program_gcode(
@@ -480,6 +505,30 @@ def program_file(plan_path: Path, machine: Machine, dialect: str | None = None) 
     dialect next to the plan."""
     suffix = PROGRAM_SUFFIX[resolve_dialect(machine, dialect)]
     return plan_path.with_name(f"{PROGRAM_STEM}{suffix}")
+
+
+def _dialect_name(caller: Caller | None) -> str:
+    """How ``caller`` names the dialect argument (``--dialect`` for a command)."""
+    return (caller or SCRIPT).names.get("dialect", "dialect")
+
+
+def _line_ids(value: object, caller: Caller) -> tuple[str, ...] | None:
+    """``line_ids`` as given when they are distinct lines of :data:`LINE_IDS`; else one
+    line naming the argument (the command's ``--lines``)."""
+    if value is None:
+        return None
+    name = caller.names.get("line_ids", "line_ids")
+    chosen = tuple(value) if isinstance(value, tuple | list) else None
+    if (
+        not chosen
+        or any(line not in LINE_IDS for line in chosen)
+        or len(set(chosen)) != len(chosen)
+    ):
+        shown = f"'{','.join(map(str, chosen))}'" if chosen is not None else shown_value(value)
+        raise InputError(
+            f"{name} {shown}: give distinct lines out of {', '.join(LINE_IDS)}, comma-separated"
+        )
+    return chosen
 
 
 def program_step(
@@ -507,7 +556,9 @@ def program_step(
     program is named after its file (``XMALIGN`` without one). The plan records
     the SHA-256 of ``pose_path`` (the file the pose was written to or read from;
     by default the file a ``LaunchPose`` was read from) and of the machine's file.
-    The plan and the program are checked before the planning (:func:`check_outputs`:
+    The pose must have been identified on ``machine`` (:func:`check_pose_machine`; the
+    result's ``warnings`` hold what it found). The plan and the program are checked
+    before the planning (:func:`check_outputs`:
     never the pose's or the machine's file, an existing file only with ``replace``);
     ``check_plan(measurement)`` may refuse the plan before anything is written.
     """
@@ -517,12 +568,14 @@ def program_step(
         _optional_path(program_path, "program_path"),
     )
     pose_path = _optional_path(pose_path, "pose_path")
+    line_ids = _line_ids(line_ids, caller or SCRIPT)
     if isinstance(pose, IdentificationResult):
         pose = pose.to_pose()
     check_argument(pose, LaunchPose, "pose", "a LaunchPose or an IdentificationResult")
+    checks = check_pose_machine(pose, machine)
     if pose_path is None and pose.source is not None:  # read from a file: that file
         pose_path = Path(pose.source.path)
-    dialect_name = resolve_dialect(machine, dialect)
+    dialect_name = resolve_dialect(machine, dialect, _dialect_name(caller))
     if write_program_file and program_path is None:
         if plan_path is None:
             raise InputError("program_step: a program file needs program_path or plan_path")
@@ -552,7 +605,7 @@ def program_step(
     if program_path is not None:
         atomic_write_files({program_path: program.encode("utf-8")})
         files["program"] = program_path
-    return ProgramStepResult(measurement, plan, dialect_name, program, files)
+    return ProgramStepResult(measurement, plan, dialect_name, program, files, checks)
 
 
 #: How a run captures: given the CalibrationRun, capture every point of its plan.
@@ -770,17 +823,15 @@ def run_step(
 
 @dataclass
 class PostStepResult:
-    """The fitted error tables, the stations they were fitted to, where they were written."""
+    """The fit, the error tables as written (read back from ``errors_path``, as ``xmalign
+    comp`` reads them: their history names the file), the stations they were fitted to."""
 
     post: PostResult
     errors_path: Path
+    tables: ErrorTableSet
     stations: list[Station] = field(default_factory=list)
     #: What the checks of the inputs found (another machine file of the same machine...).
     warnings: list[str] = field(default_factory=list)
-
-    @property
-    def tables(self) -> ErrorTableSet:
-        return self.post.fit.tables
 
 
 def read_station(machine: Machine, plan: Plan, measurements_path: Path) -> Station:
@@ -813,7 +864,9 @@ def post_step(
     ``instrument_files``; they never replace one of these, nor an existing file without
     ``replace`` (:func:`check_outputs`, before anything is read). ``on_fit(stations)`` is
     told before the fit; ``more_files(result)`` adds files written together with the
-    tables (the report, named in ``caller.written``): all of them, or none.
+    tables (the report, named in ``caller.written``): all of them, or none. The result's
+    ``tables`` are read back from ``errors_path``: given to :func:`comp_step`, the
+    controller files' history names that file.
     """
     machine, errors_path = _machine(machine), _path(errors_path, "errors_path")
     pairs = _stations(stations)
@@ -835,7 +888,7 @@ def post_step(
         check_outputs({"more_files": list(more)}, inputs, True, caller)
         files |= more
     atomic_write_files(files)
-    return PostStepResult(post, errors_path, read, notes)
+    return PostStepResult(post, errors_path, read_error_tables(errors_path), read, notes)
 
 
 def _stations(stations: object) -> list[tuple[Plan, Path]]:
@@ -931,6 +984,7 @@ def comp_step(
     """
     machine, out_dir = _machine(machine), _path(out_dir, "out_dir")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
     notes = check_tables_machine(tables, machine)
     compensation = compensate(machine, tables, controller or machine.controller)
     if more_files is not None:
@@ -957,6 +1011,7 @@ def volumetric_comp_step(
     :func:`comp_step` writes a controller's tables, with its checks (the INI an input)."""
     machine, out_dir, ini = _machine(machine), _path(out_dir, "out_dir"), _path(ini, "ini")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
+    check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
     notes = check_tables_machine(tables, machine)
     merged = merge_config(ini, tables, machine, out_dir)
     inputs = _comp_inputs(machine, tables) | {"ini": ini}
@@ -1028,15 +1083,18 @@ def write_instrument_step(
 ) -> tuple[str, MachineTime, dict[str, Path]]:
     """The G-code of an instrument's program (the dialect asked for or the controller's,
     named after its file) and its machine time; written to ``program_path``, the point
-    list for the instrument's software to ``points_path`` (each when given; checked
-    first, :func:`check_outputs`). Every instrument program is made here."""
+    list for the instrument's software to ``points_path`` with its ``NAME.history`` (each
+    when given; checked first, :func:`check_outputs`). Every instrument program is made
+    here."""
     machine = _machine(machine)
     program_path = _optional_path(program_path, "program_path")
     points_path = _optional_path(points_path, "points_path")
-    outputs = {"program_path": program_path, "points_path": points_path}
+    points = [points_path, history_path(points_path)] if points_path is not None else None
+    outputs = {"program_path": program_path, "points_path": points}
     check_outputs(outputs, {"machine": _machine_path(machine)}, replace, caller)
     name = program_path.stem if program_path is not None else "XMALIGN"
-    dialect_made = make_dialect(resolve_dialect(machine, dialect), machine, name)
+    dialect_name = resolve_dialect(machine, dialect, _dialect_name(caller))
+    dialect_made = make_dialect(dialect_name, machine, name)
     gcode, time = write_instrument_program(program, machine, dialect_made, title)
     files: dict[Path, bytes] = {}
     if points_path is not None:
@@ -1048,11 +1106,47 @@ def write_instrument_step(
     return gcode, time, {key: path for key, path in written.items() if path is not None}
 
 
+#: Tracer places :func:`instrument_program_step` plans: the fewest that place the points
+#: in space (the fit needs them), the most it proposes, and the default.
+TRACER_PLACES = (MIN_TRACER_PLACES, 12, 4)
+
+
+def check_instrument_request(
+    instrument: object, on_the_fly: bool, places: object, caller: Caller | None = None
+) -> int:
+    """The tracer places to plan (:data:`TRACER_PLACES`' default when ``places`` is None);
+    one line naming the argument (the command's option) for an unknown instrument,
+    ``on_the_fly`` with a tracer, ``places`` with a tracker or outside 4 to 12."""
+    name = (caller or SCRIPT).names.get
+    if instrument not in INSTRUMENTS:
+        raise InputError(
+            f"{name('instrument', 'instrument')} {shown_value(instrument)} is not known"
+            f" (known: {', '.join(INSTRUMENTS)})"
+        )
+    if instrument == "tracer" and on_the_fly:
+        raise InputError(
+            f"{name('on_the_fly', 'on_the_fly')} is for {name('instrument', 'instrument')}"
+            " tracker (a tracer measures lengths)"
+        )
+    if places is None:
+        return TRACER_PLACES[2]
+    if instrument == "tracker":
+        raise InputError(
+            f"{name('places', 'places')} is for {name('instrument', 'instrument')} tracer"
+        )
+    low, high, _ = TRACER_PLACES
+    if isinstance(places, bool) or not isinstance(places, int) or not low <= places <= high:
+        raise InputError(
+            f"{name('places', 'places')} {shown_value(places)}: give {low} to {high} tracer places"
+        )
+    return places
+
+
 def instrument_program_step(
     machine: Machine,
     instrument: str,
     on_the_fly: bool = False,
-    places: int = 4,
+    places: int | None = None,
     program_path: str | Path | None = None,
     points_path: str | Path | None = None,
     dialect: str | None = None,
@@ -1060,15 +1154,15 @@ def instrument_program_step(
     caller: Caller | None = None,
 ) -> InstrumentProgramStepResult:
     """Plan a laser-tracker (points, or paths ``on_the_fly``) or laser-tracer (``places``
-    places, the same points from each) calibration over the whole travel, and write its
-    program and point list (:func:`write_instrument_step`).
+    places, 4 by default, the same points from each) calibration over the whole travel,
+    and write its program and point list (:func:`write_instrument_step`); the request is
+    checked first (:func:`check_instrument_request`).
 
     ``notes`` say where the instrument stands, the machine time and how well the plan
     determines the volumetric error (the machine file's instrument uncertainties).
     """
     machine = _machine(machine)
-    if instrument not in INSTRUMENTS:
-        raise InputError(f"instrument '{instrument}' is not known (known: tracker, tracer)")
+    places = check_instrument_request(instrument, on_the_fly, places, caller)
     if instrument == "tracker":
         program = (
             InstrumentProgram(paths_mm=fly_paths(machine))

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
+
 from sim.dry_run import DryRunOptions
 from sim.two_stations import simulate_two_stations
 from trajectories.stations import TARGET_COVERAGE
+from xmalign.errors import InputError
 from xmalign.formats.error_tables import read_error_tables
 
 
@@ -71,3 +74,23 @@ def test_two_stations_call_the_steps_in_the_shop_and_mode_asked_for(
     recorded = load_measurements(tmp_path / "station2-measurements.csv")
     air = [row.environment["air_temp_c"] for row in recorded.rows]
     assert recorded.environment_columns and max(abs(t - 20.0) for t in air) < 0.5  # drifting: 22-25
+
+
+def test_a_folder_with_an_earlier_stations_file_is_refused_before_anything(
+    reference_machine, tmp_path
+):
+    """An interrupted run's session was deleted without a word (and a later one resumed
+    by nobody); now any of the two stations' files refuses the folder, naming it."""
+    (tmp_path / "station1-session.json").write_text("the earlier run's alignments\n")
+    with pytest.raises(InputError, match="station1-session.json"):
+        simulate_two_stations(reference_machine, tmp_path, DryRunOptions(seed=2))
+    assert [p.name for p in tmp_path.iterdir()] == ["station1-session.json"]
+    assert (tmp_path / "station1-session.json").read_text() == "the earlier run's alignments\n"
+
+
+def test_a_verification_is_refused_for_two_stations(reference_machine, tmp_path):
+    """verify was refused by the command alone: the simulation ignored it."""
+    options = DryRunOptions(seed=2, verify=True)
+    with pytest.raises(InputError, match="--verify is for one station"):
+        simulate_two_stations(reference_machine, tmp_path / "two", options)
+    assert not (tmp_path / "two").exists()

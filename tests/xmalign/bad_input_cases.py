@@ -696,6 +696,11 @@ _CLI_CASES = [
     Case("program-out-is-plan", ("program", "--pose", P, "--out", "x", "--plan-out", "x"), ("x",)),
     Case("plan-identify-machine", ("plan-identify", "--machine", M, "--out", M), (M, "--machine")),
     Case("comp-out-a-file", ("comp", "--errors", E, "--out", P), (P, "--out", "folder")),
+    Case(
+        "comp-volumetric-out-a-file",
+        ("comp", "--errors", E, "--out", P, "--controller", "linuxcnc-volumetric", "--ini", M),
+        (P, "--out", "folder"),
+    ),
     Case("comp-out-the-errors", ("comp", "--errors", E, "--out", E), (E, "--out")),
     Case("mc-out-a-file", ("mc", "--trials", "2", "--out", P), (P, "--out")),
     Case(
@@ -1557,6 +1562,84 @@ _ISSUE_32_CASES += [
         "dry-run-tracer-verify",
         ("dry-run", "--instrument", "tracer", "--verify", "--out", "dr"),
         ("--verify", "not used with --instrument tracer"),
+    ),
+    # an ignored option given with its default value is refused too (it was not: only a
+    # value other than the default was seen)
+    Case(
+        "dry-run-tracker-shop-given-as-the-default",
+        ("dry-run", "--instrument", "tracker", "--shop", "drifting", "--out", "dr"),
+        ("--shop", "not used with --instrument tracker"),
+    ),
+    Case(
+        "dry-run-tracer-one-station-given",
+        ("dry-run", "--instrument", "tracer", "--stations", "1", "--out", "dr"),
+        ("--stations", "not used with --instrument tracer"),
+    ),
+    Case(
+        "dry-run-tracker-six-positions-given",
+        ("dry-run", "--instrument", "tracker", "--identification-positions", "6", "--out", "dr"),
+        ("--identification-positions", "not used with --instrument tracker"),
+    ),
+    Case(
+        "mc-instruments-batch-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--batch", "20", "--out", "mc-new"),
+        ("--batch", "not used with --mode instruments"),
+    ),
+    Case(
+        "mc-instruments-method-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--method", "joint", "--out", "mc-new"),
+        ("--method", "not used with --mode instruments"),
+    ),
+    Case(
+        "mc-instruments-workers-given-as-the-default",
+        ("mc", "--mode", "instruments", "--trials", "1", "--workers", "0", "--out", "mc-new"),
+        ("--workers", "not used with --mode instruments"),
+    ),
+    Case(
+        "program-points-out-history-exists",
+        ("program", "--instrument", "tracker", "--out", "t.nc", "--points-out", "pts.csv"),
+        ("pts.csv.history", "--points-out", "--force"),
+        write("pts.csv.history", "the user's notes\n"),
+    ),
+    Case(
+        "dry-run-two-stations-verify",
+        ("dry-run", "--stations", "2", "--verify", "--out", "dr"),
+        ("--verify is for one station",),
+    ),
+    Case(
+        "run-live-with-a-seed",
+        (*_CONTROLLED_RUN, "--seed", "1"),
+        ("--seed", "not used without --sim"),
+    ),
+    Case(
+        "run-live-with-a-shop",
+        (*_CONTROLLED_RUN, "--shop", "drifting"),
+        ("--shop", "not used without --sim"),
+    ),
+    Case(
+        "run-live-with-a-program",
+        (*_CONTROLLED_RUN, "--program", "run.mpf", "--dialect", "sinumerik"),
+        ("--program", "not used without --sim"),
+    ),
+    Case(
+        "program-a-pose-of-another-machine",
+        POSE,
+        (P, "was made for machine 'Other mill'", "the reference machine", "pose was made with"),
+        edit_json(P, sets("machine", value="Other mill")),
+    ),
+    Case(
+        "program-a-pose-of-another-geometry",
+        POSE,
+        (P, "machine_sha256 000000000000...", "pose was made with"),
+        edit_json(
+            P,
+            lambda d: d.update(machine="Example FYXZ gantry mill", machine_sha256="0" * 64),
+        ),
+    ),
+    Case(
+        "program-tracker-with-the-default-pose",
+        ("program", "--instrument", "tracker", "--pose", "pose.json", "--out", "t.nc"),
+        ("--pose", "not used with --instrument tracker"),
     ),
 ]
 

@@ -153,6 +153,14 @@ def test_comp_step_keeps_a_users_table_and_refuses_another_machines_tables(
     assert not (tmp_path / "x").exists()
     compensation = api.comp_step(machine, tables, out, replace=True)
     assert "AX_EEC.INI" in compensation.files
+    a_file = tmp_path / "a-file"
+    a_file.write_text("kept\n")
+    _refused(lambda: api.comp_step(machine, tables, a_file), "a-file: out_dir: is a file")
+    _refused(
+        lambda: api.volumetric_comp_step(machine, tables, a_file, "machine.ini"),
+        "a-file: out_dir: is a file",
+    )
+    assert a_file.read_text() == "kept\n"
 
 
 def test_another_file_of_the_same_machine_is_a_warning(folder: Path, tmp_path: Path) -> None:
@@ -177,6 +185,38 @@ def test_a_plan_of_another_machine_is_refused_by_every_step(folder: Path, tmp_pa
     _refused(lambda: api.post_step(other, [(plan, data)], tmp_path / "e.csv"), *fragments)
     _refused(lambda: api.open_measurements_step(tmp_path / "m.csv", plan, other), *fragments)
     assert not (tmp_path / "e.csv").exists() and not (tmp_path / "m.csv").exists()
+
+
+def test_a_pose_names_its_machine_and_program_step_checks_it(folder: Path, tmp_path: Path) -> None:
+    """The pose written by the steps names the machine it was identified on (name and
+    geometry, the machine file among its inputs); program_step refuses it for another
+    machine, warns for another file of the same machine, and reads an older pose."""
+    import json
+
+    machine = api.load_machine(REFERENCE)
+    pose = api.read_pose(folder / "pose.json")
+    assert (pose.machine, pose.machine_sha256) == (machine.name, machine.geometry_sha256())
+    assert pose.history.input("machine").sha256 == api.file_sha256(REFERENCE)
+    other = api.load_machine(_machine_file(tmp_path, "X: [0, 2000]", "X: [0, 2100]"))
+    _refused(
+        lambda: api.program_step(other, pose, tmp_path / "plan.json"),
+        "pose.json was made for machine",
+        str(tmp_path / "machine.yaml"),
+        "give the machine file the pose was made with",
+    )
+    renamed = api.load_machine(_machine_file(tmp_path, "name: ", "name: Other "))
+    _refused(lambda: api.program_step(renamed, pose, tmp_path / "plan.json"), "made for machine")
+    assert not (tmp_path / "plan.json").exists()
+    edited = api.load_machine(_machine_file(tmp_path, "rapid: ", "rapid: 1"))
+    programmed = api.program_step(edited, pose, tmp_path / "plan.json")
+    assert any("another file" in warning for warning in programmed.warnings)
+    document = json.loads((folder / "pose.json").read_text())
+    for key in ("machine", "machine_sha256", "software", "created_utc", "inputs"):
+        del document[key]
+    (tmp_path / "old-pose.json").write_text(json.dumps(document))
+    older = api.read_pose(tmp_path / "old-pose.json")
+    assert older.machine is None
+    assert api.program_step(other, older, None, write_program_file=False).checks == []
 
 
 def test_a_plan_target_outside_the_travel_is_refused(folder: Path, tmp_path: Path) -> None:
@@ -216,6 +256,27 @@ def test_arguments_of_the_wrong_kind_are_one_line(folder: Path, tmp_path: Path) 
     _refused(lambda: api.error_table_frames("errors.csv"), "tables", "ErrorTableSet")
     _refused(lambda: api.squareness_frame(3), "tables")
     _refused(lambda: api.iso230_2_frame("x"), "result", "PostResult")
+    pose = api.read_pose(folder / "pose.json")
+    for line_ids, shown in ((("X", "Q"), "'X,Q'"), (("X", "X"), "'X,X'"), ((), "''"), ("X", "'X'")):
+        _refused(
+            lambda ids=line_ids: api.program_step(machine, pose, tmp_path / "l.json", line_ids=ids),
+            f"line_ids {shown}",
+            "give distinct lines out of X, Y, Z",
+        )
+    assert not (tmp_path / "l.json").exists()
+    for kind, options, fragments in (
+        ("laser", {}, ("instrument 'laser' is not known",)),
+        ("tracer", {"on_the_fly": True}, ("on_the_fly is for instrument tracker",)),
+        ("tracker", {"places": 6}, ("places is for instrument tracer",)),
+        ("tracer", {"places": 0}, ("places 0: give 4 to 12",)),  # was: fit_joint needs ...
+        ("tracer", {"places": "4"}, ("places '4': give 4 to 12",)),  # was a TypeError
+    ):
+        _refused(lambda k=kind, o=options: api.instrument_program_step(machine, k, **o), *fragments)
+    _refused(  # named as the script names it, not as the command's --dialect
+        lambda: api.program_step(machine, pose, tmp_path / "d.json", dialect="fanucc"),
+        "dialect 'fanucc' is not known",
+    )
+    _refused(lambda: api.instrument_program_step(machine, "tracer", dialect=3), "dialect '3'")
 
 
 def test_a_link_is_followed_to_its_target_and_stays_a_link(folder: Path, tmp_path: Path) -> None:
@@ -413,15 +474,15 @@ def test_instrument_programs_are_written_by_one_step(
         "points_path",
         "replace=True",
     )
-
-
-@pytest.mark.parametrize("name", ["b" * 250, "é" * 127])
-def test_a_name_of_up_to_255_bytes_is_written(tmp_path: Path, name: str) -> None:
-    """The temporary file next to it keeps a shorter name (it was "File name too long")."""
-    from xmalign.formats.common import atomic_write_text
-
-    atomic_write_text(tmp_path / name, "x\n")
-    assert [p.name for p in tmp_path.iterdir()] == [name]
+    (tmp_path / "q.csv.history").write_text("the user's notes\n")  # the list's history's place
+    _refused(
+        lambda: api.instrument_program_step(machine, "tracker", points_path=tmp_path / "q.csv"),
+        "q.csv.history",
+        "points_path",
+        "replace=True",
+    )
+    assert (tmp_path / "q.csv.history").read_text() == "the user's notes\n"
+    assert not (tmp_path / "q.csv").exists()
 
 
 def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
@@ -435,3 +496,18 @@ def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:
         assert {"role": "machine", "path": str(REFERENCE), "sha256": machine_sha256} in inputs
     tables = api.read_error_tables(calibrated / "errors.csv")
     assert tables.history.input("machine").sha256 == machine_sha256
+
+
+def test_the_dry_runs_controller_files_name_the_error_tables(calibrated: Path) -> None:
+    """comp_step is given the tables post_step wrote, read back: every controller file's
+    history (in it, or in NAME.history beside it) names errors.csv by its SHA-256."""
+    errors_sha256 = api.file_sha256(calibrated / "errors.csv")
+    written = sorted((calibrated / "comp").iterdir())
+    assert written
+    for path in written:
+        history = path.with_name(f"{path.name}.history")
+        text = (history if history.exists() else path).read_text()
+        named = [line for line in text.splitlines() if "input errors: " in line]
+        assert len(named) == 1, path.name
+        assert f"input errors: {errors_sha256}  " in named[0], named[0]
+        assert named[0].endswith("errors.csv"), named[0]

@@ -19,6 +19,20 @@ def test_simulated_identification_prints_pose_and_truth(tmp_path):
     assert "intersection" in again.stdout
 
 
+def test_simulated_identification_without_session_out_leaves_nothing_behind(tmp_path, monkeypatch):
+    """Issue 32: the session went to a temporary folder left behind, and the pose named
+    it; now the folder is removed and the pose names the machine file alone."""
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temporary))  # the command's temporary folder
+    pose_path = tmp_path / "pose.json"
+    result = run_cli("identify", "--sim", "--alignments", "4", "--out", str(pose_path))
+    assert result.returncode == 0, result.stderr
+    assert list(temporary.iterdir()) == []
+    roles = [source["role"] for source in json.loads(pose_path.read_text())["inputs"]]
+    assert roles == ["machine"]
+
+
 def test_malformed_session_is_one_line(tmp_path):
     path = tmp_path / "session.json"
     path.write_text('{"format": "xmalign.identify-session/1", "alignments": [')

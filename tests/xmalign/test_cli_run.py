@@ -109,10 +109,16 @@ BAD_RESUMES = [
     ("nan", _first_row(lambda f: [*f[:8], "nan", *f[9:]]), "line 9: linear_um is nan"),
     ("1e12 um", _first_row(lambda f: [*f[:9], "1e12", *f[10:]]), "line 9: straightness 1e+12"),
     ("latin-1", lambda text: text.replace("X,1,+,1,", "\u00c9,1,+,1,", 1), "line 10: not UTF-8"),
-    ("another plan", lambda text: text.replace("sha256=", "sha256=0", 1), "another plan"),
+    (
+        "another plan",
+        lambda text: text.replace("plan_identity=", "plan_identity=0", 1),
+        "another plan",
+    ),
     (
         "not this plan",
-        lambda text: _first_row(lambda f: [*f[:5], "5.0", *f[6:]])(text.replace("sha256", "x")),
+        lambda text: _first_row(lambda f: [*f[:5], "5.0", *f[6:]])(
+            text.replace("plan_identity", "x")
+        ),
         "line X run 1 index 0 is not a point of this plan",
     ),
 ]

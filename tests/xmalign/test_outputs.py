@@ -372,12 +372,17 @@ def test_a_read_only_folder_keeps_the_old_file_as_root(tmp_path: Path) -> None:
     assert kept == (ROOT / "examples" / "pose.json").read_bytes() and left == ["pose.json"]
 
 
-@pytest.mark.parametrize("stem", ["p" * 246, "ä" * 123], ids=["250-ascii", "250-bytes-utf8"])
-def test_a_name_that_fits_the_file_system_is_written(tmp_path: Path, stem: str) -> None:
+@pytest.mark.parametrize(
+    ("stem", "size"),
+    [("p" * 246, 250), ("ä" * 123, 250), ("p" * 251, 255), ("a" + "é" * 125, 255)],
+    ids=["250-ascii", "250-bytes-utf8", "255-ascii", "255-utf8-cut-inside-a-character"],
+)
+def test_a_name_that_fits_the_file_system_is_written(tmp_path: Path, stem: str, size: int) -> None:
     """Issue 32: a valid 250-byte name was refused with "File name too long": the
-    temporary file's name (``.NAME.XXXXXXXX.tmp``) was 14 bytes longer."""
+    temporary file's name (``.NAME.XXXXXXXX.tmp``) was 14 bytes longer. The most a
+    name may have (255 bytes) too, its temporary name cut inside a character."""
     name = f"{stem}.mpf"
-    assert len(name.encode()) == 250
+    assert len(name.encode()) == size
     result = run_in_process(
         "program", "--pose", str(ROOT / "examples" / "pose.json"), "--out", str(tmp_path / name)
     )

@@ -36,16 +36,17 @@ def make_dialect(
     return DIALECTS[name](program_name, machine.cnc.work_offset, stop_at_points)
 
 
-def resolve_dialect(machine: Machine, dialect: str | None) -> str:
-    """The dialect asked for, or the machine controller's; InputError if there is none."""
+def resolve_dialect(machine: Machine, dialect: str | None, option: str = "--dialect") -> str:
+    """The dialect asked for, or the machine controller's; InputError if there is none,
+    naming ``option`` (how the caller names the dialect: ``dialect`` in the Python API)."""
     if dialect is not None:
         if dialect not in DIALECTS:
-            raise InputError(f"--dialect '{dialect}' is not known (known: {', '.join(DIALECTS)})")
+            raise InputError(f"{option} '{dialect}' is not known (known: {', '.join(DIALECTS)})")
         return dialect
     if machine.controller not in CONTROLLER_DIALECTS:
         raise InputError(
             f"controller '{machine.controller}' has no G-code dialect of its own;"
-            f" choose one with --dialect ({', '.join(DIALECTS)})"
+            f" choose one with {option} ({', '.join(DIALECTS)})"
         )
     return CONTROLLER_DIALECTS[machine.controller]
 

@@ -12,7 +12,13 @@ import typer
 from rich.console import Console
 
 from xmalign.errors import InputError, OutputError
-from xmalign.formats.common import PathsOf, located, os_problem, refuse_special
+from xmalign.formats.common import (
+    PathsOf,
+    check_output_folder,
+    located,
+    os_problem,
+    refuse_special,
+)
 from xmalign.machine import Machine, default_machine_path, load_machine
 from xmalign.steps import Caller
 
@@ -53,18 +59,6 @@ def refuse_unused_options(given: dict[str, bool], why: str) -> None:
     unused = next((option for option, is_given in given.items() if is_given), None)
     if unused is not None:
         raise InputError(f"{unused} is not used {why}: leave it out")
-
-
-def check_output_folder(path: Path, option: str) -> None:
-    """Refuse a file in the place of an output folder (nothing is created yet).
-
-    Raises
-    ------
-    InputError
-        ``path`` is an existing file.
-    """
-    if path.exists() and not path.is_dir():
-        raise InputError(located(path, option, "is a file; give a folder for the output files"))
 
 
 def output_folder(path: Path, option: str) -> Path:

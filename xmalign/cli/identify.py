@@ -193,6 +193,26 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
         yield on_event
 
 
+def _simulated_session(
+    machine: Machine,
+    alignments: int,
+    seed: int,
+    method: str,
+    session_out: Path | None,
+    uncertainty: IdentificationUncertainty,
+) -> tuple[IdentificationResult, Session, dict]:
+    """``identify --sim``: the result, the session and the truth; the session written to
+    ``session_out`` (a link's target, the link kept), else to a temporary folder removed
+    at the end (nothing is left behind)."""
+    with tempfile.TemporaryDirectory(prefix="xmalign-identify-") as temporary:
+        session_path = session_out or Path(temporary) / "session.json"
+        link_target(session_path).unlink(missing_ok=True)  # --force: a link stays a link
+        result, truth = _simulated_identification(
+            machine, alignments, seed, method, session_path, uncertainty
+        )
+        return result, read_session(session_path), truth
+
+
 def _live_identification(
     machine: Machine,
     config_path: Path,
@@ -338,12 +358,9 @@ def identify_command(
     truth = None
     if sim:
         assert machine_model is not None  # loaded above for --sim
-        session_path = session_out or Path(tempfile.mkdtemp()) / "session.json"
-        link_target(session_path).unlink(missing_ok=True)  # --force: a link stays a link
-        result, truth = _simulated_identification(
-            machine_model, alignments, seed, method, session_path, uncertainty
+        result, session, truth = _simulated_session(
+            machine_model, alignments, seed, method, session_out, uncertainty
         )
-        session = read_session(session_path)
     elif live:
         assert machine_model and config and session_file  # checked above for --live
         log_handler = start_log_file(log_file)
@@ -360,7 +377,8 @@ def identify_command(
         result, session = solved.result, solved.session
     print_result(result, session, truth)
     if out is not None:
-        session_used = input or (session_path if sim else session_file)
+        # --sim without --session-out: the session was not kept, the pose cannot name it
+        session_used = input or (session_out if sim else session_file)
         write_pose_step(out, result, session_used, machine_model, force, caller)
         console.print(f"pose written to {out}", markup=False)
     else:

@@ -24,8 +24,8 @@ from xmalign.formats.common import atomic_write_text, refuse_overwriting
 from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
-from xmalign.steps import INSTRUMENTS, import_tracker_step, instrument_program_step
+from xmalign.post.instruments import instrument_lines
+from xmalign.steps import check_instrument_request, import_tracker_step, instrument_program_step
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
@@ -65,27 +65,35 @@ class InstrumentRequest:
 
     instrument: str
     on_the_fly: bool
-    places: int
+    #: Tracer places (None: the step's default).
+    places: int | None
     out: Path | None
     points_out: Path | None
     dialect: str | None
 
 
+#: What ``xmalign program --instrument`` calls :func:`~xmalign.steps.instrument_program_step`'s
+#: arguments.
+INSTRUMENT_OPTIONS = {
+    "instrument": "--instrument",
+    "on_the_fly": "--on-the-fly",
+    "places": "--places",
+    "dialect": "--dialect",
+    "program_path": "--out",
+    "points_path": "--points-out",
+    "machine": "--machine",
+}
+
+
 def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
-    """One line for an instrument option that does not fit the others."""
+    """One line for an instrument option that does not fit the others (before the machine
+    is read; the step's own check, :func:`~xmalign.steps.check_instrument_request`)."""
     if instrument is None:
         if on_the_fly or places is not None:
             option = "--on-the-fly" if on_the_fly else "--places"
             raise InputError(f"{option} needs --instrument tracker or tracer")
         return
-    if instrument not in INSTRUMENTS:
-        raise InputError(f"--instrument '{instrument}' is not known (known: tracker, tracer)")
-    if instrument == "tracer" and on_the_fly:
-        raise InputError("--on-the-fly is for --instrument tracker (a tracer measures lengths)")
-    if instrument == "tracker" and places is not None:
-        raise InputError("--places is for --instrument tracer")
-    if places is not None and not MIN_TRACER_PLACES <= places <= 12:
-        raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
+    check_instrument_request(instrument, on_the_fly, places, named_by_options(INSTRUMENT_OPTIONS))
 
 
 def program_instrument(machine: Machine, request: InstrumentRequest, force: bool) -> None:
@@ -105,9 +113,7 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         request.points_out,
         request.dialect,
         replace=force,
-        caller=named_by_options(
-            {"program_path": "--out", "points_path": "--points-out", "machine": "--machine"}
-        ),
+        caller=named_by_options(INSTRUMENT_OPTIONS),
     )
     for note in programmed.notes:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)

@@ -18,7 +18,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
-    check_output_folder,
     check_seed,
     console,
     error_console,
@@ -28,7 +27,12 @@ from xmalign.cli.common import (
 )
 from xmalign.cli.instruments import compare_instruments_command
 from xmalign.errors import InputError, TransportError, XmalignError
-from xmalign.formats.common import MAX_ERROR_RAD, atomic_write_text, refuse_overwriting
+from xmalign.formats.common import (
+    MAX_ERROR_RAD,
+    atomic_write_text,
+    check_output_folder,
+    refuse_overwriting,
+)
 from xmalign.formats.provenance import FileSource, sources
 from xmalign.formats.studies import study_document
 
@@ -197,13 +201,13 @@ def mc(
         int, typer.Option(help="Most trials per strategy (fewer once the results are stable).")
     ] = 100,
     vary: Annotated[
-        str,
+        str | None,
         typer.Option(
             help="Decisions to compare, comma-separated: launch-position, identification, "
             "alignments, targets, runs, diagonal-runs; NAME=V1:V2 lists the values (e.g."
             " targets=100:50)."
         ),
-    ] = "",
+    ] = None,
     mode: Annotated[
         str,
         typer.Option(
@@ -212,18 +216,25 @@ def mc(
             " tracers and XM-60 compared on the same machines, ~10 s a trial)."
         ),
     ] = "calibration",
-    batch: Annotated[int, typer.Option(help="Trials per batch of the adaptive procedure.")] = 20,
+    batch: Annotated[
+        int | None, typer.Option(help="Trials per batch of the adaptive procedure (default 20).")
+    ] = None,
     digits: Annotated[
-        int, typer.Option(help="Significant digits of the standard uncertainties to stabilise.")
-    ] = 1,
+        int | None,
+        typer.Option(
+            help="Significant digits of the standard uncertainties to stabilise (default 1)."
+        ),
+    ] = None,
     scheduler: Annotated[
         str | None, typer.Option(help="Dask scheduler address (default: local processes).")
     ] = None,
     workers: Annotated[
-        int, typer.Option(min=0, help="Local worker processes (default: every core).")
-    ] = 0,
+        int | None, typer.Option(min=0, help="Local worker processes (default, or 0: every core).")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the study; every strategy sees it.")] = 0,
-    method: Annotated[str, typer.Option(help="Identification method.")] = "joint",
+    method: Annotated[
+        str | None, typer.Option(help="Identification method (default: joint).")
+    ] = None,
     error_scale: Annotated[
         float,
         typer.Option(min=0, help="Factor on the machine-error amplitudes (seed 003 Table 1)."),
@@ -257,12 +268,12 @@ def mc(
     if mode == "instruments":
         refuse_unused_options(
             {
-                "--vary": bool(vary),
+                "--vary": vary is not None,
                 "--scheduler": scheduler is not None,
-                "--workers": workers != 0,
-                "--batch": batch != 20,
-                "--digits": digits != 1,
-                "--method": method != "joint",
+                "--workers": workers is not None,
+                "--batch": batch is not None,
+                "--digits": digits is not None,
+                "--method": method is not None,
                 "--tolerance-um": tolerance_um is not None,
             },
             "with --mode instruments (each instrument is simulated here, one after the other)",
@@ -276,14 +287,14 @@ def mc(
     settings = StudySettings(
         mode=mode,
         max_trials=trials,
-        batch=batch,
-        digits=digits,
+        batch=20 if batch is None else batch,
+        digits=1 if digits is None else digits,
         seed=seed,
-        method=method,
+        method=method or "joint",
         amplitudes=ErrorAmplitudes(scale=error_scale, squareness_urad=squareness_urad),
     )
     chosen_machine = machine_or_default(machine)
-    chosen = strategies(chosen_machine, vary.split(","))
+    chosen = strategies(chosen_machine, (vary or "").split(","))
     progress = Progress(
         TextColumn("trials"),
         BarColumn(),

@@ -13,7 +13,6 @@ from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
     ForceOption,
-    check_output_folder,
     console,
     error_console,
     machine_or_default,
@@ -302,7 +301,6 @@ def comp(
 
         volumetric_comp(tables, machine_, ini, out, force, caller)
         return
-    check_output_folder(out, "--out")  # made by the step, once its checks have passed
     try:
         result = comp_step(
             machine_,

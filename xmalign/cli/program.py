@@ -26,6 +26,7 @@ from xmalign.cli.common import (
     machine_or_default,
     named_by_options,
     refuse_unused_options,
+    warn,
 )
 from xmalign.cli.instruments import (
     InstrumentRequest,
@@ -68,6 +69,8 @@ PROGRAM_OPTIONS = {
     "program_path": "--out",
     "pose_path": "--pose",
     "machine": "--machine",
+    "line_ids": "--lines",
+    "dialect": "--dialect",
 }
 
 #: Where ``xmalign identify --out`` is usually pointed, and ``program`` looks without --pose.
@@ -76,11 +79,11 @@ DEFAULT_POSE = Path("pose.json")
 
 def program(
     pose: Annotated[
-        Path,
+        Path | None,
         typer.Option(
             "--pose", help="Launch pose from xmalign identify (default: pose.json in this folder)."
         ),
-    ] = DEFAULT_POSE,
+    ] = None,
     machine: MachineOption = None,
     plan_out: Annotated[
         Path | None, typer.Option("--plan-out", help="Write the measurement plan (JSON).")
@@ -137,16 +140,17 @@ def program(
     else:
         refuse_unused_options(
             {
-                "--pose": pose != DEFAULT_POSE,
+                "--pose": pose is not None,
                 "--lines": lines is not None,
                 "--plan-out": plan_out is not None,
                 "--strict": strict,
             },
             f"with --instrument {instrument} (it plans the whole travel, without a launch unit)",
         )
-        request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
+        request = InstrumentRequest(instrument, on_the_fly, places, out, points_out, dialect)
         program_instrument(machine_or_default(machine), request, force)
         return
+    pose = DEFAULT_POSE if pose is None else pose
     if not pose.exists() and not pose.is_symlink():  # a link that loops: named when read
         raise InputError(
             f"{pose}: cannot read: no such file; identify the launch unit first"
@@ -171,6 +175,8 @@ def program(
         replace=force,
         caller=named_by_options(PROGRAM_OPTIONS),
     )
+    for check in programmed.checks:
+        warn(check)
     error_console.print(
         _machine_time_text(estimate_machine_time(programmed.plan, machine_model)),
         highlight=False,
@@ -214,15 +220,10 @@ def _machine_time_text(time: MachineTime) -> str:
 
 
 def _line_ids(text: str | None) -> tuple[str, ...]:
+    """``--lines`` as the step takes them (the step refuses unknown or repeated lines)."""
     if text is None:
         return LINE_IDS
-    chosen = tuple(part.strip().upper() for part in text.split(",") if part.strip())
-    unknown = [line for line in chosen if line not in LINE_IDS]
-    if unknown or not chosen or len(set(chosen)) != len(chosen):
-        raise InputError(
-            f"--lines '{text}': give distinct lines out of {', '.join(LINE_IDS)}, comma-separated"
-        )
-    return chosen
+    return tuple(part.strip().upper() for part in text.split(",") if part.strip())
 
 
 def _second_station(machine: Machine, first_mm: np.ndarray) -> str:

@@ -50,8 +50,13 @@ _SHOP_HELP = (
     "the virtual shop's air and machine temperature: 'drifting' (air 22 -> 25 °C,"
     " machine 22 -> 23 °C, pressure falling) or 'reference' (20 °C)."
 )
-ShopOption = Annotated[str, typer.Option(help=f"With --sim: {_SHOP_HELP}")]
-DryRunShopOption = Annotated[str, typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:])]
+ShopOption = Annotated[
+    str | None, typer.Option(help=f"With --sim: {_SHOP_HELP[:-1]} (default: drifting).")
+]
+DryRunShopOption = Annotated[
+    str | None,
+    typer.Option(help=_SHOP_HELP[0].upper() + _SHOP_HELP[1:-1] + " (default: drifting)."),
+]
 InProcessOption = Annotated[
     bool,
     typer.Option(
@@ -312,13 +317,18 @@ def run_command(
         typer.Option("--resume", help="Go on with the points already in --out (same plan)."),
     ] = False,
     seed: Annotated[
-        int, typer.Option(help="With --sim: the virtual machine's seed (the same to resume).")
-    ] = 1,
+        int | None,
+        typer.Option(
+            help="With --sim: the virtual machine's seed (the same to resume; default 1)."
+        ),
+    ] = None,
     program: Annotated[
         Path | None, typer.Option(help="With --sim: execute this G-code (default: from the plan).")
     ] = None,
-    dialect: Annotated[str | None, typer.Option(help="G-code dialect of --program.")] = None,
-    shop: ShopOption = "drifting",
+    dialect: Annotated[
+        str | None, typer.Option(help="With --sim: G-code dialect of --program.")
+    ] = None,
+    shop: ShopOption = None,
     in_process: InProcessOption = False,
     log_file: LogFileOption = None,
 ) -> None:
@@ -331,6 +341,17 @@ def run_command(
         raise InputError("give either --sim or --config UNITS.yaml")
     if in_process and not sim:
         raise InputError("--in-process is for --sim (a live run always uses the hardware)")
+    if not sim:
+        refuse_unused_options(
+            {
+                "--seed": seed is not None,
+                "--program": program is not None,
+                "--dialect": dialect is not None,
+                "--shop": shop is not None,
+            },
+            "without --sim (a live run measures the machine, with the program it runs)",
+        )
+    seed, shop = (1 if seed is None else seed), (shop or "drifting")
     check_seed(seed)
     caller = named_by_options(
         {"path": "--out", "plan": "--plan", "machine": "--machine"},
@@ -475,14 +496,18 @@ def dry_run_command(
     dialect: Annotated[
         str | None, typer.Option(help="G-code dialect (default: controller's).")
     ] = None,
-    identification_positions: Annotated[int, typer.Option(min=3, help="Alignments.")] = 6,
+    identification_positions: Annotated[
+        int | None, typer.Option(min=3, help="Alignments (default 6).")
+    ] = None,
     stations: Annotated[
-        int,
+        int | None,
         typer.Option(
-            min=1, max=2, help="Launch-unit stations: 2 adds the proposed second station."
+            min=1,
+            max=2,
+            help="Launch-unit stations: 2 adds the proposed second station (default 1).",
         ),
-    ] = 1,
-    shop: DryRunShopOption = "drifting",
+    ] = None,
+    shop: DryRunShopOption = None,
     verify: Annotated[
         bool,
         typer.Option(
@@ -512,15 +537,19 @@ def dry_run_command(
     if instrument != "xm60":
         refuse_unused_options(
             {
-                "--stations": stations != 1,
+                "--stations": stations is not None,
                 "--verify": verify,
-                "--identification-positions": identification_positions != 6,
-                "--shop": shop != "drifting",
+                "--identification-positions": identification_positions is not None,
+                "--shop": shop is not None,
             },
             f"with --instrument {instrument} (a launch unit's options)",
         )
         instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
         return
+    # the launch unit's options: None until here, so that one given with --instrument is refused
+    identification_positions = 6 if identification_positions is None else identification_positions
+    stations = 1 if stations is None else stations
+    shop = "drifting" if shop is None else shop
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)
@@ -535,8 +564,6 @@ def dry_run_command(
         served=not in_process,
     )
     if stations == 2:
-        if verify:
-            raise InputError("--verify is for one station (give --stations 1)")
         _two_station_dry_run(machine_model, out, options)
         return
     started: list[str] = []
@@ -574,8 +601,6 @@ def _two_station_dry_run(machine: Machine, out: Path, options: DryRunOptions) ->
     """``dry-run --stations 2``: both stations, one post, the residuals against the truth."""
     from sim.two_stations import simulate_two_stations
 
-    if (out / "station1-plan.json").exists():
-        raise InputError(f"{out}/ already holds a two-station dry run; give another --out")
     with console.status("dry run, two stations"):
         report = simulate_two_stations(machine, out, options)
     proposal = report.proposal

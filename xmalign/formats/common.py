@@ -125,6 +125,20 @@ def secret_at(model: type[BaseModel], loc: Sequence[int | str]) -> bool:
     return False
 
 
+def shown_value(value: object) -> str:
+    """A value as a one-line message shows it: its repr when short, else its type."""
+    text = repr(value)
+    return text if len(text) <= 60 and "\n" not in text else f"a {type(value).__name__}"
+
+
+def path_argument(value: object, name: str, what: str = "a file's path") -> Path:
+    """``value`` as a Path when it is a non-empty ``str`` or ``os.PathLike``; else one
+    InputError naming the argument ``name`` (a script's number or None, not a TypeError)."""
+    if isinstance(value, str | os.PathLike) and str(value) != "":
+        return Path(value)
+    raise InputError(f"{name}: {shown_value(value)} is not {what} (give a str or a Path)")
+
+
 def located(source: str | Path, where: str, problem: str) -> str:
     """The one shape of every file error: ``FILE: WHERE: PROBLEM`` (WHERE: a key or a line)."""
     return f"{source}: {where}: {problem}"
@@ -570,6 +584,18 @@ def link_target(path: Path) -> Path:
     """The file ``path`` names once its symbolic links are followed (the full path; a
     dangling link's target; a loop as far as it can be followed)."""
     return Path(os.path.realpath(path))
+
+
+def check_output_folder(path: Path, option: str) -> None:
+    """Refuse a file in the place of an output folder (nothing is created yet).
+
+    Raises
+    ------
+    InputError
+        ``path`` is an existing file.
+    """
+    if path.exists() and not path.is_dir():
+        raise InputError(located(path, option, "is a file; give a folder for the output files"))
 
 
 def refuse_overwriting(

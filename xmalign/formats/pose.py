@@ -21,7 +21,7 @@ from xmalign.formats.common import (
     validate,
     write_json,
 )
-from xmalign.formats.provenance import FileSource, json_history
+from xmalign.formats.provenance import FileSource, Provenance, json_history, read_json_history
 from xmalign.geometry import Vec
 from xmalign.kinematics import EncoderOffsets
 
@@ -41,6 +41,8 @@ class _PoseModel(FileModel):
     method: str = "unknown"
     residual_rms_um: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] | None = None
     n_alignments: Annotated[int, Field(ge=0)] | None = None
+    machine: str | None = None
+    machine_sha256: str | None = None
 
 
 def check_covariance(covariance: Vec, source: str, key: str) -> None:
@@ -60,7 +62,10 @@ class LaunchPose:
 
     ``covariance`` is of ``(x mm, y mm, z mm, gamma rad)``, shape (4, 4);
     ``encoder_offsets_rad`` holds only the offsets that were estimated; ``source``
-    is the file it was read from (its SHA-256), None for a pose identified now.
+    is the file it was read from (its SHA-256), None for a pose identified now, and
+    ``history`` what that file says of its making. ``machine`` and ``machine_sha256``
+    (:meth:`Machine.geometry_sha256`) name the machine it was identified on (None: a
+    pose written before poses named it, or identified without a machine file).
     """
 
     position_mm: Vec
@@ -71,6 +76,9 @@ class LaunchPose:
     residual_rms_um: float = 0.0
     n_alignments: int = 0
     source: FileSource | None = field(default=None, compare=False)
+    machine: str | None = field(default=None, compare=False)
+    machine_sha256: str | None = field(default=None, compare=False)
+    history: Provenance | None = field(default=None, compare=False)
 
     @property
     def offsets(self) -> EncoderOffsets:
@@ -96,19 +104,26 @@ def parse_pose(data: dict, source: str) -> LaunchPose:
         method=model.method,
         residual_rms_um=model.residual_rms_um or 0.0,
         n_alignments=model.n_alignments or 0,
+        machine=model.machine,
+        machine_sha256=model.machine_sha256,
     )
 
 
 def read_pose(path: str | Path) -> LaunchPose:
-    """Read and validate a launch-pose file; ``source`` records its SHA-256."""
-    pose = parse_pose(read_json(path, POSE_FORMAT), str(path))
+    """Read and validate a launch-pose file; ``source`` records its SHA-256, ``history``
+    its history."""
+    data = read_json(path, POSE_FORMAT)
+    pose = parse_pose(data, str(path))
     pose.source = FileSource.of("pose", path)
+    pose.history = read_json_history(data, str(path))
     return pose
 
 
 def pose_to_dict(pose: LaunchPose) -> dict:
+    identity = {"machine": pose.machine, "machine_sha256": pose.machine_sha256}
     return {
         "format": POSE_FORMAT,
+        **{key: value for key, value in identity.items() if value is not None},
         "position_mm": [float(v) for v in pose.position_mm],
         "gamma_deg": math.degrees(pose.gamma_rad),
         "covariance": [[float(v) for v in row] for row in pose.covariance],

@@ -188,6 +188,12 @@ def csv_preamble(
     return "".join(f"# {line}\n" for line in history_lines(format_name, inputs, extra))
 
 
+def history_path(path: Path) -> Path:
+    """Where the history of a file whose format takes no comment goes: ``NAME.history``
+    beside it (:func:`history_file`)."""
+    return path.with_name(f"{path.name}.history")
+
+
 def history_file(format_name: str, name: str, data: bytes, inputs: Iterable[FileSource]) -> str:
     """``NAME.history``: the history of a file whose format takes no comment, beside it.
 
