@@ -66,7 +66,7 @@ def follow_machine(
                 f"line {line.id}: waiting for the machine to stop at {where}"
                 " (start the program if it is not running)"
             )
-            wait_for(run, there, f"stop at {where}", timeout_s, poll_s)
+            wait_for(run, there, f"stop at {where}", timeout_s, poll_s, tell)
         check_program()
         run.prepare_line(line)
         tell(f"line {line.id}: units aligned and locked; {PRESS_CYCLE_START}")
@@ -82,7 +82,7 @@ def follow_machine(
                     poll_s,
                 )
             arrived = _arrived(position, point.point_mm, on_line, tolerance_mm, point_where(point))
-            wait_for(run, arrived, f"stop at {point_where(point)}", timeout_s, poll_s)
+            wait_for(run, arrived, f"stop at {point_where(point)}", timeout_s, poll_s, tell)
             check_program()
             run.capture(point, line.dwell_s, lambda p: stands_at(position, p, tolerance_mm))
             previous = point

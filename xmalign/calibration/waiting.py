@@ -12,6 +12,9 @@ from xmalign.roles import MachinePositionSource
 
 #: While a run waits for the machine, it reads the units this often (a lost link shows), s.
 DEVICE_CHECK_S = 1.0
+#: A wait for the machine longer than this is told, and again every WAIT_RETOLD_S, s.
+WAIT_TOLD_S = 10.0
+WAIT_RETOLD_S = 60.0
 
 
 def stands_at(position: MachinePositionSource, point: CapturePoint, tolerance_mm: float) -> bool:
@@ -32,12 +35,23 @@ def point_where(point: CapturePoint) -> str:
 
 
 def wait_for(
-    run: CalibrationRun, done: Callable[[], bool], what: str, timeout_s: float, poll_s: float
+    run: CalibrationRun,
+    done: Callable[[], bool],
+    what: str,
+    timeout_s: float,
+    poll_s: float,
+    tell: Callable[[str], None] = lambda text: None,
 ) -> None:
-    """Poll ``done`` until it holds; read the units every ``DEVICE_CHECK_S`` meanwhile."""
+    """Poll ``done`` until it holds; read the units every ``DEVICE_CHECK_S`` meanwhile.
+
+    A wait longer than ``WAIT_TOLD_S`` is told (``tell``: what it waits for, how
+    long so far, the longest it waits), and again every ``WAIT_RETOLD_S``.
+    """
     clock = run.clock
-    deadline = clock.now() + timeout_s
-    checked_s = clock.now()
+    started_s = clock.now()
+    deadline = started_s + timeout_s
+    checked_s = told_s = started_s
+    next_tell_s = started_s + WAIT_TOLD_S
     while clock.now() < deadline:
         if done():
             return
@@ -45,6 +59,13 @@ def wait_for(
             run.launch.angles_rad()
             run.receiver.angles_rad()
             checked_s = clock.now()
+        if clock.now() >= next_tell_s:
+            told_s = clock.now()
+            next_tell_s = told_s + WAIT_RETOLD_S
+            tell(
+                f"still waiting for the machine to {what} ({told_s - started_s:.0f} s so far;"
+                f" at most {timeout_s:.0f} s, timeouts.machine_s)"
+            )
         clock.sleep(poll_s)
     # the controller answers all along: the machine is late, no connection is lost
     raise DeviceError(f"the machine did not {what} within {timeout_s:.0f} s (timeouts.machine_s)")
