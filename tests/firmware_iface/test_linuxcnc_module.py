@@ -179,8 +179,8 @@ class _Stat:
 @pytest.mark.parametrize(
     ("fields", "fragment"),
     [
-        ({"task_state": 1}, "E-stop or off"),
-        ({"task_state": 3}, "E-stop or off"),
+        ({"task_state": 1}, "E-stop is pressed"),
+        ({"task_state": 3}, "the machine is off"),
         ({"homed": (1, 0, 1) + (0,) * 13}, r"not every joint is homed \(YES NO YES\)"),
         ({"joint": ({"fault": 0}, {"fault": 1}, {"fault": 0})}, r"joint fault \(OK FAULT OK\)"),
     ],
