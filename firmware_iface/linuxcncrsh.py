@@ -137,6 +137,7 @@ class LinuxcncrshLink:
 
     def __init__(self, host: str, port: int, timeout_s: float) -> None:
         self.name = f"LinuxCNC at {host}:{port}"
+        self.address = (host, port)
         self.timeout_s = timeout_s
         self._buffer = b""
         #: Requests sent whose replies have not been read (the last: the one asked now).
@@ -243,6 +244,8 @@ class LinuxCnc(LinuxCncControl):
         self.link = link
         #: mm per machine unit (:meth:`open` reads it from LinuxCNC).
         self.mm_per_unit = 1.0
+        #: The connect password :meth:`open` said hello with (a second session probes with it).
+        self._connect_password: str | None = None
 
     def open(self, connect_password: str, enable_password: str | None) -> None:
         """Say hello; without echo, with a reply to every ``set``; enable control if
@@ -254,6 +257,7 @@ class LinuxCnc(LinuxCncControl):
         check_password(connect_password, "connect password")
         if enable_password is not None:
             check_password(enable_password, "enable password")
+        self._connect_password = connect_password
         reply = self.link.ask(f"hello {connect_password} {CLIENT} {PROTOCOL_VERSION}")
         if not reply.upper().startswith("HELLO ACK"):
             raise DeviceError(f"{self.name} refused the connect password (hello: {reply})")
@@ -358,12 +362,24 @@ class LinuxCnc(LinuxCncControl):
         )
 
     def _still_answers(self) -> bool:
-        """linuxcncrsh answers a ``get`` (after a ``set`` it did not answer: LinuxCNC
-        whose task, milltask, has stopped; seen with 2.9, its status then stays as it was)."""
+        """linuxcncrsh answers a ``get`` in a session of its own (after a ``set`` it did
+        not answer: LinuxCNC whose task, milltask, has stopped; seen with 2.9, its status
+        then stays as it was, and the session that sent the ``set`` waits on it)."""
+        address = getattr(self.link, "address", None)
+        timeout_s = getattr(self.link, "timeout_s", None)
+        if address is None or timeout_s is None or self._connect_password is None:
+            return False
+        host, port = address
         try:
-            self._get("program_status")
+            probe = open_linuxcnc(host, port, timeout_s, self._connect_password, None)
         except XmalignError:
             return False
+        try:
+            probe.program_state()
+        except XmalignError:
+            return False
+        finally:
+            probe.close()
         return True
 
     def _error_text(self) -> str:

@@ -9,7 +9,7 @@ at the move's end, as LinuxCNC 2.9's does: before a programmed stop, one resume
 then leaves the program paused at that stop), an abort, one MDI line at a time,
 and LinuxCNC's error slot (the last message, read once). The machine starts out
 of E-stop, on and homed (joints 0 to 2 of 6); :meth:`SimulatedLinuxcnc.press_estop`
-ends the program and refuses every command until :meth:`~SimulatedLinuxcnc.release_estop`;
+ends the program and refuses every command from then on;
 after :meth:`~SimulatedLinuxcnc.kill_task` (milltask dead) the status stays as it
 was and no command is taken, as LinuxCNC 2.9's.
 
@@ -319,10 +319,6 @@ class SimulatedLinuxcnc:
         self.estop = True
         if self.program is not None:
             self.program.abort()
-
-    def release_estop(self) -> None:
-        """E-stop released and the machine switched on again (still homed)."""
-        self.estop = False
 
     def kill_task(self) -> None:
         """Its task dies: the status stays as it was, no command is taken any more."""

@@ -21,6 +21,8 @@ from scripted import ExpectedRshLines
 from firmware_iface.config import load_units_config
 from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, masked, open_linuxcnc
 from sim.clock import SimClock
+from sim.cnc import SimulatedCnc
+from sim.servers.linuxcncrsh import LinuxcncrshServer
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
@@ -28,7 +30,8 @@ from xmalign.errors import (
     InputError,
     TransportError,
 )
-from xmalign.roles import ProgramControl
+from xmalign.machine import Machine
+from xmalign.roles import ProgramControl, WallClock
 
 HELLO = [
     ("hello EMC xmalign 1.0", "HELLO ACK EMCNETSVR 1.1"),
@@ -403,14 +406,20 @@ def test_a_reply_left_by_an_interrupted_request_is_not_taken_for_the_next(
 
 
 def test_a_set_without_a_reply_while_gets_are_answered_is_a_stopped_task(
-    server: Server,
+    reference_machine: Machine,
 ) -> None:
     """After milltask dies, linuxcncrsh answers 'get' from the status it last had and no
-    'set' (seen with LinuxCNC 2.9)."""
-    server.answers.update({"set pause": b"", "get program_status": b"PROGRAM_STATUS RUNNING\r\n"})
-    cnc = open_linuxcnc("127.0.0.1", server.port, 0.2, "pw1", "pw2")
-    with pytest.raises(DeviceError) as caught:
-        cnc.hold()
+    'set' (seen with LinuxCNC 2.9; the simulated linuxcncrsh does the same)."""
+    server = LinuxcncrshServer(SimulatedCnc(reference_machine, WallClock()), reference_machine)
+    server.start()
+    cnc = open_linuxcnc("127.0.0.1", server.port, 0.2)
+    try:
+        server.linuxcnc.kill_task()
+        with pytest.raises(DeviceError) as caught:
+            cnc.hold()
+    finally:
+        cnc.close()
+        server.stop()
     assert str(caught.value) == (
         f"LinuxCNC at 127.0.0.1:{server.port} did not answer 'set pause' within 0.2 s although"
         " linuxcncrsh answers: LinuxCNC's task (milltask) has stopped; restart LinuxCNC"

@@ -10,13 +10,14 @@ against a real headless LinuxCNC.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from program_control_contract import (  # noqa: F401 (the contract's tests, run here)
     ACCELERATION_MM_S2,
     ControlStand,
+    interrupt_the_reply,
     test_a_dead_task_keeps_its_last_status_and_a_command_names_it,
     test_a_feed_hold_in_the_braking_distance_stops_at_the_stop_and_needs_two_resumes,
     test_a_feed_hold_stops_on_the_path_and_a_resume_goes_on,
@@ -30,30 +31,12 @@ from program_control_contract import (  # noqa: F401 (the contract's tests, run 
 
 from firmware_iface.linuxcnc_control import LinuxCncControl
 from firmware_iface.linuxcnc_module import LocalLinuxCnc
-from firmware_iface.linuxcncrsh import LinuxcncrshLink, open_linuxcnc
+from firmware_iface.linuxcncrsh import open_linuxcnc
 from sim.cnc import SimulatedCnc
 from sim.linuxcnc_module import simulated_module
 from sim.servers.linuxcncrsh import LinuxcncrshServer
 from xmalign.machine import Machine
 from xmalign.roles import WallClock
-
-
-def _interrupt_the_reply(control: LinuxCncControl) -> Callable[[Callable[[], object]], None]:
-    """Over linuxcncrsh: a KeyboardInterrupt where the reply is read (it stays unread)."""
-
-    def interrupted(call: Callable[[], object]) -> None:
-        link = getattr(control, "link", None)
-        assert isinstance(link, LinuxcncrshLink)
-        read_line = link._read_line
-
-        def once() -> str:
-            link._read_line = read_line  # type: ignore[method-assign]
-            raise KeyboardInterrupt
-
-        link._read_line = once  # type: ignore[method-assign]
-        call()
-
-    return interrupted
 
 
 @pytest.fixture(params=["linuxcncrsh", "module"])
@@ -74,11 +57,10 @@ def control_stand(
         control,
         tmp_path,
         press_estop=linuxcnc.press_estop,
-        release_estop=linuxcnc.release_estop,
         kill_task=linuxcnc.kill_task,
     )
     if request.param == "linuxcncrsh":
-        stand.interrupted = _interrupt_the_reply(control)
+        stand.interrupted = interrupt_the_reply(control)
     try:
         yield stand
     finally:
@@ -88,5 +70,5 @@ def control_stand(
 
 @pytest.fixture
 def dying_stand(control_stand: ControlStand) -> ControlStand:
-    """A simulated LinuxCNC is made for each test: its task may die."""
+    """A simulated LinuxCNC is made for each test: it may be left in E-stop or dead."""
     return control_stand
