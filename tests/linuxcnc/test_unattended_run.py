@@ -269,24 +269,41 @@ def test_unattended_run_on_linuxcnc_with_the_beam_lost_and_found(shop: Shop) -> 
     print(*(line for line in said.splitlines() if "machine time" in line or "beam" in line))
 
 
-def test_a_pulled_cable_stops_the_run_and_resume_completes_it(shop: Shop) -> None:
+def _machine_time_s(said: str) -> tuple[float, float]:
+    """The run's machine time (without the stops for the units) and the G-code's estimate, s."""
+    found = re.search(r"machine time ([\d.]+) s without .* \(G-code estimate ([\d.]+) s\)", said)
+    assert found is not None, said
+    return float(found[1]), float(found[2])
+
+
+def test_a_pulled_cable_stops_the_run_and_resume_completes_it_at_speed(shop: Shop) -> None:
+    """The cable pulled once the first line is recorded: the error says --resume; the
+    resumed run passes the recorded line at once (no feed hold, no beam searched for,
+    though the units are set for another line) and takes the G-code's time."""
     out = shop.workdir / "m.csv"
+    first_line = len(list(capture_sequence(read_plan(shop.workdir / "plan.json").lines[0])))
     run = shop.run()
-    _wait_for_rows(run, out, 4)
+    _wait_for_rows(run, out, first_line + 1)
     shop.cable.pull()
     code = run.finish(timeout_s=60)
     assert code == 2, run.said()
     (line,) = [text for text in run.stderr.splitlines() if text.strip()]
     assert line.startswith("xmalign: error: ") and "LinuxCNC at 127.0.0.1" in line, line
     assert "could not be reached" in line and "points kept in" in line, line
+    assert "--resume" in line, line
     kept = load_measurements(out, torn_ok=True).rows
     shop.cable.plug()
     resumed = shop.run("--resume")
     assert resumed.finish(timeout_s=300) == 0, resumed.said()
-    assert "aborted, started again from the top" in resumed.said()
+    said = resumed.said()
+    assert "aborted, started again from the top" in said
+    assert "feed held" not in said and "searched for" not in said, said
     assert _keys(out) == _expected_keys(shop.workdir / "plan.json")
     again = load_measurements(out).rows[: len(kept)]
     assert all(np.array_equal(a.channels, b.channels) for a, b in zip(again, kept, strict=True))
+    machine_s, estimate_s = _machine_time_s(said)
+    print(f"resumed: machine time {machine_s:.1f} s, G-code estimate {estimate_s:.1f} s")
+    assert machine_s < 1.2 * estimate_s, said
 
 
 def test_a_program_that_is_not_the_plans_stops_the_run_with_one_line(shop: Shop) -> None:
