@@ -36,6 +36,7 @@ import numpy as np
 import pytest
 from cli_helpers import Process, free_port
 from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
+from test_real_faults import kill_milltask, press_estop
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, cut_plan
@@ -351,3 +352,43 @@ def test_an_unattended_calibration_of_all_six_lines(six_line_shop: Shop) -> None
     assert f"{len(expected)} points captured; {len(expected)} points in m.csv" in said
     assert "machine time" in said and "G-code estimate" in said
     print(*(line for line in said.splitlines() if "machine time" in line))
+
+
+def _one_error_line(run: Process) -> str:
+    (line,) = [text for text in run.stderr.splitlines() if text.strip()]
+    assert line.startswith("xmalign: error: "), line
+    return line
+
+
+def test_an_e_stop_during_the_run_is_named_with_the_points_kept_and_the_way_on(
+    shop: Shop,
+) -> None:
+    """halcmd opens the E-stop chain mid-run: one line naming the E-stop, where, the
+    points kept and --resume; no 'set abort' (LinuxCNC has ended the program)."""
+    out = shop.workdir / "m.csv"
+    run = shop.run()
+    _wait_for_rows(run, out, 3)
+    press_estop()
+    assert run.finish(timeout_s=60) == 2, run.said()
+    line = _one_error_line(run)
+    assert "E-stop is pressed; release it, switch the machine on and home it" in line, line
+    assert "the program ended on the way to " in line, line
+    assert "go on with --resume when the machine is back" in line, line
+    assert f"{len(load_measurements(out, torn_ok=True).rows)} points kept in m.csv" in line
+    assert "set abort" not in (shop.workdir / "wire.log").read_text()
+
+
+def test_a_killed_task_is_named_within_seconds(shop: Shop) -> None:
+    """milltask killed mid-run: linuxcncrsh goes on saying RUNNING and takes no command;
+    the run ends within seconds with one line naming the task."""
+    out = shop.workdir / "m.csv"
+    run = shop.run()
+    _wait_for_rows(run, out, 3)
+    killed = time.monotonic()
+    kill_milltask()
+    assert run.finish(timeout_s=120) == 2, run.said()
+    took_s = time.monotonic() - killed
+    line = _one_error_line(run)
+    assert "milltask" in line and "points kept in m.csv" in line, line
+    print(f"killed task named after {took_s:.1f} s: {line}")
+    assert took_s < 30.0, line
