@@ -392,3 +392,44 @@ def test_a_killed_task_is_named_within_seconds(shop: Shop) -> None:
     assert "milltask" in line and "points kept in m.csv" in line, line
     print(f"killed task named after {took_s:.1f} s: {line}")
     assert took_s < 30.0, line
+
+
+def _cross_the_beam_while_braking_for_a_point(shop: Shop, points: list[np.ndarray]) -> float:
+    """Cross the beam 0.5 s once the machine, approaching a point, is 1-4 mm from it: at
+    20 m/min and 1000 mm/s^2 LinuxCNC is braking for that point's stop, and xmalign's
+    feed hold comes in the braking distance. Returns that distance, mm."""
+    watch = open_linuxcnc("127.0.0.1", shop.cable.target_port, 5.0, enable_password=None)
+    try:
+        before = np.inf
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            at = watch.position_mm()
+            left = min(float(np.linalg.norm(at - point)) for point in points)
+            if 1.0 < left < 4.0 and left < before:
+                shop.block_beam(0.5)
+                return left
+            before = left
+        raise AssertionError("the machine never approached a point")
+    finally:
+        watch.close()
+
+
+def test_a_beam_lost_as_the_machine_brakes_for_a_point_costs_no_wait(shop: Shop) -> None:
+    """LinuxCNC 2.9 takes a feed hold in the braking distance before an M0 at the M0, and
+    one resume leaves the program paused there: the run captures the point there, or
+    resumes again, and ends without waiting out timeouts.machine_s (120 s here)."""
+    out = shop.workdir / "m.csv"
+    line = read_plan(shop.workdir / "plan.json").lines[0]
+    points = [point.point_mm for point in capture_sequence(line)]
+    run = shop.run()
+    _wait_for_rows(run, out, 2)
+    started = time.monotonic()
+    left_mm = _cross_the_beam_while_braking_for_a_point(shop, points)
+    assert run.finish(timeout_s=100) == 0, run.said()
+    said = run.said()
+    ended_s = time.monotonic() - started
+    print(f"beam crossed {left_mm:.1f} mm before a point; run ended {ended_s:.1f} s later")
+    assert _keys(out) == _expected_keys(shop.workdir / "plan.json")
+    assert "still waiting" not in said, said
+    assert "beam lost on the way" in said or "found again" in said, said
+    print(*(text for text in said.splitlines() if "beam" in text or "paused" in text))
