@@ -178,10 +178,12 @@ class LinuxCncControl(ABC):
 
         xmalign does none of this itself: the operator brings the machine up.
         """
-        if self._in_estop() or not self._machine_on():
+        if self._in_estop():
             raise DriveFaultError(
-                f"{self.name}: the machine is in E-stop or off; switch it on and home it first"
+                f"{self.name}: E-stop is pressed; release it, switch the machine on and home it"
             )
+        if not self._machine_on():
+            raise DriveFaultError(f"{self.name}: the machine is off; switch it on and home it")
         homed = self._joints_homed()[: self.joints]
         if len(homed) < self.joints or not all(homed):
             words = " ".join("YES" if flag else "NO" for flag in homed)

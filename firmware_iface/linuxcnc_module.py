@@ -30,7 +30,9 @@ checks are shared with the linuxcncrsh driver) from the module:
   a run, a pause, a resume and an MDI line must have been received (the
   status echoes the command's serial number), as linuxcncrsh acknowledges
   them. ``RCS_ERROR`` for the command is a refusal, raised at once with
-  LinuxCNC's own message (a resume with nothing to resume).
+  LinuxCNC's own message (a resume with nothing to resume). A command never
+  received while the status answers is a task that has stopped (milltask died:
+  its status stays as it was), named as such.
 
 Each command and its outcome, and each message taken from the error channel,
 is logged at DEBUG. Every read takes a fresh ``stat()``: a stat opened while
@@ -263,10 +265,15 @@ class LocalLinuxCnc(LinuxCncControl):
                 raise DeviceError(f"{self.name} refused '{what}' ({reason})")
             elif behind == 0 and not completes:
                 outcome = "received"
+            elif self.clock.now() >= deadline and behind < 0:
+                # the status answers, the task takes no command: seen with 2.9 after milltask died
+                raise DeviceError(
+                    f"{self.name} did not receive '{what}' within {self.timeout_s:g} s although"
+                    " its status answers: LinuxCNC's task (milltask) has stopped; restart LinuxCNC"
+                )
             elif self.clock.now() >= deadline:
-                state = "received" if behind == 0 else "not received"
                 raise DeviceTimeoutError(
-                    f"{self.name} did not complete '{what}' within {self.timeout_s:g} s ({state})"
+                    f"{self.name} did not complete '{what}' within {self.timeout_s:g} s (received)"
                 )
             else:
                 self.clock.sleep(_POLL_S)

@@ -4,8 +4,10 @@ Two layers, as for every device:
 
 * :class:`LinuxcncrshLink` carries lines over TCP: one request, one reply
   line (the session is set up so that every request has exactly one), with a
-  timeout; every line crossing the connection is logged at DEBUG with the
-  passwords replaced by ``****``.
+  timeout; each reply is matched to its request (:func:`answers`): a reply left
+  over from a request that was interrupted (Ctrl-C, SIGTERM) or timed out is
+  skipped, never taken for the next request's. Every line crossing the
+  connection is logged at DEBUG with the passwords replaced by ``****``.
 * :class:`LinuxCnc` speaks the commands of ``man linuxcncrsh`` (LinuxCNC 2.9)
   on such a link: the actual position in machine coordinates
   (``get abs_act_pos``), standstill, the program state
@@ -34,7 +36,13 @@ from typing import Protocol
 import numpy as np
 
 from firmware_iface.linuxcnc_control import START_TIMEOUT_S, LinuxCncControl, Mode
-from xmalign.errors import DeviceError, DeviceTimeoutError, InputError, TransportError
+from xmalign.errors import (
+    DeviceError,
+    DeviceTimeoutError,
+    InputError,
+    TransportError,
+    XmalignError,
+)
 from xmalign.geometry import Vec
 from xmalign.roles import Clock, ProgramState
 
@@ -47,6 +55,8 @@ DEFAULT_ENABLE_PASSWORD = "EMCTOO"
 #: What xmalign calls itself in ``hello``.
 CLIENT = "xmalign"
 PROTOCOL_VERSION = "1.0"
+#: Earlier requests without their reply whose replies are still recognised, at most.
+MAX_STALE_REPLIES = 16
 #: Time between the two reads of the commanded position that tell a standstill, s.
 STANDSTILL_PROBE_S = 0.02
 _MASK = "****"
@@ -83,6 +93,24 @@ def check_password(password: str, what: str) -> None:
         raise InputError("the enable password cannot be 'off' (linuxcncrsh: it disables)")
 
 
+def answers(request: str, reply: str) -> bool:
+    """Whether ``reply`` is linuxcncrsh's reply to ``request``: ``HELLO ...`` to ``hello``,
+    ``NAME ...`` (or ``GET NAME NAK``) to ``get name``, ``SET NAME ...`` to ``set name``,
+    the echo of ``set echo off`` to itself (the last request it echoes)."""
+    words, said = request.upper().split(), reply.upper().split()
+    if not words or not said:
+        return False
+    if words[0] == "HELLO":
+        return said[0] == "HELLO"
+    if words[0] in ("GET", "SET") and len(words) > 1:
+        if words[:2] == ["SET", "ECHO"] and said[:2] == ["SET", "ECHO"]:
+            return True  # the echo of the request itself
+        if words[0] == "GET" and said[0] == words[1]:
+            return True
+        return said[:2] == words[:2]
+    return True
+
+
 class LineLink(Protocol):
     """A request/reply line connection (:class:`LinuxcncrshLink`, or a scripted double)."""
 
@@ -109,8 +137,11 @@ class LinuxcncrshLink:
 
     def __init__(self, host: str, port: int, timeout_s: float) -> None:
         self.name = f"LinuxCNC at {host}:{port}"
+        self.address = (host, port)
         self.timeout_s = timeout_s
         self._buffer = b""
+        #: Requests sent whose replies have not been read (the last: the one asked now).
+        self._unanswered: list[str] = []
         try:
             self._socket: socket.socket | None = socket.create_connection(
                 (host, port), timeout=timeout_s
@@ -124,17 +155,20 @@ class LinuxcncrshLink:
     def ask(self, line: str) -> str:
         """Send one request line, return its one reply line (without line ends).
 
-        DeviceTimeoutError without a reply within ``timeout_s``, TransportError
-        when the connection fails; either closes the session.
+        A reply to an earlier request that never got its own (interrupted by
+        Ctrl-C or SIGTERM, or timed out) is skipped when it comes (:func:`answers`),
+        never taken for this one's. DeviceTimeoutError without a reply within
+        ``timeout_s`` (the session stays open: the late reply is skipped when it
+        comes), TransportError when the connection fails (it is closed).
         """
         if self._socket is None:
             raise TransportError(f"the connection to {self.name} is closed")
         log.debug("%s > %r", self.name, masked(line))
+        self._unanswered = [*self._unanswered[-MAX_STALE_REPLIES:], line]
         try:
             self._socket.sendall(line.encode("ascii") + b"\r\n")
-            reply = self._read_line()
+            reply = self._reply_to(line)
         except TimeoutError as error:
-            self.close()  # a late reply would be taken for the next request's
             raise DeviceTimeoutError(
                 f"{self.name} did not answer '{masked(line)}' within {self.timeout_s:g} s"
             ) from error
@@ -143,8 +177,19 @@ class LinuxcncrshLink:
             raise TransportError(
                 f"the connection to {self.name} failed ({error.strerror or error})"
             ) from error
+        self._unanswered.pop()
         log.debug("%s < %r", self.name, reply)
         return reply
+
+    def _reply_to(self, line: str) -> str:
+        """The next reply but those answering an earlier unanswered request (skipped)."""
+        while True:
+            reply = self._read_line()
+            earlier = self._unanswered[:-1]
+            if answers(line, reply) or not any(answers(old, reply) for old in earlier):
+                return reply
+            self._unanswered.remove(next(old for old in earlier if answers(old, reply)))
+            log.debug("%s < %r (skipped: the reply to an earlier request)", self.name, reply)
 
     def _read_line(self) -> str:
         """The next non-empty line (replies end with ``\\r\\n`` or ``\\n\\r``)."""
@@ -199,6 +244,8 @@ class LinuxCnc(LinuxCncControl):
         self.link = link
         #: mm per machine unit (:meth:`open` reads it from LinuxCNC).
         self.mm_per_unit = 1.0
+        #: The connect password :meth:`open` said hello with (a second session probes with it).
+        self._connect_password: str | None = None
 
     def open(self, connect_password: str, enable_password: str | None) -> None:
         """Say hello; without echo, with a reply to every ``set``; enable control if
@@ -210,6 +257,7 @@ class LinuxCnc(LinuxCncControl):
         check_password(connect_password, "connect password")
         if enable_password is not None:
             check_password(enable_password, "enable password")
+        self._connect_password = connect_password
         reply = self.link.ask(f"hello {connect_password} {CLIENT} {PROTOCOL_VERSION}")
         if reply.upper().startswith("HELLO NAK"):
             raise DeviceError(f"{self.name} refused the connect password (hello: {reply})")
@@ -302,7 +350,15 @@ class LinuxCnc(LinuxCncControl):
 
     # -- commands -----------------------------------------------------------------
     def _set(self, what: str) -> None:
-        reply = self.link.ask(f"set {what}")
+        try:
+            reply = self.link.ask(f"set {what}")
+        except DeviceTimeoutError as error:
+            if not self._still_answers():
+                raise
+            raise DeviceError(
+                f"{error} although linuxcncrsh answers: LinuxCNC's task (milltask) has"
+                " stopped; restart LinuxCNC"
+            ) from error
         head = what.split()[0].upper()
         if reply.upper() == f"SET {head} ACK":
             return
@@ -310,6 +366,27 @@ class LinuxCnc(LinuxCncControl):
         raise DeviceError(
             f"{self.name} refused 'set {what}' ({reply}{'; ' + reason if reason else ''})"
         )
+
+    def _still_answers(self) -> bool:
+        """linuxcncrsh answers a ``get`` in a session of its own (after a ``set`` it did
+        not answer: LinuxCNC whose task, milltask, has stopped; seen with 2.9, its status
+        then stays as it was, and the session that sent the ``set`` waits on it)."""
+        address = getattr(self.link, "address", None)
+        timeout_s = getattr(self.link, "timeout_s", None)
+        if address is None or timeout_s is None or self._connect_password is None:
+            return False
+        host, port = address
+        try:
+            probe = open_linuxcnc(host, port, timeout_s, self._connect_password, None)
+        except XmalignError:
+            return False
+        try:
+            probe.program_state()
+        except XmalignError:
+            return False
+        finally:
+            probe.close()
+        return True
 
     def _error_text(self) -> str:
         """LinuxCNC's last error message, '' when it has none."""

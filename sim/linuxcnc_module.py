@@ -14,7 +14,8 @@ simulated linuxcncrsh serves:
 * ``command()``: ``mode``, ``program_open``, ``auto``, ``abort``, ``mdi``; each
   takes the next serial number, which the status echoes with ``RCS_DONE``
   (``RCS_EXEC`` while a run or an MDI line it started goes on) or ``RCS_ERROR``
-  when the task refused it (its message then on the error channel);
+  when the task refused it (its message then on the error channel); a dead task
+  (``kill_task``) echoes none; ``task_state`` is ``STATE_ESTOP`` in E-stop;
 * ``error_channel().poll()``: ``(OPERATOR_ERROR, text)`` once per message, else None.
 
 ``inpos`` is true when nothing is left to move (not in a feed hold mid-move, as
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import types
+from collections.abc import Callable
 from typing import Any
 
 from sim.linuxcnc_task import HOMED_JOINTS, JOINTS, SimulatedLinuxcnc
@@ -105,7 +107,7 @@ def simulated_module(linuxcnc: SimulatedLinuxcnc) -> types.ModuleType:
             self.current_vel = linuxcnc.cnc.speed_mm_s()
             self.interp_state = INTERP[linuxcnc.program_status]
             self.paused = linuxcnc.program_status == "paused"
-            self.task_state = CONSTANTS["STATE_ON"]
+            self.task_state = CONSTANTS["STATE_ESTOP" if linuxcnc.estop else "STATE_ON"]
             self.homed = tuple(int(j < HOMED_JOINTS) for j in range(MAX_JOINTS))
             self.joint = tuple({"fault": 0, "homed": self.homed[j]} for j in range(MAX_JOINTS))
             self.joints = JOINTS
@@ -116,16 +118,20 @@ def simulated_module(linuxcnc: SimulatedLinuxcnc) -> types.ModuleType:
     class Command:
         serial = 0
 
-        def _take(self, took: bool, starts: bool = False) -> None:
-            self.serial = echo.serial = next(echo.serials)
+        def _take(self, action: Callable[[], bool], starts: bool = False) -> None:
+            self.serial = next(echo.serials)
+            if not linuxcnc.task_alive:
+                return  # a dead task receives nothing: the status never echoes it
+            took = action()
+            echo.serial = self.serial
             echo.state = CONSTANTS["RCS_DONE" if took else "RCS_ERROR"]
             echo.started = starts
 
         def mode(self, mode: int) -> None:
-            self._take(linuxcnc.set_mode(MODES.get(mode, str(mode))))
+            self._take(lambda: linuxcnc.set_mode(MODES.get(mode, str(mode))))
 
         def program_open(self, path: str) -> None:
-            self._take(linuxcnc.open(path))
+            self._take(lambda: linuxcnc.open(path))
 
         def auto(self, code: int, line: int = 0) -> None:
             action = {
@@ -133,13 +139,13 @@ def simulated_module(linuxcnc: SimulatedLinuxcnc) -> types.ModuleType:
                 CONSTANTS["AUTO_PAUSE"]: linuxcnc.pause,
                 CONSTANTS["AUTO_RESUME"]: linuxcnc.resume,
             }[code]
-            self._take(action(), starts=code == CONSTANTS["AUTO_RUN"])
+            self._take(action, starts=code == CONSTANTS["AUTO_RUN"])
 
         def abort(self) -> None:
-            self._take(linuxcnc.abort())
+            self._take(linuxcnc.abort)
 
         def mdi(self, line: str) -> None:
-            self._take(linuxcnc.mdi(line), starts=True)
+            self._take(lambda: linuxcnc.mdi(line), starts=True)
 
     class ErrorChannel:
         def poll(self) -> tuple[int, str] | None:

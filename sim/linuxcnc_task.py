@@ -4,9 +4,14 @@
 :class:`~sim.cnc.SimulatedCnc`: a mode (manual, auto, MDI), the open program,
 a program run (LinuxCNC dialect) with M0 pausing it until a resume, a feed
 hold (the simulated machine stops where it is at once and goes on to the same
-target on a resume), an abort, one MDI line at a time, and LinuxCNC's error
-slot (the last message, read once). The machine is always out of E-stop, on
-and homed (joints 0 to 2 of 6).
+target on a resume; a hold that comes in a move's final deceleration stops it
+at the move's end, as LinuxCNC 2.9's does: before a programmed stop, one resume
+then leaves the program paused at that stop), an abort, one MDI line at a time,
+and LinuxCNC's error slot (the last message, read once). The machine starts out
+of E-stop, on and homed (joints 0 to 2 of 6); :meth:`SimulatedLinuxcnc.press_estop`
+ends the program and refuses every command from then on;
+after :meth:`~SimulatedLinuxcnc.kill_task` (milltask dead) the status stays as it
+was and no command is taken, as LinuxCNC 2.9's.
 
 Two interfaces serve it, as LinuxCNC serves its task: the remote shell
 (:class:`sim.servers.linuxcncrsh.LinuxcncrshServer`) and the Python module
@@ -30,7 +35,7 @@ from typing import Literal
 import numpy as np
 
 from sim.clock import Follower, LockstepClock
-from sim.cnc import SimulatedCnc, read_program
+from sim.cnc import DEFAULT_ACCELERATION_MM_S2, SimulatedCnc, read_program
 from sim.cnc import _Dwell as Dwell
 from sim.cnc import _End as End
 from sim.cnc import _Move as Move
@@ -45,6 +50,8 @@ JOINTS = 6
 HOMED_JOINTS = 3
 #: Machine units per mm of each [TRAJ] LINEAR_UNITS the simulated LinuxCNC can have.
 UNITS_PER_MM = {"mm": 1.0, "inch": 1.0 / 25.4}
+#: How often a move that brakes to its end after a hold is checked, s.
+COAST_STEP_S = 0.005
 _UNITS_WORD = re.compile(r"(?i)\bG\s*0*(20|21)(?![\d.])")
 _LENGTH_WORD = re.compile(r"(?i)\b([XYZF])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
@@ -58,9 +65,16 @@ class _Program:
     at the current virtual time).
     """
 
-    def __init__(self, cnc: SimulatedCnc, steps: list, lockstep: LockstepClock | None) -> None:
+    def __init__(
+        self,
+        cnc: SimulatedCnc,
+        steps: list,
+        lockstep: LockstepClock | None,
+        acceleration_mm_s2: float,
+    ) -> None:
         self.cnc = cnc
         self.steps = steps
+        self.acceleration_mm_s2 = acceleration_mm_s2
         self.state = "running"
         self.lockstep = lockstep
         self._wake = threading.Condition()
@@ -144,10 +158,28 @@ class _Program:
                 return
             if self._abort:
                 return
-            self.cnc.stop()  # feed hold
+            if self._braking(target_mm):
+                self._coast()  # LinuxCNC: a hold in the final deceleration stops at the end
+            else:
+                self.cnc.stop()  # feed hold
             self.held_mid_move = True
             self._paused()
             self.held_mid_move = False
+
+    def _braking(self, target_mm: np.ndarray) -> bool:
+        """The machine is in its final deceleration to ``target_mm`` (it cannot stop sooner)."""
+        speed = self.cnc.speed_mm_s()
+        left_mm = float(np.linalg.norm(target_mm - self.cnc.position_mm()))
+        return left_mm <= speed * speed / (2.0 * self.acceleration_mm_s2) * (1 + 1e-6) + 1e-9
+
+    def _coast(self) -> None:
+        """Let the move end (it brakes to its target) unless an abort comes."""
+        while not self.cnc.is_standstill() and not self._abort:
+            if self.lockstep is not None:
+                self.lockstep.sleep(COAST_STEP_S)
+                continue
+            with self._wake:
+                self._wake.wait_for(lambda: self._abort, COAST_STEP_S)
 
 
 class SimulatedLinuxcnc:
@@ -174,11 +206,23 @@ class SimulatedLinuxcnc:
         self.error: str | None = None
         #: False once shut down (:meth:`shut_down`): its interfaces then fail as LinuxCNC's do.
         self.running = True
+        #: E-stop pressed (:meth:`press_estop`); the machine is on while not.
+        self.estop = False
+        self.acceleration_mm_s2 = machine.cnc.acceleration_mm_s2 or DEFAULT_ACCELERATION_MM_S2
+        #: The status its task last wrote, once the task is dead (:meth:`kill_task`).
+        self._last_status: tuple[str, np.ndarray, bool] | None = None
 
     # -- status -------------------------------------------------------------------
     @property
     def program_status(self) -> Literal["idle", "running", "paused"]:
+        if self._last_status is not None:
+            return self._last_status[0]  # type: ignore[return-value]
         return "idle" if self.program is None else self.program.state  # type: ignore[return-value]
+
+    @property
+    def task_alive(self) -> bool:
+        """False once its task is dead (:meth:`kill_task`): no command is taken."""
+        return self._last_status is None
 
     @property
     def busy(self) -> bool:
@@ -186,6 +230,8 @@ class SimulatedLinuxcnc:
 
     def position_mm(self) -> np.ndarray:
         """Actual and commanded position alike (the simulated drives follow exactly), mm (3,)."""
+        if self._last_status is not None:
+            return self._last_status[1].copy()
         return self.cnc.position_mm()
 
     @property
@@ -200,6 +246,8 @@ class SimulatedLinuxcnc:
     @property
     def in_position(self) -> bool:
         """As LinuxCNC's ``inpos``: nothing left to move (false in a feed hold mid-move)."""
+        if self._last_status is not None:
+            return self._last_status[2]
         held = self.program is not None and self.program.held_mid_move
         return self.cnc.is_standstill() and not held
 
@@ -214,6 +262,8 @@ class SimulatedLinuxcnc:
 
     # -- commands -----------------------------------------------------------------
     def set_mode(self, mode: str) -> bool:
+        if self.estop:
+            return self._refuse("can't do that in E-stop")
         if mode not in ("manual", "auto", "mdi"):
             return self._refuse(f"unknown mode {mode}")
         if self.busy:
@@ -234,6 +284,8 @@ class SimulatedLinuxcnc:
     def run(self) -> bool:
         """Run the open program (or the last one asked for, as LinuxCNC reopens it)."""
         path = self.opened or self._last_opened
+        if self.estop:
+            return self._refuse("can't do that in E-stop")
         if path is None or self.busy or self.mode != "auto":
             return self._refuse("can't run: no program open, a program runs, or not in auto mode")
         try:
@@ -244,6 +296,8 @@ class SimulatedLinuxcnc:
         return self._start(text, f"file <{path}>")
 
     def mdi(self, line: str) -> bool:
+        if self.estop:
+            return self._refuse("can't do that in E-stop")
         if self.busy or self.mode != "mdi":
             return self._refuse("can't execute MDI: a program runs, or not in MDI mode")
         return self._start(f"G21 G90\n{self._mdi_in_mm(line)}\nM2\n", "MDI command")
@@ -260,10 +314,24 @@ class SimulatedLinuxcnc:
     def pause(self) -> bool:
         return self._to_program("hold")
 
+    def press_estop(self) -> None:
+        """E-stop (halcmd, a button): the program is aborted, the machine off."""
+        self.estop = True
+        if self.program is not None:
+            self.program.abort()
+
+    def kill_task(self) -> None:
+        """Its task dies: the status stays as it was, no command is taken any more."""
+        self._last_status = (self.program_status, self.position_mm(), self.in_position)
+        if self.program is not None:
+            self.program.abort()
+
     def resume(self) -> bool:
         return self._to_program("resume")
 
     def abort(self) -> bool:
+        if self.estop:
+            return self._refuse("can't do that in E-stop")
         if self.program is not None:
             self.program.abort()
         return True
@@ -274,6 +342,8 @@ class SimulatedLinuxcnc:
         self.running = False
 
     def _to_program(self, action: Literal["hold", "resume"]) -> bool:
+        if self.estop:
+            return self._refuse("can't do that in E-stop")
         if self.program is None:
             return self._refuse(f"no program to {action}")
         getattr(self.program, action)()
@@ -288,6 +358,6 @@ class SimulatedLinuxcnc:
             self.error = f"Unable to run {what}: {error}"
             return True
         self.error = None
-        self.program = _Program(self.cnc, steps, self.lockstep)
+        self.program = _Program(self.cnc, steps, self.lockstep, self.acceleration_mm_s2)
         self.program.start()
         return True

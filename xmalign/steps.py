@@ -68,6 +68,7 @@ from xmalign.calibration import (
     open_run_output,
     step_through,
 )
+from xmalign.calibration.controller_lock import ControllerLock, new_run_id, run_id_comment
 from xmalign.comp import Compensation, compensate
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
@@ -708,19 +709,28 @@ def controlled_run_step(
     """:func:`run_step` with xmalign running its program on a LinuxCNC: the program written
     for the plan (:func:`write_controller_program`), then started, held and resumed
     (:func:`controlled_drive`). ``xmalign run --config`` and the dry run call this."""
-    write_controller_program(plan, machine, "linuxcnc", files.program)
-    drive = controlled_drive(
-        controller, files.cnc_program_path, tell, machine, files.tolerance_mm, timeout_s
-    )
-    return run_step(plan, devices, output, drive)
+    run_id = new_run_id()
+    with ControllerLock(files.program, run_id, output.writer.path):  # one run per controller
+        write_controller_program(plan, machine, "linuxcnc", files.program, run_id)
+        drive = controlled_drive(
+            controller, files.cnc_program_path, tell, machine, files.tolerance_mm, timeout_s
+        )
+        return run_step(plan, devices, output, drive)
 
 
-def write_controller_program(plan: Plan, machine: Machine, dialect: str, path: Path) -> str:
+def write_controller_program(
+    plan: Plan, machine: Machine, dialect: str, path: Path, run_id: str
+) -> str:
     """Write the plan's program for a controller xmalign runs it on: a programmed stop at
-    each point instead of the dwell (xmalign resumes it once the point is captured);
-    readable by all (the controller may run as another user); replaced on every run (it
-    is made from the plan), but never a file xmalign did not write (InputError naming it)."""
-    program = write_program(plan, machine, make_dialect(dialect, machine, "run", True))
+    each point instead of the dwell (xmalign resumes it once the point is captured), the
+    run's id in a comment after xmalign's mark; readable by all (the controller may run
+    as another user); replaced on every run (it is made from the plan), but never a file
+    xmalign did not write (InputError naming it)."""
+    language = make_dialect(dialect, machine, "run", True)
+    lines = write_program(plan, machine, language).splitlines(keepends=True)
+    mark = next(number for number, line in enumerate(lines) if PROGRAM_MARK in line)
+    lines.insert(mark + 1, language.comment(run_id_comment(run_id)) + "\n")
+    program = "".join(lines)
     refuse_replacing_a_foreign_program(path)
     atomic_write_files({path: program.encode("utf-8")})
     path.chmod(0o644)

@@ -10,8 +10,9 @@ module ``linuxcnc`` serves too): ``set mode auto`` + ``set open``/``set run``
 run a program file (LinuxCNC dialect); positions in the machine's units
 (``get user_linear_units``: MM or INCH); ``set mode mdi`` + ``set mdi LINE`` runs
 one line; ``M0`` pauses a program until ``set resume``; ``set pause`` is a feed
-hold; ``set abort`` ends it. As linuxcncrsh, ``set open`` is acknowledged when
-LinuxCNC received it; a file it cannot open shows in ``get error``. Each
+hold; ``set abort`` ends it; in E-stop ``get estop`` says ON and every command
+is refused; with the task dead no ``set`` is answered. As linuxcncrsh, ``set
+open`` is acknowledged when LinuxCNC received it; a file it cannot open shows in ``get error``. Each
 session is served in a thread of its own; unlike LinuxCNC 2.9, concurrent
 sessions do not disturb each other.
 
@@ -116,6 +117,8 @@ class LinuxcncrshServer:
         if command == "get":
             value = self._get(name)
             return f"GET {name.upper()} NAK\r\n\r\n" if value is None else f"{value}\r\n"
+        if name not in ("echo", "verbose", "enable") and not self.linuxcnc.task_alive:
+            return ""  # a dead task takes no command: linuxcncrsh never answers (2.9)
         ok = self._set(name, args, session)
         if ok and not session["verbose"]:
             return ""
@@ -135,8 +138,8 @@ class LinuxcncrshServer:
             "user_linear_units": f"USER_LINEAR_UNITS {linuxcnc.linear_units.upper()}",
             "program_status": f"PROGRAM_STATUS {linuxcnc.program_status.upper()}",
             "program": f"PROGRAM {linuxcnc.opened or 'NONE'}",
-            "estop": "ESTOP OFF",
-            "machine": "MACHINE ON",
+            "estop": f"ESTOP {'ON' if linuxcnc.estop else 'OFF'}",
+            "machine": f"MACHINE {'OFF' if linuxcnc.estop else 'ON'}",
             "joint_homed": f"JOINT_HOMED {' '.join(homed)}",
             "joint_fault": f"JOINT_FAULT {' '.join(['OK'] * JOINTS)}",
         }

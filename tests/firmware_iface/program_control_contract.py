@@ -5,11 +5,21 @@ from the top), reports it running, paused at a programmed stop (M0) with the
 machine at rest, holds the feed mid-move (the machine stops on its path and
 stays), resumes, stops it (aborted, at rest, a new start begins at the top),
 reports the program it has open, and refuses a program it cannot open with the
-controller's own message. The checks take a ``control_stand`` fixture
-(:class:`ControlStand`): test_program_control_contract.py serves the simulated
-LinuxCNC over linuxcncrsh and through the simulated Python module;
-tests/linuxcnc/test_real_program_control_contract.py a real headless LinuxCNC over
-linuxcncrsh and through LinuxCNC's own module.
+controller's own message. And what LinuxCNC 2.9 does that xmalign must cope with
+(seen on a headless LinuxCNC, tests/linuxcnc): a feed hold in the braking
+distance before a programmed stop stops the machine at that stop, and one
+resume leaves the program paused there (a second goes on); an E-stop ends the
+program and is named by the readiness check; a request interrupted before its
+reply (Ctrl-C, SIGTERM) does not hand its reply to the next; after its task
+dies, the controller keeps reporting its last status and a command is refused
+naming the task. The machines brake at 100 mm/s^2 (2 mm from 20 mm/s).
+
+The checks take a ``control_stand`` fixture (the E-stop and the dead task a
+``dying_stand``, a controller they may leave broken), a :class:`ControlStand`:
+test_program_control_contract.py serves the simulated LinuxCNC over linuxcncrsh
+and through the simulated Python module; tests/linuxcnc/test_real_program_control_contract.py
+a real headless LinuxCNC over linuxcncrsh (and test_real_linuxcnc_module.py through
+LinuxCNC's own module).
 
 The program is LinuxCNC's dialect (every ProgramControl today is a LinuxCNC);
 its points lie in the travel of both the simulated machines and the headless
@@ -20,13 +30,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from xmalign.errors import DeviceError
+from firmware_iface.linuxcncrsh import LinuxcncrshLink
+from xmalign.errors import DeviceError, DriveFaultError
 from xmalign.roles import ProgramControl
 
 #: To the first stop fast, then 190 mm at 20 mm/s (9.5 s) to the second.
@@ -34,6 +45,17 @@ PROGRAM = "G21 G90 G94\nG53 G1 X10 Y20 Z-30 F60000\nM0\nG53 G1 X200 F1200\nM0\nM
 FIRST_STOP_MM = [10.0, 20.0, -30.0]
 SECOND_STOP_MM = [200.0, 20.0, -30.0]
 WAIT_S = 30.0
+#: Stops 20 mm apart approached at 20 mm/s: a machine braking at 100 mm/s^2 needs 2 mm.
+NEAR_STOPS_PROGRAM = (
+    "G21 G90 G94\nG53 G1 X10 Y20 Z-30 F60000\nM0\nG53 G1 X30 F1200\nM0\nG53 G1 X60 F1200\nM0\nM2\n"
+)
+#: The contract's machines brake at this rate, mm/s^2 (the program's approach: 2 mm).
+ACCELERATION_MM_S2 = 100.0
+
+
+def _call_then_interrupt(call: Callable[[], object]) -> None:
+    call()
+    raise KeyboardInterrupt
 
 
 @dataclass
@@ -43,6 +65,30 @@ class ControlStand:
     control: ProgramControl
     #: A folder the controller reads programs from (as this process writes them).
     folder: Path
+    #: E-stop pressed; the controller's task killed (None: not here). A stand either
+    #: happened to is not used again (``dying_stand``).
+    press_estop: Callable[[], None] | None = None
+    kill_task: Callable[[], None] | None = None
+    #: Runs a command with a Ctrl-C arriving after its request went out (before any reply).
+    interrupted: Callable[[Callable[[], object]], None] = field(default=_call_then_interrupt)
+
+
+def interrupt_the_reply(control: ProgramControl) -> Callable[[Callable[[], object]], None]:
+    """Over linuxcncrsh: a KeyboardInterrupt where the reply is read (it stays unread)."""
+
+    def interrupted(call: Callable[[], object]) -> None:
+        link = getattr(control, "link", None)
+        assert isinstance(link, LinuxcncrshLink)
+        read_line = link._read_line
+
+        def once() -> str:
+            link._read_line = read_line  # type: ignore[method-assign]
+            raise KeyboardInterrupt
+
+        link._read_line = once  # type: ignore[method-assign]
+        call()
+
+    return interrupted
 
 
 def _wait(condition: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
@@ -52,16 +98,16 @@ def _wait(condition: Callable[[], bool], timeout_s: float = WAIT_S) -> None:
         time.sleep(0.01)
 
 
-def _program(stand: ControlStand) -> str:
+def _program(stand: ControlStand, text: str = PROGRAM) -> str:
     path = stand.folder / "contract.ngc"
-    path.write_text(PROGRAM, encoding="utf-8")
+    path.write_text(text, encoding="utf-8")
     path.chmod(0o644)  # the controller may run as another user
     return str(path)
 
 
-def _at_first_stop(stand: ControlStand) -> str:
+def _at_first_stop(stand: ControlStand, text: str = PROGRAM) -> str:
     control = stand.control
-    program = _program(stand)
+    program = _program(stand, text)
     control.start_program(program)
     assert control.program_state() in ("running", "paused")
     _wait(lambda: control.program_state() == "paused" and control.is_standstill())
@@ -148,3 +194,79 @@ def test_a_program_it_cannot_open_is_refused_with_its_message(
         control.start_program(missing)
     assert missing in str(caught.value) and "\n" not in str(caught.value)
     assert control.program_state() == "idle"
+
+
+def _paused_at_rest(control: ProgramControl) -> bool:
+    return control.program_state() == "paused" and control.is_standstill()
+
+
+def test_a_feed_hold_in_the_braking_distance_stops_at_the_stop_and_needs_two_resumes(
+    control_stand: ControlStand,
+) -> None:
+    """LinuxCNC 2.9: a hold 1.5 mm before an M0 (inside the 2 mm the machine needs to
+    stop) stops it at the M0; the first resume leaves the program paused there."""
+    control = control_stand.control
+    _at_first_stop(control_stand, NEAR_STOPS_PROGRAM)
+    control.resume()
+    _wait(lambda: control.position_mm()[0] >= 28.5)
+    control.hold()
+    _wait(lambda: _paused_at_rest(control))
+    _settles_at(control, [30.0, 20.0, -30.0])
+    control.resume()
+    time.sleep(1.0)
+    assert _paused_at_rest(control)
+    assert np.allclose(control.position_mm(), [30.0, 20.0, -30.0], atol=1e-6)
+    control.resume()
+    _wait(lambda: control.position_mm()[0] > 31.0)
+    control.stop_program()
+    _wait(lambda: control.program_state() == "idle")
+
+
+def test_an_e_stop_ends_the_program_and_the_readiness_check_names_it(
+    dying_stand: ControlStand,
+) -> None:
+    assert dying_stand.press_estop is not None
+    control = dying_stand.control
+    _at_first_stop(dying_stand)
+    _on_the_way(dying_stand)
+    dying_stand.press_estop()
+    _wait(lambda: control.program_state() == "idle", 5.0)
+    with pytest.raises(DriveFaultError, match="E-stop is pressed") as caught:
+        control.check_ready()
+    assert "\n" not in str(caught.value)
+
+
+def test_a_request_interrupted_before_its_reply_does_not_answer_the_next(
+    control_stand: ControlStand,
+) -> None:
+    """SIGTERM while a resume waits for its reply: the feed hold sent next is taken."""
+    control = control_stand.control
+    _at_first_stop(control_stand)
+    with pytest.raises(KeyboardInterrupt):
+        control_stand.interrupted(control.resume)
+    _wait(lambda: control.position_mm()[0] > 20.0)
+    control.hold()
+    _wait(lambda: _paused_at_rest(control))
+    held = _stays_put(control_stand)
+    assert held[0] < SECOND_STOP_MM[0]
+    control.stop_program()
+    _wait(lambda: control.program_state() == "idle")
+
+
+def test_a_dead_task_keeps_its_last_status_and_a_command_names_it(
+    dying_stand: ControlStand,
+) -> None:
+    """LinuxCNC 2.9 after milltask dies: RUNNING and the position as they were, and no
+    command taken; the driver names the task rather than waiting for ever."""
+    assert dying_stand.kill_task is not None
+    control = dying_stand.control
+    _at_first_stop(dying_stand)
+    _on_the_way(dying_stand)
+    dying_stand.kill_task()
+    time.sleep(0.5)
+    at = control.position_mm()
+    time.sleep(0.5)
+    assert control.program_state() == "running"
+    assert np.array_equal(control.position_mm(), at)
+    with pytest.raises(DeviceError, match=r"task \(milltask\) has stopped; restart LinuxCNC"):
+        control.hold()

@@ -144,13 +144,30 @@ def test_a_refusal_carries_linuxcncs_message(cnc: LocalLinuxCnc) -> None:
         cnc.start_program("/nowhere.ngc")
 
 
-def test_a_command_linuxcnc_does_not_take_in_time_is_a_timeout(linuxcnc: SimulatedLinuxcnc) -> None:
+def test_a_command_a_dead_task_never_receives_is_named(linuxcnc: SimulatedLinuxcnc) -> None:
+    """After milltask dies the status stays as it was and no command is received (2.9)."""
+    linuxcnc.kill_task()
+    with pytest.raises(DeviceError) as caught:
+        LocalLinuxCnc(simulated_module(linuxcnc), timeout_s=0.2).stop_program()
+    assert str(caught.value) == (
+        "LinuxCNC on this computer (simulated LinuxCNC) did not receive 'abort()' within 0.2 s"
+        " although its status answers: LinuxCNC's task (milltask) has stopped; restart LinuxCNC"
+    )
+
+
+def test_a_command_received_but_not_completed_in_time_is_a_timeout(
+    linuxcnc: SimulatedLinuxcnc,
+) -> None:
     module = simulated_module(linuxcnc)
-    # sent (the next serial number), never echoed: a LinuxCNC whose task hangs
-    deaf = type("Deaf", (module.command,), {"_take": lambda self, *_: setattr(self, "serial", 99)})
-    module.command = deaf
+    stat = module.stat
+
+    def poll(self: object) -> None:  # received (echoed), never done: the task hangs on it
+        stat.poll(self)
+        self.state = module.RCS_EXEC  # type: ignore[attr-defined]
+
+    module.stat = type("Busy", (stat,), {"poll": poll})
     with pytest.raises(
-        DeviceTimeoutError, match=r"did not complete 'abort\(\)' within 0.2 s \(not received\)"
+        DeviceTimeoutError, match=r"did not complete 'abort\(\)' within 0.2 s \(received\)"
     ):
         LocalLinuxCnc(module, timeout_s=0.2).stop_program()
 
@@ -179,8 +196,8 @@ class _Stat:
 @pytest.mark.parametrize(
     ("fields", "fragment"),
     [
-        ({"task_state": 1}, "E-stop or off"),
-        ({"task_state": 3}, "E-stop or off"),
+        ({"task_state": 1}, "E-stop is pressed"),
+        ({"task_state": 3}, "the machine is off"),
         ({"homed": (1, 0, 1) + (0,) * 13}, r"not every joint is homed \(YES NO YES\)"),
         ({"joint": ({"fault": 0}, {"fault": 1}, {"fault": 0})}, r"joint fault \(OK FAULT OK\)"),
     ],

@@ -21,6 +21,8 @@ from scripted import ExpectedRshLines
 from firmware_iface.config import load_units_config
 from firmware_iface.linuxcncrsh import LinuxCnc, LinuxcncrshLink, masked, open_linuxcnc
 from sim.clock import SimClock
+from sim.cnc import SimulatedCnc
+from sim.servers.linuxcncrsh import LinuxcncrshServer
 from xmalign.errors import (
     DeviceError,
     DeviceTimeoutError,
@@ -28,7 +30,8 @@ from xmalign.errors import (
     InputError,
     TransportError,
 )
-from xmalign.roles import ProgramControl
+from xmalign.machine import Machine
+from xmalign.roles import ProgramControl, WallClock
 
 HELLO = [
     ("hello EMC xmalign 1.0", "HELLO ACK EMCNETSVR 1.1"),
@@ -187,8 +190,8 @@ def test_a_program_that_does_not_start_is_one_error() -> None:
 @pytest.mark.parametrize(
     ("replies", "fragment"),
     [
-        (["ESTOP ON"], "E-stop or off"),
-        (["ESTOP OFF", "MACHINE OFF"], "E-stop or off"),
+        (["ESTOP ON"], "E-stop is pressed; release it"),
+        (["ESTOP OFF", "MACHINE OFF"], "the machine is off; switch it on"),
         (["ESTOP OFF", "MACHINE ON", "JOINT_HOMED YES NO YES NO NO NO"], "not every joint"),
         (
             [
@@ -284,8 +287,9 @@ def test_over_tcp_with_linuxcncrsh_line_ends_and_passwords_never_logged(
     assert np.array_equal(cnc.position_mm(), [1.5, 2.5, -3.5])
     with pytest.raises(DeviceTimeoutError, match="did not answer 'get program_status'"):
         cnc.program_state()
+    assert np.array_equal(cnc.position_mm(), [1.5, 2.5, -3.5])  # the session goes on
     with pytest.raises(TransportError, match="closed"):
-        cnc.position_mm()
+        cnc.commanded_mm()  # not in the table: the server hangs up
     log = caplog.text
     assert "pw1" not in log and "pw2" not in log
     assert "> 'hello **** xmalign 1.0'" in log and "> 'set enable ****'" in log
@@ -400,3 +404,47 @@ def test_the_documented_example_loads_and_is_in_the_docs(
     assert rsh.passwords() == ("c0nnect", "3nable")
     docs = (root / "docs" / "hardware.md").read_text(encoding="utf-8")
     assert example.read_text(encoding="utf-8") in docs, "docs/hardware.md lost the example"
+
+
+def test_a_reply_left_by_an_interrupted_request_is_not_taken_for_the_next(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """SIGTERM while 'set resume' waits for its reply: the next request, 'set pause', gets
+    its own reply, not 'SET RESUME ACK' (seen with 2.9 before replies were matched)."""
+    server.answers.update({"set resume": b"SET RESUME ACK\n\r", "set pause": b"SET PAUSE ACK\n\r"})
+    cnc = open_linuxcnc("127.0.0.1", server.port, 0.5, "pw1", "pw2")
+    link = cnc.link
+    assert isinstance(link, LinuxcncrshLink)
+    read_line = link._read_line
+
+    def interrupted() -> str:
+        monkeypatch.setattr(link, "_read_line", read_line)
+        raise KeyboardInterrupt  # the signal arrives before the reply is read
+
+    monkeypatch.setattr(link, "_read_line", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cnc.resume()
+    cnc.hold()  # its own reply: SET PAUSE ACK
+    assert np.array_equal(cnc.position_mm(), [1.5, 2.5, -3.5])
+
+
+def test_a_set_without_a_reply_while_gets_are_answered_is_a_stopped_task(
+    reference_machine: Machine,
+) -> None:
+    """After milltask dies, linuxcncrsh answers 'get' from the status it last had and no
+    'set' (seen with LinuxCNC 2.9; the simulated linuxcncrsh does the same)."""
+    server = LinuxcncrshServer(SimulatedCnc(reference_machine, WallClock()), reference_machine)
+    server.start()
+    cnc = open_linuxcnc("127.0.0.1", server.port, 0.2)
+    try:
+        server.linuxcnc.kill_task()
+        with pytest.raises(DeviceError) as caught:
+            cnc.hold()
+    finally:
+        cnc.close()
+        server.stop()
+    assert str(caught.value) == (
+        f"LinuxCNC at 127.0.0.1:{server.port} did not answer 'set pause' within 0.2 s although"
+        " linuxcncrsh answers: LinuxCNC's task (milltask) has stopped; restart LinuxCNC"
+    )
+    assert not isinstance(caught.value, TransportError)

@@ -49,6 +49,7 @@ from tests.firmware_iface.program_control_contract import (  # noqa: F401 (run h
     ControlStand,
     test_a_feed_hold_stops_on_the_path_and_a_resume_goes_on,
     test_a_program_it_cannot_open_is_refused_with_its_message,
+    test_a_request_interrupted_before_its_reply_does_not_answer_the_next,
     test_a_start_runs_the_program_to_its_stop_at_rest,
     test_a_stop_ends_the_program_mid_move_and_a_start_begins_at_the_top,
     test_is_a_program_control,

@@ -36,6 +36,7 @@ import numpy as np
 import pytest
 from cli_helpers import Process, free_port
 from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
+from test_real_faults import kill_milltask, press_estop
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, cut_plan
@@ -269,24 +270,41 @@ def test_unattended_run_on_linuxcnc_with_the_beam_lost_and_found(shop: Shop) -> 
     print(*(line for line in said.splitlines() if "machine time" in line or "beam" in line))
 
 
-def test_a_pulled_cable_stops_the_run_and_resume_completes_it(shop: Shop) -> None:
+def _machine_time_s(said: str) -> tuple[float, float]:
+    """The run's machine time (without the stops for the units) and the G-code's estimate, s."""
+    found = re.search(r"machine time ([\d.]+) s without .* \(G-code estimate ([\d.]+) s\)", said)
+    assert found is not None, said
+    return float(found[1]), float(found[2])
+
+
+def test_a_pulled_cable_stops_the_run_and_resume_completes_it_at_speed(shop: Shop) -> None:
+    """The cable pulled once the first line is recorded: the error says --resume; the
+    resumed run passes the recorded line at once (no feed hold, no beam searched for,
+    though the units are set for another line) and takes the G-code's time."""
     out = shop.workdir / "m.csv"
+    first_line = len(list(capture_sequence(read_plan(shop.workdir / "plan.json").lines[0])))
     run = shop.run()
-    _wait_for_rows(run, out, 4)
+    _wait_for_rows(run, out, first_line + 1)
     shop.cable.pull()
     code = run.finish(timeout_s=60)
     assert code == 2, run.said()
     (line,) = [text for text in run.stderr.splitlines() if text.strip()]
     assert line.startswith("xmalign: error: ") and "LinuxCNC at 127.0.0.1" in line, line
     assert "could not be reached" in line and "points kept in" in line, line
+    assert "--resume" in line, line
     kept = load_measurements(out, torn_ok=True).rows
     shop.cable.plug()
     resumed = shop.run("--resume")
     assert resumed.finish(timeout_s=300) == 0, resumed.said()
-    assert "aborted, started again from the top" in resumed.said()
+    said = resumed.said()
+    assert "aborted, started again from the top" in said
+    assert "feed held" not in said and "searched for" not in said, said
     assert _keys(out) == _expected_keys(shop.workdir / "plan.json")
     again = load_measurements(out).rows[: len(kept)]
     assert all(np.array_equal(a.channels, b.channels) for a, b in zip(again, kept, strict=True))
+    machine_s, estimate_s = _machine_time_s(said)
+    print(f"resumed: machine time {machine_s:.1f} s, G-code estimate {estimate_s:.1f} s")
+    assert machine_s < 1.2 * estimate_s, said
 
 
 def test_a_program_that_is_not_the_plans_stops_the_run_with_one_line(shop: Shop) -> None:
@@ -334,3 +352,84 @@ def test_an_unattended_calibration_of_all_six_lines(six_line_shop: Shop) -> None
     assert f"{len(expected)} points captured; {len(expected)} points in m.csv" in said
     assert "machine time" in said and "G-code estimate" in said
     print(*(line for line in said.splitlines() if "machine time" in line))
+
+
+def _one_error_line(run: Process) -> str:
+    (line,) = [text for text in run.stderr.splitlines() if text.strip()]
+    assert line.startswith("xmalign: error: "), line
+    return line
+
+
+def test_an_e_stop_during_the_run_is_named_with_the_points_kept_and_the_way_on(
+    shop: Shop,
+) -> None:
+    """halcmd opens the E-stop chain mid-run: one line naming the E-stop, where, the
+    points kept and --resume; no 'set abort' (LinuxCNC has ended the program)."""
+    out = shop.workdir / "m.csv"
+    run = shop.run()
+    _wait_for_rows(run, out, 3)
+    press_estop()
+    assert run.finish(timeout_s=60) == 2, run.said()
+    line = _one_error_line(run)
+    assert "E-stop is pressed; release it, switch the machine on and home it" in line, line
+    assert "the program ended on the way to " in line, line
+    assert "go on with --resume when the machine is back" in line, line
+    assert f"{len(load_measurements(out, torn_ok=True).rows)} points kept in m.csv" in line
+    assert "set abort" not in (shop.workdir / "wire.log").read_text()
+
+
+def test_a_killed_task_is_named_within_seconds(shop: Shop) -> None:
+    """milltask killed mid-run: linuxcncrsh goes on saying RUNNING and takes no command;
+    the run ends within seconds with one line naming the task."""
+    out = shop.workdir / "m.csv"
+    run = shop.run()
+    _wait_for_rows(run, out, 3)
+    killed = time.monotonic()
+    kill_milltask()
+    assert run.finish(timeout_s=120) == 2, run.said()
+    took_s = time.monotonic() - killed
+    line = _one_error_line(run)
+    assert "milltask" in line and "points kept in m.csv" in line, line
+    print(f"killed task named after {took_s:.1f} s: {line}")
+    assert took_s < 30.0, line
+
+
+def _cross_the_beam_while_braking_for_a_point(shop: Shop, points: list[np.ndarray]) -> float:
+    """Cross the beam 0.5 s once the machine, approaching a point, is 1-4 mm from it: at
+    20 m/min and 1000 mm/s^2 LinuxCNC is braking for that point's stop, and xmalign's
+    feed hold comes in the braking distance. Returns that distance, mm."""
+    watch = open_linuxcnc("127.0.0.1", shop.cable.target_port, 5.0, enable_password=None)
+    try:
+        before = np.inf
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            at = watch.position_mm()
+            left = min(float(np.linalg.norm(at - point)) for point in points)
+            if 1.0 < left < 4.0 and left < before:
+                shop.block_beam(0.5)
+                return left
+            before = left
+        raise AssertionError("the machine never approached a point")
+    finally:
+        watch.close()
+
+
+def test_a_beam_lost_as_the_machine_brakes_for_a_point_costs_no_wait(shop: Shop) -> None:
+    """LinuxCNC 2.9 takes a feed hold in the braking distance before an M0 at the M0, and
+    one resume leaves the program paused there: the run captures the point there, or
+    resumes again, and ends without waiting out timeouts.machine_s (120 s here)."""
+    out = shop.workdir / "m.csv"
+    line = read_plan(shop.workdir / "plan.json").lines[0]
+    points = [point.point_mm for point in capture_sequence(line)]
+    run = shop.run()
+    _wait_for_rows(run, out, 2)
+    started = time.monotonic()
+    left_mm = _cross_the_beam_while_braking_for_a_point(shop, points)
+    assert run.finish(timeout_s=100) == 0, run.said()
+    said = run.said()
+    ended_s = time.monotonic() - started
+    print(f"beam crossed {left_mm:.1f} mm before a point; run ended {ended_s:.1f} s later")
+    assert _keys(out) == _expected_keys(shop.workdir / "plan.json")
+    assert "still waiting" not in said, said
+    assert "beam lost on the way" in said or "found again" in said, said
+    print(*(text for text in said.splitlines() if "beam" in text or "paused" in text))

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from xmalign.calibration import CalibrationRun, ProgramWay, capture_sequence
-from xmalign.errors import DriveFaultError
+from xmalign.errors import DeviceTimeoutError, DriveFaultError
 from xmalign.formats.measurements import LineSetup, MeasurementRow
 from xmalign.formats.plan import Plan, PlanLine
 from xmalign.geometry import Vec, line_frame
@@ -100,6 +100,16 @@ class ScriptedCnc:
     cycle_start_at_s: float = math.inf
     #: After each resume xmalign sends, the status stays the one before for this long, s.
     stale_s: float = 0.0
+    #: The next this many resumes at a stop leave the program paused there (LinuxCNC 2.9
+    #: after a feed hold in the last mm before an M0).
+    swallowed_resumes: int = 0
+    #: From this time (s) the status freezes and no command is taken (a dead task).
+    dead_at_s: float = math.inf
+    #: From this time (s) the machine is in E-stop: the program ended, at rest.
+    estop_at_s: float = math.inf
+    #: xmalign's feed hold takes effect this long after it is sent, s; one that finds the
+    #: program at a stop by then merges with the stop's pause (LinuxCNC 2.9).
+    hold_lag_s: float = 0.0
     stops_reached: int = 0
     _leg: int = 0
     _leg_from: Vec = field(default_factory=lambda: np.zeros(3))
@@ -107,21 +117,27 @@ class ScriptedCnc:
     _held: bool = False
     _release_at_s: float = math.inf
     _stale: tuple[float, ProgramState, Vec] | None = None
+    _hold_on_its_way: bool = False
 
     # -- the role -----------------------------------------------------------------
     def check_ready(self) -> None:
-        pass
+        if self.clock.now() >= self.estop_at_s:
+            raise DriveFaultError("scripted CNC: E-stop is pressed; release it")
 
     def loaded_program(self) -> str | None:
         return self.loaded
 
     def program_state(self) -> ProgramState:
         self.on_read(self)
+        if self._dead():
+            return "running"
         self._advance()
         stale = self._stale_status()
         return stale[1] if stale else self.state
 
     def position_mm(self) -> Vec:
+        if self._dead():
+            return self._along(self.dead_at_s)
         self._advance()
         stale = self._stale_status()
         if stale:
@@ -141,20 +157,29 @@ class ScriptedCnc:
         self._go(self.clock.now())
 
     def hold(self) -> None:
+        self._refuse_when_dead("set pause")
         self.commands.append("hold")
         self._advance()
-        if self.state == "running":
+        if self.state == "running" and self.hold_lag_s > 0:
+            self.operator_hold_at_s = self.clock.now() + self.hold_lag_s
+            self.operator_hold_s = math.inf  # held until resumed
+            self._hold_on_its_way = True
+        elif self.state == "running":
             self._freeze(self.clock.now())
 
     def resume(self) -> None:
         self.commands.append("resume")
         self._advance()
+        if self.state == "paused" and not self._held and self.swallowed_resumes > 0:
+            self.swallowed_resumes -= 1
+            return
         before = (self.clock.now() + self.stale_s, self.state, self.position.copy())
         if self.state == "paused":
             self._continue(self.clock.now())
         self._stale = before if self.stale_s > 0 else None
 
     def stop_program(self) -> None:
+        self._refuse_when_dead("set abort")
         self.commands.append("stop")
         self._advance()
         if self.state == "running":
@@ -188,8 +213,20 @@ class ScriptedCnc:
         self._held = False
         self._go(t_s)
 
+    def _refuse_when_dead(self, request: str) -> None:
+        if self._dead():
+            raise DeviceTimeoutError(f"scripted CNC did not answer '{request}' within 5 s")
+
+    def _dead(self) -> bool:
+        return self.clock.now() >= self.dead_at_s and self.state == "running"
+
     def _advance(self) -> None:
         now = self.clock.now()
+        if now >= self.estop_at_s and self.state != "idle":
+            self.position = (
+                self._along(self.estop_at_s) if self.state == "running" else self.position
+            )
+            self.state = "idle"
         while True:
             if self.state == "running":
                 end_s = self._leg_start_s + LEG_S
@@ -197,7 +234,7 @@ class ScriptedCnc:
                     held_s = max(self.operator_hold_at_s, self._leg_start_s)
                     self._freeze(held_s)
                     self._release_at_s = held_s + self.operator_hold_s
-                    self.operator_hold_at_s = math.inf
+                    self.operator_hold_at_s, self._hold_on_its_way = math.inf, False
                     continue
                 if end_s > now:
                     return
@@ -214,6 +251,8 @@ class ScriptedCnc:
     def _arrive(self, t_s: float) -> None:
         self.position, stop = self.route[self._leg][0].copy(), self.route[self._leg][1]
         if stop:
+            if self._hold_on_its_way:  # xmalign's hold merges with the stop's pause
+                self.operator_hold_at_s, self._hold_on_its_way = math.inf, False
             self.state = "paused"
             self.stops_reached += 1
             self.on_stop(self.stops_reached - 1, t_s)

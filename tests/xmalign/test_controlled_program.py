@@ -26,6 +26,7 @@ from scripted_cnc import (
 
 from xmalign.calibration import ControlledProgram, capture_sequence, control_program
 from xmalign.errors import DeviceError, DriveFaultError, TransportError
+from xmalign.roles import InterferometerReading
 from xmalign.safety import StopSignal
 
 PLAN = two_line_plan()
@@ -308,4 +309,136 @@ def test_the_command_ends_with_one_line_keeping_the_note_and_the_signals_exit_co
     assert capsys.readouterr().err.splitlines() == [
         f"xmalign: {said}stopped: 0 points kept in {out}; go on with --resume; the feed is held"
         " on the controller"
+    ]
+
+
+def test_a_program_left_paused_at_its_stop_after_a_resume_is_resumed_again():
+    """LinuxCNC 2.9 after a feed hold in the last mm before an M0: one resume leaves the
+    program paused at the stop. The run sees it and resumes again, within seconds."""
+    shop = Shop()
+    shop.cnc.on_stop = lambda number, arrived_s: (
+        setattr(shop.cnc, "swallowed_resumes", 1) if number == 2 else None
+    )
+    shop.control()
+    assert shop.keys() == POINTS
+    assert shop.told == [
+        "the program stayed paused at line X run 1 target 2 [150.0, 100.0, -300.0] mm after a"
+        " resume: resumed again"
+    ]
+    assert shop.cnc.commands.count("resume") == STOPS + 1
+    assert shop.run.statistics.program_s < 30.0  # not a wait of timeouts.machine_s
+
+
+def test_a_program_that_never_goes_on_after_resumes_ends_the_run_with_one_line():
+    shop = Shop()
+    shop.cnc.on_stop = lambda number, arrived_s: (
+        setattr(shop.cnc, "swallowed_resumes", 99) if number == 1 else None
+    )
+    with pytest.raises(DeviceError) as caught:
+        shop.control()
+    assert str(caught.value).startswith(
+        "the program stays paused at line X run 1 target 1 [100.0, 100.0, -300.0] mm after 3"
+        " resumes: the controller does not take them (check its messages); go on with --resume"
+    )
+    assert shop.clock.now() < 30.0
+
+
+def test_a_beam_hold_that_reaches_the_stop_captures_the_point_before_any_resume():
+    """The beam is lost in the last moment before X's second stop and the hold arrives
+    when the program already stands there: a resume then would pass the stop uncaptured."""
+    shop = Shop()
+    arrivals: list[float] = []
+    shop.cnc.on_stop = lambda number, arrived_s: arrivals.append(arrived_s)
+    shop.cnc.hold_lag_s = 0.2
+
+    def lose_just_before_the_stop(cnc: ScriptedCnc) -> None:
+        ends_s = cnc._leg_start_s + 0.5
+        now = shop.clock.now()
+        late = cnc.state == "running" and 0.0 < ends_s - now < 0.1
+        if len(arrivals) == 2 and late and not shop.interferometer.lost:
+            shop.interferometer.lost.append((now, now + 0.5))
+
+    shop.cnc.on_read = lose_just_before_the_stop
+    shop.control()
+    assert shop.keys() == POINTS
+    (lost,) = [text for text in shop.told if "beam lost" in text]
+    assert lost.startswith("beam lost on the way to line X run 1 target 2")
+    assert lost.endswith("beam back; held at the point: captured there")
+    assert shop.cnc.commands.count("resume") == STOPS
+
+
+def test_a_dead_task_is_noticed_within_seconds_and_named():
+    """After LinuxCNC's milltask dies, linuxcncrsh keeps saying RUNNING at one position
+    and takes no command."""
+    shop = Shop()
+    shop.cnc.on_stop = lambda number, arrived_s: (
+        setattr(shop.cnc, "dead_at_s", arrived_s + 1.1) if number == 2 else None
+    )
+    with pytest.raises(DeviceError) as caught:
+        shop.control()
+    line = str(caught.value)
+    assert line.startswith(
+        "the controller has shown the program running for 5 s on the way to line X run 1"
+        " target 3 [200.0, 100.0, -300.0] mm with the machine standing at ["
+    )
+    assert "its task has stopped (LinuxCNC: milltask died; restart LinuxCNC)" in line
+    assert line.endswith(
+        "go on with --resume once it runs; the controller could not be reached to stop the"
+        " program (scripted CNC did not answer 'set abort' within 5 s)"
+    )
+    assert shop.clock.now() < 20.0
+    assert shop.keys() == POINTS[:2]
+
+
+@pytest.mark.parametrize("on_the_way", [True, False], ids=["moving", "at-a-stop"])
+def test_an_e_stop_is_named_with_the_way_on_and_no_abort_is_sent(on_the_way):
+    shop = Shop()
+    shop.cnc.on_stop = lambda number, arrived_s: (
+        setattr(shop.cnc, "estop_at_s", arrived_s + (1.1 if on_the_way else 0.3))
+        if number == 2
+        else None
+    )
+    with pytest.raises(DriveFaultError) as caught:
+        shop.control()
+    assert str(caught.value).startswith("scripted CNC: E-stop is pressed; release it; the")
+    assert str(caught.value).endswith("go on with --resume when the machine is back")
+    assert "line X run 1 target" in str(caught.value)
+    assert "stop" not in shop.cnc.commands and "hold" not in shop.cnc.commands
+    assert not [text for text in shop.told if "cycle start" in text]
+
+
+def test_a_lost_connection_says_how_to_go_on():
+    shop = Shop()
+    shop.cnc.on_read = _at_stop(3, TransportError("LinuxCNC at 127.0.0.1:5007 closed it"))
+    with pytest.raises(TransportError) as caught:
+        shop.control()
+    assert str(caught.value).endswith("go on with --resume once it answers again")
+
+
+def test_recorded_lines_pass_without_feed_holds_or_beam_messages():
+    """--resume with line X recorded: its units are aimed elsewhere, no beam along X."""
+    shop = Shop()
+    shop.run.done = {key for key in POINTS if key[0] == "X"}
+    read = shop.interferometer.read
+
+    def no_beam_on_x() -> InterferometerReading:
+        reading = read()
+        on_x = shop.cnc.position_mm()[1] < 150.0
+        return InterferometerReading(reading.time_s, reading.channels, not on_x)
+
+    shop.interferometer.read = no_beam_on_x  # type: ignore[method-assign]
+    shop.control()
+    assert shop.keys() == [key for key in POINTS if key[0] == "Y"]
+    assert shop.cnc.commands == ["start"] + ["resume"] * STOPS
+    assert not shop.told
+
+
+def test_a_long_wait_says_what_it_waits_for():
+    shop = Shop()
+    _operator_holds(shop, 2, hold_s=25.0)
+    shop.control()
+    waiting = [text for text in shop.told if text.startswith("still waiting")]
+    assert waiting == [
+        "still waiting for the machine to stop at line X run 1 target 3 [200.0, 100.0, -300.0]"
+        " mm (10 s so far; at most 60 s, timeouts.machine_s)"
     ]
