@@ -33,6 +33,8 @@ processes are gone.
 :func:`linuxcnc_serving` starts a LinuxCNC whose display is ``linuxcncrsh``
 (``write_sim_config(..., display="linuxcncrsh --port P")``) and keeps it
 running for the ``with`` block: other processes command it over TCP.
+:func:`linuxcnc_publishing` adds ``xmalign sim publish-position``, which keeps
+LinuxCNC's actual position in a file for ``xmalign sim serve --follow-position-file``.
 """
 
 from __future__ import annotations
@@ -51,14 +53,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from cli_helpers import Process
+
 #: The host-wide lock every start of LinuxCNC takes (``flock`` on the command line, the
 #: same ``fcntl.flock`` here), so that tests, CI and other helpers never start two.
 LOCK_PATH = Path("/tmp/xmalign-linuxcnc.flock")
 USER = os.environ.get("XMALIGN_LINUXCNC_USER", "xmcnc")
 SYSTEM_PYTHON = Path("/usr/bin/python3")
 DISPLAY_SCRIPT = Path(__file__).resolve().parent / "display.py"
-#: ``[APPLICATIONS] APP`` that writes the actual position to a file (``publish_position``).
-PUBLISH_SCRIPT = Path(__file__).resolve().parent / "publish_position.py"
 #: Processes of a LinuxCNC instance that outlive ``linuxcnc`` for a few seconds.
 LINGERING = ("linuxcncsvr", "milltask", "rtapi_app", "io", "iov2", "halui")
 AXES = ("X", "Y", "Z")
@@ -139,9 +141,7 @@ class SimMachine:
         return 1.0 if self.linear_units == "mm" else 1.0 / 25.4
 
 
-def _ini_text(
-    machine: SimMachine, halfile: str, display: str = "./display.py", apps: Sequence[str] = ()
-) -> str:
+def _ini_text(machine: SimMachine, halfile: str, display: str = "./display.py") -> str:
     unit = machine.units_per_mm
     v, a = machine.max_velocity_mm_s * unit, machine.max_acceleration_mm_s2 * unit
     gantry = len(set(machine.coordinates)) < machine.joints
@@ -181,8 +181,6 @@ def _ini_text(
         ),
         ("EMCIO", {"EMCIO": "io", "CYCLE_TIME": "0.100", "TOOL_TABLE": "sim.tbl"}),
     ]
-    if apps:
-        sections.append(("APPLICATIONS", {"APP": apps[0]}))
     for axis in AXES:
         low, high = (limit * unit for limit in machine.travel_mm[axis])
         sections.append(
@@ -277,14 +275,11 @@ def write_sim_config(
     folder: Path,
     machine: SimMachine | None = None,
     display: str = "./display.py",
-    publish_position: Path | None = None,
 ) -> Path:
     """Write an INI, its HAL file, a tool table and the display into ``folder``.
 
     ``display`` is the INI's ``[DISPLAY] DISPLAY`` (default the harness display,
     which :func:`run_linuxcnc` drives; ``linuxcncrsh ...`` for :func:`linuxcnc_serving`).
-    ``publish_position``: a file LinuxCNC keeps its actual position in (an
-    ``[APPLICATIONS]`` entry running ``publish_position.py``).
 
     The folder is made writable for the LinuxCNC user (LinuxCNC writes its
     parameter file there). Returns the INI's path (``folder/sim.ini``).
@@ -294,11 +289,9 @@ def write_sim_config(
     folder.chmod(0o777)
     (folder / "sim.hal").write_text(_hal_text(machine))
     (folder / "sim.tbl").write_text("T1 P1 D0 Z0 ;\n")
-    apps = [] if publish_position is None else [f"./publish_position.py {publish_position}"]
-    (folder / "sim.ini").write_text(_ini_text(machine, "sim.hal", display, apps))
-    for script in (DISPLAY_SCRIPT, PUBLISH_SCRIPT):
-        shutil.copy(script, folder / script.name)
-        (folder / script.name).chmod(0o755)
+    (folder / "sim.ini").write_text(_ini_text(machine, "sim.hal", display))
+    shutil.copy(DISPLAY_SCRIPT, folder / DISPLAY_SCRIPT.name)
+    (folder / DISPLAY_SCRIPT.name).chmod(0o755)
     return folder / "sim.ini"
 
 
@@ -536,3 +529,30 @@ def bring_up(client: Any, timeout_s: float = 30.0) -> None:
 def standard_start() -> list[dict[str, Any]]:
     """Estop reset, machine on, home all joints."""
     return [{"op": "estop_reset"}, {"op": "machine_on"}, {"op": "home"}]
+
+
+@contextmanager
+def linuxcnc_publishing(ini: Path, port: int, position_file: Path) -> Iterator[Process]:
+    """:func:`linuxcnc_serving`, and ``xmalign sim publish-position position_file``
+    keeping LinuxCNC's actual position there for ``sim serve --follow-position-file``.
+
+    The publisher is started from this process once LinuxCNC is up, as a user starts
+    it on the LinuxCNC computer (LinuxCNC's user here cannot reach the project's
+    Python); yields it. After the block, LinuxCNC stopped, it must have ended by
+    itself within 30 s (AssertionError otherwise; it is stopped then).
+    """
+    publisher = None
+    try:
+        with linuxcnc_serving(ini, port):
+            publisher = Process(["sim", "publish-position", str(position_file)], ini.parent)
+            publisher.wait_for("publishing the position")
+            yield publisher
+    finally:
+        if publisher is not None:
+            try:
+                publisher.finish(timeout_s=30)
+            except subprocess.TimeoutExpired:
+                publisher.stop()
+                raise AssertionError(
+                    f"publish-position went on after LinuxCNC stopped:\n{publisher.said()}"
+                ) from None

@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 from cli_helpers import Process, free_port
-from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
+from harness import SimMachine, bring_up, linuxcnc_publishing, write_sim_config
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
+from tests.xmalign.test_live_e2e import quick_machine
 from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
 from xmalign.formats.plan import read_plan
@@ -42,16 +42,6 @@ pytestmark = pytest.mark.linuxcnc
 #: The served world's launch azimuth: nowhere in what xmalign is given.
 GAMMA_DEG = 137.0
 SEED = 7
-
-
-def _quick_machine(reference_machine_path: Path, folder: Path) -> Path:
-    """The reference machine at 20 m/min (as the other unattended tests), no azimuth."""
-    quick = yaml.safe_load(reference_machine_path.read_text())
-    quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
-    quick["cnc"] = {"acceleration_mm_s2": 5000}
-    path = folder / "machine.yaml"
-    path.write_text(yaml.safe_dump(quick))
-    return path
 
 
 def _units_yaml(ports: list[int], pty: str, rsh_port: int) -> str:
@@ -71,7 +61,7 @@ def _units_yaml(ports: list[int], pty: str, rsh_port: int) -> str:
 def test_identify_program_and_run_with_nothing_typed(
     linuxcnc_dir: Path, reference_machine_path: Path
 ) -> None:
-    machine = load_machine(_quick_machine(reference_machine_path, linuxcnc_dir))
+    machine = load_machine(quick_machine(reference_machine_path, linuxcnc_dir))
     assert machine.launch_unit is not None  # the rough place, and nothing of the azimuth
     travel = {
         axis: (float(low), float(high))
@@ -86,12 +76,10 @@ def test_identify_program_and_run_with_nothing_typed(
     ini = write_sim_config(linuxcnc_dir / "cnc", cnc, f"linuxcncrsh --port {rsh_port}")
     position_file = linuxcnc_dir / "position.txt"
     started = time.monotonic()
-    with linuxcnc_serving(ini, rsh_port):
+    with linuxcnc_publishing(ini, rsh_port, position_file) as publisher:
         operator = open_linuxcnc("127.0.0.1", rsh_port, 5.0)
         bring_up(operator)  # homed once: the operator's only part
         operator.close()
-        publisher = Process(["sim", "publish-position", str(position_file)], linuxcnc_dir)
-        publisher.wait_for("publishing the position")
         ports = [free_port(), free_port()]
         server = Process(
             ["sim", "serve", "--seed", str(SEED), "--gamma-deg", str(GAMMA_DEG)]
@@ -134,8 +122,8 @@ def test_identify_program_and_run_with_nothing_typed(
     rows = load_measurements(linuxcnc_dir / "m.csv").rows
     assert [(r.line, r.run, r.direction, r.index) for r in rows] == expected
     assert f"{len(expected)} points captured" in run.said()
-    # LinuxCNC has stopped: the publisher ends by itself, and says why
-    assert publisher.finish(timeout_s=30) == 0, publisher.said()
+    # LinuxCNC has stopped: the publisher ended by itself, and says why
+    assert publisher.popen.returncode == 0, publisher.said()
     assert "publishing ended" in publisher.said()
     print(
         f"identified after {identified_s:.0f} s; all {len(expected)} points after"

@@ -55,7 +55,7 @@ from tests.firmware_iface.program_control_contract import (  # noqa: F401 (run h
     test_is_a_program_control,
 )
 from tests.sim.test_linuxcncrsh_server import _wait
-from tests.xmalign.test_live_e2e import cut_plan
+from tests.xmalign.test_live_e2e import try_out_plan
 from xmalign.errors import DeviceError
 from xmalign.machine import Machine
 from xmalign.roles import WallClock
@@ -264,7 +264,7 @@ def module_shop(
     linuxcnc_dir: Path,
 ) -> Iterator[Shop]:
     headless.stop()  # one LinuxCNC per host: the shop starts its own
-    plan_dir = cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
+    plan_dir = try_out_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
     with shop_running(plan_dir, linuxcnc_dir, source="linuxcnc") as served:
         yield served
 

@@ -5,18 +5,19 @@ display (tests/linuxcnc/harness.py); the test plays the operator only to bring
 the machine up (E-stop reset, machine on, home), over a linuxcncrsh session of
 its own. ``xmalign sim serve`` serves both units and the interferometer, and
 its virtual machine carries the receiver where LinuxCNC says the machine is:
-LinuxCNC keeps its actual position in a file (``publish_position.py``, an
-``[APPLICATIONS]`` entry reading ``linuxcnc.stat().actual_position``, the
-quantity of linuxcncrsh's ``abs_act_pos``) and ``sim serve
---follow-position-file`` follows it. (Not a second linuxcncrsh session:
-linuxcncrsh 2.9 garbles commands of concurrent sessions; docs/hardware.md.) ``xmalign run --config``
-then writes its program, starts it, sets the units at each line's stop,
-captures at each point's stop and resumes, to the program's end.
+``xmalign sim publish-position`` keeps LinuxCNC's actual position in a file
+(``linuxcnc.stat().actual_position``, the quantity of linuxcncrsh's
+``abs_act_pos``) and ``sim serve --follow-position-file`` follows it. (Not a
+second linuxcncrsh session: linuxcncrsh 2.9 garbles commands of concurrent
+sessions; docs/hardware.md.) ``xmalign run --config`` then writes its program,
+starts it, sets the units at each line's stop, captures at each point's stop
+and resumes, to the program's end.
 
-The plans are the reference machine's lines cut to 20 mm (three targets, one run
-each way) at 20 m/min: all six lines, three axes and three face diagonals, for one
-complete unattended calibration (about two minutes of real time), and lines Z and X
-for the beam lost, the pulled cable and the wrong program.
+The plans are the reference machine's lines at 20 m/min from ``xmalign program
+--max-length-mm 20`` with targets 10 mm apart (three targets, one run each way):
+all six lines, three axes and three face diagonals, for one complete unattended
+calibration (about two minutes of real time), and lines Z and X for the beam
+lost, the pulled cable and the wrong program.
 """
 
 from __future__ import annotations
@@ -35,11 +36,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import Process, free_port
-from harness import SimMachine, bring_up, linuxcnc_serving, write_sim_config
+from harness import SimMachine, bring_up, linuxcnc_publishing, write_sim_config
 from test_real_faults import kill_milltask, press_estop
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
-from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, cut_plan
+from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, try_out_plan
 from trajectories.gcode import make_dialect
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence
@@ -54,14 +55,14 @@ LINES = ("Z", "X")
 
 @pytest.fixture(scope="module")
 def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
-    """Lines Z and X (see :func:`cut_plan`)."""
-    return cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
+    """Lines Z and X (see :func:`try_out_plan`)."""
+    return try_out_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, LINES)
 
 
 @pytest.fixture(scope="module")
 def six_line_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
-    """All six lines: the three axes and the three face diagonals (see :func:`cut_plan`)."""
-    return cut_plan(tmp_path_factory.mktemp("six"), reference_machine_path, ())
+    """All six lines: the three axes and the three face diagonals (see :func:`try_out_plan`)."""
+    return try_out_plan(tmp_path_factory.mktemp("six"), reference_machine_path, ())
 
 
 class CablePuller:
@@ -188,8 +189,8 @@ def shop_running(plan_dir: Path, linuxcnc_dir: Path, source: str = "linuxcncrsh"
         max_acceleration_mm_s2=float(machine.cnc.acceleration_mm_s2 or 5000.0),
     )
     position_file = linuxcnc_dir / "cnc" / "position.txt"
-    ini = write_sim_config(linuxcnc_dir / "cnc", cnc, f"linuxcncrsh --port {port}", position_file)
-    with linuxcnc_serving(ini, port):
+    ini = write_sim_config(linuxcnc_dir / "cnc", cnc, f"linuxcncrsh --port {port}")
+    with linuxcnc_publishing(ini, port, position_file):
         served = Shop(linuxcnc_dir, port, position_file, source)
         try:
             yield served

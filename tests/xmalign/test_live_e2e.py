@@ -14,7 +14,6 @@ next to this one).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import signal
@@ -37,7 +36,7 @@ from trajectories.gcode import make_dialect
 from trajectories.gcode.program import write_program
 from xmalign.calibration import capture_sequence
 from xmalign.formats.measurements import load_measurements
-from xmalign.formats.plan import read_plan, write_plan
+from xmalign.formats.plan import read_plan
 from xmalign.formats.pose import LaunchPose, write_pose
 from xmalign.machine import Machine, load_machine
 
@@ -103,36 +102,40 @@ def _truth_pose(machine: Machine) -> LaunchPose:
     )
 
 
-def cut_plan(workdir: Path, reference_machine_path: Path, lines: tuple[str, ...]) -> Path:
-    """The reference machine at 20 m/min, and a plan of ``lines`` (all six: ``()``), each cut
-    to 20 mm (targets 0, 10, 20 mm, one run each way)."""
+def quick_machine(reference_machine_path: Path, folder: Path, try_out: bool = False) -> Path:
+    """The reference machine at 20 m/min as ``folder/machine.yaml``; ``try_out``: targets
+    10 mm apart and one run each way, so that ``program --max-length-mm 20`` plans three
+    targets per line (a try-out as a user would set one up)."""
     quick = yaml.safe_load(reference_machine_path.read_text())
     quick["feed_mm_min"] = {"rapid": 20000, "measure": 20000}
     quick["cnc"] = {"acceleration_mm_s2": 5000}
-    (workdir / "machine.yaml").write_text(yaml.safe_dump(quick))
-    machine = load_machine(workdir / "machine.yaml")
+    if try_out:
+        quick["measurement"] = {
+            **quick.get("measurement", {}),
+            "target_spacing_mm": 10.0,
+            "runs": 1,
+            "diagonal_runs": 1,
+        }
+    path = folder / "machine.yaml"
+    path.write_text(yaml.safe_dump(quick))
+    return path
+
+
+def try_out_plan(workdir: Path, reference_machine_path: Path, lines: tuple[str, ...]) -> Path:
+    """The quick try-out machine (:func:`quick_machine`), the true pose and the plan of
+    ``lines`` (all six: ``()``) from ``xmalign program --max-length-mm 20``: each line
+    cut to 20 mm, three targets, one run each way. Returns ``workdir``."""
+    machine = load_machine(quick_machine(reference_machine_path, workdir, try_out=True))
     write_pose(workdir / "pose.json", _truth_pose(machine))
     subprocess.run(
         [sys.executable, "-m", "xmalign", "program", "--machine", "machine.yaml"]
         + (["--lines", ",".join(lines)] if lines else [])
-        + ["--plan-out", "full.json"],
+        + ["--max-length-mm", "20", "--plan-out", "plan.json"],
         cwd=workdir,
         env=ENV,
         check=True,
         capture_output=True,
     )
-    plan = read_plan(workdir / "full.json")
-    short = [
-        dataclasses.replace(
-            line,
-            targets_mm=np.array([0.0, 10.0, 20.0]),
-            end_mm=line.start_mm + 20.0 * line.frame[0],
-            runs=1,
-            extra={**line.extra, "length_mm": 20.0},
-        )
-        for line in plan.lines
-    ]
-    write_plan(workdir / "plan.json", dataclasses.replace(plan, lines=short))
     return workdir
 
 
@@ -140,7 +143,7 @@ def cut_plan(workdir: Path, reference_machine_path: Path, lines: tuple[str, ...]
 def short_plan(tmp_path_factory: pytest.TempPathFactory, reference_machine_path: Path) -> Path:
     """A quick machine (the reference one at 20 m/min) and its plan and program for line Z
     from the true pose, the line cut to 20 mm: machine.yaml, plan.json and run.nc."""
-    workdir = cut_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, ("Z",))
+    workdir = try_out_plan(tmp_path_factory.mktemp("plan"), reference_machine_path, ("Z",))
     machine = load_machine(workdir / "machine.yaml")
     plan = read_plan(workdir / "plan.json")
     (workdir / "run.nc").write_text(
