@@ -456,9 +456,12 @@ def _identify(terminal: Terminal, world: Served, session: Path, *extra: str):
     )  # fmt: skip
 
 
-def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
+def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
     reference_machine, tmp_path
 ):
+    """No azimuth in the machine file and the launch unit 28 mm from its place there
+    (seed 3, 201 mm from the first position): the first alignment is the search's, no
+    one jogs; Ctrl-C at the second position, then the routine resumes."""
     session, pose = tmp_path / "session.json", tmp_path / "pose.json"
     with served(reference_machine, tmp_path) as world:
         first = IdentifyingOperator(world, reference_machine, ctrl_c_at_move=2)
@@ -466,7 +469,8 @@ def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
         assert stopped.returncode == 130, stopped.stderr
         assert all(axis.is_locked() for axis in world.axes())
         assert len(json.loads(session.read_text())["alignments"]) == 1
-        assert first.manual == 1  # no azimuth guess: the first alignment is the operator's
+        assert first.manual == 0  # no azimuth guess: the first alignment is the search's
+        assert "position 1: searching the beam" in " ".join(stopped.stdout.split())
         second = IdentifyingOperator(world, reference_machine)
         result = _identify(Terminal(second), world, session, "--out", str(pose))
         assert result.returncode == 0, result.stderr
