@@ -11,16 +11,17 @@ circle. :func:`search_first_beam`
    wherever a1 moved more than the beam's capture aperture (its radius, as seen
    from the launch unit) between two readings, that stretch is stepped through again
    at rest, so the beam cannot pass the aperture unseen;
-3. sweeps again at elevations above and below (rows ``capture_row`` apart, nearest
-   first, out to what the rough place's uncertainty allows), and, where that
-   uncertainty exceeds the receiver's capture angle, with the receiver aimed
-   around the rough direction (a square spiral, nearest first);
+3. turns again for other places of the launch unit across the line to the
+   receiver (a grid nearest first, out to the rough place's uncertainty), the
+   receiver aimed at that place and the launch elevation at the receiver from it:
+   the two move together, one turn per place;
 4. once the receiver sees the beam, centres it: each of a1, a2, a3, a4 in turn
    finds the two angles where the signal ends and goes to their middle (the
-   signal falls off symmetrically), which leaves the channels in or near their
+   signal falls off symmetrically), again until the beam is in range (close to
+   the launch unit a few passes), which leaves the channels in or near their
    ranges for fine alignment.
 
-Bounded in angle (one turn per row, the rows and aims above) and in time
+Bounded in angle (one turn per place, the places above) and in time
 (``timeout_s``); when it finds nothing it raises a :class:`BeamLostError`
 saying what to check. Pure control logic on roles (core code).
 """
@@ -34,7 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from xmalign.alignment import search_offsets_urad
 from xmalign.errors import BeamLostError, DeviceTimeoutError
 from xmalign.geometry import Vec
 from xmalign.kinematics import aligned_angles
@@ -49,6 +49,9 @@ WHAT_TO_CHECK = (
     " unit stands where launch_unit.position_mm in the machine file says (within the"
     " search's reach), and nothing blocks the beam between them"
 )
+
+#: At most this many passes of centring on a1..a4 (:func:`_centred`).
+CENTRING_PASSES = 6
 
 
 @dataclass(frozen=True)
@@ -120,12 +123,6 @@ class _Search:
 
     def move(self, axes: list[RotaryAxis], angles_rad: Vec) -> None:
         move_axes(axes, angles_rad, self.settings.move_timeout_s, "positioning units", self.clock)
-
-
-def _row_offsets(half_width_rad: float, spacing_rad: float) -> Vec:
-    """0, +s, -s, +2s, -2s, ... out to ``half_width_rad`` (at least the centre), rad."""
-    n = math.ceil(half_width_rad / spacing_rad - 1e-9)
-    return np.array([0.0] + [k * sign * spacing_rad for k in range(1, n + 1) for sign in (1, -1)])
 
 
 def _sweep(
@@ -281,48 +278,96 @@ def search_first_beam(
     # the capture aperture as seen from the launch unit (at the nearest it may be), rad
     aperture_rad = ranges.capture_radius_mm / distance_mm
     capture_angle_rad = ranges.capture_angle_mrad * 1e-3
-    uncertainty_rad = math.atan(settings.position_uncertainty_mm * math.sqrt(2) / distance_mm)
-    rows = _row_offsets(uncertainty_rad, 1.4 * aperture_rad)
+    places = _candidate_places_mm(
+        launch2mcs_mm, receiver_cp_mm, settings.position_uncertainty_mm, distance_mm, ranges
+    )
     cos_e = max(abs(math.cos(nominal.launch_rad[1])), 0.05)
     step_rad = 0.5 * aperture_rad / cos_e
-    aims = np.vstack(
-        [np.zeros((1, 2)), search_offsets_urad(capture_angle_rad * 1e6, uncertainty_rad * 1e6)]
-    )
     logger.info(
-        "searching the beam: up to %d rows, %d receiver aims, a1 read every %.2f mrad",
-        len(rows),
-        len(aims),
+        "searching the beam: up to %d turns of a1 (rough places), a1 read every %.2f mrad",
+        len(places),
         step_rad * 1e3,
     )
     start = -math.pi
-    for aim_urad in aims:
-        receiver_target = np.array(
-            [*(nominal.receiver_rad[:2] + aim_urad * 1e-6), receiver_roll_rad]
-        )[: len(receiver.axes)]
-        search.move(list(receiver.axes), receiver_target)
-        for row in rows:
-            direction = 1.0 if start < 0 else -1.0
-            seen_rad = _sweep(search, nominal.launch_rad[1] + row, start, direction * step_rad)
-            start = -start
-            if seen_rad is not None and _back_to_beam(search, seen_rad, step_rad):
-                return _centred(search, aperture_rad / cos_e, aperture_rad, capture_angle_rad)
+    for place_mm in places:
+        aimed = aligned_angles(place_mm, 0.0, receiver_cp_mm, spindle_angle_rad)
+        receiver_target = np.array([*aimed.receiver_rad[:2], receiver_roll_rad])
+        search.move(list(receiver.axes), receiver_target[: len(receiver.axes)])
+        direction = 1.0 if start < 0 else -1.0
+        seen_rad = _sweep(search, aimed.launch_rad[1], start, direction * step_rad)
+        start = -start
+        if seen_rad is not None and _back_to_beam(search, seen_rad, step_rad):
+            return _centred(search, aperture_rad / cos_e, aperture_rad, capture_angle_rad)
     raise BeamLostError(
-        f"no beam found: the launch azimuth swept once round at {len(rows)} elevation(s) with"
-        f" the receiver aimed {len(aims)} way(s) ({clock.now() - started_s:.0f} s); {WHAT_TO_CHECK}"
+        f"no beam found: the launch azimuth swept once round for {len(places)} place(s) of the"
+        f" launch unit within {settings.position_uncertainty_mm:g} mm of the machine file's"
+        f" ({clock.now() - started_s:.0f} s); {WHAT_TO_CHECK}"
     )
+
+
+def _candidate_places_mm(
+    launch2mcs_mm: Vec,
+    receiver_cp_mm: Vec,
+    uncertainty_mm: float,
+    nearest_mm: float,
+    ranges: InterferometerRanges,
+) -> Vec:
+    """Where the launch unit may stand, nearest the rough place first, shape (N, 3), MCS mm.
+
+    Only its offset across the line to the receiver matters (the turn of a1 covers the
+    azimuth): a grid in that plane (``u`` level, ``v`` up the line's normal), fine enough
+    that from the nearest node the beam the launch elevation sends lands within 0.7 of
+    the capture radius of the receiver's centre (``v``) and the receiver aimed at the
+    node faces the true place within 0.8 of its capture angle (``u`` and ``v``, at
+    ``nearest_mm``), every place within the rough place's uncertainty
+    (``uncertainty_mm`` per axis, ``sqrt(2)`` of it across) in some node's cell.
+    Aiming the receiver and the launch elevation at the same place couples them: one
+    turn per place, not one per elevation and receiver aim.
+    """
+    line = receiver_cp_mm - launch2mcs_mm
+    line = line / np.linalg.norm(line)
+    level = np.cross(line, [0.0, 0.0, 1.0])
+    u = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array([1.0, 0, 0])
+    v = np.cross(u, line)
+    facing_mm = 0.8 * ranges.capture_angle_mrad * 1e-3 * nearest_mm
+    spacing_v = min(1.4 * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
+    spacing_u = 2.0 * math.sqrt(facing_mm**2 - (0.5 * spacing_v) ** 2)
+    reach_mm = uncertainty_mm * math.sqrt(2.0)
+    n_u, n_v = (math.ceil(reach_mm / spacing - 0.5) for spacing in (spacing_u, spacing_v))
+    grid = np.array(
+        [
+            (i * spacing_u, j * spacing_v)
+            for i in range(-n_u, n_u + 1)
+            for j in range(-n_v, n_v + 1)
+            # the node's cell (where it is the nearest node) reaches into the uncertainty
+            if math.hypot(max(abs(i) - 0.5, 0.0) * spacing_u, max(abs(j) - 0.5, 0.0) * spacing_v)
+            <= reach_mm
+        ]
+    )
+    grid = grid[np.argsort(np.hypot(*grid.T), kind="stable")]
+    return launch2mcs_mm + grid[:, :1] * u + grid[:, 1:] * v
 
 
 def _centred(
     search: _Search, azimuth_rad: float, elevation_rad: float, capture_angle_rad: float
 ) -> BeamSearchResult:
-    """Centre the seen beam on a1, a2, a3, a4 in turn; the result."""
+    """Centre the seen beam on a1, a2, a3, a4 in turn, again until the beam is in range
+    (at most ``CENTRING_PASSES`` times); the result.
+
+    Close to the launch unit, a turn of a1 or a2 also tilts the beam on the receiver, so
+    the middle of where the beam is seen lies between centred and faced; each pass,
+    the receiver facing the beam better, halves the distance to centred.
+    """
     a1, a2 = search.launch.axes[:2]
     a3, a4 = search.receiver.axes[:2]
-    for axis, half_width in ((a1, azimuth_rad), (a2, elevation_rad)):
-        _centre(search, axis, half_width)
-    cos_e = max(abs(math.cos(float(search.receiver.angles_rad()[1]))), 0.05)
-    for axis, half_width in ((a3, capture_angle_rad / cos_e), (a4, capture_angle_rad)):
-        _centre(search, axis, half_width)
+    for _ in range(CENTRING_PASSES):
+        if search.interferometer.read().beam_ok:
+            break
+        for axis, half_width in ((a1, azimuth_rad), (a2, elevation_rad)):
+            _centre(search, axis, half_width)
+        cos_e = max(abs(math.cos(float(search.receiver.angles_rad()[1]))), 0.05)
+        for axis, half_width in ((a3, capture_angle_rad / cos_e), (a4, capture_angle_rad)):
+            _centre(search, axis, half_width)
     logger.info("beam found and centred after %d sweep(s)", search.sweeps)
     return BeamSearchResult(
         launch_rad=search.launch.angles_rad(),

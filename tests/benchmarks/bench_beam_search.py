@@ -1,6 +1,6 @@
 """Benchmark: the first alignment by itself (xmalign.beam_search), the launch azimuth unknown.
 
-Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_beam_search.py [--trials 20]``
+Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_beam_search.py [--trials 20] [--alignments 6]``
 
 Each trial is one seeded virtual setup of the reference machine as the dry run
 places it (sim.dry_run.placement: the launch unit up to 25 mm from the machine
@@ -35,11 +35,13 @@ TARGET_S = 300.0
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=20)
-    trials = parser.parse_args().trials
+    parser.add_argument("--alignments", type=int, default=6)
+    args = parser.parse_args()
+    trials = args.trials
     machine = load_machine(default_machine_path())
     assert machine.launch_unit is not None
     rough = np.asarray(machine.launch_unit.position_mm, dtype=float)
-    position = design_step(machine, 6).machine_mm[0]
+    position = design_step(machine, args.alignments).machine_mm[0]
     cp = receiver_cp(position, machine.receiver_offset, machine.spindle_angle_rad)
     found, times_s, sweeps, walls = 0, [], [], []
     for seed in range(trials):

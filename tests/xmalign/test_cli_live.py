@@ -456,9 +456,12 @@ def _identify(terminal: Terminal, world: Served, session: Path, *extra: str):
     )  # fmt: skip
 
 
-def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
+def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
     reference_machine, tmp_path
 ):
+    """No azimuth in the machine file and the launch unit 28 mm from its place there
+    (seed 3, 201 mm from the first position): the first alignment is the search's, no
+    one jogs; Ctrl-C at the second position, then the routine resumes."""
     session, pose = tmp_path / "session.json", tmp_path / "pose.json"
     with served(reference_machine, tmp_path) as world:
         first = IdentifyingOperator(world, reference_machine, ctrl_c_at_move=2)
@@ -466,13 +469,18 @@ def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
         assert stopped.returncode == 130, stopped.stderr
         assert all(axis.is_locked() for axis in world.axes())
         assert len(json.loads(session.read_text())["alignments"]) == 1
-        assert first.manual == 1  # no azimuth guess: the first alignment is the operator's
+        assert first.manual == 0  # no azimuth guess: the first alignment is the search's
+        assert "position 1: searching the beam" in " ".join(stopped.stdout.split())
         second = IdentifyingOperator(world, reference_machine)
         result = _identify(Terminal(second), world, session, "--out", str(pose))
         assert result.returncode == 0, result.stderr
         assert all(axis.is_locked() for axis in world.axes())
         truth = world.setup.world
     assert second.moves == 2  # the recorded alignment is not repeated
+    # Pointed from the rough place (28 mm off) and the first alignment's azimuth, the
+    # beam misses positions 2 and 3 beyond fine alignment's own search: there the
+    # operator still jogs (the path the operator's jog keeps in identify --live).
+    assert second.manual == 2
     assert len(json.loads(session.read_text())["alignments"]) == 3
     shown = " ".join(result.stdout.split())
     assert "Launch-unit pose (joint, 3 of 3 alignments" in shown
@@ -484,6 +492,26 @@ def test_identify_live_with_an_operator_jogging_then_resumed_after_ctrl_c(
         math.remainder(identified.gamma_rad - truth.gamma_rad, math.tau),
     )
     assert np.all(np.abs(error) < 3 * sigma), (error, sigma)  # within its own uncertainty
+
+
+def test_identify_live_without_a_launch_place_is_refused_before_anything_moves(
+    reference_machine, reference_machine_path, tmp_path
+):
+    """A machine file without ``launch_unit``: nothing to search from, and identify
+    --live says so in one line (no jog of the first alignment, no session)."""
+    import yaml
+
+    data = yaml.safe_load(reference_machine_path.read_text())
+    del data["launch_unit"]
+    machine_file = tmp_path / "no-launch-place.yaml"
+    machine_file.write_text(yaml.safe_dump(data))
+    session = tmp_path / "session.json"
+    with served(reference_machine, tmp_path) as world:
+        operator = IdentifyingOperator(world, reference_machine)
+        result = _identify(Terminal(operator), world, session, "--machine", str(machine_file))
+    assert_one_line_error(result, "no launch_unit.position_mm")
+    assert operator.moves == 0 and operator.manual == 0
+    assert not session.exists()
 
 
 def _rows_in(path: Path) -> int:

@@ -182,8 +182,9 @@ def _progress_of_routine(total: int) -> Iterator[Callable[[RoutineEvent], None]]
             if event.stage == "searching":
                 progress.console.print(
                     f"position {event.index}: searching the beam (no launch azimuth in the"
-                    " machine file): the launch unit turns once round, at several elevations"
-                    f" if needed (at most {BeamSearchSettings().timeout_s:.0f} s)",
+                    " machine file): the launch unit turns once round, again for other places"
+                    " of it near the machine file's if needed (at most"
+                    f" {BeamSearchSettings().timeout_s:.0f} s)",
                     markup=False,
                     highlight=False,
                 )
