@@ -80,6 +80,8 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
 
 #: The chosen tables have at most this many values per reading component (docs/post.md).
 MAX_COLUMNS_PER_READING = 0.25
+#: The search for the knot spacing stops where the score rises this much above the best.
+_GCV_RISE = 1.05
 #: The compensation-point spacings ``post`` tries or accepts where no line sets them, mm.
 MIN_KNOT_SPACING_MM = 20.0
 MAX_KNOT_SPACING_MM = 2000.0
@@ -1345,11 +1347,12 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
     """The fit at the knot spacing with the least generalised cross-validation score.
 
     Candidates from coarse to fine (:func:`knot_spacing_candidates`); the search
-    stops two candidates after the best one, where the data cannot determine a
-    finer table, or where the tables would have more than a
-    :data:`MAX_COLUMNS_PER_READING` share of the readings' components (noise-free
-    or sparse data would otherwise go on to ever finer tables that interpolate
-    the readings and swing between them).
+    stops where a score rises :data:`_GCV_RISE` above the best (a score can stay
+    flat over several spacings and fall again where the tables first follow an
+    error's wavelength), where the data cannot determine a finer table, or where
+    the tables would have more than a :data:`MAX_COLUMNS_PER_READING` share of
+    the readings' components (noise-free or sparse data would otherwise go on to
+    ever finer tables that interpolate the readings and swing between them).
     """
     reach = _instrument_points(inputs.trackers, inputs.tracers)
     standing = _standing_positions(inputs.trackers, inputs.tracers)
@@ -1380,7 +1383,7 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
         scores.append((spacing, system.gcv))
         if best is None or system.gcv < best[1].gcv:
             best = (spacing, system)
-        elif len(scores) - [s for s, _ in scores].index(best[0]) > 2:
+        elif system.gcv > _GCV_RISE * best[1].gcv:
             break
     assert best is not None  # the coarsest candidate either fitted or raised
     joint = _fit(inputs, best[0], best[1])
