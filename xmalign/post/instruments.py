@@ -8,7 +8,14 @@ unknowns:
   centre in the tracker's frame, ``p`` the commanded SMR point in the MCS and
   ``dp`` the machine's deviation there (seed 000); six unknowns;
 - a **tracer place**: its pivot ``q`` (three unknowns) and one constant ``k``
-  per run, ``L = |p + dp - q| + k`` (self-calibration, seed 004).
+  per run, ``L = |p + dp - q| + k`` (self-calibration, seed 004);
+- with the machine file's priors, the instruments' systematic errors: a tracker
+  station's angle errors (16 coefficients) and a scale per run of every station
+  and place, each a pseudo-observation ``0 +- prior``;
+- with several SMR positions, a constant correction of each but the first.
+
+``p`` is the commanded point plus the row's SMR offset, expanded to 20 degC where
+the row gives the material temperature.
 
 The model is not linear in the poses and pivots, so it is solved by iterated
 linearisation (Gauss-Newton): the table values stay the parameters (the
@@ -25,11 +32,17 @@ with ``sigma(L)``; the lines with the channel scatter the lines-only fit
 estimates (:func:`xmalign.post.solve.fit_error_tables`). The covariance of the
 tables is propagated as there (GUM).
 
-A point only gives the position of the SMR. Without interferometer lines the
-angular errors whose lever arm never changes cannot be seen (the rotations of the
-last axis of the tool side, and the rotation about the only axis that moves a
-lever arm); the tables are then those of the SMR as the functional point, and
-those rotations are written as 0 with no u95 (docs/post.md).
+A point only gives the position of the SMR. Without interferometer lines and
+with one SMR position the angular errors whose lever arm never changes cannot be
+seen (the rotations of the last axis of the tool side, and the rotation about
+the only axis that moves a lever arm); the tables are then those of the SMR as
+the functional point, and those rotations are written as 0 with no u95. SMR
+positions that differ across a rotation's axis see it (docs/post.md).
+
+Without lines the compensation points' spacing is chosen from the data by
+generalised cross-validation (:func:`fit_joint`). Readings more than ten robust
+standard deviations off are left out one by one and named; a fit that does not
+settle, or tables beyond what a machine can have, are refused.
 
 Points taken **on the fly** (seed 001) count only through their deviation across
 the commanded path: the fit uses the two components perpendicular to it, at
