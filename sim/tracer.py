@@ -11,6 +11,7 @@ is where the virtual machine really puts it, as for the tracker.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,11 +36,18 @@ class VirtualTracer:
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
 
-    def observe(self, points_mcs_mm: Vec, constant_mm: float) -> Vec:
-        """Noisy lengths to true SMR points in the MCS, plus the run's constant, (N,)."""
+    def observe(self, points_mcs_mm: Vec, constant_mm: float, scale_ppm: float = 0.0) -> Vec:
+        """Noisy lengths to true SMR points in the MCS, plus the run's constant, (N,).
+
+        ``scale_ppm``: the run's scale error (air compensation), on the distance.
+        """
         distance = np.linalg.norm(np.atleast_2d(points_mcs_mm) - self.pivot_mm, axis=1)
         noise = self._rng.normal(size=len(distance)) * self.uncertainty.length_sigma_mm(distance)
-        return distance + constant_mm + noise
+        return distance * (1.0 + scale_ppm * 1e-6) + constant_mm + noise
+
+    def run_scale(self, scale_ppm: float) -> float:
+        """One run's scale error, ppm, drawn with standard deviation ``scale_ppm`` (0: none)."""
+        return float(self._rng.normal() * scale_ppm) if scale_ppm > 0 else 0.0
 
     def new_constant(self) -> float:
         return float(self._rng.uniform(-CONSTANT_RANGE_MM, CONSTANT_RANGE_MM))
@@ -52,14 +60,29 @@ def measure_tracer(
     runs: int,
     smr_offset_mm: Vec,
     station: str = "P1",
+    *,
+    scale_ppm: float = 0.0,
+    smr_offsets_mm: Mapping[str, Vec] | None = None,
 ) -> list[TracerLength]:
-    """Tracer lengths at standstill: every commanded point, ``runs`` runs (new constant each)."""
+    """Tracer lengths at standstill: every commanded point, ``runs`` runs (new constant each).
+
+    With ``smr_offsets_mm`` (name to offset, MCS) every point is measured with each
+    SMR position in turn within a run (rows named in ``smr``); ``scale_ppm``: the
+    standard deviation of a scale error drawn per run (0: none).
+    """
     lengths = []
+    named: list[tuple[str | None, Vec]] = list((smr_offsets_mm or {}).items())
+    positions = named or [(None, np.asarray(smr_offset_mm, float))]
     for run in range(runs):
-        actual, _ = machine.actual_functional_point(cnc_mm, np.ones_like(cnc_mm), smr_offset_mm)
-        seen = tracer.observe(actual, tracer.new_constant())
-        lengths += [
-            TracerLength(station, run, i, np.asarray(cnc_mm[i], float), float(seen[i]))
-            for i in range(len(cnc_mm))
-        ]
+        constant, scale = tracer.new_constant(), tracer.run_scale(scale_ppm)
+        for name, offset in positions:
+            ones = np.ones_like(cnc_mm)
+            actual, _ = machine.actual_functional_point(cnc_mm, ones, offset)
+            seen = tracer.observe(actual, constant, scale)
+            lengths += [
+                TracerLength(
+                    station, run, i, np.asarray(cnc_mm[i], float), float(seen[i]), smr=name
+                )
+                for i in range(len(cnc_mm))
+            ]
     return lengths

@@ -249,7 +249,6 @@ def point_list_files(path: Path, plan: InstrumentProgram, smr_offset_mm: Vec) ->
     return {path: data, path.with_name(f"{path.name}.history"): history.encode()}
 
 
-
 def point_list_csv(plan: InstrumentProgram, smr_offset_mm: Vec) -> str:
     """The nominal SMR positions for a tracker's own software: ``name,x_mm,y_mm,z_mm``.
 
@@ -275,6 +274,9 @@ def tracker_place(machine: Machine) -> Vec:
     return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
 
 
+#: Compensation-point spacing of the planned fit, mm: exact readings cannot cross-validate
+#: a spacing (post chooses it from the real readings' scatter; docs/post.md).
+PLAN_KNOT_SPACING_MM = 200.0
 #: Samples per mm of path for a planned tracker on the fly (one every 20 mm).
 FLY_SPACING_MM = 20.0
 
@@ -337,7 +339,7 @@ def information_limit_um(
     chain = Chain.parse(machine.chain)
     joint = fit_joint(
         [], trackers, tracers, chain, np.ones(6), smr, machine.tracker, machine.tracer,
-        (machine.travel_min_mm, machine.travel_max_mm),
+        (machine.travel_min_mm, machine.travel_max_mm), PLAN_KNOT_SPACING_MM,
     )  # fmt: skip
     grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
     return joint.volumetric_u_um(chain, grid)

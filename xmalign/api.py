@@ -29,7 +29,7 @@ from xmalign.formats.provenance import FileSource, Provenance
 from xmalign.formats.session import Session
 from xmalign.identify import IdentificationResult
 from xmalign.machine import Machine, default_machine_path, load_machine
-from xmalign.post.evaluate import PostResult
+from xmalign.post.evaluate import Instruments, PostResult
 from xmalign.post.iso230_2 import PositioningFigures
 from xmalign.roles import CHANNELS
 from xmalign.steps import (
@@ -95,6 +95,7 @@ __all__ = [
     "FileSource",
     "IdentificationResult",
     "InputError",
+    "Instruments",
     "LaunchPose",
     "Machine",
     "MeasurementFile",

@@ -22,20 +22,24 @@ from xmalign.cli.common import (
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
 from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
+from xmalign.instrument_text import instrument_lines
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
+from xmalign.post.instruments import MIN_TRACER_PLACES
 from xmalign.steps import INSTRUMENTS, import_tracker_step, instrument_program_step
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
 
 
-def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
+def read_instruments(
+    tracker: list[Path], tracer: list[Path], knot_spacing_mm: float | None = None
+) -> Instruments:
     """The tracker-point and tracer-length files given (each option repeatable)."""
     return Instruments(
         trackers=tuple(read_tracker_points(path) for path in tracker),
         tracers=tuple(read_tracer_lengths(path) for path in tracer),
+        knot_spacing_mm=knot_spacing_mm,
     )
 
 
