@@ -33,6 +33,10 @@ TRACER_COLUMNS = ("station", "run", "index", "x_mm", "y_mm", "z_mm", "length_mm"
 PATH_END_COLUMNS = ("to_x_mm", "to_y_mm", "to_z_mm")
 UNCERTAINTY_COLUMNS = ("u_radial_um", "u_transverse_um")
 TIME_COLUMN = "time_s"
+#: Optional: the SMR position (a key of the machine file's ``smr_offsets_mm``).
+SMR_COLUMN = "smr"
+#: Optional: the machine's scale temperature at the row, deg C.
+MATERIAL_COLUMN = "material_c"
 GUESS_TAG = "# station "
 #: No machine or tracker reaches farther, mm.
 MAX_COORDINATE_MM = 100_000.0
@@ -55,6 +59,11 @@ class TrackerPoint:
     time_s : float, optional
     u_radial_um, u_transverse_um : float, optional
         The row's own standard uncertainty along and across the beam.
+    smr : str, optional
+        The SMR position (a key of the machine file's ``smr_offsets_mm``; None:
+        ``smr_offset_mm``).
+    material_c : float, optional
+        The machine's scale temperature at the row, deg C.
     """
 
     station: str
@@ -66,6 +75,8 @@ class TrackerPoint:
     time_s: float | None = None
     u_radial_um: float | None = None
     u_transverse_um: float | None = None
+    smr: str | None = None
+    material_c: float | None = None
 
     @property
     def on_the_fly(self) -> bool:
@@ -74,7 +85,10 @@ class TrackerPoint:
 
 @dataclass(frozen=True)
 class TracerLength:
-    """One laser-tracer reading: pivot-to-SMR distance plus the (station, run) constant, mm."""
+    """One laser-tracer reading: pivot-to-SMR distance plus the (station, run) constant, mm.
+
+    ``smr`` and ``material_c`` as for :class:`TrackerPoint`.
+    """
 
     station: str
     run: int
@@ -82,6 +96,8 @@ class TracerLength:
     machine_mm: Vec
     length_mm: float
     time_s: float | None = None
+    smr: str | None = None
+    material_c: float | None = None
 
 
 @dataclass
@@ -133,6 +149,10 @@ def _point(
     if np.any(np.abs(point) > MAX_COORDINATE_MM):
         raise problem(f"{'/'.join(names)} {point.tolist()} lies beyond 100 m")
     return point
+
+
+def _smr(values: Mapping[str, str]) -> str | None:
+    return values.get(SMR_COLUMN, "").strip() or None
 
 
 def _station(values: Mapping[str, str], problem: Callable[[str], InputError]) -> str:
@@ -233,6 +253,8 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
         time_s=_optional(values, TIME_COLUMN, problem),
         u_radial_um=radial,
         u_transverse_um=transverse,
+        smr=_smr(values),
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
@@ -251,6 +273,8 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
         machine_mm=_point(values, ("x_mm", "y_mm", "z_mm"), problem),
         length_mm=length,
         time_s=_optional(values, TIME_COLUMN, problem),
+        smr=_smr(values),
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
@@ -337,6 +361,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
         columns.append(TIME_COLUMN)
     if any(p.u_radial_um is not None or p.u_transverse_um is not None for p in points):
         columns += UNCERTAINTY_COLUMNS
+    columns += _extra_columns(points)
     out = io.StringIO()
     out.write("\n".join([TRACKER_FORMAT, *_provenance(inputs or {}), ",".join(columns)]) + "\n")
     writer = csv.writer(out, lineterminator="\n")
@@ -357,6 +382,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
         ):
             if value is not None:
                 values[name] = _number_text(value)
+        values.update(_extra_values(p))
         writer.writerow([values.get(name, "") for name in columns])
     return out.getvalue()
 
@@ -370,6 +396,7 @@ def tracer_lengths_text(
     columns = list(TRACER_COLUMNS)
     if any(length.time_s is not None for length in lengths):
         columns.append(TIME_COLUMN)
+    columns += _extra_columns(lengths)
     guesses = [
         f"{GUESS_TAG}{name} guess_mm={','.join(_number_text(v) for v in guess)}"
         for name, guess in (guesses_mm or {}).items()
@@ -380,12 +407,37 @@ def tracer_lengths_text(
     )
     writer = csv.writer(out, lineterminator="\n")
     for r in lengths:
-        row = [r.station, str(r.run), str(r.index), *map(_number_text, r.machine_mm)]
-        row.append(_number_text(r.length_mm))
-        if TIME_COLUMN in columns:
-            row.append("" if r.time_s is None else _number_text(r.time_s))
-        writer.writerow(row)
+        values = {
+            "station": r.station,
+            "run": str(r.run),
+            "index": str(r.index),
+            **dict(zip(("x_mm", "y_mm", "z_mm"), map(_number_text, r.machine_mm), strict=True)),
+            "length_mm": _number_text(r.length_mm),
+            **_extra_values(r),
+        }
+        if r.time_s is not None:
+            values[TIME_COLUMN] = _number_text(r.time_s)
+        writer.writerow([values.get(name, "") for name in columns])
     return out.getvalue()
+
+
+def _extra_columns(rows: list[TrackerPoint] | list[TracerLength]) -> list[str]:
+    """``smr`` and ``material_c``, where a row uses them."""
+    return [
+        name
+        for name, used in (
+            (SMR_COLUMN, any(r.smr is not None for r in rows)),
+            (MATERIAL_COLUMN, any(r.material_c is not None for r in rows)),
+        )
+        if used
+    ]
+
+
+def _extra_values(row: TrackerPoint | TracerLength) -> dict[str, str]:
+    values = {} if row.smr is None else {SMR_COLUMN: row.smr}
+    if row.material_c is not None:
+        values[MATERIAL_COLUMN] = _number_text(row.material_c)
+    return values
 
 
 def write_tracker_points(
