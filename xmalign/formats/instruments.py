@@ -40,6 +40,10 @@ MATERIAL_COLUMN = "material_c"
 GUESS_TAG = "# station "
 #: No machine or tracker reaches farther, mm.
 MAX_COORDINATE_MM = 100_000.0
+#: An uncertainty column beyond this is not a tracker's (the machine file's own bound), um.
+MAX_UNCERTAINTY_UM = 10_000.0
+#: A material temperature outside this is a sensor fault, deg C (as the weather station's).
+MATERIAL_RANGE_C = (-20.0, 60.0)
 
 
 @dataclass(frozen=True)
@@ -102,17 +106,23 @@ class TracerLength:
 
 @dataclass
 class TrackerFile:
+    """Tracker points and where they came from (``lines``: each point's line, when read)."""
+
     points: list[TrackerPoint]
     source: str
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 @dataclass
 class TracerFile:
+    """Tracer lengths and where they came from (``lines``: each length's line, when read)."""
+
     lengths: list[TracerLength]
     source: str
     guesses_mm: dict[str, Vec] = field(default_factory=dict)
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 Row = TypeVar("Row")
@@ -155,6 +165,14 @@ def _smr(values: Mapping[str, str]) -> str | None:
     return values.get(SMR_COLUMN, "").strip() or None
 
 
+def _material(values: Mapping[str, str], problem: Callable[[str], InputError]) -> float | None:
+    value = _optional(values, MATERIAL_COLUMN, problem)
+    low, high = MATERIAL_RANGE_C
+    if value is not None and not low <= value <= high:
+        raise problem(f"{MATERIAL_COLUMN} {value:g} lies outside [{low:g}, {high:g}] deg C")
+    return value
+
+
 def _station(values: Mapping[str, str], problem: Callable[[str], InputError]) -> str:
     station = values.get("station", "").strip()
     if not station:
@@ -181,8 +199,11 @@ def _parse(
     columns: tuple[str, ...],
     parse_row: Callable[[Mapping[str, str], Callable[[str], InputError]], Row],
     on_comment: Callable[[str, int], None],
-) -> None:
-    """Rows of a CSV with a format line, comments and a header; checks every line."""
+) -> list[int]:
+    """Rows of a CSV with a format line, comments and a header; checks every line.
+
+    Returns the line number of each row, in order.
+    """
     lines = text.splitlines()
     if lines and text and not text.endswith(("\n", "\r")) and not lines[-1].startswith("#"):
         raise line_error(
@@ -193,6 +214,7 @@ def _parse(
         raise line_error(source, 1, f"expected '{preamble}', found '{first}'")
     header: list[str] | None = None
     seen: dict[tuple[object, ...], int] = {}
+    numbers: list[int] = []
     for number, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
@@ -218,8 +240,10 @@ def _parse(
         if key in seen:
             raise problem(f"repeats the reading of line {seen[key]} (station, run, index)")
         seen[key] = number
-    if not seen:
+        numbers.append(number)
+    if not numbers:
         raise InputError(f"{source}: no readings")
+    return numbers
 
 
 def _key(row: object) -> tuple[object, ...]:
@@ -241,8 +265,11 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
     radial = _optional(values, "u_radial_um", problem)
     transverse = _optional(values, "u_transverse_um", problem)
     for name, value in (("u_radial_um", radial), ("u_transverse_um", transverse)):
-        if value is not None and value <= 0:
-            raise problem(f"{name} {value:g} must be > 0")
+        if value is not None and not 0 < value <= MAX_UNCERTAINTY_UM:
+            raise problem(
+                f"{name} {value:g} is a dead or absurd uncertainty"
+                f" (a tracker's lies in (0, {MAX_UNCERTAINTY_UM:g}] um)"
+            )
     return TrackerPoint(
         station=station,
         run=run,
@@ -254,7 +281,7 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
         u_radial_um=radial,
         u_transverse_um=transverse,
         smr=_smr(values),
-        material_c=_optional(values, MATERIAL_COLUMN, problem),
+        material_c=_material(values, problem),
     )
 
 
@@ -266,6 +293,8 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
     length = _number(values, "length_mm", problem)
     if abs(length) > MAX_COORDINATE_MM:
         raise problem(f"length_mm {length:g} lies beyond 100 m")
+    if length == 0.0:
+        raise problem("length_mm 0: a dead reading (no tracer counts exactly 0 by chance)")
     return TracerLength(
         station=station,
         run=run,
@@ -274,7 +303,7 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
         length_mm=length,
         time_s=_optional(values, TIME_COLUMN, problem),
         smr=_smr(values),
-        material_c=_optional(values, MATERIAL_COLUMN, problem),
+        material_c=_material(values, problem),
     )
 
 
@@ -292,7 +321,7 @@ def read_tracker_points(path: str | Path) -> TrackerFile:
     path = Path(path)
     comments: list[str] = []
     points: list[TrackerPoint] = []
-    _parse(
+    lines = _parse(
         _read_text(path),
         str(path),
         TRACKER_FORMAT,
@@ -300,7 +329,7 @@ def read_tracker_points(path: str | Path) -> TrackerFile:
         _collect(points, _tracker_row),
         lambda text, number: comments.append(text),
     )
-    return TrackerFile(points, str(path), comments)
+    return TrackerFile(points, str(path), comments, lines)
 
 
 def read_tracer_lengths(path: str | Path) -> TracerFile:
@@ -315,7 +344,7 @@ def read_tracer_lengths(path: str | Path) -> TracerFile:
         else:
             result.comments.append(text)
 
-    _parse(
+    result.lines = _parse(
         _read_text(path),
         str(path),
         TRACER_FORMAT,
