@@ -27,15 +27,17 @@ from trajectories.instruments import (
 from xmalign.cli.common import console, error_console, machine_or_default, output_folder
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
+from xmalign.formats.instrument_checks import UNITS_MM
 from xmalign.formats.instruments import (
     read_tracer_lengths,
     read_tracker_points,
     write_tracker_points,
 )
 from xmalign.formats.spatial_analyzer import (
+    NAMING,
     read_point_list,
-    read_spatial_analyzer,
-    tracker_points_from_export,
+    tracker_file_from_export,
+    unmeasured,
 )
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
@@ -174,19 +176,47 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _export(spatial_analyzer: Path | None, name_xyz: Path | None) -> tuple[Path, str, str]:
+    """The export given, its option and its default naming; one of the two options."""
+    if (spatial_analyzer is None) == (name_xyz is None):
+        raise InputError("import: give one of --spatial-analyzer FILE and --name-xyz FILE")
+    if spatial_analyzer is not None:
+        return spatial_analyzer, "--spatial-analyzer", "collection-group-target"
+    assert name_xyz is not None
+    return name_xyz, "--name-xyz", "target"
+
+
 def import_points(
-    spatial_analyzer: Annotated[
-        Path,
-        typer.Option(
-            "--spatial-analyzer",
-            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
-        ),
-    ],
     points: Annotated[
         Path,
         typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
     ],
     out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    spatial_analyzer: Annotated[
+        Path | None,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (point names, X Y Z, optional further columns;"
+            " spaces, commas or tabs).",
+        ),
+    ] = None,
+    name_xyz: Annotated[
+        Path | None,
+        typer.Option(
+            "--name-xyz",
+            help="A plain Name,X,Y,Z export of other tracker software (optional header line).",
+        ),
+    ] = None,
+    naming: Annotated[
+        str | None,
+        typer.Option(
+            help="The export's point names: collection-group-target (SpatialAnalyzer's"
+            " default), group-target or target (--name-xyz's).",
+        ),
+    ] = None,
+    units: Annotated[
+        str, typer.Option(help="The export's length unit: mm, in or m (checked).")
+    ] = "mm",
     station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
@@ -195,22 +225,33 @@ def import_points(
     """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
 
     Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear.
+    are the runs, in the order they first appear (without groups, a name measured
+    again starts the next run). The distances between the points must be the
+    commanded moves': an export in another unit than --units, or with names that
+    do not match the point list, is refused naming the first row that does not.
     """
-    refuse_overwriting(
-        {"--spatial-analyzer": spatial_analyzer, "--points": points, "--machine": machine},
-        {"--out": out},
-    )
+    export, option, default_naming = _export(spatial_analyzer, name_xyz)
+    if naming is not None and naming not in NAMING:
+        raise InputError(f"--naming '{naming}' is not known ({', '.join(NAMING)})")
+    if units not in UNITS_MM:
+        raise InputError(f"--units '{units}' is not known ({', '.join(UNITS_MM)})")
+    refuse_overwriting({option: export, "--points": points, "--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
-    exported = read_spatial_analyzer(spatial_analyzer)
-    rows = tracker_points_from_export(
-        exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
+    listed = read_point_list(points)
+    file = tracker_file_from_export(
+        machine_model, export, listed, station, naming or default_naming, units
     )
-    inputs = {str(path): file_sha256(path) for path in (spatial_analyzer, points)}
-    write_tracker_points(out, rows, inputs)
-    runs = len({row.run for row in rows})
+    inputs = {str(path): file_sha256(path) for path in (export, points)}
+    write_tracker_points(out, file.points, inputs)
+    runs = len({row.run for row in file.points})
+    missing = unmeasured(listed, file)
     error_console.print(
-        f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
+        f"wrote {out}: {len(file.points)} points of station {station} in {runs} run(s),"
+        f" read in {units}"
+        + (
+            f"; {len(missing)} listed points not measured (first '{missing[0]}')" if missing else ""
+        ),
+        highlight=False,
     )
 
 

@@ -135,7 +135,7 @@ def _check_travel(
     commanded_mm: Sequence[Vec],
     smr: Sequence[str | None],
 ) -> None:
-    points = np.array(commanded_mm, dtype=float)
+    points = np.array(commanded_mm, dtype=float).reshape(-1, 3)
     low, high = machine.travel_min_mm, machine.travel_max_mm
     outside = np.max(np.maximum(low - points, points - high), axis=1)
     bad = np.flatnonzero(outside > TRAVEL_MARGIN_MM)
@@ -206,7 +206,16 @@ def _check_distances(file: TrackerFile, rows: Vec, nominal: Vec, seen: Vec) -> N
     agree = _consistent(_ratios(ref_nominal, ref_seen * unit, ref_nominal, ref_seen * unit))
     good = agree < DISTANCE_TOLERANCE
     if np.sum(good) < 3:
-        return  # too few points far enough apart to judge
+        if np.sum(np.isfinite(agree)) < 4:
+            return  # too few points far enough apart to judge
+        raise _where(
+            file.source,
+            file.lines,
+            int(rows[0]),
+            "the distances between the points match the commanded moves in no unit:"
+            " the points are not the commanded ones (names shifted or missing?) or not"
+            " one tracker's readings",
+        )
     if unit != 1.0:
         raise _where(
             file.source,
