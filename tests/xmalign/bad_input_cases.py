@@ -718,6 +718,42 @@ def _same_file_cases() -> list[Case]:
     return cases
 
 
+def _export_lines(change: Callable[[list[str]], list[str]]) -> Damage:
+    """Change every point line of the SpatialAnalyzer export (fields split on spaces)."""
+
+    def apply(folder: Path) -> None:
+        path = folder / "spatial-analyzer.txt"
+        lines = path.read_text(encoding="utf-8").splitlines()
+        changed = [x if x.startswith("//") else " ".join(change(x.split())) for x in lines]
+        path.write_text("\n".join(changed) + "\n", encoding="utf-8")
+
+    return apply
+
+
+_SA = "spatial-analyzer.txt"
+_IMPORT_CASES = [
+    Case(
+        "import-inches-as-mm",
+        COMMAND[_SA],
+        (_SA, "line 3", "in inches", "--units in"),
+        _export_lines(lambda f: [*f[:3], *(str(float(v) / 25.4) for v in f[3:])]),
+    ),
+    Case(
+        "import-names-shifted",
+        COMMAND[_SA],
+        (_SA, "line 3", "names shifted"),
+        _export_lines(lambda f: [*f[:2], str(int(f[2]) + 1), *f[3:]]),
+    ),
+    Case("import-units-yd", (*COMMAND[_SA], "--units", "yd"), ("--units", "yd")),
+    Case("import-naming-bad", (*COMMAND[_SA], "--naming", "x"), ("--naming", "'x'")),
+    Case(
+        "import-both-exports",
+        (*COMMAND[_SA], "--name-xyz", _SA),
+        ("--spatial-analyzer", "--name-xyz"),
+    ),
+]
+
+
 def _keep_tracer_places(path: Path, places: int) -> None:
     keep = tuple(f"P{i + 1}," for i in range(places))
     lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
