@@ -61,11 +61,10 @@ MAX_UNCERTAINTY_UM = 10_000.0
 MAX_UNCERTAINTY_URAD = 100_000.0
 Micrometres = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_UM, allow_inf_nan=False)]
 Microradians = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_URAD, allow_inf_nan=False)]
-#: A systematic instrument error's standard uncertainty (0: none).
-Systematic_urad = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
-Scale_ppm = Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)]
 Allowance_um = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
 Allowance_urad = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
+Allowance_ppm = Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)]
+SmrName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 Expansion_ppm_per_k = Annotated[float, Field(ge=-5.0, le=50.0, allow_inf_nan=False)]
 Spacing_mm = Annotated[float, Field(gt=0, le=200, allow_inf_nan=False)]
 Seconds = Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)]
@@ -154,10 +153,11 @@ class TrackerUncertainty(_Strict):
 
     radial_um: DistanceModel_um = [5.0, 0.15]
     transverse_um: DistanceModel_um = [7.5, 3.0]
-    #: The angle readings' errors fixed per station (RMS over all directions), urad.
-    angle_systematic_urad: Systematic_urad = 0.0
-    #: One length factor per station and run (air compensation), ppm.
-    scale_ppm: Scale_ppm = 0.0
+    #: RMS over all directions of the angle errors common to every run at a station
+    #: (docs/formats.md "Systematic instrument errors"); 0: none
+    angle_systematic_urad: Allowance_urad = 0.0
+    #: standard uncertainty of one scale factor per station and run (air compensation)
+    scale_ppm: Allowance_ppm = 0.0
 
     def radial_sigma_mm(self, distance_mm: Vec) -> Vec:
         """Standard uncertainty along the beam at distances (N,), mm."""
@@ -172,8 +172,8 @@ class TracerUncertainty(_Strict):
     """Standard uncertainty (k = 1) of one laser-tracer length (default 0.1 um + 0.15 um/m)."""
 
     length_um: DistanceModel_um = [0.1, 0.15]
-    #: One length factor per station and run (air compensation), ppm.
-    scale_ppm: Scale_ppm = 0.0
+    #: standard uncertainty of one scale factor per place and run (air compensation)
+    scale_ppm: Allowance_ppm = 0.0
 
     def length_sigma_mm(self, length_mm: Vec) -> Vec:
         """Standard uncertainty of lengths (N,), mm."""
@@ -291,8 +291,8 @@ class Machine(_Strict):
     measurement: Measurement = Measurement()
     cnc: Cnc = Cnc()
     smr_offset_mm: Vector3 = [0.0, 0.0, 0.0]
-    #: Several SMR positions by name (rows with an ``smr`` column), spindle frame, mm.
-    smr_offsets_mm: dict[str, Vector3] = {}
+    #: further SMR positions by name (the ``smr`` column of tracker and tracer rows)
+    smr_offsets_mm: dict[SmrName, Vector3] = {}
     tracker: TrackerUncertainty = TrackerUncertainty()
     tracer: TracerUncertainty = TracerUncertainty()
 
@@ -399,17 +399,9 @@ class Machine(_Strict):
         """SMR centre from the CNC tool point, spindle frame, mm, shape (3,)."""
         return np.asarray(self.smr_offset_mm, dtype=float)
 
-    def smr_offset_of(self, name: str | None) -> Vec:
-        """The SMR offset a row's ``smr`` names (None: ``smr_offset_mm``), mm, shape (3,).
-
-        Raises
-        ------
-        KeyError
-            ``name`` is not a key of ``smr_offsets_mm``.
-        """
-        if name is None:
-            return self.smr_offset
-        return np.asarray(self.smr_offsets_mm[name], dtype=float)
+    def smr_offsets(self) -> dict[str, Vec]:
+        """The named SMR positions from the CNC tool point, spindle frame, mm, each (3,)."""
+        return {name: np.asarray(v, dtype=float) for name, v in self.smr_offsets_mm.items()}
 
     @property
     def receiver_offset(self) -> Vec:

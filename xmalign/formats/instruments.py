@@ -33,9 +33,8 @@ TRACER_COLUMNS = ("station", "run", "index", "x_mm", "y_mm", "z_mm", "length_mm"
 PATH_END_COLUMNS = ("to_x_mm", "to_y_mm", "to_z_mm")
 UNCERTAINTY_COLUMNS = ("u_radial_um", "u_transverse_um")
 TIME_COLUMN = "time_s"
-#: Optional: the SMR position (a key of the machine file's ``smr_offsets_mm``).
+#: Optional columns of both files: the SMR position's name, the scale temperature.
 SMR_COLUMN = "smr"
-#: Optional: the machine's scale temperature at the row, deg C.
 MATERIAL_COLUMN = "material_c"
 GUESS_TAG = "# station "
 #: No machine or tracker reaches farther, mm.
@@ -64,10 +63,9 @@ class TrackerPoint:
     u_radial_um, u_transverse_um : float, optional
         The row's own standard uncertainty along and across the beam.
     smr : str, optional
-        The SMR position (a key of the machine file's ``smr_offsets_mm``; None:
-        ``smr_offset_mm``).
+        The SMR position (a key of the machine file's ``smr_offsets_mm``).
     material_c : float, optional
-        The machine's scale temperature at the row, deg C.
+        The machine's scale temperature, degC.
     """
 
     station: str
@@ -159,10 +157,6 @@ def _point(
     if np.any(np.abs(point) > MAX_COORDINATE_MM):
         raise problem(f"{'/'.join(names)} {point.tolist()} lies beyond 100 m")
     return point
-
-
-def _smr(values: Mapping[str, str]) -> str | None:
-    return values.get(SMR_COLUMN, "").strip() or None
 
 
 def _material(values: Mapping[str, str], problem: Callable[[str], InputError]) -> float | None:
@@ -280,7 +274,7 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
         time_s=_optional(values, TIME_COLUMN, problem),
         u_radial_um=radial,
         u_transverse_um=transverse,
-        smr=_smr(values),
+        smr=values.get(SMR_COLUMN, "").strip() or None,
         material_c=_material(values, problem),
     )
 
@@ -302,7 +296,7 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
         machine_mm=_point(values, ("x_mm", "y_mm", "z_mm"), problem),
         length_mm=length,
         time_s=_optional(values, TIME_COLUMN, problem),
-        smr=_smr(values),
+        smr=values.get(SMR_COLUMN, "").strip() or None,
         material_c=_material(values, problem),
     )
 
@@ -390,7 +384,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
         columns.append(TIME_COLUMN)
     if any(p.u_radial_um is not None or p.u_transverse_um is not None for p in points):
         columns += UNCERTAINTY_COLUMNS
-    columns += _extra_columns(points)
+    columns += _optional_columns(points)
     out = io.StringIO()
     out.write("\n".join([TRACKER_FORMAT, *_provenance(inputs or {}), ",".join(columns)]) + "\n")
     writer = csv.writer(out, lineterminator="\n")
@@ -411,7 +405,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Mapping[str, str] | 
         ):
             if value is not None:
                 values[name] = _number_text(value)
-        values.update(_extra_values(p))
+        values.update(_optional_values(p))
         writer.writerow([values.get(name, "") for name in columns])
     return out.getvalue()
 
@@ -425,7 +419,7 @@ def tracer_lengths_text(
     columns = list(TRACER_COLUMNS)
     if any(length.time_s is not None for length in lengths):
         columns.append(TIME_COLUMN)
-    columns += _extra_columns(lengths)
+    columns += _optional_columns(lengths)
     guesses = [
         f"{GUESS_TAG}{name} guess_mm={','.join(_number_text(v) for v in guess)}"
         for name, guess in (guesses_mm or {}).items()
@@ -436,22 +430,18 @@ def tracer_lengths_text(
     )
     writer = csv.writer(out, lineterminator="\n")
     for r in lengths:
-        values = {
-            "station": r.station,
-            "run": str(r.run),
-            "index": str(r.index),
-            **dict(zip(("x_mm", "y_mm", "z_mm"), map(_number_text, r.machine_mm), strict=True)),
-            "length_mm": _number_text(r.length_mm),
-            **_extra_values(r),
-        }
-        if r.time_s is not None:
-            values[TIME_COLUMN] = _number_text(r.time_s)
-        writer.writerow([values.get(name, "") for name in columns])
+        row = [r.station, str(r.run), str(r.index), *map(_number_text, r.machine_mm)]
+        row.append(_number_text(r.length_mm))
+        if TIME_COLUMN in columns:
+            row.append("" if r.time_s is None else _number_text(r.time_s))
+        extra = _optional_values(r)
+        row += [extra.get(name, "") for name in columns[len(row) :]]
+        writer.writerow(row)
     return out.getvalue()
 
 
-def _extra_columns(rows: list[TrackerPoint] | list[TracerLength]) -> list[str]:
-    """``smr`` and ``material_c``, where a row uses them."""
+def _optional_columns(rows: list[TrackerPoint] | list[TracerLength]) -> list[str]:
+    """The SMR and material columns, where a row uses them."""
     return [
         name
         for name, used in (
@@ -462,7 +452,7 @@ def _extra_columns(rows: list[TrackerPoint] | list[TracerLength]) -> list[str]:
     ]
 
 
-def _extra_values(row: TrackerPoint | TracerLength) -> dict[str, str]:
+def _optional_values(row: TrackerPoint | TracerLength) -> dict[str, str]:
     values = {} if row.smr is None else {SMR_COLUMN: row.smr}
     if row.material_c is not None:
         values[MATERIAL_COLUMN] = _number_text(row.material_c)

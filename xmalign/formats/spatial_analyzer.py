@@ -210,7 +210,8 @@ def tracker_points_from_export(
                 f"target '{p.target}' is listed with SMR '{listed.smr}', which the machine"
                 " file's smr_offsets_mm does not name (the point list of another machine file?)",
             )
-        commanded = listed.smr_mm - machine.smr_offset_of(listed.smr)
+        offset = machine.smr_offset if listed.smr is None else machine.smr_offsets()[listed.smr]
+        commanded = listed.smr_mm - offset
         points.append(
             TrackerPoint(station, run, int(p.target), commanded, p.point_mm, smr=listed.smr)
         )
