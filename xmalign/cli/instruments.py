@@ -14,14 +14,9 @@ from rich.table import Table as RichTable
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
-    InstrumentProgram,
-    fly_paths,
-    information_limit_um,
+    machine_time_note,
+    plan_instrument,
     point_list_csv,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
     write_instrument_program,
 )
 from xmalign.cli.common import console, error_console, machine_or_default, output_folder
@@ -39,7 +34,6 @@ from xmalign.formats.spatial_analyzer import (
     tracker_file_from_export,
     unmeasured,
 )
-from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
@@ -76,10 +70,6 @@ def check_inputs(
         raise InputError("post: --verify-data needs --verify-plan when no --plan is given")
 
 
-def _triple(values: Vec, digits: int = 3) -> str:
-    return ", ".join(f"{v:.{digits}f}" for v in values)
-
-
 INSTRUMENTS = ("tracker", "tracer")
 
 
@@ -93,78 +83,55 @@ class InstrumentRequest:
     out: Path | None
     points_out: Path | None
     dialect: str | None
+    simultaneous: bool = False
 
 
-def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
+def check_instrument_options(
+    instrument: str | None, on_the_fly: bool, places: int | None, simultaneous: bool = False
+) -> None:
     """One line for an instrument option that does not fit the others."""
     if instrument is None:
-        if on_the_fly or places is not None:
-            option = "--on-the-fly" if on_the_fly else "--places"
+        if on_the_fly or places is not None or simultaneous:
+            option = (
+                "--on-the-fly" if on_the_fly else "--places" if places is not None
+                else "--simultaneous"
+            )  # fmt: skip
             raise InputError(f"{option} needs --instrument tracker or tracer")
         return
     if instrument not in INSTRUMENTS:
         raise InputError(f"--instrument '{instrument}' is not known (known: tracker, tracer)")
     if instrument == "tracer" and on_the_fly:
         raise InputError("--on-the-fly is for --instrument tracker (a tracer measures lengths)")
-    if instrument == "tracker" and places is not None:
-        raise InputError("--places is for --instrument tracer")
+    if instrument == "tracker" and (places is not None or simultaneous):
+        option = "--places" if places is not None else "--simultaneous"
+        raise InputError(f"{option} is for --instrument tracer")
     if places is not None and not MIN_TRACER_PLACES <= places <= 12:
         raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
 
 
 def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
-    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration.
+    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration
+    (:func:`trajectories.instruments.plan_instrument`).
 
     Writes the G-code (stdout or ``out``), the point list for the instrument's own
     software (``points_out``), and tells on stderr where the instrument stands,
-    the machine time and how well the plan determines the errors.
+    which SMR to mount when, the machine time and how well the plan determines the
+    errors.
     """
     refuse_overwriting({}, {"--out": request.out, "--points-out": request.points_out})
     dialect_name = resolve_dialect(machine, request.dialect)
     name = request.out.stem if request.out is not None else "XMALIGN"
     dialect = make_dialect(dialect_name, machine, name)
-    if request.instrument == "tracker":
-        program = (
-            InstrumentProgram(paths_mm=fly_paths(machine))
-            if request.on_the_fly
-            else InstrumentProgram(points_mm=tracker_points(machine))
-        )
-        runs = 1 if request.on_the_fly else 2
-        where = tracker_place(machine)
-        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
-        what = (
-            f"{len(program.paths_mm)} paths on the fly"
-            if request.on_the_fly
-            else (f"{len(program.points_mm)} points, run it twice (runs 0 and 1)")
-        )
-        notes = [
-            f"tracker: {what}; stand it on the table near {_triple(where, 0)} mm (MCS),"
-            " the SMR at the machine file's smr_offset_mm"
-        ]
-        minutes = runs
-    else:
-        places = propose_tracer_places(machine, request.places)
-        program = InstrumentProgram(points_mm=tracer_points(machine))
-        limit = information_limit_um(machine, [program] * len(places), pivots_mm=places)
-        notes = [
-            f"tracer place P{i + 1}: pivot near {_triple(p, 0)} mm (MCS); run the program once"
-            for i, p in enumerate(places)
-        ]
-        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(places)} places")
-        minutes = len(places)
+    plan = plan_instrument(
+        machine, request.instrument, request.on_the_fly, request.places, request.simultaneous
+    )
     text, time = write_instrument_program(
-        program, machine, dialect, f"xmalign {request.instrument}"
+        plan.program, machine, dialect, f"xmalign {request.instrument}"
     )
-    notes.append(
-        f"machine time: {time.total_s / 60:.1f} min per run, {minutes * time.total_s / 60:.1f} min"
-        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
-        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
-        " travel; the machine's repeatability and the tables' model error come on top)"
-    )
-    for note in notes:
+    for note in [*plan.notes, machine_time_note(plan, time)]:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
     if request.points_out is not None:
-        atomic_write_text(request.points_out, point_list_csv(program, machine.smr_offset))
+        atomic_write_text(request.points_out, point_list_csv(plan.program, machine.smr_offset))
     if request.out is not None:
         atomic_write_text(request.out, text)
     else:
@@ -260,21 +227,36 @@ def register(app: typer.Typer) -> None:
 
 
 def instrument_dry_run(
-    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+    machine: Machine,
+    out: Path,
+    instrument: str,
+    seed: int,
+    dialect: str | None,
+    simultaneous: bool = False,
 ) -> None:
     """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
-    from sim.instrument_dry_run import simulate_instruments
+    from sim.instrument_dry_run import MATERIAL_C, simulate_instruments
 
     with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect)
-    assert report.result.instruments is not None
+        report = simulate_instruments(machine, out, instrument, seed, dialect, simultaneous)
+    assert report.result.instruments is not None and report.machine is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)
+    tracker, tracer = report.machine.tracker, report.machine.tracer
+    smr = ", ".join(report.machine.smr_offsets_mm) or "one"
+    time = f"machine time: {instrument} {report.instrument_min:.0f} min"
+    if report.other_way_min is not None:
+        other = "one place after another" if report.simultaneous else "all tracers at once"
+        way = "all tracers at once" if report.simultaneous else "one place after another"
+        time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
+    if report.xm60_after_um is not None:
+        time += f", XM-60 station {report.xm60_min:.0f} min"
     lines = [
-        f"machine time: {instrument} {report.instrument_min:.0f} min"
-        + (
-            f", XM-60 station {report.xm60_min:.0f} min" if report.xm60_after_um is not None else ""
-        ),
+        f"virtual instruments: SMR positions {smr}; tracker angle errors"
+        f" {tracker.angle_systematic_urad:g} urad, scale {tracker.scale_ppm:g} ppm per run;"
+        f" tracer scale {tracer.scale_ppm:g} ppm per run; the machine's scales at"
+        f" {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC through each run (material_c)",
+        time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
         f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"
         f" {report.volumetric_after_um:.2f} um"
