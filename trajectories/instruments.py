@@ -421,9 +421,10 @@ def information_limit_um(
     ]  # fmt: skip
     tracers = tracer_places([TracerFile(lengths, "plan")]) if lengths else []
     chain = Chain.parse(machine.chain)
+    named = {name: o for program in programs for name, o in program.smr_offsets_mm.items()}
     joint = fit_joint(
         [], trackers, tracers, chain, np.ones(6), smr, machine.tracker, machine.tracer,
-        (machine.travel_min_mm, machine.travel_max_mm),
+        (machine.travel_min_mm, machine.travel_max_mm), smr_offsets_mm=named,
     )  # fmt: skip
     grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
     return joint.volumetric_u_um(chain, grid)

@@ -34,9 +34,10 @@ from xmalign.formats.spatial_analyzer import (
     tracker_file_from_export,
     unmeasured,
 )
+from xmalign.instrument_text import instrument_lines
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
+from xmalign.post.instruments import MIN_TRACER_PLACES
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes

@@ -33,9 +33,9 @@ from xmalign.formats.common import (
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
+from xmalign.instrument_text import instrument_lines, instrument_notes
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station
-from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import as_left_step, comp_step, post_step
 

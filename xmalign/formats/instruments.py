@@ -232,7 +232,7 @@ def _parse(
         row = parse_row(dict(zip(header, fields, strict=True)), problem)
         key = _key(row)
         if key in seen:
-            raise problem(f"repeats the reading of line {seen[key]} (station, run, index)")
+            raise problem(f"repeats the reading of line {seen[key]} (station, run, smr, index)")
         seen[key] = number
         numbers.append(number)
     if not numbers:
@@ -244,7 +244,8 @@ def _key(row: object) -> tuple[object, ...]:
     index = getattr(row, "index", None)
     if index is None:  # points on the fly are told apart by their path and order
         return (id(row),)
-    return (getattr(row, "station", None), getattr(row, "run", None), index)
+    fields = ("station", "run", "smr")  # one index may be measured with each SMR position
+    return (*(getattr(row, name, None) for name in fields), index)
 
 
 def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]) -> TrackerPoint:

@@ -128,10 +128,17 @@ def test_program_for_a_tracker_writes_every_point_and_the_point_list(
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     text = out.read_text()
-    assert "point 249" in text and "point 250" not in text
     rows = points.read_text().splitlines()
-    assert rows[0] == "name,x_mm,y_mm,z_mm" and rows[1].startswith("0,") and len(rows) == 251
+    count = len(rows) - 1
+    assert f"point {count - 1}" in text and f"point {count}" not in text
+    # the reference machine names no SMR positions: three proposed, each measuring the
+    # 5 x 4 x 3 grid and a third of the 190 random points, mounted at a programmed stop
+    assert count == 3 * 60 + 190
+    assert rows[0] == "name,x_mm,y_mm,z_mm,smr" and rows[1].startswith("0,")
+    assert [row.split(",")[-1] for row in rows[1:]] == ["A"] * 124 + ["B"] * 123 + ["C"] * 123
+    assert text.count("mount SMR") == 2 * 3  # a comment and a message at each
     assert "machine time:" in result.stderr and "run it twice" in result.stderr
+    assert "SMR B (100, 0, 0 mm) before point 124" in result.stderr
 
 
 def test_program_for_tracers_proposes_places_and_says_how_good(tmp_path: Path) -> None:
