@@ -26,7 +26,7 @@ from xmalign.formats.session import Session, read_session
 from xmalign.formats.studies import read_design, read_study
 from xmalign.identify import IdentificationResult, identify
 from xmalign.machine import Machine, default_machine_path, load_machine
-from xmalign.post.evaluate import PostResult
+from xmalign.post.evaluate import Instruments, PostResult
 from xmalign.post.iso230_2 import PositioningFigures
 from xmalign.roles import CHANNELS
 from xmalign.steps import (
@@ -54,6 +54,7 @@ __all__ = [
     "FileSource",
     "IdentificationResult",
     "InputError",
+    "Instruments",
     "LaunchPose",
     "Machine",
     "MeasurementFile",

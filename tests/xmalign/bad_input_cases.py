@@ -604,7 +604,26 @@ _ERROR_CASES = [
 
 T, R = "tracker.csv", "tracer.csv"
 TRACKER, TRACER = COMMAND[T], COMMAND[R]
+
+
+def _with_column(name: str, column: str, first: str) -> Damage:
+    """A column added to every row of an instrument file, ``first`` in the first row only."""
+
+    def apply(folder: Path) -> None:
+        path = folder / name
+        lines = path.read_text(encoding="utf-8").splitlines()
+        header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+        lines[header] += f",{column}"
+        lines[header + 1] += f",{first}"
+        lines[header + 2 :] = [line + "," for line in lines[header + 2 :]]
+        path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+    return apply
+
+
 _TRACKER_CASES = [
+    ("unknown-smr", _with_column(T, "smr", "B"), "T1 run 0 index 0: smr 'B' is not in"),
+    ("material-300", _with_column(T, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(T, "tracker-points/1", "tracker-points/2"), "line 1"),
     ("nan-point", replace(T, "\nT1,0,0,0.0,", "\nT1,0,0,nan,"), "not a finite number"),
     ("no-index-no-path", replace(T, "\nT1,0,0,", "\nT1,0,,"), "on the fly"),
@@ -621,6 +640,8 @@ _TRACKER_CASES = [
     ),
 ]
 _TRACER_CASES = [
+    ("unknown-smr", _with_column(R, "smr", "B"), "P1 run 0 index 0: smr 'B' is not in"),
+    ("material-300", _with_column(R, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(R, "tracer-lengths/1", "tracer-length/1"), "line 1"),
     ("bad-guess", replace(R, "guess_mm=", "guess_mm=x"), "guess_mm"),
     ("inf-length", replace(R, "\nP1,0,0,0.0,", "\nP1,0,0,inf,"), "not a finite number"),
@@ -810,6 +831,16 @@ _CLI_CASES = [
         ("link.csv", "--data"),
         damage=lambda folder: (folder / "link.csv").symlink_to("m.csv"),
     ),  # noqa: E501
+    Case(
+        "post-knot-spacing-for-lines",
+        ("post", "--plan", L, "--data", "m.csv", "--out", "e2.csv", "--knot-spacing-mm", "50"),
+        ("--knot-spacing-mm", "lines set their own"),
+    ),
+    Case(
+        "post-knot-spacing-5",
+        ("post", "--tracker", T, "--out", "e2.csv", "--knot-spacing-mm", "5"),
+        ("--knot-spacing-mm",),
+    ),
     Case("identify-in-as-out", ("identify", "--input", S, "--out", S), (S, "--input")),
     Case("identify-machine-as-out", ("identify", "--input", S, "--out", M, "--machine", M), (M,)),
     Case(

@@ -43,11 +43,14 @@ if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
 
 
-def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
+def read_instruments(
+    tracker: list[Path], tracer: list[Path], knot_spacing_mm: float | None = None
+) -> Instruments:
     """The tracker-point and tracer-length files given (each option repeatable)."""
     return Instruments(
         trackers=tuple(read_tracker_points(path) for path in tracker),
         tracers=tuple(read_tracer_lengths(path) for path in tracer),
+        knot_spacing_mm=knot_spacing_mm,
     )
 
 

@@ -36,6 +36,7 @@ from xmalign.formats.provenance import FileSource
 from xmalign.instrument_text import instrument_lines, instrument_notes
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station
+from xmalign.post.instruments import MAX_KNOT_SPACING_MM, MIN_KNOT_SPACING_MM
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import as_left_step, comp_step, post_step
 
@@ -145,6 +146,16 @@ def post(
             " to these errors (default: the machine file's controller)."
         ),
     ] = None,
+    knot_spacing_mm: Annotated[
+        float | None,
+        typer.Option(
+            min=MIN_KNOT_SPACING_MM,
+            max=MAX_KNOT_SPACING_MM,
+            help="Compensation-point spacing where only --tracker/--tracer measured, mm"
+            " (default: chosen by cross-validation); with lines, of the points beyond them"
+            " (default 400).",
+        ),
+    ] = None,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
 
@@ -164,6 +175,11 @@ def post(
     """
     plan, data, tracker, tracer = plan or [], data or [], tracker or [], tracer or []
     check_inputs(plan, tracker, tracer, verify_data is not None and verify_plan is None)
+    if knot_spacing_mm is not None and not tracker and not tracer:
+        raise InputError(
+            "--knot-spacing-mm is for --tracker/--tracer readings; lines set their own"
+            " compensation points (measurement.target_spacing_mm)"
+        )
     if verify_data is None and (verify_plan or verify_controller):
         option = "--verify-plan" if verify_plan else "--verify-controller"
         raise InputError(f"{option} needs --verify-data (the verification measurement)")
@@ -188,7 +204,7 @@ def post(
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = _stations(plan, data, machine)
-        readings = read_instruments(tracker, tracer)
+        readings = read_instruments(tracker, tracer, knot_spacing_mm)
         verification: list[PostResult] = []
 
         def on_fit(read: list[Station]) -> None:

@@ -85,10 +85,15 @@ def channel_sigma(machine: Machine) -> Vec:
 
 @dataclass(frozen=True)
 class Instruments:
-    """Tracker-point and tracer-length files for the same fit as the lines."""
+    """Tracker-point and tracer-length files for the same fit as the lines.
+
+    ``knot_spacing_mm``: the compensation points' spacing where no line sets them
+    (None: chosen by cross-validation; :func:`xmalign.post.instruments.fit_joint`).
+    """
 
     trackers: tuple[TrackerFile, ...] = ()
     tracers: tuple[TracerFile, ...] = ()
+    knot_spacing_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -148,16 +153,20 @@ def post_stations(
                 "--applied (a verification run) takes interferometer lines only, not tracker"
                 " points or tracer lengths"
             )
+        spindle = rot_z(machine.spindle_angle_rad)
         joint = fit_joint(
             fitted,
             tracker_stations(list(instruments.trackers)),
             tracer_places(list(instruments.tracers)),
             chain,
             channel_sigma(machine),
-            rot_z(machine.spindle_angle_rad) @ machine.smr_offset,
+            spindle @ machine.smr_offset,
             machine.tracker,
             machine.tracer,
             travel,
+            instruments.knot_spacing_mm,
+            {name: spindle @ offset for name, offset in machine.smr_offsets().items()},
+            machine.thermal.expansion_ppm_per_k,
         )
         fit = joint.fit
     else:
@@ -174,7 +183,10 @@ def post_stations(
         fit=fit,
         positioning=positioning,
         lines=lines,
-        warnings=datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
+        warnings=datum_warnings(lines)
+        + drift
+        + outlier_warnings(fit, lines, sources)
+        + instrument_outlier_warnings(joint),
         compensation=compensation,
         applied=applied,
         instruments=joint,
@@ -218,6 +230,15 @@ def outlier_warnings(fit: TableFit, lines: list[LineData], sources: list[str]) -
             " deviations off the fit, a gross outlier: left out of the fit"
         )
     return warnings
+
+
+def instrument_outlier_warnings(joint: JointFit | None) -> list[str]:
+    """One warning per tracker point or tracer length the joint fit left out."""
+    return [
+        f"{outlier.name}: {outlier.sigmas:.0f} standard deviations off the fit, a gross"
+        " outlier: left out of the fit"
+        for outlier in (joint.outliers if joint is not None else [])
+    ]
 
 
 def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: Vec) -> LineData:

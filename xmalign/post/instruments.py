@@ -1292,16 +1292,17 @@ def unseen_with_smr_positions(chain: Chain, offsets_mm: Vec) -> list[str]:
 
 
 def knot_spacing_candidates(reach_mm: Vec) -> list[float]:
-    """Spacings tried, coarse to fine: the longest range measured over 2, 3, 4 ... 40, mm.
+    """Spacings tried, coarse to fine: the longest range measured over 2, 3, 4 ... 64, mm.
 
-    Never finer than :data:`MIN_KNOT_SPACING_MM`.
+    Within :data:`MIN_KNOT_SPACING_MM` .. :data:`MAX_KNOT_SPACING_MM` (at least one).
     """
     longest = float(np.ptp(reach_mm, axis=0).max())
-    return [
+    spacings = [
         longest / n
         for n in _CANDIDATE_INTERVALS
         if MIN_KNOT_SPACING_MM <= longest / n <= MAX_KNOT_SPACING_MM
     ]
+    return spacings or [float(np.clip(longest / 2, MIN_KNOT_SPACING_MM, MAX_KNOT_SPACING_MM))]
 
 
 def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
