@@ -26,11 +26,21 @@ Fields = list[str]
 
 
 @pytest.fixture(scope="module")
-def point_list(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("points")
+def machine_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The reference machine with the one SMR position the example export was measured with."""
+    path = tmp_path_factory.mktemp("machine") / "one-smr.yaml"
+    text = default_machine_path().read_text()
+    path.write_text(text + "smr_offsets_mm: {A: [0, 0, 0]}\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def point_list(tmp_path_factory: pytest.TempPathFactory, machine_file: Path) -> Path:
+    """The point list ``program`` writes for that machine (one SMR: the example's points)."""
+    folder = machine_file.parent
     result = run_in_process(
         "program", "--instrument", "tracker", "--points-out", str(folder / "points.csv"),
-        "--out", str(folder / "t.mpf"),
+        "--out", str(folder / "t.mpf"), "--machine", str(machine_file),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     return folder / "points.csv"
@@ -43,7 +53,11 @@ def _variant(path: Path, line: Callable[[Fields], str], header: str = "") -> Pat
 
 
 def _import(point_list: Path, out: Path, *options: str):
-    return run_in_process("import", *options, "--points", str(point_list), "--out", str(out))
+    machine = point_list.parent / "one-smr.yaml"
+    return run_in_process(
+        "import", *options, "--points", str(point_list), "--out", str(out),
+        "--machine", str(machine),
+    )  # fmt: skip
 
 
 def _assert_like_the_example(out: Path, scale: float = 1.0) -> None:
@@ -119,7 +133,7 @@ def test_names_shifted_against_the_point_list_are_refused_at_the_first(
 
 
 def test_the_import_through_the_api_checks_the_same(tmp_path: Path, point_list: Path) -> None:
-    machine = load_machine(default_machine_path())
+    machine = load_machine(point_list.parent / "one-smr.yaml")
     listed = read_point_list(point_list)
     file = tracker_file_from_export(machine, EXAMPLE, listed, "T1")
     assert len(file.points) == 500 and file.lines[0] == 3

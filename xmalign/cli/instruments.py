@@ -250,8 +250,8 @@ def instrument_dry_run(
     smr = ", ".join(report.machine.smr_offsets_mm) or "one"
     time = f"machine time: {instrument} {report.instrument_min:.0f} min"
     if report.other_way_min is not None:
-        other = "one place after another" if report.simultaneous else "all tracers at once"
-        way = "all tracers at once" if report.simultaneous else "one place after another"
+        other = "one place at a time" if report.simultaneous else "all tracers at once"
+        way = "all tracers at once" if report.simultaneous else "one place at a time"
         time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
     if report.xm60_after_um is not None:
         time += f", XM-60 station {report.xm60_min:.0f} min"

@@ -16,7 +16,12 @@ from sim.machine import VirtualMachine
 from sim.synthetic import measure, six_line_plan
 from sim.tracker import VirtualTracker, measure_tracker
 from tests.cli_helpers import assert_one_line_error, run_in_process
-from trajectories.instruments import grid_and_random_points
+from trajectories.instruments import (
+    InstrumentProgram,
+    grid_and_random_points,
+    point_list_csv,
+    tracker_points,
+)
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.instruments import (
     read_tracer_lengths,
@@ -26,6 +31,7 @@ from xmalign.formats.instruments import (
 )
 from xmalign.formats.measurements import write_measurements
 from xmalign.formats.plan import write_plan
+from xmalign.machine import default_machine_path, load_machine
 from xmalign.rigid_body import Chain
 
 EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
@@ -174,12 +180,12 @@ def test_program_instrument_options_that_do_not_fit(argv, fragment: str) -> None
 
 
 def _point_list(tmp_path: Path) -> Path:
+    """The point list of a tracker program with the one SMR of examples/spatial-analyzer.txt
+    (``program`` itself plans several where the machine file names none)."""
+    machine = load_machine(default_machine_path())
     points = tmp_path / "points.csv"
-    result = run_in_process(
-        "program", "--instrument", "tracker", "--points-out", str(points),
-        "--out", str(tmp_path / "t.mpf"),
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
+    program = InstrumentProgram(points_mm=tracker_points(machine))
+    points.write_text(point_list_csv(program, machine.smr_offset))
     return points
 
 
