@@ -255,10 +255,14 @@ def instrument_dry_run(
         time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
     if report.xm60_after_um is not None:
         time += f", XM-60 station {report.xm60_min:.0f} min"
+    errors = (
+        f"tracer scale {tracer.scale_ppm:g} ppm per run"
+        if instrument == "tracer"
+        else f"tracker angle errors {tracker.angle_systematic_urad:g} urad, scale"
+        f" {tracker.scale_ppm:g} ppm per run"
+    )
     lines = [
-        f"virtual instruments: SMR positions {smr}; tracker angle errors"
-        f" {tracker.angle_systematic_urad:g} urad, scale {tracker.scale_ppm:g} ppm per run;"
-        f" tracer scale {tracer.scale_ppm:g} ppm per run; the machine's scales at"
+        f"virtual instruments: SMR positions {smr}; {errors}; the machine's scales at"
         f" {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC through each run (material_c)",
         time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
