@@ -622,7 +622,7 @@ def _with_column(name: str, column: str, first: str) -> Damage:
 
 
 _TRACKER_CASES = [
-    ("unknown-smr", _with_column(T, "smr", "B"), "T1 run 0 index 0: smr 'B' is not in"),
+    ("unknown-smr", _with_column(T, "smr", "B"), "line 4: smr 'B' is not a key"),
     ("material-300", _with_column(T, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(T, "tracker-points/1", "tracker-points/2"), "line 1"),
     ("nan-point", replace(T, "\nT1,0,0,0.0,", "\nT1,0,0,nan,"), "not a finite number"),
@@ -640,7 +640,7 @@ _TRACKER_CASES = [
     ),
 ]
 _TRACER_CASES = [
-    ("unknown-smr", _with_column(R, "smr", "B"), "P1 run 0 index 0: smr 'B' is not in"),
+    ("unknown-smr", _with_column(R, "smr", "B"), "line 8: smr 'B' is not a key"),
     ("material-300", _with_column(R, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(R, "tracer-lengths/1", "tracer-length/1"), "line 1"),
     ("bad-guess", replace(R, "guess_mm=", "guess_mm=x"), "guess_mm"),
@@ -705,10 +705,10 @@ _GROSS_TRACKER_CASES = [
     ("point-99999", _rows(T, _cell("tx_mm", "99999")), "line 41: this point's"),
     ("outside-travel", _rows(T, _shifted("x_mm", 3000.0)), "line 44: the commanded point"),
     ("u-radial-1e30", _rows(T, _cell("u_radial_um", "1e30")), "line 41: u_radial_um 1e+30"),
-    ("u-radial-0", _rows(T, _cell("u_radial_um", "0")), "dead or absurd"),
-    ("u-transverse-negative", _rows(T, _cell("u_transverse_um", "-3")), "dead or absurd"),
+    ("u-radial-0", _rows(T, _cell("u_radial_um", "0")), "line 41: u_radial_um 0 must be > 0"),
+    ("u-transverse-negative", _rows(T, _cell("u_transverse_um", "-3")), "must be > 0"),
     ("u-radial-nan", _rows(T, _cell("u_radial_um", "nan")), "line 41: u_radial_um"),
-    ("unknown-smr", _rows(T, _cell("smr", "Q")), "line 41: smr 'Q'"),
+    ("unknown-smr-row", _rows(T, _cell("smr", "Q")), "line 41: smr 'Q'"),
     ("material-999", _rows(T, _cell("material_c", "999")), "line 41: material_c 999"),
 ]
 _GROSS_TRACER_CASES = [

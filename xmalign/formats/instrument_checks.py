@@ -3,6 +3,8 @@
 What makes every table wrong is refused before the fit, with one line naming
 the file and the row:
 
+- dead or absurd values: an uncertainty column not in (0, 10 000] um (``1e30``),
+  a tracer length of exactly 0, a material temperature outside [-20, 60] deg C;
 - the same readings given twice (the same file, a link to it or a copy: by content);
 - a commanded point outside the machine's travel (more than :data:`TRAVEL_MARGIN_MM`);
 - an SMR position the machine file does not name;
@@ -21,6 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from xmalign.errors import InputError
 from xmalign.formats.common import line_error
@@ -28,6 +31,10 @@ from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 
+#: An uncertainty column beyond this is not a tracker's (the machine file's own bound), um.
+MAX_UNCERTAINTY_UM = 10_000.0
+#: A material temperature outside this is a sensor fault, deg C (as the weather station's).
+MATERIAL_RANGE_C = (-20.0, 60.0)
 #: A commanded point may lie this far outside the travel (rounding), mm.
 TRAVEL_MARGIN_MM = 1.0
 #: Length units a tracker's software may export, in mm, and their names.
@@ -62,6 +69,10 @@ def check_instrument_files(
     InputError
         Naming the file and the row: see the module's list.
     """
+    for tracker in trackers:
+        _check_tracker_values(tracker)
+    for tracer in tracers:
+        _check_tracer_values(tracer)
     _check_not_twice([(f.source, _tracker_digest(f)) for f in trackers])
     _check_not_twice([(f.source, _tracer_digest(f)) for f in tracers])
     for tracker in trackers:
@@ -77,6 +88,53 @@ def check_instrument_files(
         smr = [r.smr for r in tracer.lengths]
         _check_travel(machine, tracer.source, tracer.lines, commanded, smr)
         _check_tracer_units(machine, tracer)
+
+
+def _column(values: Sequence[float | None]) -> Vec:
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+
+def _first_outside(
+    file: TrackerFile | TracerFile,
+    name: str,
+    values: Vec,
+    inside: npt.NDArray[np.bool_],
+    what: str,
+) -> None:
+    """Refuse the first row whose given value (not NaN) is not ``inside``."""
+    bad = np.flatnonzero(~np.isnan(values) & ~inside)
+    if len(bad):
+        row = int(bad[0])
+        raise _where(file.source, file.lines, row, f"{name} {values[row]:g} {what}")
+
+
+def _check_material(file: TrackerFile | TracerFile, material_c: Vec) -> None:
+    low, high = MATERIAL_RANGE_C
+    with np.errstate(invalid="ignore"):
+        inside = (material_c >= low) & (material_c <= high)
+    _first_outside(
+        file, "material_c", material_c, inside, f"lies outside [{low:g}, {high:g}] deg C"
+    )
+
+
+def _check_tracker_values(file: TrackerFile) -> None:
+    """Dead or absurd uncertainties, impossible material temperatures."""
+    for name in ("u_radial_um", "u_transverse_um"):
+        values = _column([getattr(p, name) for p in file.points])
+        with np.errstate(invalid="ignore"):
+            inside = (values > 0) & (values <= MAX_UNCERTAINTY_UM)
+        what = (
+            f"is a dead or absurd uncertainty (a tracker's lies in (0, {MAX_UNCERTAINTY_UM:g}] um)"
+        )
+        _first_outside(file, name, values, inside, what)
+    _check_material(file, _column([p.material_c for p in file.points]))
+
+
+def _check_tracer_values(file: TracerFile) -> None:
+    """Dead lengths (exactly 0: no tracer counts that by chance), impossible temperatures."""
+    lengths = np.array([r.length_mm for r in file.lengths])
+    _first_outside(file, "length_mm", lengths, lengths != 0.0, "is a dead reading")
+    _check_material(file, _column([r.material_c for r in file.lengths]))
 
 
 def _tracker_digest(file: TrackerFile) -> str:

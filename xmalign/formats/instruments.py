@@ -39,10 +39,6 @@ MATERIAL_COLUMN = "material_c"
 GUESS_TAG = "# station "
 #: No machine or tracker reaches farther, mm.
 MAX_COORDINATE_MM = 100_000.0
-#: An uncertainty column beyond this is not a tracker's (the machine file's own bound), um.
-MAX_UNCERTAINTY_UM = 10_000.0
-#: A material temperature outside this is a sensor fault, deg C (as the weather station's).
-MATERIAL_RANGE_C = (-20.0, 60.0)
 
 
 @dataclass(frozen=True)
@@ -159,14 +155,6 @@ def _point(
     return point
 
 
-def _material(values: Mapping[str, str], problem: Callable[[str], InputError]) -> float | None:
-    value = _optional(values, MATERIAL_COLUMN, problem)
-    low, high = MATERIAL_RANGE_C
-    if value is not None and not low <= value <= high:
-        raise problem(f"{MATERIAL_COLUMN} {value:g} lies outside [{low:g}, {high:g}] deg C")
-    return value
-
-
 def _station(values: Mapping[str, str], problem: Callable[[str], InputError]) -> str:
     station = values.get("station", "").strip()
     if not station:
@@ -260,11 +248,8 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
     radial = _optional(values, "u_radial_um", problem)
     transverse = _optional(values, "u_transverse_um", problem)
     for name, value in (("u_radial_um", radial), ("u_transverse_um", transverse)):
-        if value is not None and not 0 < value <= MAX_UNCERTAINTY_UM:
-            raise problem(
-                f"{name} {value:g} is a dead or absurd uncertainty"
-                f" (a tracker's lies in (0, {MAX_UNCERTAINTY_UM:g}] um)"
-            )
+        if value is not None and value <= 0:
+            raise problem(f"{name} {value:g} must be > 0")
     return TrackerPoint(
         station=station,
         run=run,
@@ -276,7 +261,7 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
         u_radial_um=radial,
         u_transverse_um=transverse,
         smr=values.get(SMR_COLUMN, "").strip() or None,
-        material_c=_material(values, problem),
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
@@ -288,8 +273,6 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
     length = _number(values, "length_mm", problem)
     if abs(length) > MAX_COORDINATE_MM:
         raise problem(f"length_mm {length:g} lies beyond 100 m")
-    if length == 0.0:
-        raise problem("length_mm 0: a dead reading (no tracer counts exactly 0 by chance)")
     return TracerLength(
         station=station,
         run=run,
@@ -298,7 +281,7 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
         length_mm=length,
         time_s=_optional(values, TIME_COLUMN, problem),
         smr=values.get(SMR_COLUMN, "").strip() or None,
-        material_c=_material(values, problem),
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
