@@ -768,6 +768,16 @@ _IMPORT_CASES = [
     Case("import-units-yd", (*COMMAND[_SA], "--units", "yd"), ("--units", "yd")),
     Case("import-naming-bad", (*COMMAND[_SA], "--naming", "x"), ("--naming", "'x'")),
     Case(
+        "program-tracker-simultaneous",
+        ("program", "--instrument", "tracker", "--simultaneous"),
+        ("--simultaneous is for --instrument tracer",),
+    ),
+    Case(
+        "dry-run-tracker-simultaneous",
+        ("dry-run", "--instrument", "tracker", "--simultaneous", "--out", "dry"),
+        ("--simultaneous is for --instrument tracer",),
+    ),
+    Case(
         "import-both-exports",
         (*COMMAND[_SA], "--name-xyz", _SA),
         ("--spatial-analyzer", "--name-xyz"),
