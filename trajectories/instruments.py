@@ -349,6 +349,9 @@ def tracker_place(machine: Machine) -> Vec:
     return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2] - 300.0])
 
 
+#: Compensation-point spacing of the planned fit, mm: exact readings cannot cross-validate
+#: a spacing (post chooses it from the real readings' scatter; docs/post.md).
+PLAN_KNOT_SPACING_MM = 200.0
 #: Samples per mm of path for a planned tracker on the fly (one every 20 mm).
 FLY_SPACING_MM = 20.0
 
@@ -424,7 +427,8 @@ def information_limit_um(
     named = {name: o for program in programs for name, o in program.smr_offsets_mm.items()}
     joint = fit_joint(
         [], trackers, tracers, chain, np.ones(6), smr, machine.tracker, machine.tracer,
-        (machine.travel_min_mm, machine.travel_max_mm), smr_offsets_mm=named,
+        (machine.travel_min_mm, machine.travel_max_mm), PLAN_KNOT_SPACING_MM,
+        smr_offsets_mm=named,
     )  # fmt: skip
     grid = grid_points(machine.travel_min_mm, machine.travel_max_mm, 8)
     return joint.volumetric_u_um(chain, grid)

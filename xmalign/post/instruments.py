@@ -8,7 +8,14 @@ unknowns:
   centre in the tracker's frame, ``p`` the commanded SMR point in the MCS and
   ``dp`` the machine's deviation there (seed 000); six unknowns;
 - a **tracer place**: its pivot ``q`` (three unknowns) and one constant ``k``
-  per run, ``L = |p + dp - q| + k`` (self-calibration, seed 004).
+  per run, ``L = |p + dp - q| + k`` (self-calibration, seed 004);
+- with the machine file's priors, the instruments' systematic errors: a tracker
+  station's angle errors (16 coefficients) and a scale per run of every station
+  and place, each a pseudo-observation ``0 +- prior``;
+- with several SMR positions, a constant correction of each but the first.
+
+``p`` is the commanded point plus the row's SMR offset, expanded to 20 degC where
+the row gives the material temperature.
 
 The model is not linear in the poses and pivots, so it is solved by iterated
 linearisation (Gauss-Newton): the table values stay the parameters (the
@@ -25,11 +32,17 @@ with ``sigma(L)``; the lines with the channel scatter the lines-only fit
 estimates (:func:`xmalign.post.solve.fit_error_tables`). The covariance of the
 tables is propagated as there (GUM).
 
-A point only gives the position of the SMR. Without interferometer lines the
-angular errors whose lever arm never changes cannot be seen (the rotations of the
-last axis of the tool side, and the rotation about the only axis that moves a
-lever arm); the tables are then those of the SMR as the functional point, and
-those rotations are written as 0 with no u95 (docs/post.md).
+A point only gives the position of the SMR. Without interferometer lines and
+with one SMR position the angular errors whose lever arm never changes cannot be
+seen (the rotations of the last axis of the tool side, and the rotation about
+the only axis that moves a lever arm); the tables are then those of the SMR as
+the functional point, and those rotations are written as 0 with no u95. SMR
+positions that differ across a rotation's axis see it (docs/post.md).
+
+Without lines the compensation points' spacing is chosen from the data by
+generalised cross-validation (:func:`fit_joint`). Readings more than ten robust
+standard deviations off are left out one by one and named; a fit that does not
+settle, or tables beyond what a machine can have, are refused.
 
 Points taken **on the fly** (seed 001) count only through their deviation across
 the commanded path: the fit uses the two components perpendicular to it, at
@@ -80,6 +93,8 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
 
 #: The chosen tables have at most this many values per reading component (docs/post.md).
 MAX_COLUMNS_PER_READING = 0.25
+#: The search for the knot spacing stops where the score rises this much above the best.
+_GCV_RISE = 1.05
 #: The compensation-point spacings ``post`` tries or accepts where no line sets them, mm.
 MIN_KNOT_SPACING_MM = 20.0
 MAX_KNOT_SPACING_MM = 2000.0
@@ -647,7 +662,10 @@ class _Setting:
     ``smr_mm`` (3,) for rows without a name, ``smr_named_mm`` by name (MCS, mm);
     ``tool_tables``: the lever arm is the SMR offset (tables of the tool point),
     else 0 (tables of the SMR); the machine file's instrument models and scale
-    expansion (ppm/K).
+    expansion (ppm/K); ``smr_positions_mm`` (M, 3) the distinct SMR offsets the
+    rows use: from the second one on, each gets a constant correction (three
+    unknowns), since neither its nominal offset nor the tool's orientation
+    (a constant rotation times the offsets' differences) is known to a micrometre.
     """
 
     smr_mm: Vec
@@ -656,6 +674,7 @@ class _Setting:
     tracker: TrackerUncertainty
     tracer: TracerUncertainty
     expansion_ppm_per_k: float = 0.0
+    smr_positions_mm: Vec = field(default_factory=lambda: np.zeros((1, 3)))
 
 
 def _row_reading(source: str, kind: str, label: str, run: int, index: int, row: int) -> str:
@@ -679,6 +698,7 @@ class _RowContext:
         setting: _Setting,
         kind: str,
         station: TrackerStation | TracerPlace,
+        shift_column: int,
     ) -> None:
         n = len(station.run)
         names = station.smr or (None,) * n
@@ -695,6 +715,11 @@ class _RowContext:
                     + f" ({', '.join(setting.smr_named_mm) or 'none given'})"
                 )
         self.arm_mm = self.smr_mm if setting.tool_tables else np.zeros((n, 3))
+        distance = np.linalg.norm(
+            self.smr_mm[:, None, :] - setting.smr_positions_mm[None, :, :], axis=2
+        )
+        self.position = np.argmin(distance, axis=1)  # 0: no correction
+        self.shift_column = shift_column
         material = station.material_c if len(station.material_c) else np.full(n, np.nan)
         low, high = SENSOR_LIMITS["material_temp_c"]
         bad = np.flatnonzero(~np.isnan(material) & ((material < low) | (material > high)))
@@ -712,6 +737,22 @@ class _RowContext:
     ) -> tuple[str, str, str, int, int, int]:
         index = int(station.index[row]) if len(station.index) else row
         return station.source, kind, station.label, int(station.run[row]), index, row
+
+    def shift_design(self, n_columns: int) -> scipy.sparse.csr_matrix:
+        """The rows' sensitivity to the SMR positions' corrections, (3N, n_columns)."""
+        n = len(self.position)
+        rows = np.flatnonzero(self.position > 0)
+        columns = self.shift_column + 3 * (self.position[rows] - 1)
+        return scipy.sparse.csr_matrix(
+            (
+                np.ones(3 * len(rows)),
+                (
+                    (3 * rows[:, None] + np.arange(3)).ravel(),
+                    (columns[:, None] + np.arange(3)).ravel(),
+                ),
+            ),
+            shape=(3 * n, n_columns),
+        )
 
     def nominal_mm(self, commanded_mm: Vec) -> Vec:
         """The SMR's nominal place at 20 degC: the commanded point, the SMR offset and the
@@ -805,10 +846,12 @@ class _TrackerState:
     """A tracker station being fitted: its pose and, with the machine file's priors, its
     systematic angle errors (16 coefficients) and a scale per run (ppm)."""
 
-    def __init__(self, station: TrackerStation, setting: _Setting, first_column: int) -> None:
+    def __init__(
+        self, station: TrackerStation, setting: _Setting, first_column: int, shift_column: int
+    ) -> None:
         self.station = station
         self.noise_factor = 1.0
-        self.rows = _RowContext(setting, "tracker station", station)
+        self.rows = _RowContext(setting, "tracker station", station, shift_column)
         self.column = first_column
         self.kept = np.ones(len(station.run), dtype=bool)
         self.runs = sorted({int(r) for r in station.run})
@@ -906,7 +949,12 @@ class _TrackerState:
         reading = np.repeat(np.arange(n), np.where(fly, 2, 3))
         kept = self.kept[reading]
         return _Block(
-            design=(table_design + pose_design + self._systematic_design(n_columns)).tocsr(),
+            design=(
+                table_design
+                + pose_design
+                + self._systematic_design(n_columns)
+                + self.rows.shift_design(n_columns)
+            ).tocsr(),
             observed=(measured - nominal).ravel(),
             whitening=(scipy.sparse.diags(kept.astype(float)) @ whitening).tocsr(),
             ratio=kept.astype(float),
@@ -979,10 +1027,12 @@ class _TracerState:
     """A tracer place being fitted: its pivot, a constant per run and, with the machine
     file's prior, a scale per run (ppm)."""
 
-    def __init__(self, place: TracerPlace, setting: _Setting, first_column: int) -> None:
+    def __init__(
+        self, place: TracerPlace, setting: _Setting, first_column: int, shift_column: int
+    ) -> None:
         self.place = place
         self.noise_factor = 1.0
-        self.rows = _RowContext(setting, "tracer place", place)
+        self.rows = _RowContext(setting, "tracer place", place, shift_column)
         self.column = first_column
         self.kept = np.ones(len(place.run), dtype=bool)
         self.runs = place.runs
@@ -1065,7 +1115,7 @@ class _TracerState:
         )
         tables_part = scipy.sparse.hstack(
             [project @ design_dp, scipy.sparse.csr_matrix((n, n_columns - layout.n_columns))]
-        )
+        ) + project @ self.rows.shift_design(n_columns)
         setup = Triplets()
         for c in range(3):
             setup.add(np.arange(n), self.column + c, -beam[:, c])
@@ -1239,6 +1289,7 @@ def fit_joint(
             tracker_uncertainty,
             tracer_uncertainty,
             expansion_ppm_per_k,
+            used,
         ),
         travel_mm=travel_mm,
         sources=sources,
@@ -1309,11 +1360,12 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
     """The fit at the knot spacing with the least generalised cross-validation score.
 
     Candidates from coarse to fine (:func:`knot_spacing_candidates`); the search
-    stops two candidates after the best one, where the data cannot determine a
-    finer table, or where the tables would have more than a
-    :data:`MAX_COLUMNS_PER_READING` share of the readings' components (noise-free
-    or sparse data would otherwise go on to ever finer tables that interpolate
-    the readings and swing between them).
+    stops where a score rises :data:`_GCV_RISE` above the best (a score can stay
+    flat over several spacings and fall again where the tables first follow an
+    error's wavelength), where the data cannot determine a finer table, or where
+    the tables would have more than a :data:`MAX_COLUMNS_PER_READING` share of
+    the readings' components (noise-free or sparse data would otherwise go on to
+    ever finer tables that interpolate the readings and swing between them).
     """
     reach = _instrument_points(inputs.trackers, inputs.tracers)
     standing = _standing_positions(inputs.trackers, inputs.tracers)
@@ -1344,7 +1396,7 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
         scores.append((spacing, system.gcv))
         if best is None or system.gcv < best[1].gcv:
             best = (spacing, system)
-        elif len(scores) - [s for s, _ in scores].index(best[0]) > 2:
+        elif system.gcv > _GCV_RISE * best[1].gcv:
             break
     assert best is not None  # the coarsest candidate either fitted or raised
     joint = _fit(inputs, best[0], best[1])
@@ -1606,15 +1658,17 @@ class _States:
         setting: _Setting,
         first: int,
     ) -> None:
-        column = first
         self.setting = setting
+        self.shift_column = first  # the SMR positions' corrections, then each instrument
+        column = first + 3 * (len(setting.smr_positions_mm) - 1)
+        self.first_instrument_column = column
         self.trackers: list[_TrackerState] = []
         for station in trackers:
-            self.trackers.append(_TrackerState(station, setting, column))
+            self.trackers.append(_TrackerState(station, setting, column, first))
             column += self.trackers[-1].n_columns
         self.tracers: list[_TracerState] = []
         for place in tracers:
-            self.tracers.append(_TracerState(place, setting, column))
+            self.tracers.append(_TracerState(place, setting, column, first))
             column += self.tracers[-1].n_columns
         self.n_columns = column
 
@@ -1662,6 +1716,8 @@ def _describer(layout: ParameterLayout, setup: SetupLayout, states: _States) -> 
         line = setup.line_of(c)
         if line is not None:
             return f"the setup terms of line {line}"
+        if c < states.first_instrument_column:
+            return "the correction of an SMR position"
         for state in states.all:
             if 0 <= c - state.column < state.n_columns:
                 return state.describe(c - state.column)

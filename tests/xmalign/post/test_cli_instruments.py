@@ -7,6 +7,7 @@ examples/tracker.csv and examples/tracer.csv were written by the simulator
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,30 @@ def test_post_with_tracers_alone_self_calibrates_four_places(tmp_path: Path) -> 
         assert f"tracer {place}" in result.stdout
         assert f"tracer {place} (" in report.read_text()
     assert out.exists()
+
+
+def test_post_knot_spacing_is_chosen_or_given_and_an_outlier_is_named(tmp_path: Path) -> None:
+    """Without the option the console says which spacing cross-validation chose; with it,
+    the tables' compensation points are that far apart. A tracker point 3 mm off is named
+    as a gross outlier and left out."""
+    points = read_tracker_points(EXAMPLES / "tracker.csv").points
+    bumped = points[:10] + [replace(points[10], tracker_mm=points[10].tracker_mm + 3.0)]
+    damaged = tmp_path / "tracker.csv"
+    write_tracker_points(damaged, bumped + points[11:])
+    chosen = run_in_process("post", "--tracker", str(damaged), "--out", str(tmp_path / "a.csv"))
+    assert chosen.returncode == 0, chosen.stderr
+    assert "apart: the least generalised cross-validation score of" in chosen.stdout
+    run, index = points[10].run, points[10].index
+    assert f"tracker station T1 run {run} index {index}:" in chosen.stdout
+    assert "a gross outlier: left out of the fit" in chosen.stdout
+    out = tmp_path / "b.csv"
+    given = run_in_process(
+        "post", "--tracker", str(damaged), "--out", str(out), "--knot-spacing-mm", "500"
+    )
+    assert given.returncode == 0, given.stderr
+    assert "cross-validation" not in given.stdout
+    table = read_error_tables(out).tables["EXX"]
+    np.testing.assert_allclose(np.diff(table.positions_mm[table.measured_mask()][::4]), 500.0)
 
 
 def test_post_fits_lines_and_tracker_points_together(
