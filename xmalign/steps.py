@@ -43,13 +43,9 @@ from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.instruments import (
     InstrumentProgram,
-    fly_paths,
-    information_limit_um,
+    machine_time_note,
+    plan_instrument,
     point_list_files,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
     write_instrument_program,
 )
 from trajectories.planner import MeasurementPlan, plan_measurement
@@ -79,6 +75,7 @@ from xmalign.formats.common import (
     same_file,
 )
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.instrument_checks import UNITS_MM, check_instrument_files
 from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
@@ -86,9 +83,10 @@ from xmalign.formats.pose import LaunchPose, write_pose
 from xmalign.formats.provenance import FileSource
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.spatial_analyzer import (
+    NAMING,
     read_point_list,
-    read_spatial_analyzer,
-    tracker_points_from_export,
+    tracker_file_from_export,
+    unmeasured,
 )
 from xmalign.formats.studies import write_design
 from xmalign.identification_routine import (
@@ -815,6 +813,8 @@ def post_step(
     inputs = _post_inputs(machine, pairs, instrument_files)
     check_outputs({"errors_path": errors_path}, inputs, replace, caller)
     read = [read_station(machine, plan, path) for plan, path in pairs]
+    if instruments is not None:
+        check_instrument_files(machine, instruments.trackers, instruments.tracers)
     if on_fit is not None:
         on_fit(read)
     post = fit_step(machine, read, instruments)
@@ -1052,48 +1052,25 @@ def instrument_program_step(
     dialect: str | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    simultaneous: bool = False,
 ) -> InstrumentProgramStepResult:
     """Plan a laser-tracker (points, or paths ``on_the_fly``) or laser-tracer (``places``
-    places, the same points from each) calibration over the whole travel, and write its
-    program and point list (:func:`write_instrument_step`).
+    places, the same points from each; ``simultaneous``: every tracer following the SMR
+    in the same run) calibration over the whole travel with the machine file's SMR
+    positions, or three proposed (:func:`trajectories.instruments.plan_instrument`), and
+    write its program and point list (:func:`write_instrument_step`).
 
-    ``notes`` say where the instrument stands, the machine time and how well the plan
-    determines the volumetric error (the machine file's instrument uncertainties).
+    ``notes`` say where the instrument stands, which SMR to mount when, the machine time
+    and how well the plan determines the volumetric error (the machine file's instrument
+    uncertainties).
     """
     machine = _machine(machine)
     if instrument not in INSTRUMENTS:
         raise InputError(f"instrument '{instrument}' is not known (known: tracker, tracer)")
-    if instrument == "tracker":
-        program = (
-            InstrumentProgram(paths_mm=fly_paths(machine))
-            if on_the_fly
-            else InstrumentProgram(points_mm=tracker_points(machine))
-        )
-        runs = 1 if on_the_fly else 2
-        where = tracker_place(machine)
-        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
-        what = (
-            f"{len(program.paths_mm)} paths on the fly"
-            if on_the_fly
-            else f"{len(program.points_mm)} points, run it twice (runs 0 and 1)"
-        )
-        notes = [
-            f"tracker: {what}; stand it on the table near {_triple(where)} mm (MCS),"
-            " the SMR at the machine file's smr_offset_mm"
-        ]
-    else:
-        pivots = propose_tracer_places(machine, places)
-        program = InstrumentProgram(points_mm=tracer_points(machine))
-        limit = information_limit_um(machine, [program] * len(pivots), pivots_mm=pivots)
-        notes = [
-            f"tracer place P{i + 1}: pivot near {_triple(p)} mm (MCS); run the program once"
-            for i, p in enumerate(pivots)
-        ]
-        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(pivots)} places")
-        runs = len(pivots)
+    plan = plan_instrument(machine, instrument, on_the_fly, places, simultaneous)
     gcode, time, files = write_instrument_step(
         machine,
-        program,
+        plan.program,
         program_path,
         points_path,
         dialect,
@@ -1101,17 +1078,22 @@ def instrument_program_step(
         replace,
         caller,
     )
-    notes.append(
-        f"machine time: {time.total_s / 60:.1f} min per run, {runs * time.total_s / 60:.1f} min"
-        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
-        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
-        " travel; the machine's repeatability and the tables' model error come on top)"
-    )
-    return InstrumentProgramStepResult(instrument, program, gcode, time, notes, files)
+    notes = [*plan.notes, machine_time_note(plan, time)]
+    return InstrumentProgramStepResult(instrument, plan.program, gcode, time, notes, files)
 
 
-def _triple(values: np.ndarray) -> str:
-    return ", ".join(f"{v:.0f}" for v in values)
+@dataclass
+class ImportTrackerStepResult:
+    """The tracker points imported (:func:`import_tracker_step`) and the names of the point
+    list's points that no row measured."""
+
+    points: list[TrackerPoint]
+    unmeasured: list[str]
+
+
+#: The export's point names a tracker's software may write (:data:`NAMING`), by default
+#: SpatialAnalyzer's.
+DEFAULT_NAMING = "collection-group-target"
 
 
 def import_tracker_step(
@@ -1122,26 +1104,35 @@ def import_tracker_step(
     station: str = "T1",
     replace: bool = False,
     caller: Caller | None = None,
-) -> list[TrackerPoint]:
-    """A tracker's SpatialAnalyzer export turned into the tracker-points file ``out`` (for
-    :func:`post_step`'s ``instruments``): target names are the indices of the point list
-    at ``points_path`` (:func:`write_instrument_step`), the export's groups the runs.
-    ``out`` never replaces an input, nor an existing file without ``replace``."""
+    naming: str = DEFAULT_NAMING,
+    units: str = "mm",
+) -> ImportTrackerStepResult:
+    """A tracker's export (SpatialAnalyzer's ASCII variants or a plain ``Name,X,Y,Z``
+    list, its point names as ``naming`` says, lengths in ``units``: mm, in or m) turned
+    into the tracker-points file ``out`` (for :func:`post_step`'s ``instruments``):
+    target names are the indices of the point list at ``points_path``
+    (:func:`write_instrument_step`), the export's groups the runs. The distances between
+    the points must be the commanded moves' (another unit, names shifted against the list:
+    refused at the first row that does not fit). ``out`` never replaces an input, nor an
+    existing file without ``replace``."""
+    caller = caller or SCRIPT
     export_path, points_path = _path(export_path, "export_path"), _path(points_path, "points_path")
     out, machine = _path(out, "out"), _machine(machine)
+    for name, value, known in (("naming", naming, NAMING), ("units", units, UNITS_MM)):
+        if value not in known:
+            option = caller.names.get(name, name)
+            raise InputError(f"{option} '{value}' is not known ({', '.join(known)})")
     inputs = {
         "export_path": export_path,
         "points_path": points_path,
         "machine": _machine_path(machine),
     }
     check_outputs({"out": out}, inputs, replace, caller)
-    exported = read_spatial_analyzer(export_path)
-    rows = tracker_points_from_export(
-        exported, read_point_list(points_path), machine.smr_offset, station, str(export_path)
-    )
+    listed = read_point_list(points_path)
+    file = tracker_file_from_export(machine, export_path, listed, station, naming, units)
     made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
-    write_tracker_points(out, rows, made_from)
-    return rows
+    write_tracker_points(out, file.points, made_from)
+    return ImportTrackerStepResult(file.points, unmeasured(listed, file))
 
 
 # -- one launch-unit station: identify -> program -> run ------------------------------------

@@ -26,7 +26,12 @@ from xmalign.instrument_text import instrument_lines
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import MIN_TRACER_PLACES
-from xmalign.steps import INSTRUMENTS, import_tracker_step, instrument_program_step
+from xmalign.steps import (
+    DEFAULT_NAMING,
+    INSTRUMENTS,
+    import_tracker_step,
+    instrument_program_step,
+)
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
@@ -73,21 +78,28 @@ class InstrumentRequest:
     out: Path | None
     points_out: Path | None
     dialect: str | None
+    simultaneous: bool = False
 
 
-def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
+def check_instrument_options(
+    instrument: str | None, on_the_fly: bool, places: int | None, simultaneous: bool = False
+) -> None:
     """One line for an instrument option that does not fit the others."""
     if instrument is None:
-        if on_the_fly or places is not None:
-            option = "--on-the-fly" if on_the_fly else "--places"
+        if on_the_fly or places is not None or simultaneous:
+            option = (
+                "--on-the-fly" if on_the_fly else "--places" if places is not None
+                else "--simultaneous"
+            )  # fmt: skip
             raise InputError(f"{option} needs --instrument tracker or tracer")
         return
     if instrument not in INSTRUMENTS:
         raise InputError(f"--instrument '{instrument}' is not known (known: tracker, tracer)")
     if instrument == "tracer" and on_the_fly:
         raise InputError("--on-the-fly is for --instrument tracker (a tracer measures lengths)")
-    if instrument == "tracker" and places is not None:
-        raise InputError("--places is for --instrument tracer")
+    if instrument == "tracker" and (places is not None or simultaneous):
+        option = "--places" if places is not None else "--simultaneous"
+        raise InputError(f"{option} is for --instrument tracer")
     if places is not None and not MIN_TRACER_PLACES <= places <= 12:
         raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
 
@@ -98,7 +110,8 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
 
     Writes the G-code (stdout or ``out``), the point list for the instrument's own
     software (``points_out``), and tells on stderr where the instrument stands,
-    the machine time and how well the plan determines the errors.
+    which SMR to mount when, the machine time and how well the plan determines the
+    errors.
     """
     programmed = instrument_program_step(
         machine,
@@ -112,6 +125,7 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         caller=named_by_options(
             {"program_path": "--out", "points_path": "--points-out", "machine": "--machine"}
         ),
+        simultaneous=request.simultaneous,
     )
     for note in programmed.notes:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
@@ -119,19 +133,47 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         sys.stdout.write(programmed.gcode)
 
 
+def _export(spatial_analyzer: Path | None, name_xyz: Path | None) -> tuple[Path, str, str]:
+    """The export given, its option and its default naming; one of the two options."""
+    if (spatial_analyzer is None) == (name_xyz is None):
+        raise InputError("import: give one of --spatial-analyzer FILE and --name-xyz FILE")
+    if spatial_analyzer is not None:
+        return spatial_analyzer, "--spatial-analyzer", DEFAULT_NAMING
+    assert name_xyz is not None
+    return name_xyz, "--name-xyz", "target"
+
+
 def import_points(
-    spatial_analyzer: Annotated[
-        Path,
-        typer.Option(
-            "--spatial-analyzer",
-            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
-        ),
-    ],
     points: Annotated[
         Path,
         typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
     ],
     out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    spatial_analyzer: Annotated[
+        Path | None,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (point names, X Y Z, optional further columns;"
+            " spaces, commas or tabs).",
+        ),
+    ] = None,
+    name_xyz: Annotated[
+        Path | None,
+        typer.Option(
+            "--name-xyz",
+            help="A plain Name,X,Y,Z export of other tracker software (optional header line).",
+        ),
+    ] = None,
+    naming: Annotated[
+        str | None,
+        typer.Option(
+            help="The export's point names: collection-group-target (SpatialAnalyzer's"
+            " default), group-target or target (--name-xyz's).",
+        ),
+    ] = None,
+    units: Annotated[
+        str, typer.Option(help="The export's length unit: mm, in or m (checked).")
+    ] = "mm",
     station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
@@ -141,26 +183,40 @@ def import_points(
     """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
 
     Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear.
+    are the runs, in the order they first appear (without groups, a name measured
+    again starts the next run). The distances between the points must be the
+    commanded moves': an export in another unit than --units, or with names that
+    do not match the point list, is refused naming the first row that does not.
     """
+    export, option, default_naming = _export(spatial_analyzer, name_xyz)
     options = {
-        "export_path": "--spatial-analyzer",
+        "export_path": option,
         "points_path": "--points",
         "out": "--out",
         "machine": "--machine",
+        "naming": "--naming",
+        "units": "--units",
     }
-    rows = import_tracker_step(
-        spatial_analyzer,
+    imported = import_tracker_step(
+        export,
         points,
         out,
         machine_or_default(machine),
         station,
         replace=force,
         caller=named_by_options(options),
+        naming=naming or default_naming,
+        units=units,
     )
-    runs = len({row.run for row in rows})
+    runs = len({row.run for row in imported.points})
+    missing = imported.unmeasured
     error_console.print(
-        f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
+        f"wrote {out}: {len(imported.points)} points of station {station} in {runs} run(s),"
+        f" read in {units}"
+        + (
+            f"; {len(missing)} listed points not measured (first '{missing[0]}')" if missing else ""
+        ),
+        highlight=False,
     )
 
 
@@ -169,21 +225,40 @@ def register(app: typer.Typer) -> None:
 
 
 def instrument_dry_run(
-    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+    machine: Machine,
+    out: Path,
+    instrument: str,
+    seed: int,
+    dialect: str | None,
+    simultaneous: bool = False,
 ) -> None:
     """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
-    from sim.instrument_dry_run import simulate_instruments
+    from sim.instrument_dry_run import MATERIAL_C, simulate_instruments
 
     with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect)
-    assert report.result.instruments is not None
+        report = simulate_instruments(machine, out, instrument, seed, dialect, simultaneous)
+    assert report.result.instruments is not None and report.machine is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)
+    tracker, tracer = report.machine.tracker, report.machine.tracer
+    smr = ", ".join(report.machine.smr_offsets_mm) or "one"
+    time = f"machine time: {instrument} {report.instrument_min:.0f} min"
+    if report.other_way_min is not None:
+        other = "one place at a time" if report.simultaneous else "all tracers at once"
+        way = "all tracers at once" if report.simultaneous else "one place at a time"
+        time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
+    if report.xm60_after_um is not None:
+        time += f", XM-60 station {report.xm60_min:.0f} min"
+    errors = (
+        f"tracer scale {tracer.scale_ppm:g} ppm per run"
+        if instrument == "tracer"
+        else f"tracker angle errors {tracker.angle_systematic_urad:g} urad, scale"
+        f" {tracker.scale_ppm:g} ppm per run"
+    )
     lines = [
-        f"machine time: {instrument} {report.instrument_min:.0f} min"
-        + (
-            f", XM-60 station {report.xm60_min:.0f} min" if report.xm60_after_um is not None else ""
-        ),
+        f"virtual instruments: SMR positions {smr}; {errors}; the machine's scales at"
+        f" {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC through each run (material_c)",
+        time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
         f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"
         f" {report.volumetric_after_um:.2f} um"
