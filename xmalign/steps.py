@@ -50,9 +50,16 @@ from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
-from xmalign.formats.provenance import FileSource, sources
+from xmalign.formats.provenance import FileSource, file_sha256, sources
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
+from xmalign.formats.spatial_analyzer import read_point_list
 from xmalign.formats.studies import write_design
+from xmalign.formats.tracker_stream import (
+    FlyRun,
+    program_paths,
+    read_tracker_stream,
+    write_fly_rows,
+)
 from xmalign.identification_routine import (
     PoseGuess,
     RoutineDevices,
@@ -62,6 +69,11 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.stream_assign import (
+    ASSUMED_ACCELERATION_MM_S2,
+    StreamAssignment,
+    assign_stream,
+)
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -590,3 +602,52 @@ def _write_controller_files(
     if check_outputs is not None:
         check_outputs(list(paths))
     atomic_write_files(paths)
+
+
+@dataclass(frozen=True)
+class StreamImportResult:
+    """What ``import --tracker-stream`` wrote: rows kept and dropped per (station, run)."""
+
+    out: Path
+    runs: list[tuple[str, int, StreamAssignment]]
+
+    @property
+    def rows(self) -> int:
+        return sum(len(a.sample) for _, _, a in self.runs)
+
+
+def import_stream_step(
+    machine: Machine, stream_path: Path, points_path: Path, out: Path
+) -> StreamImportResult:
+    """Turn a tracker's stream into on-the-fly tracker points (docs/formats.md).
+
+    Each (station, run) of the stream is assigned to the measuring paths of the
+    point list (:func:`xmalign.post.stream_assign.assign_stream`); the rows carry
+    the commanded tool point at the path's start and end (the list's SMR points
+    less the machine's ``smr_offset_mm``) and the SHA-256 of both inputs.
+    """
+    stream = read_tracker_stream(stream_path)
+    starts, ends = program_paths(read_point_list(points_path), str(points_path))
+    acceleration = machine.cnc.acceleration_mm_s2 or ASSUMED_ACCELERATION_MM_S2
+    smr = machine.smr_offset
+    assigned, rows = [], []
+    for run in stream.runs():
+        a = assign_stream(
+            run.time_s, run.tracker_mm, starts, ends, acceleration, run.line, str(stream_path)
+        )
+        assigned.append((run.station, run.run, a))
+        rows.append(
+            FlyRun(
+                station=run.station,
+                run=run.run,
+                start_mm=starts[a.path] - smr,
+                end_mm=ends[a.path] - smr,
+                tracker_mm=run.tracker_mm[a.sample],
+                time_s=run.time_s[a.sample],
+                u_radial_um=run.u_radial_um[a.sample],
+                u_transverse_um=run.u_transverse_um[a.sample],
+            )
+        )
+    inputs = {str(p): file_sha256(p) for p in (stream_path, points_path)}
+    write_fly_rows(out, rows, inputs)
+    return StreamImportResult(out, assigned)
