@@ -19,9 +19,11 @@ from sim.dry_run import DryRunOptions, check_dry_run_folder, simulate_calibratio
 from sim.machine import VirtualMachine
 from sim.tracer import VirtualTracer, measure_tracer
 from sim.tracker import VirtualTracker, measure_tracker
+from sim.tracker_stream import record_stream
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
     InstrumentProgram,
+    fly_paths,
     point_list_csv,
     propose_tracer_places,
     tracer_points,
@@ -41,11 +43,12 @@ from xmalign.formats.instruments import (
 )
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
+from xmalign.formats.tracker_stream import write_tracker_stream
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import Instruments, PostResult, post_stations
 from xmalign.rigid_body import Chain, ErrorTables
-from xmalign.steps import post_step
+from xmalign.steps import import_stream_step, post_step
 
 INSTRUMENTS = ("xm60", "tracker", "tracer", "xm60+tracker")
 #: The tracker stands turned and tilted: the fit's start must not need it level.
@@ -59,6 +62,7 @@ FILES = (
     "tracer.nc",
     "tracer.csv",
     "points.csv",
+    "tracker-stream.csv",
     "errors-instruments.csv",
 )
 
@@ -101,6 +105,22 @@ def _tracker(
     return read_tracker_points(folder / "tracker.csv"), minutes
 
 
+def _tracker_on_the_fly(
+    machine: Machine, truth: VirtualMachine, folder: Path, seed: int, dialect: str
+) -> tuple[TrackerFile, float]:
+    """Paths on the fly: the tracker logs its stream, which ``import --tracker-stream`` reads."""
+    program = InstrumentProgram(paths_mm=fly_paths(machine))
+    minutes = _minutes(machine, program, folder / "tracker.nc", dialect)
+    atomic_write_text(folder / "points.csv", point_list_csv(program, machine.smr_offset))
+    tracker = VirtualTracker(tracker_place(machine), np.array(TRACKER_ROTATION_DEG), seed=seed)
+    stream = record_stream(machine, truth, tracker, program, dialect=dialect)
+    write_tracker_stream(folder / "tracker-stream.csv", [stream])
+    import_stream_step(
+        machine, folder / "tracker-stream.csv", folder / "points.csv", folder / "tracker.csv"
+    )
+    return read_tracker_points(folder / "tracker.csv"), minutes
+
+
 def _tracers(
     machine: Machine, truth: VirtualMachine, folder: Path, seed: int, dialect: str
 ) -> tuple[TracerFile, float]:
@@ -117,9 +137,17 @@ def _tracers(
 
 
 def simulate_instruments(
-    machine: Machine, folder: Path, instrument: str, seed: int = 1, dialect: str | None = None
+    machine: Machine,
+    folder: Path,
+    instrument: str,
+    seed: int = 1,
+    dialect: str | None = None,
+    on_the_fly: bool = False,
 ) -> InstrumentDryRun:
     """Program, measure and post with ``instrument`` on the seeded virtual machine.
+
+    ``on_the_fly`` (tracker): the program's paths on the fly, the tracker's stream
+    (:mod:`sim.tracker_stream`) through the real import.
 
     Raises
     ------
@@ -143,7 +171,8 @@ def simulate_instruments(
         pairs = [(read_plan(folder / "plan.json"), folder / "measurements.csv")]
     truth = virtual_setup(machine, seed).world.machine
     if "tracker" in instrument:
-        tracker_file, minutes = _tracker(machine, truth, folder, seed, dialect_name)
+        measure = _tracker_on_the_fly if on_the_fly else _tracker
+        tracker_file, minutes = measure(machine, truth, folder, seed, dialect_name)
         instruments = Instruments(trackers=(tracker_file,))
         files = [FileSource.of("tracker", folder / "tracker.csv")]
     else:

@@ -69,6 +69,7 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.instruments import Progress
 from xmalign.post.stream_assign import (
     ASSUMED_ACCELERATION_MM_S2,
     StreamAssignment,
@@ -516,6 +517,7 @@ def post_step(
     instrument_files: Sequence[FileSource] = (),
     on_fit: Callable[[list[Station]], None] | None = None,
     more_files: Callable[[PostResult], dict[Path, bytes]] | None = None,
+    progress: Progress | None = None,
 ) -> PostStepResult:
     """Fit the 21 errors to every station's measurement (and ``instruments``' readings) and
     write the error tables.
@@ -525,12 +527,13 @@ def post_step(
     ``machine`` and the SHA-256 of each station's measurements and plan, ``machine_path``
     and ``instrument_files``. ``on_fit(stations)`` is told before the fit;
     ``more_files(result)`` adds files written together with the tables (the report): all
-    of them, or none.
+    of them, or none. ``progress(done, total, what)`` is told how far the instruments'
+    fit is (:func:`xmalign.post.instruments.fit_joint`).
     """
     read = [read_station(machine, plan, path) for plan, path in stations]
     if on_fit is not None:
         on_fit(read)
-    post = post_stations(machine, read, instruments=instruments)
+    post = post_stations(machine, read, instruments=instruments, progress=progress)
     inputs: list[FileSource] = []
     for plan, path in stations:
         inputs += sources(measurements=path)

@@ -41,6 +41,7 @@ from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
 from xmalign.post.instruments import MIN_TRACER_PLACES, instrument_lines
+from xmalign.steps import import_stream_step
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
@@ -175,33 +176,65 @@ def file_sha256(path: Path) -> str:
 
 
 def import_points(
-    spatial_analyzer: Annotated[
-        Path,
-        typer.Option(
-            "--spatial-analyzer",
-            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
-        ),
-    ],
     points: Annotated[
         Path,
         typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
     ],
     out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    spatial_analyzer: Annotated[
+        Path | None,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
+        ),
+    ] = None,
+    tracker_stream: Annotated[
+        Path | None,
+        typer.Option(
+            "--tracker-stream",
+            help="A tracker's stream of an on-the-fly program (station,run,time_s,tx_mm..).",
+        ),
+    ] = None,
     station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
     ] = None,
 ) -> None:
-    """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
+    """Convert a tracker's export or stream into tracker points for ``xmalign post --tracker``.
 
-    Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear.
+    --spatial-analyzer: target names are the point indices of the point list; the
+    export's groups are the runs, in the order they first appear.
+
+    --tracker-stream: the samples are assigned to the point list's paths by the
+    stream's own geometry (no clock shared with the CNC); the moves between
+    paths, accelerations and stops are dropped; rows on the fly are written
+    (docs/formats.md). The stream names its stations and runs (--station is not used).
     """
+    if (spatial_analyzer is None) == (tracker_stream is None):
+        raise InputError("import: give one of --spatial-analyzer FILE or --tracker-stream FILE")
     refuse_overwriting(
-        {"--spatial-analyzer": spatial_analyzer, "--points": points, "--machine": machine},
+        {
+            "--spatial-analyzer": spatial_analyzer,
+            "--tracker-stream": tracker_stream,
+            "--points": points,
+            "--machine": machine,
+        },
         {"--out": out},
     )
     machine_model = machine_or_default(machine)
+    if tracker_stream is not None:
+        with error_console.status(f"assigning {tracker_stream} to the program's paths"):
+            result = import_stream_step(machine_model, tracker_stream, points, out)
+        for name, run, a in result.runs:
+            error_console.print(
+                f"station {name} run {run}: {len(a.sample)} samples on {len(set(a.path.tolist()))}"
+                f" paths ({a.off_path_um:.1f} um RMS from them), {a.dropped} dropped (moves"
+                " between paths, accelerations, stops)",
+                highlight=False,
+            )
+        error_console.print(f"wrote {out}: {result.rows} points on the fly", highlight=False)
+        return
+    assert spatial_analyzer is not None
     exported = read_spatial_analyzer(spatial_analyzer)
     rows = tracker_points_from_export(
         exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
@@ -219,13 +252,23 @@ def register(app: typer.Typer) -> None:
 
 
 def instrument_dry_run(
-    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+    machine: Machine,
+    out: Path,
+    instrument: str,
+    seed: int,
+    dialect: str | None,
+    on_the_fly: bool = False,
 ) -> None:
-    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
+    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth.
+
+    ``on_the_fly``: the tracker logs a stream of the on-the-fly program, which is
+    imported as ``import --tracker-stream`` does.
+    """
     from sim.instrument_dry_run import simulate_instruments
 
-    with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect)
+    what = f"{instrument}{' on the fly' if on_the_fly else ''}"
+    with error_console.status(f"dry run, {what}"):
+        report = simulate_instruments(machine, out, instrument, seed, dialect, on_the_fly)
     assert report.result.instruments is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)

@@ -503,14 +503,23 @@ def dry_run_command(
         str,
         typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
     ] = "xm60",
+    on_the_fly: Annotated[
+        bool,
+        typer.Option(
+            "--on-the-fly",
+            help="With --instrument tracker: paths on the fly, the tracker's stream imported.",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
     from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
+    if on_the_fly and instrument != "tracker":
+        raise InputError("--on-the-fly is for --instrument tracker")
     if instrument != "xm60":
-        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect, on_the_fly)
         return
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)

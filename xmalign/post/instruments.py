@@ -39,8 +39,10 @@ the foot of the perpendicular from the measured point to the path.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Iterable
+import dataclasses
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import scipy.linalg
@@ -97,6 +99,12 @@ _CONSTRAINT_SIGMA_RAD = 1e-9
 #: The continuation prior is never taken as better than this (mm, rad).
 _PRIOR_FLOOR_MM = 1e-5
 _PRIOR_FLOOR_RAD = 1e-8
+#: Points linearised at once: bounds the fit's memory (one chunk's sparse rows), not its result.
+CHUNK_POINTS = 20_000
+#: The longest lag of the residuals' autocorrelation that is looked at, points.
+_MAX_LAG = 2000
+#: ``progress(done, total, what)``: points linearised of all, in the pass named ``what``.
+Progress = Callable[[int, int, str], None]
 #: An instrument's scatter this much above its model re-weights the fit.
 _FACTOR_TOLERANCE = 0.05
 
@@ -122,6 +130,26 @@ class TrackerStation:
     def on_the_fly(self) -> np.ndarray:
         return ~np.isnan(self.to_mm[:, 0])
 
+    def rows(self, rows: slice) -> TrackerStation:
+        """The station with only these rows (a chunk of the fit)."""
+        return dataclasses.replace(
+            self,
+            run=self.run[rows],
+            machine_mm=self.machine_mm[rows],
+            tracker_mm=self.tracker_mm[rows],
+            to_mm=self.to_mm[rows],
+            u_radial_mm=self.u_radial_mm[rows],
+            u_transverse_mm=self.u_transverse_mm[rows],
+        )
+
+    def directions(self) -> Vec:
+        """Each row's path direction in the MCS, unit (N, 3); 0 for points at a standstill."""
+        direction = np.zeros_like(self.machine_mm)
+        fly = self.on_the_fly
+        path = self.to_mm[fly] - self.machine_mm[fly]
+        direction[fly] = path / np.linalg.norm(path, axis=1)[:, None]
+        return direction
+
 
 @dataclass(frozen=True)
 class TracerPlace:
@@ -137,6 +165,15 @@ class TracerPlace:
     @property
     def runs(self) -> list[int]:
         return sorted({int(r) for r in self.run})
+
+    def rows(self, rows: slice) -> TracerPlace:
+        """The place with only these lengths (a chunk of the fit)."""
+        return dataclasses.replace(
+            self,
+            run=self.run[rows],
+            machine_mm=self.machine_mm[rows],
+            length_mm=self.length_mm[rows],
+        )
 
 
 def _labels(keys: list[tuple[str, str]]) -> list[str]:
@@ -208,7 +245,10 @@ class TrackerStationFit:
     ``rotation_urad``: rotation vector of the tracker frame relative to the MCS;
     ``position_mm``: the tracker's origin in the MCS; u95 (k = 2) of both;
     ``residual_rms_um``: RMS length of the residual vectors (across the path for
-    points on the fly); ``covered_mm``: the box of the commanded points (low, high).
+    points on the fly); ``covered_mm``: the box of the commanded points (low, high);
+    ``scatter_factor``: the residuals' scatter over the uncertainty model;
+    ``correlation_samples``: over how many consecutive points on the fly the noise
+    is correlated (:func:`correlation_samples`; the u95 is widened by its root).
     """
 
     label: str
@@ -221,6 +261,7 @@ class TrackerStationFit:
     residual_rms_um: float
     covered_mm: tuple[Vec, Vec]
     scatter_factor: float = 1.0
+    correlation_samples: float = 1.0
 
 
 @dataclass
@@ -615,15 +656,15 @@ class _TrackerState:
         tables: Vec,
         n_columns: int,
         uncertainty: TrackerUncertainty,
+        chunk: slice = slice(None),
     ) -> _Block:
-        s = self.station
+        """The station's rows ``chunk`` about the current tables and pose."""
+        s = self.station.rows(chunk)
         measured = (s.tracker_mm - self.offset) @ self.rotation  # R^T (t - c), (N, 3)
         commanded = s.machine_mm.copy()
         fly = s.on_the_fly
-        direction = np.zeros_like(commanded)
+        direction = s.directions()
         if fly.any():
-            path = s.to_mm[fly] - s.machine_mm[fly]
-            direction[fly] = path / np.linalg.norm(path, axis=1)[:, None]
             along = np.sum((measured[fly] - self.smr_mm - s.machine_mm[fly]) * direction[fly], 1)
             commanded[fly] = s.machine_mm[fly] + along[:, None] * direction[fly]
         nominal = commanded + self.smr_mm
@@ -631,7 +672,7 @@ class _TrackerState:
         dp0 = (design_dp @ tables[: layout.n_columns]).reshape(-1, 3)
         n = len(nominal)
         pose = np.zeros((n, 3, 6))
-        pose[:, :, :3] = -np.array([skew(a) for a in nominal + dp0])
+        pose[:, :, :3] = -_skews(nominal + dp0)
         pose[:, :, 3:] = np.eye(3)
         pose_design = scipy.sparse.csr_matrix(
             (
@@ -643,8 +684,7 @@ class _TrackerState:
         table_design = scipy.sparse.hstack(
             [design_dp, scipy.sparse.csr_matrix((3 * n, n_columns - layout.n_columns))]
         ).tocsr()
-        self.direction = direction  # the path's, in the MCS; 0 for points at a standstill
-        whitening = self._whitening(uncertainty, direction, fly) / self.noise_factor
+        whitening = self._whitening(s, uncertainty, direction, fly) / self.noise_factor
         return _Block(
             design=(table_design + pose_design).tocsr(),
             observed=(measured - nominal).ravel(),
@@ -653,10 +693,9 @@ class _TrackerState:
         )
 
     def _whitening(
-        self, uncertainty: TrackerUncertainty, direction: Vec, fly: np.ndarray
+        self, s: TrackerStation, uncertainty: TrackerUncertainty, direction: Vec, fly: np.ndarray
     ) -> scipy.sparse.csr_matrix:
         """Per point the inverse square root of its covariance (MCS); 2 x 3 across a path."""
-        s = self.station
         distance = np.maximum(np.linalg.norm(s.tracker_mm, axis=1), _MIN_DISTANCE_MM)
         beam = (s.tracker_mm / distance[:, None]) @ self.rotation  # in the MCS
         radial = np.where(
@@ -667,17 +706,31 @@ class _TrackerState:
             uncertainty.transverse_sigma_mm(distance),
             s.u_transverse_mm,
         )
-        blocks = []
-        for i in range(len(distance)):
-            along = np.outer(beam[i], beam[i])
-            covariance = radial[i] ** 2 * along + transverse[i] ** 2 * (np.eye(3) - along)
-            if fly[i]:
-                basis = scipy.linalg.null_space(direction[i][None, :]).T  # (2, 3)
-                covariance = basis @ covariance @ basis.T
-                blocks.append(_inverse_sqrt(covariance) @ basis)
-            else:
-                blocks.append(_inverse_sqrt(covariance))
-        return scipy.sparse.csr_matrix(scipy.sparse.block_diag(blocks, format="csr"))
+        along = beam[:, :, None] * beam[:, None, :]
+        covariance = radial[:, None, None] ** 2 * along + transverse[:, None, None] ** 2 * (
+            np.eye(3) - along
+        )
+        parts = []
+        if (~fly).any():
+            parts.append((np.flatnonzero(~fly), _inverse_sqrts(covariance[~fly])))  # (k, 3, 3)
+        if fly.any():
+            basis = _across(direction[fly])  # (k, 2, 3)
+            across = basis @ covariance[fly] @ basis.transpose(0, 2, 1)
+            parts.append((np.flatnonzero(fly), _inverse_sqrts(across) @ basis))  # (k, 2, 3)
+        height = np.where(fly, 2, 3)
+        first_row = np.concatenate([[0], np.cumsum(height)[:-1]])
+        rows, cols, vals = [], [], []
+        for points, blocks in parts:
+            shape = blocks.shape
+            r = first_row[points][:, None, None] + np.arange(shape[1])[None, :, None]
+            c = 3 * points[:, None, None] + np.arange(3)[None, None, :]
+            rows.append(np.broadcast_to(r, shape).ravel())
+            cols.append(np.broadcast_to(c, shape).ravel())
+            vals.append(blocks.ravel())
+        return scipy.sparse.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(int(height.sum()), 3 * len(distance)),
+        )
 
     def update(self, increment: Vec) -> float:
         rotation, shift = (
@@ -689,9 +742,27 @@ class _TrackerState:
         return float(max(np.linalg.norm(rotation) * 1e4, np.linalg.norm(shift)))
 
 
-def _inverse_sqrt(covariance: Vec) -> Vec:
+def _inverse_sqrts(covariance: Vec) -> Vec:
+    """The symmetric inverse square roots of a stack of covariances (k, m, m)."""
     values, vectors = np.linalg.eigh(covariance)
-    return (vectors / np.sqrt(values)) @ vectors.T
+    return (vectors / np.sqrt(values)[:, None, :]) @ vectors.transpose(0, 2, 1)
+
+
+def _skews(vectors: Vec) -> Vec:
+    """Cross-product matrices of a stack of vectors (k, 3) -> (k, 3, 3)."""
+    x, y, z = vectors.T
+    zero = np.zeros_like(x)
+    return np.stack(
+        [np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1
+    )
+
+
+def _across(direction: Vec) -> Vec:
+    """Two unit vectors across each unit direction (k, 3), orthogonal: (k, 2, 3)."""
+    helper = np.eye(3)[np.argmin(np.abs(direction), axis=1)]
+    first = np.cross(direction, helper)
+    first /= np.linalg.norm(first, axis=1)[:, None]
+    return np.stack([first, np.cross(direction, first)], axis=1)
 
 
 class _TracerState:
@@ -734,8 +805,11 @@ class _TracerState:
         tables: Vec,
         n_columns: int,
         uncertainty: TracerUncertainty,
+        chunk: slice = slice(None),
     ) -> _Block:
-        p = self.place
+        """The place's lengths ``chunk`` about the current tables, pivot and constants."""
+        p = self.place.rows(chunk)
+        run_index = self.run_index[chunk]
         design_dp = point_design(chain, layout, p.machine_mm, self.arm_mm)
         dp0 = (design_dp @ tables[: layout.n_columns]).reshape(-1, 3)
         vector = p.machine_mm + self.smr_mm + dp0 - self.pivot
@@ -751,7 +825,7 @@ class _TracerState:
         setup = Triplets()
         for c in range(3):
             setup.add(np.arange(n), self.column + c, -beam[:, c])
-        setup.add(np.arange(n), self.column + 3 + self.run_index, 1.0)
+        setup.add(np.arange(n), self.column + 3 + run_index, 1.0)
         rows, cols, vals = setup.arrays()
         setup_part = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, n_columns))
         sigma = uncertainty.length_sigma_mm(distance)
@@ -770,22 +844,42 @@ class _TracerState:
 
 
 @dataclass
+class _Normal:
+    """The normal equations of whitened rows, accumulated chunk by chunk: ``A^T A``, ``A^T y``."""
+
+    normal: Vec
+    rhs: Vec
+
+
+def _whitened(block: _Block) -> tuple[scipy.sparse.csr_matrix, Vec]:
+    return (block.whitening @ block.design).tocsr(), block.whitening @ block.observed
+
+
+def _accumulate(blocks: Iterable[_Block], n_columns: int) -> _Normal:
+    """The normal equations of all the blocks' rows, one block (chunk) at a time."""
+    normal = np.zeros((n_columns, n_columns))
+    rhs = np.zeros(n_columns)
+    for block in blocks:
+        design, observed = _whitened(block)
+        normal += (design.T @ design).toarray()
+        rhs += design.T @ observed
+    return _Normal(normal, rhs)
+
+
+@dataclass
 class _Solved:
+    """The solution, the inverse of the column-scaled normal matrix and the column norms."""
+
     solution: Vec
     inverse: Vec
     norms: Vec
-    scaled: scipy.sparse.csr_matrix
-    residual_weighted: Vec
 
 
-def _solve(blocks: list[_Block], describe: Callable[..., str]) -> _Solved:
-    design = scipy.sparse.vstack([b.whitening @ b.design for b in blocks]).tocsr()
-    observed = np.concatenate([b.whitening @ b.observed for b in blocks])
-    norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
+def _solve(equations: _Normal, describe: Callable[..., str]) -> _Solved:
+    norms = np.sqrt(np.diag(equations.normal))
     if np.any(norms == 0):
         raise GeometryError(f"no reading sees {describe(int(np.argmin(norms)))}")
-    scaled = (design @ scipy.sparse.diags(1.0 / norms)).tocsr()
-    normal = (scaled.T @ scaled).toarray()
+    normal = equations.normal / np.outer(norms, norms)
     try:
         factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
         pivots = np.diag(factor[0]) ** 2
@@ -795,13 +889,47 @@ def _solve(blocks: list[_Block], describe: Callable[..., str]) -> _Solved:
     if singular:
         raise _undetermined(normal, describe)
     inverse = _inverse(factor)
-    scaled_solution = inverse @ (scaled.T @ observed)
-    return _Solved(
-        solution=scaled_solution / norms,
-        inverse=inverse,
-        norms=norms,
-        scaled=scaled,
-        residual_weighted=observed - scaled @ scaled_solution,
+    return _Solved(solution=inverse @ (equations.rhs / norms) / norms, inverse=inverse, norms=norms)
+
+
+@dataclass
+class _Evaluated:
+    """The rows at the solution, per block: residuals (raw and whitened), the sum of the
+    hat matrix's diagonal, and ``sum ratio a a^T`` of the column-scaled rows (GUM)."""
+
+    raw: list[Vec]
+    weighted: list[Vec]
+    leverage: Vec
+    middle: Vec
+
+    @property
+    def n_rows(self) -> int:
+        return sum(len(w) for w in self.weighted)
+
+
+def _evaluate(blocks: Iterable[tuple[int, _Block]], n_blocks: int, solved: _Solved) -> _Evaluated:
+    """Residuals and what the covariance needs, one block (chunk) at a time."""
+    raw: list[list[Vec]] = [[] for _ in range(n_blocks)]
+    weighted: list[list[Vec]] = [[] for _ in range(n_blocks)]
+    leverage = np.zeros(n_blocks)
+    middle = np.zeros_like(solved.inverse)
+    unscale = scipy.sparse.diags(1.0 / solved.norms)
+    for number, block in blocks:
+        design = _whitened(block)[0] @ unscale
+        residual = block.observed - block.design @ solved.solution
+        raw[number].append(residual)
+        weighted[number].append(block.whitening @ residual)
+        normal = (design.T @ design).toarray()
+        leverage[number] += float(np.sum(normal * solved.inverse))
+        if np.all(block.ratio == 1.0):
+            middle += normal
+        else:
+            middle += (design.T @ scipy.sparse.diags(block.ratio) @ design).toarray()
+    return _Evaluated(
+        raw=[np.concatenate(r) if r else np.zeros(0) for r in raw],
+        weighted=[np.concatenate(w) if w else np.zeros(0) for w in weighted],
+        leverage=leverage,
+        middle=middle,
     )
 
 
@@ -839,6 +967,7 @@ def fit_joint(
     tracer_uncertainty: TracerUncertainty,
     travel_mm: tuple[Vec, Vec] | None = None,
     knot_spacing_mm: float | None = None,
+    progress: Progress | None = None,
 ) -> JointFit:
     """One fit of the error tables to interferometer lines, tracker points and tracer lengths.
 
@@ -860,6 +989,10 @@ def fit_joint(
     knot_spacing_mm : float, optional
         Compensation-point spacing where no line sets it (default: 200 mm with tracer
         lengths, 250 mm with tracker points alone).
+    progress : callable, optional
+        ``progress(done, total, what)`` after each chunk of the instruments' rows:
+        points done of all in the pass ``what`` (a Gauss-Newton iteration, or the
+        residuals and uncertainty at the end).
 
     Raises
     ------
@@ -894,29 +1027,54 @@ def fit_joint(
         fixed_blocks += [prior] if prior is not None else []
     models = (tracker_uncertainty, tracer_uncertainty)
 
-    def iterate(tables: Vec) -> tuple[list[_Block], _Solved, int, bool]:
-        """Gauss-Newton until no pose, pivot or table value moves any more."""
-        for iteration in range(1, _MAX_ITERATIONS + 1):
-            blocks = fixed_blocks + states.linearise(chain, layout, tables, models)
-            solved = _solve(blocks, describe)
+    total = states.n_points
+
+    def numbered(current: _States, tables: Vec, what: str) -> Iterator[tuple[int, _Block]]:
+        """Every block's rows (fixed blocks whole, instruments in chunks), telling progress."""
+        yield from enumerate(fixed_blocks)
+        done = 0
+        for number, points, block in current.chunks(chain, layout, tables, models):
+            yield len(fixed_blocks) + number, block
+            done += points
+            if progress is not None:
+                progress(done, total, what)
+
+    def iterate(tables: Vec, first: int) -> tuple[_Evaluated, _Solved, int, bool]:
+        """Gauss-Newton until no pose, pivot or table value moves any more; then the rows
+        at the solution (about the last linearisation)."""
+        converged = False
+        for iteration in range(first, first + _MAX_ITERATIONS):
+            before = states.snapshot()
+            rows = numbered(before, tables, f"iteration {iteration}")
+            solved = _solve(_accumulate((b for _, b in rows), states.n_columns), describe)
             step = states.update(solved.solution)
             table_step = float(np.max(np.abs(solved.solution - tables)[: layout.n_columns]))
-            tables = solved.solution
+            linearised_at, tables = tables, solved.solution
             if step < _STEP_TOLERANCE_MM and table_step < _STEP_TOLERANCE_MM:
-                return blocks, solved, iteration, True
-        return blocks, solved, _MAX_ITERATIONS, False
+                converged = True
+                break
+        rows = numbered(before, linearised_at, "residuals and uncertainty")
+        evaluated = _evaluate(rows, n_blocks, solved)
+        return evaluated, solved, iteration - first + 1, converged
 
-    blocks, solved, iterations, converged = iterate(np.zeros(states.n_columns))
-    sigma0 = _sigma0(solved, states.n_columns)
-    factors = _noise_factors(blocks[len(fixed_blocks) :], solved)
+    n_blocks = len(fixed_blocks) + len(states.trackers) + len(states.tracers)
+    evaluated, solved, iterations, converged = iterate(np.zeros(states.n_columns), 1)
+    sigma0 = _sigma0(evaluated, states.n_columns)
+    scatter = _noise_factors(evaluated, len(fixed_blocks))
+    correlation = np.ones(len(scatter))
+    for k, state in enumerate(states.trackers):
+        correlation[k] = correlation_samples(
+            state.station, evaluated.weighted[len(fixed_blocks) + k]
+        )
+    factors = scatter * np.sqrt(correlation)
     if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
         states.set_noise_factors(factors)
-        blocks, solved, more, converged = iterate(solved.solution)
+        evaluated, solved, more, converged = iterate(solved.solution, iterations + 1)
         iterations += more
-    ratio = np.concatenate([b.ratio for b in blocks])
-    middle = (solved.scaled.T @ scipy.sparse.diags(ratio) @ solved.scaled).toarray()
-    covariance = solved.inverse @ middle @ solved.inverse / np.outer(solved.norms, solved.norms)
-    raw = _raw_residuals(blocks, solved.solution)
+    covariance = (
+        solved.inverse @ evaluated.middle @ solved.inverse / np.outer(solved.norms, solved.norms)
+    )
+    raw = evaluated.raw
     table_set = _tables(layout, solved.solution, covariance, travel_mm)
     for name in undetermined:
         table_set.tables[name].u95[:] = np.nan
@@ -930,7 +1088,7 @@ def fit_joint(
             _line_residual(line_block, raw),
         ),
         sigma0=sigma0,
-        n_observations=len(ratio),
+        n_observations=evaluated.n_rows,
         n_parameters=states.n_columns,
         channel_scatter=line_sigma,
         outliers=alone.outliers if alone is not None else [],
@@ -940,8 +1098,8 @@ def fit_joint(
     return JointFit(
         fit=fit,
         trackers=[
-            _tracker_fit(s, r, covariance)
-            for s, r in zip(states.trackers, instrument_raw, strict=False)
+            _tracker_fit(s, r, covariance, c)
+            for s, r, c in zip(states.trackers, instrument_raw, correlation, strict=False)
         ],
         tracers=[
             _tracer_fit(t, r, covariance)
@@ -1009,20 +1167,51 @@ class _States:
             column += self.tracers[-1].n_columns
         self.n_columns = column
 
-    def linearise(
+    @property
+    def n_points(self) -> int:
+        """Tracker points and tracer lengths, all stations and places."""
+        return sum(len(s.station.run) for s in self.trackers) + sum(
+            len(t.place.run) for t in self.tracers
+        )
+
+    def chunks(
         self,
         chain: Chain,
         layout: ParameterLayout,
         tables: Vec,
         models: tuple[TrackerUncertainty, TracerUncertainty],
-    ) -> list[_Block]:
-        """Each instrument's rows about the current tables, poses and pivots."""
-        blocks = [
-            s.linearise(chain, layout, tables, self.n_columns, models[0]) for s in self.trackers
+    ) -> Iterator[tuple[int, int, _Block]]:
+        """Each instrument's rows about the current tables, poses and pivots, in chunks.
+
+        Yields the instrument's number (trackers, then tracers), the chunk's points
+        and its rows: at most :data:`CHUNK_POINTS` points at once, so a million rows
+        never stand in memory as one design matrix.
+        """
+        linearisers: list[tuple[int, Callable[[slice], _Block]]] = [
+            (
+                len(s.station.run),
+                partial(s.linearise, chain, layout, tables, self.n_columns, models[0]),
+            )
+            for s in self.trackers
         ]
-        return blocks + [
-            t.linearise(chain, layout, tables, self.n_columns, models[1]) for t in self.tracers
+        linearisers += [
+            (
+                len(t.place.run),
+                partial(t.linearise, chain, layout, tables, self.n_columns, models[1]),
+            )
+            for t in self.tracers
         ]
+        for number, (n, linearise) in enumerate(linearisers):
+            for first in range(0, n, CHUNK_POINTS):
+                chunk = slice(first, min(first + CHUNK_POINTS, n))
+                yield number, chunk.stop - chunk.start, linearise(chunk)
+
+    def snapshot(self) -> _States:
+        """A copy whose poses and pivots later updates leave as they are now."""
+        copied = copy.copy(self)
+        copied.trackers = [copy.copy(s) for s in self.trackers]
+        copied.tracers = [copy.copy(t) for t in self.tracers]
+        return copied
 
     def update(self, solution: Vec) -> float:
         """Apply a solution's increments; the largest move of a pose or pivot, mm."""
@@ -1057,10 +1246,10 @@ def _describer(layout: ParameterLayout, setup: SetupLayout, states: _States) -> 
     return describe
 
 
-def _sigma0(solved: _Solved, n_columns: int) -> float:
+def _sigma0(evaluated: _Evaluated, n_columns: int) -> float:
     """Square root of the a-posteriori variance factor of a solved system."""
-    squares = float(solved.residual_weighted @ solved.residual_weighted)
-    return float(np.sqrt(squares / max(len(solved.residual_weighted) - n_columns, 1)))
+    squares = sum(float(w @ w) for w in evaluated.weighted)
+    return float(np.sqrt(squares / max(evaluated.n_rows - n_columns, 1)))
 
 
 def _line_block(
@@ -1113,47 +1302,80 @@ def _line_residual(line_block: _Block | None, raw: list[Vec]) -> Vec:
     return np.where(line_block.whitening.diagonal() > 0, raw[0], np.nan)
 
 
-def _noise_factors(blocks: list[_Block], solved: _Solved) -> Vec:
+def _noise_factors(evaluated: _Evaluated, first: int) -> Vec:
     """Per instrument block, its scatter over its uncertainty model (type A), at least 1.
 
     Each block's weighted residuals over its redundancy (the sum of ``1 - h_ii``
     of its rows, ``h`` the hat matrix), as the lines' channels get in
     :func:`xmalign.post.solve.fit_error_tables`; kept at 1 or above, so the u95
     never claims better than the instrument's own uncertainty (the machine's
-    repeatability, for one, adds to every reading).
+    repeatability, for one, adds to every reading). ``first``: the first
+    instrument block (the lines and the prior come before).
     """
-    leverage = np.asarray(
-        (solved.scaled @ solved.inverse * solved.scaled.toarray()).sum(axis=1)
-    ).ravel()
-    end = len(solved.residual_weighted)
-    starts = end - np.cumsum([len(b.ratio) for b in reversed(blocks)])[::-1]
     factors = []
-    for start, block in zip(starts, blocks, strict=True):
-        rows = slice(start, start + len(block.ratio))
-        redundancy = max(float(np.sum(1.0 - leverage[rows])), 1.0)
-        squares = float(np.sum(solved.residual_weighted[rows] ** 2))
-        factors.append(max(1.0, np.sqrt(squares / redundancy)))
+    for weighted, leverage in zip(
+        evaluated.weighted[first:], evaluated.leverage[first:], strict=True
+    ):
+        redundancy = max(len(weighted) - float(leverage), 1.0)
+        factors.append(max(1.0, np.sqrt(float(weighted @ weighted) / redundancy)))
     return np.array(factors)
 
 
-def _raw_residuals(blocks: list[_Block], solution: Vec) -> list[Vec]:
-    return [b.observed - b.design @ solution for b in blocks]
+def correlation_samples(station: TrackerStation, weighted: Vec) -> float:
+    """How many consecutive points on the fly one point's noise is worth, at least 1.
+
+    The integrated autocorrelation time ``tau = 1 + 2 sum_k rho_k`` of the
+    whitened residuals across the path, taken per path in the file's order (the
+    order of capture), pooled over the paths and both components; the sum runs
+    over the lags while ``rho_k`` is significant (above ``2 / sqrt(pairs)``).
+    Correlated noise averages out ``tau`` times slower than white noise: the
+    station's weights are divided by ``tau`` (its u95 widened by ``sqrt(tau)``).
+    Points at a standstill (seconds apart) are taken as independent.
+    """
+    fly = station.on_the_fly
+    if fly.sum() < 3:
+        return 1.0
+    height = np.where(fly, 2, 3)
+    first_row = np.concatenate([[0], np.cumsum(height)[:-1]])
+    across = np.stack([weighted[first_row[fly]], weighted[first_row[fly] + 1]], axis=1)
+    paths = np.concatenate([station.machine_mm[fly], station.to_mm[fly]], axis=1)
+    group = np.ravel(np.unique(paths, axis=0, return_inverse=True)[1])
+    order = np.argsort(group, kind="stable")
+    sequence, group = across[order], group[order]
+    variance = float(np.mean(np.sum(sequence**2, axis=1)))
+    if variance == 0.0:
+        return 1.0
+    tau = 1.0
+    for lag in range(1, min(_MAX_LAG, len(sequence) // 4) + 1):
+        same = group[lag:] == group[:-lag]
+        pairs = int(same.sum())
+        if pairs < 2:
+            break
+        products = np.sum(sequence[lag:][same] * sequence[:-lag][same], axis=1)
+        rho = float(np.mean(products)) / variance
+        if rho <= 2.0 / np.sqrt(pairs):
+            break
+        tau += 2.0 * rho
+    return tau
 
 
 def _u95(covariance: Vec) -> Vec:
     return K_EXPANSION * np.sqrt(np.maximum(np.diag(covariance), 0.0))
 
 
-def _tracker_fit(state: _TrackerState, residual: Vec, covariance: Vec) -> TrackerStationFit:
+def _tracker_fit(
+    state: _TrackerState, residual: Vec, covariance: Vec, correlation: float
+) -> TrackerStationFit:
     s = state.station
+    direction = s.directions()
     columns = state.column + np.arange(6)
     block = covariance[np.ix_(columns, columns)]
     origin = -state.rotation.T @ state.offset  # the tracker's origin in the MCS
     jacobian = np.hstack([skew(origin), -np.eye(3)])
     still = ~s.on_the_fly
     vectors = residual.reshape(-1, 3)
-    along = np.sum(vectors * state.direction, axis=1)  # 0 at a standstill
-    squares = np.sum((vectors - along[:, None] * state.direction) ** 2, axis=1)
+    along = np.sum(vectors * direction, axis=1)  # 0 at a standstill
+    squares = np.sum((vectors - along[:, None] * direction) ** 2, axis=1)
     return TrackerStationFit(
         label=s.label,
         source=s.source,
@@ -1164,7 +1386,8 @@ def _tracker_fit(state: _TrackerState, residual: Vec, covariance: Vec) -> Tracke
         position_u95_mm=_u95(jacobian @ block @ jacobian.T),
         residual_rms_um=float(np.sqrt(np.mean(squares)) * 1e3),
         covered_mm=_covered(np.concatenate([s.machine_mm, s.to_mm[~still]])),
-        scatter_factor=state.noise_factor,
+        scatter_factor=state.noise_factor / np.sqrt(correlation),
+        correlation_samples=correlation,
     )
 
 
@@ -1212,8 +1435,9 @@ def instrument_lines(joint: JointFit) -> list[str]:
             f"tracker {s.label} ({s.n_points} points, {s.source}): origin"
             f" {_triple(s.position_mm)} mm (U95 {_triple(s.position_u95_mm)}), rotation"
             f" {_triple(s.rotation_urad, 0)} urad (U95 {_triple(s.rotation_u95_urad, 1)});"
-            f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f});"
-            f" {_covered_text(s.covered_mm)}"
+            f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f})"
+            + _correlation_text(s.correlation_samples)
+            + f"; {_covered_text(s.covered_mm)}"
         )
     for p in joint.tracers:
         constants = ", ".join(
@@ -1227,6 +1451,15 @@ def instrument_lines(joint: JointFit) -> list[str]:
             f" {p.scatter_factor:.2f}); {_covered_text(p.covered_mm)}"
         )
     return lines
+
+
+def _correlation_text(samples: float) -> str:
+    if samples <= 1.0 + _FACTOR_TOLERANCE:
+        return ""
+    return (
+        f"; noise correlated over {samples:.1f} points on the fly (U95 widened"
+        f" {np.sqrt(samples):.2f}x)"
+    )
 
 
 def instrument_notes(joint: JointFit) -> list[str]:
