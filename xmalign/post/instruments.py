@@ -50,6 +50,7 @@ import scipy.sparse
 from scipy.spatial.transform import Rotation
 
 from xmalign.errors import GeometryError, InputError
+from xmalign.formats.columns import LengthRows, PointRows
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec, skew
@@ -184,57 +185,91 @@ def _labels(keys: list[tuple[str, str]]) -> list[str]:
     ]
 
 
+def _tracker_columns(file: TrackerFile) -> dict[str, np.ndarray]:
+    """A file's points as columns (read as columns, or gathered from its points)."""
+    if isinstance(file.points, PointRows):
+        return file.points.columns
+    points = file.points
+    nan3 = np.full(3, np.nan)
+    return {
+        "station": np.array([p.station for p in points], dtype=object),
+        "run": np.array([p.run for p in points], dtype=int),
+        "machine_mm": np.reshape([p.machine_mm for p in points], (-1, 3)),
+        "tracker_mm": np.reshape([p.tracker_mm for p in points], (-1, 3)),
+        "to_mm": np.reshape([nan3 if p.to_mm is None else p.to_mm for p in points], (-1, 3)),
+        "u_radial_um": np.array(
+            [np.nan if p.u_radial_um is None else p.u_radial_um for p in points]
+        ),
+        "u_transverse_um": np.array(
+            [np.nan if p.u_transverse_um is None else p.u_transverse_um for p in points]
+        ),
+    }
+
+
+def _tracer_columns(file: TracerFile) -> dict[str, np.ndarray]:
+    """A file's lengths as columns (read as columns, or gathered from its lengths)."""
+    if isinstance(file.lengths, LengthRows):
+        return file.lengths.columns
+    lengths = file.lengths
+    return {
+        "station": np.array([r.station for r in lengths], dtype=object),
+        "run": np.array([r.run for r in lengths], dtype=int),
+        "machine_mm": np.reshape([r.machine_mm for r in lengths], (-1, 3)),
+        "length_mm": np.array([r.length_mm for r in lengths], dtype=float),
+    }
+
+
+def _grouped(
+    sources: list[tuple[str, dict[str, np.ndarray]]],
+) -> list[tuple[str, str, str, np.ndarray, dict[str, np.ndarray]]]:
+    """(source, station, label, rows) of each (file, station), in the order first seen."""
+    keys, found = [], []
+    for source, columns in sources:
+        stations = columns["station"].astype(str)
+        _, first, group = np.unique(stations, return_index=True, return_inverse=True)
+        for g in np.argsort(first):
+            keys.append((source, str(stations[first[g]])))
+            found.append((np.flatnonzero(np.ravel(group) == g), columns))
+    return [
+        (source, station, label, rows, columns)
+        for (source, station), label, (rows, columns) in zip(
+            keys, _labels(keys), found, strict=True
+        )
+    ]
+
+
 def tracker_stations(files: list[TrackerFile]) -> list[TrackerStation]:
     """Group the points of tracker files by (file, station)."""
-    groups: dict[tuple[str, str], list] = {}
-    for file in files:
-        for point in file.points:
-            groups.setdefault((file.source, point.station), []).append(point)
-    stations = []
-    for (source, _), label in zip(groups, _labels(list(groups)), strict=True):
-        points = groups[(source, _)]
-        nan3 = np.full(3, np.nan)
-        stations.append(
-            TrackerStation(
-                label=label,
-                source=source,
-                run=np.array([p.run for p in points]),
-                machine_mm=np.array([p.machine_mm for p in points]),
-                tracker_mm=np.array([p.tracker_mm for p in points]),
-                to_mm=np.array([nan3 if p.to_mm is None else p.to_mm for p in points]),
-                u_radial_mm=np.array(
-                    [np.nan if p.u_radial_um is None else p.u_radial_um * 1e-3 for p in points]
-                ),
-                u_transverse_mm=np.array(
-                    [
-                        np.nan if p.u_transverse_um is None else p.u_transverse_um * 1e-3
-                        for p in points
-                    ]
-                ),
-            )
+    groups = _grouped([(file.source, _tracker_columns(file)) for file in files])
+    return [
+        TrackerStation(
+            label=label,
+            source=source,
+            run=columns["run"][rows],
+            machine_mm=columns["machine_mm"][rows],
+            tracker_mm=columns["tracker_mm"][rows],
+            to_mm=columns["to_mm"][rows],
+            u_radial_mm=columns["u_radial_um"][rows] * 1e-3,
+            u_transverse_mm=columns["u_transverse_um"][rows] * 1e-3,
         )
-    return stations
+        for source, _, label, rows, columns in groups
+    ]
 
 
 def tracer_places(files: list[TracerFile]) -> list[TracerPlace]:
     """Group the lengths of tracer files by (file, station), with the pivot guesses."""
-    groups: dict[tuple[str, str], list] = {}
-    guesses: dict[tuple[str, str], Vec] = {}
-    for file in files:
-        for length in file.lengths:
-            groups.setdefault((file.source, length.station), []).append(length)
-        for name, guess in file.guesses_mm.items():
-            guesses[(file.source, name)] = guess
+    groups = _grouped([(file.source, _tracer_columns(file)) for file in files])
+    guesses = {(file.source, name): g for file in files for name, g in file.guesses_mm.items()}
     return [
         TracerPlace(
             label=label,
-            source=key[0],
-            run=np.array([r.run for r in groups[key]]),
-            machine_mm=np.array([r.machine_mm for r in groups[key]]),
-            length_mm=np.array([r.length_mm for r in groups[key]]),
-            guess_mm=guesses.get(key),
+            source=source,
+            run=columns["run"][rows],
+            machine_mm=columns["machine_mm"][rows],
+            length_mm=columns["length_mm"][rows],
+            guess_mm=guesses.get((source, station)),
         )
-        for key, label in zip(groups, _labels(list(groups)), strict=True)
+        for source, station, label, rows, columns in groups
     ]
 
 
