@@ -70,11 +70,7 @@ from xmalign.identify import IdentificationResult, IdentificationUncertainty, id
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
 from xmalign.post.instruments import Progress
-from xmalign.post.stream_assign import (
-    ASSUMED_ACCELERATION_MM_S2,
-    StreamAssignment,
-    assign_stream,
-)
+from xmalign.post.stream_assign import StreamAssignment, assign_stream
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -631,13 +627,10 @@ def import_stream_step(
     """
     stream = read_tracker_stream(stream_path)
     starts, ends = program_paths(read_point_list(points_path), str(points_path))
-    acceleration = machine.cnc.acceleration_mm_s2 or ASSUMED_ACCELERATION_MM_S2
     smr = machine.smr_offset
     assigned, rows = [], []
     for run in stream.runs():
-        a = assign_stream(
-            run.time_s, run.tracker_mm, starts, ends, acceleration, run.line, str(stream_path)
-        )
+        a = assign_stream(run.time_s, run.tracker_mm, starts, ends, run.line, str(stream_path))
         assigned.append((run.station, run.run, a))
         rows.append(
             FlyRun(

@@ -27,6 +27,7 @@ the stream cannot be used (a tracker that stood still, another program, a gap).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,8 +37,6 @@ from xmalign.formats.common import line_error
 from xmalign.geometry import Vec
 from xmalign.post.instruments import rigid_start
 
-#: The machine's path acceleration where its file gives none, mm/s².
-ASSUMED_ACCELERATION_MM_S2 = 1000.0
 #: Below this path speed the SMR stands still, mm/s.
 STOP_MM_S = 2.0
 #: A sample interval this many times the stream's median is a gap.
@@ -57,8 +56,11 @@ OFF_PATH_MM = 1.0
 #: Time over which the speed is taken (junctions), and smoothed (cruise), s.
 _JUNCTION_S = 0.01
 _CRUISE_S = 0.05
-#: Junctions are the slowest sample within this time, s.
+#: Junctions are the slowest sample within this time, s ...
 _JUNCTION_WINDOW_S = 0.1
+#: ... slower than this fraction of the fastest on either side within this time, s.
+JUNCTION_RATIO = 0.7
+_NEIGHBOURS_S = 0.5
 _ALIGN_ITERATIONS = 30
 _ALIGN_TOLERANCE_MM = 1e-4
 
@@ -130,23 +132,24 @@ def _check_clock(time_s: Vec, lines: np.ndarray, source: str) -> float:
     return interval
 
 
-def stream_moves(
-    time_s: Vec, tracker_mm: Vec, interval_s: float, acceleration_mm_s2: float
-) -> list[tuple[int, int]]:
+def stream_moves(time_s: Vec, tracker_mm: Vec, interval_s: float) -> list[tuple[int, int]]:
     """The stream's moves: (first, last) sample of each, in time order.
 
     Boundaries are the samples at rest (speed below :data:`STOP_MM_S`) and the
-    junctions: the slowest sample within :data:`_JUNCTION_WINDOW_S`, slower than
-    twice the speed the machine reaches from rest over the speed's own baseline
-    (``acceleration_mm_s2`` times it).
+    junctions: the slowest sample within :data:`_JUNCTION_WINDOW_S` that is
+    slower than :data:`JUNCTION_RATIO` of the fastest within :data:`_NEIGHBOURS_S`
+    on each side (the machine stopped there and went on, faster than a sample
+    interval shows at a low sample rate).
     """
     half = max(1, round(_JUNCTION_S / interval_s))
     speed = _speed(time_s, tracker_mm, half)
-    window = max(1, round(_JUNCTION_WINDOW_S / interval_s))
-    padded = np.pad(speed, window, constant_values=np.inf)
-    slowest = speed <= np.lib.stride_tricks.sliding_window_view(padded, 2 * window + 1).min(1)
-    reach = max(STOP_MM_S, 2.0 * acceleration_mm_s2 * half * interval_s)
-    boundary = (speed < STOP_MM_S) | (slowest & (speed < reach))
+    slowest = speed <= _window(speed, max(1, round(_JUNCTION_WINDOW_S / interval_s)), np.min)
+    reach = max(2, round(_NEIGHBOURS_S / interval_s))
+    padded = np.pad(speed, reach, constant_values=0.0)
+    views = np.lib.stride_tricks.sliding_window_view(padded, reach)
+    before, after = views[: len(speed)].max(axis=1), views[reach + 1 :].max(axis=1)
+    junction = slowest & (speed < JUNCTION_RATIO * np.minimum(before, after))
+    boundary = (speed < STOP_MM_S) | junction
     edges = np.diff(np.concatenate([[1], boundary.astype(int), [1]]))
     firsts, lasts = np.flatnonzero(edges == -1), np.flatnonzero(edges == 1) - 1
     return [
@@ -154,6 +157,12 @@ def stream_moves(
         for a, b in zip(firsts, lasts, strict=True)
         if np.linalg.norm(tracker_mm[b] - tracker_mm[a]) >= MIN_MOVE_MM
     ]
+
+
+def _window(values: Vec, half: int, reduce: Callable[..., Vec]) -> Vec:
+    """``reduce`` over each sample's window of ``half`` samples each side."""
+    padded = np.pad(values, half, mode="edge")
+    return reduce(np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1), axis=1)
 
 
 def _turns(vectors: Vec) -> Vec:
@@ -165,11 +174,12 @@ def _turns(vectors: Vec) -> Vec:
     return np.where(short, np.nan, cosine)
 
 
-def match_moves(program_mm: Vec, stream_mm: Vec) -> int | None:
+def match_moves(program_mm: Vec, stream_mm: Vec, slack_mm: Vec) -> int | None:
     """Where the program's moves start among the stream's (the best fit), None if nowhere.
 
     Compared by their lengths and the angles between consecutive moves (neither
-    depends on the tracker's pose).
+    depends on the tracker's pose). ``slack_mm`` (per stream move): how much
+    shorter its ends, the samples nearest the junctions, may make it.
     """
     m = len(program_mm)
     if len(stream_mm) < m:
@@ -179,7 +189,7 @@ def match_moves(program_mm: Vec, stream_mm: Vec) -> int | None:
     best, best_misfit = None, np.inf
     for k in range(len(stream_mm) - m + 1):
         lengths = np.abs(have[k : k + m] - want)
-        if np.any(lengths > LENGTH_TOLERANCE_MM + LENGTH_TOLERANCE * want):
+        if np.any(lengths > LENGTH_TOLERANCE_MM + LENGTH_TOLERANCE * want + slack_mm[k : k + m]):
             continue
         turns = np.abs(have_turns[k : k + m - 1] - want_turns)
         if np.any(turns[np.isfinite(turns)] > ANGLE_TOLERANCE):
@@ -217,7 +227,6 @@ def assign_stream(
     tracker_mm: Vec,
     starts_mm: Vec,
     ends_mm: Vec,
-    acceleration_mm_s2: float,
     lines: np.ndarray,
     source: str,
 ) -> StreamAssignment:
@@ -231,8 +240,6 @@ def assign_stream(
         SMR centre in the tracker's frame.
     starts_mm, ends_mm : ndarray, shape (P, 3)
         The program's measuring paths in order: the SMR's start and end in the MCS.
-    acceleration_mm_s2 : float
-        The machine's path acceleration (tells a junction from a move).
     lines : ndarray of int, shape (N,)
         Each sample's line in the file, for messages.
     source : str
@@ -244,7 +251,7 @@ def assign_stream(
         the program's (one line naming the file and, where there is one, the line).
     """
     interval = _check_clock(time_s, lines, source)
-    moves = stream_moves(time_s, tracker_mm, interval, acceleration_mm_s2)
+    moves = stream_moves(time_s, tracker_mm, interval)
     if not moves:
         raise InputError(
             f"{source}: the SMR stood still for the whole stream ({time_s[-1] - time_s[0]:.1f} s,"
@@ -252,7 +259,9 @@ def assign_stream(
         )
     vectors, paths = program_moves(starts_mm, ends_mm)
     seen = np.array([tracker_mm[b] - tracker_mm[a] for a, b in moves])
-    k = match_moves(vectors, seen)
+    speed = _speed(time_s, tracker_mm, 1)
+    slack = np.array([(speed[a] + speed[b]) * interval for a, b in moves])
+    k = match_moves(vectors, seen, slack)
     if k is None:
         raise InputError(
             f"{source}: the stream's {len(moves)} moves (lines {lines[0]}-{lines[-1]}) do not"

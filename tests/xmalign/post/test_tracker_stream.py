@@ -110,7 +110,7 @@ def _assign(run: StreamRun, program: InstrumentProgram, machine: Machine):
     starts = np.array([s for s, _ in program.paths_mm]) + machine.smr_offset
     ends = np.array([e for _, e in program.paths_mm]) + machine.smr_offset
     return assign_stream(
-        run.time_s, run.tracker_mm, starts, ends, 1000.0, np.arange(len(run.time_s)) + 3, "s.csv"
+        run.time_s, run.tracker_mm, starts, ends, np.arange(len(run.time_s)) + 3, "s.csv"
     )
 
 
