@@ -1102,12 +1102,20 @@ def fit_joint(
             state.station, evaluated.weighted[len(fixed_blocks) + k]
         )
     factors = scatter * np.sqrt(correlation)
+    widened = 1.0
     if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
         states.set_noise_factors(factors)
-        evaluated, solved, more, converged = iterate(solved.solution, iterations + 1)
-        iterations += more
+        if n_blocks == 1:  # one instrument alone: weighting it down moves no estimate
+            widened = float(factors[0]) ** 2
+        else:
+            evaluated, solved, more, converged = iterate(solved.solution, iterations + 1)
+            iterations += more
     covariance = (
-        solved.inverse @ evaluated.middle @ solved.inverse / np.outer(solved.norms, solved.norms)
+        solved.inverse
+        @ evaluated.middle
+        @ solved.inverse
+        / np.outer(solved.norms, solved.norms)
+        * widened
     )
     raw = evaluated.raw
     table_set = _tables(layout, solved.solution, covariance, travel_mm)
