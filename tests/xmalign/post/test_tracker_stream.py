@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import assert_one_line_error, run_cli
+from cli_helpers import assert_one_line_error, run_cli, run_in_process
 
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.tracker import VirtualTracker
@@ -178,3 +178,25 @@ def test_a_bad_stream_row_names_its_line(tmp_path):
         tmp_path / "points.csv", "name,x_mm,y_mm,z_mm\npath 0 start,0,0,0\npath 0 end,1,0,0\n"
     )
     assert_one_line_error(_import(tmp_path), "stream.csv", "line 4", "ty_mm")
+
+
+def test_the_dry_run_on_the_fly_goes_through_the_stream_and_the_import(tmp_path):
+    out = tmp_path / "dry"
+    result = run_in_process(
+        "dry-run", "--instrument", "tracker", "--on-the-fly", "--out", str(out), "--seed", "2"
+    )
+    assert result.returncode == 0, result.stderr
+    assert (out / "tracker-stream.csv").exists() and (out / "points.csv").exists()
+    rows = read_tracker_points(out / "tracker.csv")
+    assert all(p.index is None for p in rows.points)
+    assert any("tracker-stream.csv sha256=" in c for c in rows.comments)
+    assert "noise correlated over" in result.stderr
+    after = float(result.stdout.split(" after ")[1].split(" um")[0])
+    assert after < 2.5  # standstill: about 4 um (bench_tracker_stream.py)
+
+
+def test_on_the_fly_is_for_the_tracker_dry_run(tmp_path):
+    result = run_in_process(
+        "dry-run", "--instrument", "tracer", "--on-the-fly", "--out", str(tmp_path / "d")
+    )
+    assert_one_line_error(result, "--on-the-fly", "tracker")
