@@ -33,7 +33,13 @@ those rotations are written as 0 with no u95 (docs/post.md).
 
 Points taken **on the fly** (seed 001) count only through their deviation across
 the commanded path: the fit uses the two components perpendicular to it, at
-the foot of the perpendicular from the measured point to the path.
+the foot of the perpendicular from the measured point to the path. Their noise
+may be correlated from sample to sample: the residuals' autocorrelation along
+each path widens the station's uncertainty (:func:`correlation_samples`).
+
+The rows are linearised in chunks of :data:`CHUNK_POINTS` points and only the
+normal equations are accumulated, so a million rows fit in the memory of a few
+chunks (docs/post.md); ``progress`` is told how far each pass is.
 """
 
 from __future__ import annotations
