@@ -20,6 +20,7 @@ from sim.instrument_errors import MaterialDrift
 from sim.machine import VirtualMachine
 from sim.tracer import VirtualTracer, measure_tracers_at_once
 from sim.tracker import VirtualTracker, measure_tracker
+from sim.tracker_stream import StreamOptions, record_stream
 from trajectories.gcode import resolve_dialect
 from trajectories.instruments import (
     InstrumentProgram,
@@ -38,12 +39,13 @@ from xmalign.formats.instruments import (
 )
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
+from xmalign.formats.tracker_stream import write_tracker_stream
 from xmalign.geometry import Vec
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, volumetric_rms_um
 from xmalign.post.evaluate import Instruments, PostResult
 from xmalign.rigid_body import Chain, ErrorTables
-from xmalign.steps import fit_step, post_step, write_instrument_step
+from xmalign.steps import fit_step, import_stream_step, post_step, write_instrument_step
 
 INSTRUMENTS = ("xm60", "tracker", "tracer", "xm60+tracker")
 #: The tracker stands turned and tilted: the fit's start must not need it level.
@@ -65,6 +67,7 @@ FILES = (
     "tracer.nc",
     "tracer.csv",
     "points.csv",
+    "tracker-stream.csv",
     "errors-instruments.csv",
 )
 
@@ -150,6 +153,25 @@ def _tracker(
     return read_tracker_points(folder / "tracker.csv"), minutes
 
 
+def _tracker_on_the_fly(
+    machine: Machine, truth: VirtualMachine, folder: Path, seed: int, dialect: str
+) -> tuple[TrackerFile, float]:
+    """Paths on the fly: the tracker logs its stream, which ``import --tracker-stream`` reads."""
+    program = plan_instrument(machine, "tracker", on_the_fly=True).program
+    minutes = _minutes(machine, program, folder / "tracker.nc", dialect, folder / "points.csv")
+    tracker = VirtualTracker(tracker_place(machine), np.array(TRACKER_ROTATION_DEG), seed=seed)
+    options = StreamOptions(
+        angle_systematic_urad=machine.tracker.angle_systematic_urad,
+        scale_ppm=machine.tracker.scale_ppm,
+    )
+    stream = record_stream(machine, truth, tracker, program, options, dialect=dialect)
+    write_tracker_stream(folder / "tracker-stream.csv", [stream])
+    import_stream_step(
+        folder / "tracker-stream.csv", folder / "points.csv", folder / "tracker.csv", machine
+    )
+    return read_tracker_points(folder / "tracker.csv"), minutes
+
+
 def _tracers(
     machine: Machine,
     truth: VirtualMachine,
@@ -187,13 +209,16 @@ def simulate_instruments(
     seed: int = 1,
     dialect: str | None = None,
     simultaneous: bool = False,
+    on_the_fly: bool = False,
 ) -> InstrumentDryRun:
     """Program, measure and post with ``instrument`` on the seeded virtual machine.
 
     The plan is ``xmalign program --instrument``'s (its SMR positions; tracers one
-    place after another, or all at once with ``simultaneous``); the instruments have
-    the systematic errors of :func:`dry_run_machine` and the machine a material
-    temperature drifting through each run (:data:`MATERIAL_C`).
+    place after another, or all at once with ``simultaneous``; ``on_the_fly``
+    (tracker): the paths on the fly, the tracker's stream (:mod:`sim.tracker_stream`)
+    through the real import); the instruments have the systematic errors of
+    :func:`dry_run_machine` and the machine a material temperature drifting through
+    each run (:data:`MATERIAL_C`; not in a stream, which has no such column).
 
     Raises
     ------
@@ -222,7 +247,8 @@ def simulate_instruments(
     completed = dry_run_machine(machine, plan_smr_positions(machine)[0])
     other_min = None
     if "tracker" in instrument:
-        tracker_file, minutes = _tracker(completed, truth, folder, seed, dialect_name)
+        measure = _tracker_on_the_fly if on_the_fly else _tracker
+        tracker_file, minutes = measure(completed, truth, folder, seed, dialect_name)
         instruments = Instruments(trackers=(tracker_file,))
         files = [FileSource.of("tracker", folder / "tracker.csv")]
     else:

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from xmalign.geometry import Vec
-from xmalign.post.instruments import JointFit
+from xmalign.post.instruments import FACTOR_TOLERANCE, JointFit
 
 
 def describe_undetermined(names: Iterable[str]) -> str:
@@ -39,6 +39,15 @@ def _scale_text(scale_ppm: dict[int, float], u95_ppm: dict[int, float]) -> str:
     return f"; scale {runs} ppm" if runs else ""
 
 
+def _correlation_text(samples: float) -> str:
+    if samples <= 1.0 + FACTOR_TOLERANCE:
+        return ""
+    return (
+        f"; noise correlated over {samples:.1f} points on the fly (U95 widened"
+        f" {np.sqrt(samples):.2f}x)"
+    )
+
+
 def instrument_lines(joint: JointFit) -> list[str]:
     """One line per tracker station (pose) and tracer place (pivot, constants), with U95."""
     lines = []
@@ -52,7 +61,8 @@ def instrument_lines(joint: JointFit) -> list[str]:
             f" {_triple(s.position_mm)} mm (U95 {_triple(s.position_u95_mm)}), rotation"
             f" {_triple(s.rotation_urad, 0)} urad (U95 {_triple(s.rotation_u95_urad, 1)});"
             f" residual {s.residual_rms_um:.2f} um RMS (scatter / model {s.scatter_factor:.2f})"
-            f"{angles}{_scale_text(s.scale_ppm, s.scale_u95_ppm)}; {_covered_text(s.covered_mm)}"
+            f"{_correlation_text(s.correlation_samples)}{angles}"
+            f"{_scale_text(s.scale_ppm, s.scale_u95_ppm)}; {_covered_text(s.covered_mm)}"
         )
     for p in joint.tracers:
         constants = ", ".join(

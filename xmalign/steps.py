@@ -89,6 +89,12 @@ from xmalign.formats.spatial_analyzer import (
     unmeasured,
 )
 from xmalign.formats.studies import write_design
+from xmalign.formats.tracker_stream import (
+    FlyRun,
+    program_paths,
+    read_tracker_stream,
+    write_fly_rows,
+)
 from xmalign.identification_routine import (
     PoseGuess,
     RoutineDevices,
@@ -98,6 +104,8 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
+from xmalign.post.instruments import Progress
+from xmalign.post.stream_assign import StreamAssignment, assign_stream
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -794,6 +802,7 @@ def post_step(
     more_files: Callable[[PostResult], dict[Path, bytes]] | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    progress: Progress | None = None,
 ) -> PostStepResult:
     """Fit the 21 errors to every station's measurement (and ``instruments``' readings) and
     write the error tables.
@@ -806,6 +815,8 @@ def post_step(
     ``replace`` (:func:`check_outputs`, before anything is read). ``on_fit(stations)`` is
     told before the fit; ``more_files(result)`` adds files written together with the
     tables (the report, named in ``caller.written``): all of them, or none.
+    ``progress(done, total, what)`` is told how far the instruments' fit is
+    (:func:`xmalign.post.instruments.fit_joint`).
     """
     machine, errors_path = _machine(machine), _path(errors_path, "errors_path")
     pairs = _stations(stations)
@@ -817,7 +828,7 @@ def post_step(
         check_instrument_files(machine, instruments.trackers, instruments.tracers)
     if on_fit is not None:
         on_fit(read)
-    post = fit_step(machine, read, instruments)
+    post = fit_step(machine, read, instruments, progress=progress)
     history: list[FileSource] = []
     for plan, path in pairs:
         history += [FileSource.of("measurements", path)]
@@ -986,11 +997,13 @@ def fit_step(
     stations: Sequence[Station],
     instruments: Instruments | None = None,
     applied: ErrorTables | None = None,
+    progress: Progress | None = None,
 ) -> PostResult:
     """The fit of :func:`post_step` with nothing read or written: the stations' lines as
     measured (``applied``: the tables loaded while measuring) and ``instruments``'
-    readings. The studies that compare strategies on virtual machines call it."""
-    return post_stations(_machine(machine), list(stations), applied, instruments)
+    readings (``progress``: :func:`xmalign.post.instruments.fit_joint`'s). The studies
+    that compare strategies on virtual machines call it."""
+    return post_stations(_machine(machine), list(stations), applied, instruments, progress)
 
 
 #: The instruments :func:`instrument_program_step` plans for.
@@ -1133,6 +1146,67 @@ def import_tracker_step(
     made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
     write_tracker_points(out, file.points, made_from)
     return ImportTrackerStepResult(file.points, unmeasured(listed, file))
+
+
+@dataclass(frozen=True)
+class StreamImportResult:
+    """What :func:`import_stream_step` wrote: the rows kept and dropped per (station, run)."""
+
+    out: Path
+    runs: list[tuple[str, int, StreamAssignment]]
+
+    @property
+    def rows(self) -> int:
+        return sum(len(a.sample) for _, _, a in self.runs)
+
+
+def import_stream_step(
+    stream_path: str | Path,
+    points_path: str | Path,
+    out: str | Path,
+    machine: Machine,
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> StreamImportResult:
+    """A tracker's stream of an on-the-fly program turned into the tracker-points file
+    ``out`` (docs/formats.md).
+
+    Each (station, run) of the stream is assigned to the measuring paths of the point
+    list at ``points_path`` (:func:`xmalign.post.stream_assign.assign_stream`); the rows
+    carry the commanded tool point at the path's start and end (the list's SMR points
+    less the machine's ``smr_offset_mm``) and the SHA-256 of both inputs. ``out`` never
+    replaces an input, nor an existing file without ``replace``.
+    """
+    stream_path, points_path = _path(stream_path, "stream_path"), _path(points_path, "points_path")
+    out, machine = _path(out, "out"), _machine(machine)
+    inputs = {
+        "stream_path": stream_path,
+        "points_path": points_path,
+        "machine": _machine_path(machine),
+    }
+    check_outputs({"out": out}, inputs, replace, caller)
+    stream = read_tracker_stream(stream_path)
+    starts, ends = program_paths(read_point_list(points_path), str(points_path))
+    smr = machine.smr_offset
+    assigned, rows = [], []
+    for run in stream.runs():
+        a = assign_stream(run.time_s, run.tracker_mm, starts, ends, run.line, str(stream_path))
+        assigned.append((run.station, run.run, a))
+        rows.append(
+            FlyRun(
+                station=run.station,
+                run=run.run,
+                start_mm=starts[a.path] - smr,
+                end_mm=ends[a.path] - smr,
+                tracker_mm=run.tracker_mm[a.sample],
+                time_s=run.time_s[a.sample],
+                u_radial_um=run.u_radial_um[a.sample],
+                u_transverse_um=run.u_transverse_um[a.sample],
+            )
+        )
+    made_from = [FileSource.of("stream", stream_path), FileSource.of("points", points_path)]
+    write_fly_rows(out, rows, made_from)
+    return StreamImportResult(out, assigned)
 
 
 # -- one launch-unit station: identify -> program -> run ------------------------------------

@@ -785,6 +785,46 @@ _IMPORT_CASES = [
 ]
 
 
+STREAM = "stream.csv"
+_STREAM = (
+    "# xmalign tracker-stream/1\nstation,run,time_s,tx_mm,ty_mm,tz_mm\n"
+    "T1,0,0.0,1,2,3\nT1,0,0.01,1,2,3\nT1,0,0.02,1,2,3\n"
+)
+_IMPORT_STREAM = ("import", "--tracker-stream", STREAM, "--points", "points.csv")
+_STREAM_CASES = [
+    Case(
+        "stream-wrong-format",
+        (*_IMPORT_STREAM, "--out", "t.csv"),
+        (STREAM, "line 1", "tracker-stream/1"),
+        write(STREAM, _STREAM.replace("stream/1", "stream/2")),
+    ),
+    Case(
+        "stream-not-a-number",
+        (*_IMPORT_STREAM, "--out", "t.csv"),
+        (STREAM, "line 4", "ty_mm"),
+        write(STREAM, _STREAM.replace("0.01,1,2", "0.01,1,x")),
+    ),
+    Case(
+        "stream-missing-column",
+        (*_IMPORT_STREAM, "--out", "t.csv"),
+        (STREAM, "line 2", "lacks column tz_mm"),
+        write(STREAM, _STREAM.replace(",tz_mm", "")),
+    ),
+    Case(
+        "stream-points-without-paths",
+        (*_IMPORT_STREAM, "--out", "t.csv"),
+        ("points.csv", "no paths"),
+        write(STREAM, _STREAM),
+    ),
+    Case(
+        "stream-and-export",
+        (*_IMPORT_STREAM, "--spatial-analyzer", "spatial-analyzer.txt", "--out", "t.csv"),
+        ("--spatial-analyzer", "--tracker-stream"),
+        write(STREAM, _STREAM),
+    ),
+]
+
+
 def _keep_tracer_places(path: Path, places: int) -> None:
     keep = tuple(f"P{i + 1}," for i in range(places))
     lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
@@ -1720,6 +1760,7 @@ CASES = (
     _generic_cases()
     + _kind_cases()
     + _same_file_cases()
+    + _STREAM_CASES
     + _CLI_CASES
     + _CARELESS_USER_CASES
     + _FILES_CASES

@@ -18,6 +18,7 @@ from xmalign.cli.common import (
     machine_or_default,
     named_by_options,
     output_folder,
+    refuse_unused_options,
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
@@ -29,6 +30,8 @@ from xmalign.post.instruments import MIN_TRACER_PLACES
 from xmalign.steps import (
     DEFAULT_NAMING,
     INSTRUMENTS,
+    Caller,
+    import_stream_step,
     import_tracker_step,
     instrument_program_step,
 )
@@ -133,14 +136,36 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         sys.stdout.write(programmed.gcode)
 
 
-def _export(spatial_analyzer: Path | None, name_xyz: Path | None) -> tuple[Path, str, str]:
-    """The export given, its option and its default naming; one of the two options."""
-    if (spatial_analyzer is None) == (name_xyz is None):
-        raise InputError("import: give one of --spatial-analyzer FILE and --name-xyz FILE")
-    if spatial_analyzer is not None:
-        return spatial_analyzer, "--spatial-analyzer", DEFAULT_NAMING
-    assert name_xyz is not None
-    return name_xyz, "--name-xyz", "target"
+def _export(
+    spatial_analyzer: Path | None, name_xyz: Path | None, tracker_stream: Path | None
+) -> tuple[Path, str, str]:
+    """The export or stream given, its option and an export's default naming; one only."""
+    given = {
+        "--spatial-analyzer": (spatial_analyzer, DEFAULT_NAMING),
+        "--name-xyz": (name_xyz, "target"),
+        "--tracker-stream": (tracker_stream, ""),
+    }
+    named = [(option, path, naming) for option, (path, naming) in given.items() if path]
+    if len(named) != 1:
+        raise InputError(f"import: give one of {', '.join(given)} (each with FILE)")
+    option, path, naming = named[0]
+    return path, option, naming
+
+
+def _import_stream(
+    stream: Path, points: Path, out: Path, machine: Machine, force: bool, caller: Caller
+) -> None:
+    """``import --tracker-stream`` (:func:`~xmalign.steps.import_stream_step`), told per run."""
+    with error_console.status(f"assigning {stream} to the program's paths"):
+        result = import_stream_step(stream, points, out, machine, force, caller)
+    for name, run, a in result.runs:
+        error_console.print(
+            f"station {name} run {run}: {len(a.sample)} samples on {len(set(a.path.tolist()))}"
+            f" paths ({a.off_path_um:.1f} um RMS from them), {a.dropped} dropped (moves"
+            " between paths, accelerations, stops)",
+            highlight=False,
+        )
+    error_console.print(f"wrote {out}: {result.rows} points on the fly", highlight=False)
 
 
 def import_points(
@@ -164,6 +189,13 @@ def import_points(
             help="A plain Name,X,Y,Z export of other tracker software (optional header line).",
         ),
     ] = None,
+    tracker_stream: Annotated[
+        Path | None,
+        typer.Option(
+            "--tracker-stream",
+            help="A tracker's stream of an on-the-fly program (station,run,time_s,tx_mm..).",
+        ),
+    ] = None,
     naming: Annotated[
         str | None,
         typer.Option(
@@ -180,23 +212,42 @@ def import_points(
     ] = None,
     force: ForceOption = False,
 ) -> None:
-    """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
+    """Convert a tracker's export or stream into tracker points for ``xmalign post --tracker``.
 
-    Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear (without groups, a name measured
-    again starts the next run). The distances between the points must be the
-    commanded moves': an export in another unit than --units, or with names that
-    do not match the point list, is refused naming the first row that does not.
+    --spatial-analyzer or --name-xyz: target names are the point indices of the point
+    list; the export's groups are the runs, in the order they first appear (without
+    groups, a name measured again starts the next run). The distances between the
+    points must be the commanded moves': an export in another unit than --units, or
+    with names that do not match the point list, is refused naming the first row
+    that does not.
+
+    --tracker-stream: the samples are assigned to the point list's paths by the
+    stream's own geometry (no clock shared with the CNC); the moves between
+    paths, accelerations and stops are dropped; rows on the fly are written
+    (docs/formats.md). The stream names its stations and runs, in mm.
     """
-    export, option, default_naming = _export(spatial_analyzer, name_xyz)
+    export, option, default_naming = _export(spatial_analyzer, name_xyz, tracker_stream)
     options = {
         "export_path": option,
+        "stream_path": option,
         "points_path": "--points",
         "out": "--out",
         "machine": "--machine",
         "naming": "--naming",
         "units": "--units",
     }
+    caller = named_by_options(options)
+    if tracker_stream is not None:
+        refuse_unused_options(
+            {
+                "--naming": naming is not None,
+                "--units": units != "mm",
+                "--station": station != "T1",
+            },
+            "with --tracker-stream (the stream names its stations and runs, in mm)",
+        )
+        _import_stream(export, points, out, machine_or_default(machine), force, caller)
+        return
     imported = import_tracker_step(
         export,
         points,
@@ -204,7 +255,7 @@ def import_points(
         machine_or_default(machine),
         station,
         replace=force,
-        caller=named_by_options(options),
+        caller=caller,
         naming=naming or default_naming,
         units=units,
     )
@@ -231,17 +282,25 @@ def instrument_dry_run(
     seed: int,
     dialect: str | None,
     simultaneous: bool = False,
+    on_the_fly: bool = False,
 ) -> None:
-    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
+    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth.
+
+    ``on_the_fly``: the tracker logs a stream of the on-the-fly program, which is
+    imported as ``import --tracker-stream`` does.
+    """
     from sim.instrument_dry_run import MATERIAL_C, simulate_instruments
 
-    with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect, simultaneous)
+    what = f"{instrument}{' on the fly' if on_the_fly else ''}"
+    with error_console.status(f"dry run, {what}"):
+        report = simulate_instruments(
+            machine, out, instrument, seed, dialect, simultaneous, on_the_fly
+        )
     assert report.result.instruments is not None and report.machine is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)
     tracker, tracer = report.machine.tracker, report.machine.tracer
-    smr = ", ".join(report.machine.smr_offsets_mm) or "one"
+    smr = "one" if on_the_fly else ", ".join(report.machine.smr_offsets_mm) or "one"
     time = f"machine time: {instrument} {report.instrument_min:.0f} min"
     if report.other_way_min is not None:
         other = "one place at a time" if report.simultaneous else "all tracers at once"
@@ -256,8 +315,13 @@ def instrument_dry_run(
         f" {tracker.scale_ppm:g} ppm per run"
     )
     lines = [
-        f"virtual instruments: SMR positions {smr}; {errors}; the machine's scales at"
-        f" {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC through each run (material_c)",
+        f"virtual instruments: SMR positions {smr}; {errors}"
+        + (
+            "; a stream on the fly, at 20 degC"
+            if on_the_fly
+            else f"; the machine's scales at {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC"
+            " through each run (material_c)"
+        ),
         time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
         f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"

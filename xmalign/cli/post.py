@@ -8,7 +8,14 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    Progress,
+    SpinnerColumn,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+)
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
@@ -41,7 +48,12 @@ MachineOption = Annotated[
 
 def _progress() -> Progress:
     return Progress(
-        SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TimeElapsedColumn(),
+        console=console,
     )
 
 
@@ -219,6 +231,14 @@ def post(
             )
             return {report: report_bytes(report, machine_, result, machine_.controller, info)}
 
+        def fitting(done: int, total: int, what: str) -> None:
+            progress.update(
+                task,
+                description=f"fitting the instruments' rows, {what}",
+                completed=done,
+                total=total,
+            )
+
         # the tables and the report together, or neither (a failed report leaves no tables)
         posted = post_step(
             machine_,
@@ -230,6 +250,7 @@ def post(
             more_files=more_files,
             replace=force,
             caller=caller,
+            progress=fitting,
         )
         result = posted.post
     console.print(_summary(result))

@@ -510,12 +510,21 @@ def dry_run_command(
             help="With --instrument tracer: every tracer follows the SMR in the same run.",
         ),
     ] = False,
+    on_the_fly: Annotated[
+        bool,
+        typer.Option(
+            "--on-the-fly",
+            help="With --instrument tracker: paths on the fly, the tracker's stream imported.",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
     from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
+    if on_the_fly and instrument != "tracker":
+        raise InputError("--on-the-fly is for --instrument tracker")
     if instrument != "xm60":
         refuse_unused_options(
             {
@@ -527,7 +536,7 @@ def dry_run_command(
             f"with --instrument {instrument} (a launch unit's options)",
         )
         instrument_dry_run(
-            machine_or_default(machine), out, instrument, seed, dialect, simultaneous
+            machine_or_default(machine), out, instrument, seed, dialect, simultaneous, on_the_fly
         )
         return
     if simultaneous:

@@ -294,12 +294,22 @@ def _collect(rows: list[Row], parse_row: Callable[..., Row]) -> Callable[..., Ro
 
 
 def read_tracker_points(path: str | Path) -> TrackerFile:
-    """Read a tracker-points file; InputError naming the file and line on bad input."""
+    """Read a tracker-points file; InputError naming the file and line on bad input.
+
+    A file with nothing wrong in it is read as columns (:mod:`xmalign.formats.columns`:
+    a million rows in seconds); any other is read row by row, which names the line.
+    """
+    from xmalign.formats.columns import fast_tracker_file  # (it builds on this module)
+
     path = Path(path)
+    text = _read_text(path)
+    fast = fast_tracker_file(text, str(path))
+    if fast is not None:
+        return fast
     comments: list[str] = []
     points: list[TrackerPoint] = []
     lines = _parse(
-        _read_text(path),
+        text,
         str(path),
         TRACKER_FORMAT,
         TRACKER_COLUMNS,
@@ -310,8 +320,17 @@ def read_tracker_points(path: str | Path) -> TrackerFile:
 
 
 def read_tracer_lengths(path: str | Path) -> TracerFile:
-    """Read a tracer-lengths file; InputError naming the file and line on bad input."""
+    """Read a tracer-lengths file; InputError naming the file and line on bad input.
+
+    Read as columns where nothing is wrong in it, as :func:`read_tracker_points`.
+    """
+    from xmalign.formats.columns import fast_tracer_file  # (it builds on this module)
+
     path = Path(path)
+    text = _read_text(path)
+    fast = fast_tracer_file(text, str(path))
+    if fast is not None:
+        return fast
     result = TracerFile([], str(path))
 
     def comment(text: str, number: int) -> None:
@@ -322,7 +341,7 @@ def read_tracer_lengths(path: str | Path) -> TracerFile:
             result.comments.append(text)
 
     result.lines = _parse(
-        _read_text(path),
+        text,
         str(path),
         TRACER_FORMAT,
         TRACER_COLUMNS,

@@ -14,7 +14,13 @@ from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec, rot_z
 from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
-from xmalign.post.instruments import JointFit, fit_joint, tracer_places, tracker_stations
+from xmalign.post.instruments import (
+    JointFit,
+    Progress,
+    fit_joint,
+    tracer_places,
+    tracker_stations,
+)
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import (
     CHANNEL_TO_SI,
@@ -123,6 +129,7 @@ def post_stations(
     stations: list[Station],
     applied: ErrorTables | None = None,
     instruments: Instruments | None = None,
+    progress: Progress | None = None,
 ) -> PostResult:
     """Fit one set of error tables to the measurements of one or more stations.
 
@@ -138,6 +145,7 @@ def post_stations(
 
     ``instruments``: tracker points and tracer lengths fitted together with the
     lines (:func:`xmalign.post.instruments.fit_joint`); ``stations`` may then be empty.
+    ``progress(done, total, what)`` is told how far that fit is.
     """
     for index, station in enumerate(stations):  # the rows as read: checked before any use
         for data in group_by_line(station.plan, station.rows, station.source, index):
@@ -185,6 +193,7 @@ def post_stations(
             instruments.knot_spacing_mm,
             {name: spindle @ offset for name, offset in machine.smr_offsets().items()},
             machine.thermal.expansion_ppm_per_k,
+            progress,
         )
         fit = joint.fit
     else:

@@ -46,16 +46,23 @@ settle, or tables beyond what a machine can have, are refused.
 
 Points taken **on the fly** (seed 001) count only through their deviation across
 the commanded path: the fit uses the two components perpendicular to it, at
-the foot of the perpendicular from the measured point to the path.
+the foot of the perpendicular from the measured point to the path. Their noise
+may be correlated from sample to sample: the residuals' autocorrelation along
+each path widens the station's uncertainty (:func:`correlation_samples`).
+
+The rows are linearised in chunks of :data:`CHUNK_POINTS` points and only the
+normal equations are accumulated, so a million rows fit in the memory of a few
+chunks (docs/post.md); ``progress`` is told how far each pass is.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import TypedDict
+from functools import partial
 
 import numpy as np
 import scipy.linalg
@@ -64,9 +71,10 @@ from scipy.spatial.transform import Rotation
 
 from xmalign.environment import REFERENCE_TEMP_C, SENSOR_LIMITS, material_um
 from xmalign.errors import GeometryError, InputError
+from xmalign.formats.columns import tracer_columns, tracker_columns
 from xmalign.formats.common import MAX_ERROR_MM, MAX_ERROR_RAD
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
-from xmalign.formats.instruments import TracerFile, TracerLength, TrackerFile, TrackerPoint
+from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec, skew
 from xmalign.machine import TracerUncertainty, TrackerUncertainty
 from xmalign.post.compare import rigid_motion_design
@@ -120,8 +128,14 @@ _CONSTRAINT_SIGMA_RAD = 1e-9
 #: The continuation prior is never taken as better than this (mm, rad).
 _PRIOR_FLOOR_MM = 1e-5
 _PRIOR_FLOOR_RAD = 1e-8
+#: Points linearised at once: bounds the fit's memory (one chunk's sparse rows), not its result.
+CHUNK_POINTS = 20_000
+#: The longest lag of the residuals' autocorrelation that is looked at, points.
+_MAX_LAG = 2000
+#: ``progress(done, total, what)``: points linearised of all, in the pass named ``what``.
+Progress = Callable[[int, int, str], None]
 #: An instrument's scatter this much above its model re-weights the fit.
-_FACTOR_TOLERANCE = 0.05
+FACTOR_TOLERANCE = 0.05
 #: Two SMR offsets this far apart across a rotation's axis let the points see it, mm.
 _SMR_LEVER_MM = 1.0
 #: The rotation tables about X, Y, Z by the start of their names.
@@ -137,7 +151,7 @@ class TrackerStation:
     ``to_mm`` is NaN for points at a standstill; ``u_radial_mm`` and
     ``u_transverse_mm`` are NaN where the machine file's model applies. Per row
     (empty: none given) ``index`` (-1 on the fly), ``smr`` (the SMR position's
-    name, None: ``smr_offset_mm``) and ``material_c`` (NaN: 20 degC).
+    name, None: ``smr_offset_mm``; an object array) and ``material_c`` (NaN: 20 degC).
     """
 
     label: str
@@ -149,12 +163,35 @@ class TrackerStation:
     u_radial_mm: Vec
     u_transverse_mm: Vec
     index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    smr: tuple[str | None, ...] = ()
+    smr: np.ndarray = field(default_factory=lambda: np.zeros(0, object))
     material_c: Vec = field(default_factory=lambda: np.zeros(0))
 
     @property
     def on_the_fly(self) -> np.ndarray:
         return ~np.isnan(self.to_mm[:, 0])
+
+    def rows(self, rows: slice) -> TrackerStation:
+        """The station with only these rows (a chunk of the fit)."""
+        return dataclasses.replace(
+            self,
+            run=self.run[rows],
+            machine_mm=self.machine_mm[rows],
+            tracker_mm=self.tracker_mm[rows],
+            to_mm=self.to_mm[rows],
+            u_radial_mm=self.u_radial_mm[rows],
+            u_transverse_mm=self.u_transverse_mm[rows],
+            index=self.index[rows],
+            smr=self.smr[rows],
+            material_c=self.material_c[rows],
+        )
+
+    def directions(self) -> Vec:
+        """Each row's path direction in the MCS, unit (N, 3); 0 for points at a standstill."""
+        direction = np.zeros_like(self.machine_mm)
+        fly = self.on_the_fly
+        path = self.to_mm[fly] - self.machine_mm[fly]
+        direction[fly] = path / np.linalg.norm(path, axis=1)[:, None]
+        return direction
 
 
 @dataclass(frozen=True)
@@ -171,12 +208,24 @@ class TracerPlace:
     length_mm: Vec
     guess_mm: Vec | None = None
     index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    smr: tuple[str | None, ...] = ()
+    smr: np.ndarray = field(default_factory=lambda: np.zeros(0, object))
     material_c: Vec = field(default_factory=lambda: np.zeros(0))
 
     @property
     def runs(self) -> list[int]:
         return sorted({int(r) for r in self.run})
+
+    def rows(self, rows: slice) -> TracerPlace:
+        """The place with only these lengths (a chunk of the fit)."""
+        return dataclasses.replace(
+            self,
+            run=self.run[rows],
+            machine_mm=self.machine_mm[rows],
+            length_mm=self.length_mm[rows],
+            index=self.index[rows],
+            smr=self.smr[rows],
+            material_c=self.material_c[rows],
+        )
 
 
 def _labels(keys: list[tuple[str, str]]) -> list[str]:
@@ -187,74 +236,63 @@ def _labels(keys: list[tuple[str, str]]) -> list[str]:
     ]
 
 
+def _grouped(
+    sources: list[tuple[str, dict[str, np.ndarray]]],
+) -> list[tuple[str, str, str, np.ndarray, dict[str, np.ndarray]]]:
+    """(source, station, label, rows, columns) of each (file, station), in the order first seen."""
+    keys, found = [], []
+    for source, columns in sources:
+        stations = columns["station"].astype(str)
+        _, first, group = np.unique(stations, return_index=True, return_inverse=True)
+        for g in np.argsort(first):
+            keys.append((source, str(stations[first[g]])))
+            found.append((np.flatnonzero(np.ravel(group) == g), columns))
+    return [
+        (source, station, label, rows, columns)
+        for (source, station), label, (rows, columns) in zip(
+            keys, _labels(keys), found, strict=True
+        )
+    ]
+
+
 def tracker_stations(files: list[TrackerFile]) -> list[TrackerStation]:
     """Group the points of tracker files by (file, station)."""
-    groups: dict[tuple[str, str], list] = {}
-    for file in files:
-        for point in file.points:
-            groups.setdefault((file.source, point.station), []).append(point)
-    stations = []
-    for (source, _), label in zip(groups, _labels(list(groups)), strict=True):
-        points = groups[(source, _)]
-        nan3 = np.full(3, np.nan)
-        stations.append(
-            TrackerStation(
-                label=label,
-                source=source,
-                run=np.array([p.run for p in points]),
-                machine_mm=np.array([p.machine_mm for p in points]),
-                tracker_mm=np.array([p.tracker_mm for p in points]),
-                to_mm=np.array([nan3 if p.to_mm is None else p.to_mm for p in points]),
-                u_radial_mm=np.array(
-                    [np.nan if p.u_radial_um is None else p.u_radial_um * 1e-3 for p in points]
-                ),
-                u_transverse_mm=np.array(
-                    [
-                        np.nan if p.u_transverse_um is None else p.u_transverse_um * 1e-3
-                        for p in points
-                    ]
-                ),
-                **_row_extras(points),
-            )
+    groups = _grouped([(file.source, tracker_columns(file)) for file in files])
+    return [
+        TrackerStation(
+            label=label,
+            source=source,
+            run=columns["run"][rows],
+            machine_mm=columns["machine_mm"][rows],
+            tracker_mm=columns["tracker_mm"][rows],
+            to_mm=columns["to_mm"][rows],
+            u_radial_mm=columns["u_radial_um"][rows] * 1e-3,
+            u_transverse_mm=columns["u_transverse_um"][rows] * 1e-3,
+            index=columns["index"][rows],
+            smr=columns["smr"][rows],
+            material_c=columns["material_c"][rows],
         )
-    return stations
-
-
-class _RowExtras(TypedDict):
-    index: np.ndarray
-    smr: tuple[str | None, ...]
-    material_c: Vec
-
-
-def _row_extras(rows: list[TrackerPoint] | list[TracerLength]) -> _RowExtras:
-    """Per row: the index (-1 on the fly), the SMR position's name, the material temperature."""
-    return {
-        "index": np.array([-1 if r.index is None else r.index for r in rows]),
-        "smr": tuple(r.smr for r in rows),
-        "material_c": np.array([np.nan if r.material_c is None else r.material_c for r in rows]),
-    }
+        for source, _, label, rows, columns in groups
+    ]
 
 
 def tracer_places(files: list[TracerFile]) -> list[TracerPlace]:
     """Group the lengths of tracer files by (file, station), with the pivot guesses."""
-    groups: dict[tuple[str, str], list] = {}
-    guesses: dict[tuple[str, str], Vec] = {}
-    for file in files:
-        for length in file.lengths:
-            groups.setdefault((file.source, length.station), []).append(length)
-        for name, guess in file.guesses_mm.items():
-            guesses[(file.source, name)] = guess
+    groups = _grouped([(file.source, tracer_columns(file)) for file in files])
+    guesses = {(file.source, name): g for file in files for name, g in file.guesses_mm.items()}
     return [
         TracerPlace(
             label=label,
-            source=key[0],
-            run=np.array([r.run for r in groups[key]]),
-            machine_mm=np.array([r.machine_mm for r in groups[key]]),
-            length_mm=np.array([r.length_mm for r in groups[key]]),
-            guess_mm=guesses.get(key),
-            **_row_extras(groups[key]),
+            source=source,
+            run=columns["run"][rows],
+            machine_mm=columns["machine_mm"][rows],
+            length_mm=columns["length_mm"][rows],
+            guess_mm=guesses.get((source, station)),
+            index=columns["index"][rows],
+            smr=columns["smr"][rows],
+            material_c=columns["material_c"][rows],
         )
-        for key, label in zip(groups, _labels(list(groups)), strict=True)
+        for source, station, label, rows, columns in groups
     ]
 
 
@@ -265,7 +303,10 @@ class TrackerStationFit:
     ``rotation_urad``: rotation vector of the tracker frame relative to the MCS;
     ``position_mm``: the tracker's origin in the MCS; u95 (k = 2) of both;
     ``residual_rms_um``: RMS length of the residual vectors (across the path for
-    points on the fly); ``covered_mm``: the box of the commanded points (low, high).
+    points on the fly); ``covered_mm``: the box of the commanded points (low, high);
+    ``scatter_factor``: the residuals' scatter over the uncertainty model;
+    ``correlation_samples``: over how many consecutive points on the fly the noise
+    is correlated (:func:`correlation_samples`; the u95 is widened by its root).
     """
 
     label: str
@@ -278,6 +319,7 @@ class TrackerStationFit:
     residual_rms_um: float
     covered_mm: tuple[Vec, Vec]
     scatter_factor: float = 1.0
+    correlation_samples: float = 1.0
     angle_coefficients_urad: Vec = field(default_factory=lambda: np.zeros(0))
     angle_coefficients_u95_urad: Vec = field(default_factory=lambda: np.zeros(0))
     scale_ppm: dict[int, float] = field(default_factory=dict)
@@ -701,16 +743,17 @@ class _RowContext:
         shift_column: int,
     ) -> None:
         n = len(station.run)
-        names = station.smr or (None,) * n
+        names = station.smr if len(station.smr) else np.full(n, None, dtype=object)
         self.smr_mm = np.empty((n, 3))
-        for row, name in enumerate(names):
+        for name in dict.fromkeys(names):  # each name, its rows at once
+            rows = names == name
             if name is None:
-                self.smr_mm[row] = setting.smr_mm
+                self.smr_mm[rows] = setting.smr_mm
             elif name in setting.smr_named_mm:
-                self.smr_mm[row] = setting.smr_named_mm[name]
+                self.smr_mm[rows] = setting.smr_named_mm[name]
             else:
                 raise InputError(
-                    _row_reading(*self._where(kind, station, row))
+                    _row_reading(*self._where(kind, station, int(np.flatnonzero(rows)[0])))
                     + f": smr '{name}' is not in the machine file's smr_offsets_mm"
                     + f" ({', '.join(setting.smr_named_mm) or 'none given'})"
                 )
@@ -737,6 +780,13 @@ class _RowContext:
     ) -> tuple[str, str, str, int, int, int]:
         index = int(station.index[row]) if len(station.index) else row
         return station.source, kind, station.label, int(station.run[row]), index, row
+
+    def part(self, rows: slice) -> _RowContext:
+        """The context of only these rows (a chunk of the fit)."""
+        part = copy.copy(self)
+        part.smr_mm, part.arm_mm = self.smr_mm[rows], self.arm_mm[rows]
+        part.position, part.material_c = self.position[rows], self.material_c[rows]
+        return part
 
     def shift_design(self, n_columns: int) -> scipy.sparse.csr_matrix:
         """The rows' sensitivity to the SMR positions' corrections, (3N, n_columns)."""
@@ -915,24 +965,24 @@ class _TrackerState:
         tables: Vec,
         n_columns: int,
         uncertainty: TrackerUncertainty,
+        chunk: slice = slice(None),
     ) -> _Block:
-        s = self.station
+        """The station's rows ``chunk`` about the current tables, pose and systematic errors."""
+        s, context = self.station.rows(chunk), self.rows.part(chunk)
         measured = (s.tracker_mm - self.offset) @ self.rotation  # R^T (t - c), (N, 3)
         commanded = s.machine_mm.copy()
         fly = s.on_the_fly
-        direction = np.zeros_like(commanded)
-        smr = self.rows.smr_mm
+        direction = s.directions()
+        smr = context.smr_mm
         if fly.any():
-            path = s.to_mm[fly] - s.machine_mm[fly]
-            direction[fly] = path / np.linalg.norm(path, axis=1)[:, None]
             along = np.sum((measured[fly] - smr[fly] - s.machine_mm[fly]) * direction[fly], 1)
             commanded[fly] = s.machine_mm[fly] + along[:, None] * direction[fly]
-        nominal = self.rows.nominal_mm(commanded)
-        design_dp = point_design(chain, layout, commanded, self.rows.arm_mm)
+        nominal = context.nominal_mm(commanded)
+        design_dp = point_design(chain, layout, commanded, context.arm_mm)
         dp0 = (design_dp @ tables[: layout.n_columns]).reshape(-1, 3)
         n = len(nominal)
         pose = np.zeros((n, 3, 6))
-        pose[:, :, :3] = -np.array([skew(a) for a in nominal + dp0])
+        pose[:, :, :3] = -_skews(nominal + dp0)
         pose[:, :, 3:] = np.eye(3)
         pose_design = scipy.sparse.csr_matrix(
             (
@@ -944,16 +994,15 @@ class _TrackerState:
         table_design = scipy.sparse.hstack(
             [design_dp, scipy.sparse.csr_matrix((3 * n, n_columns - layout.n_columns))]
         ).tocsr()
-        self.direction = direction  # the path's, in the MCS; 0 for points at a standstill
-        whitening = self._whitening(uncertainty, direction, fly) / self.noise_factor
-        reading = np.repeat(np.arange(n), np.where(fly, 2, 3))
+        whitening = self._whitening(s, uncertainty, direction, fly) / self.noise_factor
+        reading = range(len(self.station.run))[chunk].start + np.repeat(
+            np.arange(n), np.where(fly, 2, 3)
+        )
         kept = self.kept[reading]
+        systematic = self._systematic_design(s, self.run_index[chunk], n_columns)
         return _Block(
             design=(
-                table_design
-                + pose_design
-                + self._systematic_design(n_columns)
-                + self.rows.shift_design(n_columns)
+                table_design + pose_design + systematic + context.shift_design(n_columns)
             ).tocsr(),
             observed=(measured - nominal).ravel(),
             whitening=(scipy.sparse.diags(kept.astype(float)) @ whitening).tocsr(),
@@ -961,9 +1010,10 @@ class _TrackerState:
             reading=reading,
         )
 
-    def _systematic_design(self, n_columns: int) -> scipy.sparse.csr_matrix:
+    def _systematic_design(
+        self, s: TrackerStation, run_index: np.ndarray, n_columns: int
+    ) -> scipy.sparse.csr_matrix:
         """The rows' sensitivity to the angle coefficients (mm/rad) and scales (mm/ppm)."""
-        s = self.station
         n = len(s.run)
         first = self.column + _TRACKER_SETUP
         design = scipy.sparse.csr_matrix((3 * n, n_columns))
@@ -978,14 +1028,13 @@ class _TrackerState:
             )
         if self.n_scale:
             scaled = (s.tracker_mm @ self.rotation) * 1e-6  # R^T t per ppm
-            design = design + _run_columns(n, self.scale_column, self.run_index, scaled, n_columns)
+            design = design + _run_columns(n, self.scale_column, run_index, scaled, n_columns)
         return design
 
     def _whitening(
-        self, uncertainty: TrackerUncertainty, direction: Vec, fly: np.ndarray
+        self, s: TrackerStation, uncertainty: TrackerUncertainty, direction: Vec, fly: np.ndarray
     ) -> scipy.sparse.csr_matrix:
         """Per point the inverse square root of its covariance (MCS); 2 x 3 across a path."""
-        s = self.station
         distance = np.maximum(np.linalg.norm(s.tracker_mm, axis=1), _MIN_DISTANCE_MM)
         beam = (s.tracker_mm / distance[:, None]) @ self.rotation  # in the MCS
         radial = np.where(
@@ -996,17 +1045,31 @@ class _TrackerState:
             uncertainty.transverse_sigma_mm(distance),
             s.u_transverse_mm,
         )
-        blocks = []
-        for i in range(len(distance)):
-            along = np.outer(beam[i], beam[i])
-            covariance = radial[i] ** 2 * along + transverse[i] ** 2 * (np.eye(3) - along)
-            if fly[i]:
-                basis = scipy.linalg.null_space(direction[i][None, :]).T  # (2, 3)
-                covariance = basis @ covariance @ basis.T
-                blocks.append(_inverse_sqrt(covariance) @ basis)
-            else:
-                blocks.append(_inverse_sqrt(covariance))
-        return scipy.sparse.csr_matrix(scipy.sparse.block_diag(blocks, format="csr"))
+        along = beam[:, :, None] * beam[:, None, :]
+        covariance = radial[:, None, None] ** 2 * along + transverse[:, None, None] ** 2 * (
+            np.eye(3) - along
+        )
+        parts = []
+        if (~fly).any():
+            parts.append((np.flatnonzero(~fly), _inverse_sqrts(covariance[~fly])))  # (k, 3, 3)
+        if fly.any():
+            basis = _across(direction[fly])  # (k, 2, 3)
+            across = basis @ covariance[fly] @ basis.transpose(0, 2, 1)
+            parts.append((np.flatnonzero(fly), _inverse_sqrts(across) @ basis))  # (k, 2, 3)
+        height = np.where(fly, 2, 3)
+        first_row = np.concatenate([[0], np.cumsum(height)[:-1]])
+        rows, cols, vals = [], [], []
+        for points, blocks in parts:
+            shape = blocks.shape
+            r = first_row[points][:, None, None] + np.arange(shape[1])[None, :, None]
+            c = 3 * points[:, None, None] + np.arange(3)[None, None, :]
+            rows.append(np.broadcast_to(r, shape).ravel())
+            cols.append(np.broadcast_to(c, shape).ravel())
+            vals.append(blocks.ravel())
+        return scipy.sparse.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(int(height.sum()), 3 * len(distance)),
+        )
 
     def update(self, increment: Vec) -> float:
         rotation, shift = (
@@ -1018,9 +1081,27 @@ class _TrackerState:
         return float(max(np.linalg.norm(rotation) * 1e4, np.linalg.norm(shift)))
 
 
-def _inverse_sqrt(covariance: Vec) -> Vec:
+def _inverse_sqrts(covariance: Vec) -> Vec:
+    """The symmetric inverse square roots of a stack of covariances (k, m, m)."""
     values, vectors = np.linalg.eigh(covariance)
-    return (vectors / np.sqrt(values)) @ vectors.T
+    return (vectors / np.sqrt(values)[:, None, :]) @ vectors.transpose(0, 2, 1)
+
+
+def _skews(vectors: Vec) -> Vec:
+    """Cross-product matrices of a stack of vectors (k, 3) -> (k, 3, 3)."""
+    x, y, z = vectors.T
+    zero = np.zeros_like(x)
+    return np.stack(
+        [np.stack([zero, -z, y], 1), np.stack([z, zero, -x], 1), np.stack([-y, x, zero], 1)], 1
+    )
+
+
+def _across(direction: Vec) -> Vec:
+    """Two unit vectors across each unit direction (k, 3), orthogonal: (k, 2, 3)."""
+    helper = np.eye(3)[np.argmin(np.abs(direction), axis=1)]
+    first = np.cross(direction, helper)
+    first /= np.linalg.norm(first, axis=1)[:, None]
+    return np.stack([first, np.cross(direction, first)], axis=1)
 
 
 class _TracerState:
@@ -1038,7 +1119,9 @@ class _TracerState:
         self.runs = place.runs
         self.run_index = np.searchsorted(self.runs, place.run)
         self.scale_sigma = setting.tracer.scale_ppm
-        self._design: tuple[ParameterLayout, scipy.sparse.csr_matrix] | None = None
+        #: The place's point design by layout, kept where the place is one chunk (it is the
+        #: same in every step); a dict, so that a snapshot of the state shares it.
+        self._designs: dict[int, tuple[ParameterLayout, scipy.sparse.csr_matrix]] = {}
         self.n_scale = len(self.runs) if self.scale_sigma > 0 else 0
         nominal = self.rows.nominal_mm(place.machine_mm)
         start = multilateration_start(nominal, place.length_mm, self.run_index, len(self.runs))
@@ -1100,13 +1183,14 @@ class _TracerState:
         tables: Vec,
         n_columns: int,
         uncertainty: TracerUncertainty,
+        chunk: slice = slice(None),
     ) -> _Block:
-        p = self.place
-        if self._design is None or self._design[0] is not layout:  # the same in every step
-            self._design = (layout, point_design(chain, layout, p.machine_mm, self.rows.arm_mm))
-        design_dp = self._design[1]
+        """The place's lengths ``chunk`` about the current tables, pivot and constants."""
+        p, context = self.place.rows(chunk), self.rows.part(chunk)
+        run_index = self.run_index[chunk]
+        design_dp = self._point_design(chain, layout, p, context)
         dp0 = (design_dp @ tables[: layout.n_columns]).reshape(-1, 3)
-        vector = self.rows.nominal_mm(p.machine_mm) + dp0 - self.pivot
+        vector = context.nominal_mm(p.machine_mm) + dp0 - self.pivot
         distance = np.linalg.norm(vector, axis=1)
         beam = vector / distance[:, None]
         n = len(distance)
@@ -1115,24 +1199,39 @@ class _TracerState:
         )
         tables_part = scipy.sparse.hstack(
             [project @ design_dp, scipy.sparse.csr_matrix((n, n_columns - layout.n_columns))]
-        ) + project @ self.rows.shift_design(n_columns)
+        ) + project @ context.shift_design(n_columns)
         setup = Triplets()
         for c in range(3):
             setup.add(np.arange(n), self.column + c, -beam[:, c])
-        setup.add(np.arange(n), self.column + 3 + self.run_index, 1.0)
+        setup.add(np.arange(n), self.column + 3 + run_index, 1.0)
         if self.n_scale:  # mm per ppm
-            setup.add(np.arange(n), self.scale_column + self.run_index, distance * 1e-6)
+            setup.add(np.arange(n), self.scale_column + run_index, distance * 1e-6)
         rows, cols, vals = setup.arrays()
         setup_part = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, n_columns))
         sigma = uncertainty.length_sigma_mm(distance)
-        kept = self.kept.astype(float)
+        reading = np.arange(len(self.place.run))[chunk]
+        kept = self.kept[reading].astype(float)
         return _Block(
             design=(tables_part + setup_part).tocsr(),
             observed=p.length_mm - distance + np.sum(beam * dp0, axis=1),
             whitening=scipy.sparse.diags(kept / (sigma * self.noise_factor)).tocsr(),
             ratio=kept,
-            reading=np.arange(n),
+            reading=reading,
         )
+
+    def _point_design(
+        self, chain: Chain, layout: ParameterLayout, p: TracerPlace, context: _RowContext
+    ) -> scipy.sparse.csr_matrix:
+        """:func:`point_design` of the rows ``p``; kept for the next step where the place
+        is one chunk (a larger place would hold all its chunks' designs in memory)."""
+        whole = len(p.run) == len(self.place.run)
+        cached = self._designs.get(0)
+        if whole and cached is not None and cached[0] is layout:
+            return cached[1]
+        design = point_design(chain, layout, p.machine_mm, context.arm_mm)
+        if whole:
+            self._designs[0] = (layout, design)
+        return design
 
     def update(self, solution: Vec) -> float:
         step = solution[self.column : self.column + 3]
@@ -1142,27 +1241,47 @@ class _TracerState:
 
 
 @dataclass
+class _Normal:
+    """The normal equations of whitened rows, accumulated chunk by chunk: ``A^T A``, ``A^T y``."""
+
+    normal: Vec
+    rhs: Vec
+
+
+def _whitened(block: _Block) -> tuple[scipy.sparse.csr_matrix, Vec]:
+    return (block.whitening @ block.design).tocsr(), block.whitening @ block.observed
+
+
+def _accumulate(blocks: Iterable[_Block], n_columns: int) -> _Normal:
+    """The normal equations of all the blocks' rows, one block (chunk) at a time."""
+    normal = np.zeros((n_columns, n_columns))
+    rhs = np.zeros(n_columns)
+    for block in blocks:
+        design, observed = _whitened(block)
+        normal += (design.T @ design).toarray()
+        rhs += design.T @ observed
+    return _Normal(normal, rhs)
+
+
+@dataclass
 class _Solved:
+    """The solution, the Cholesky factor of the column-scaled normal matrix, the column norms."""
+
     solution: Vec
-    factor: tuple[Vec, bool]  # Cholesky factor of the scaled normal matrix
+    factor: tuple[Vec, bool]
     norms: Vec
-    scaled: scipy.sparse.csr_matrix
-    residual_weighted: Vec
 
     @functools.cached_property
     def inverse(self) -> Vec:
-        """The scaled normal matrix's inverse (only where a covariance is wanted)."""
+        """The scaled normal matrix's inverse."""
         return _inverse(self.factor)
 
 
-def _solve(blocks: list[_Block], describe: Callable[..., str]) -> _Solved:
-    design = scipy.sparse.vstack([b.whitening @ b.design for b in blocks]).tocsr()
-    observed = np.concatenate([b.whitening @ b.observed for b in blocks])
-    norms = np.sqrt(np.asarray(design.multiply(design).sum(axis=0))).ravel()
+def _solve(equations: _Normal, describe: Callable[..., str]) -> _Solved:
+    norms = np.sqrt(np.diag(equations.normal))
     if np.any(norms == 0):
         raise GeometryError(f"no reading sees {describe(int(np.argmin(norms)))}")
-    scaled = (design @ scipy.sparse.diags(1.0 / norms)).tocsr()
-    normal = (scaled.T @ scaled).toarray()
+    normal = equations.normal / np.outer(norms, norms)
     try:
         factor = scipy.linalg.cho_factor(normal, lower=False, check_finite=False)
         pivots = np.diag(factor[0]) ** 2
@@ -1171,14 +1290,48 @@ def _solve(blocks: list[_Block], describe: Callable[..., str]) -> _Solved:
         singular = True
     if singular:
         raise _undetermined(normal, describe)
-    scaled_solution = scipy.linalg.cho_solve(factor, scaled.T @ observed, check_finite=False)
-    return _Solved(
-        solution=scaled_solution / norms,
-        factor=factor,
-        norms=norms,
-        scaled=scaled,
-        residual_weighted=observed - scaled @ scaled_solution,
-    )
+    scaled = scipy.linalg.cho_solve(factor, equations.rhs / norms, check_finite=False)
+    return _Solved(solution=scaled / norms, factor=factor, norms=norms)
+
+
+@dataclass
+class _Evaluated:
+    """The rows at the solution, per block: residuals (raw and whitened), each whitened
+    row's reading (-1: none) and whether it is kept, the sum of the hat matrix's diagonal
+    over the block, and ``sum ratio a a^T`` of the column-scaled rows (GUM)."""
+
+    raw: list[Vec]
+    weighted: list[Vec]
+    reading: list[np.ndarray]
+    kept: list[np.ndarray]
+    leverage: Vec
+    middle: Vec
+
+    @property
+    def n_rows(self) -> int:
+        return sum(len(w) for w in self.weighted)
+
+
+def _evaluate(blocks: Iterable[tuple[int, _Block]], n_blocks: int, solved: _Solved) -> _Evaluated:
+    """Residuals and what the covariance needs, one block (chunk) at a time."""
+    parts: list[list[tuple[Vec, Vec, np.ndarray, np.ndarray]]] = [[] for _ in range(n_blocks)]
+    leverage = np.zeros(n_blocks)
+    middle = np.zeros_like(solved.inverse)
+    unscale = scipy.sparse.diags(1.0 / solved.norms)
+    for number, block in blocks:
+        design = _whitened(block)[0] @ unscale
+        residual = block.observed - block.design @ solved.solution
+        rows = block.reading if block.reading is not None else np.full(len(block.ratio), -1)
+        parts[number].append((residual, block.whitening @ residual, rows, block.ratio > 0))
+        normal = (design.T @ design).toarray()
+        leverage[number] += float(np.sum(normal * solved.inverse))
+        if np.all(block.ratio == 1.0):
+            middle += normal
+        else:
+            middle += (design.T @ scipy.sparse.diags(block.ratio) @ design).toarray()
+    joined = [[np.concatenate(column) for column in zip(*part, strict=True)] for part in parts]
+    raw, weighted, reading, kept = (list(column) for column in zip(*joined, strict=True))
+    return _Evaluated(raw, weighted, reading, kept, leverage, middle)
 
 
 def _undetermined(normal: Vec, describe: Callable[..., str]) -> GeometryError:
@@ -1217,6 +1370,7 @@ def fit_joint(
     knot_spacing_mm: float | None = None,
     smr_offsets_mm: Mapping[str, Vec] | None = None,
     expansion_ppm_per_k: float = 0.0,
+    progress: Progress | None = None,
 ) -> JointFit:
     """One fit of the error tables to interferometer lines, tracker points and tracer lengths.
 
@@ -1245,6 +1399,10 @@ def fit_joint(
         The named SMR positions (MCS, mm) rows may name in their ``smr`` column.
     expansion_ppm_per_k : float
         The scales' expansion: rows with a material temperature are normalised to 20 degC.
+    progress : callable, optional
+        ``progress(done, total, what)`` after each chunk of the instruments' rows:
+        points done of all in the pass ``what`` (a Gauss-Newton iteration, or the
+        residuals and uncertainty at the end).
 
     Raises
     ------
@@ -1294,6 +1452,7 @@ def fit_joint(
         travel_mm=travel_mm,
         sources=sources,
         undetermined=undetermined,
+        progress=progress,
     )
     if lines or knot_spacing_mm is not None:
         return _fit(inputs, knot_spacing_mm)
@@ -1313,6 +1472,7 @@ class _Inputs:
     travel_mm: tuple[Vec, Vec] | None
     sources: str
     undetermined: list[str]
+    progress: Progress | None = None
 
 
 def _smr_positions(
@@ -1322,7 +1482,7 @@ def _smr_positions(
     offsets = [
         default_mm if name is None else named_mm.get(name)
         for instrument in instruments
-        for name in set(instrument.smr or (None,))
+        for name in (set(instrument.smr) if len(instrument.smr) else {None})
     ]
     found = np.array([o for o in offsets if o is not None])
     return np.unique(found.round(6), axis=0)
@@ -1439,17 +1599,15 @@ class _System:
             fixed_blocks += [prior] if prior is not None else []
         self.fixed_blocks = fixed_blocks + states.priors()
         self.settle = _Settler(
-            states, chain, self.layout, self.fixed_blocks, describe, inputs.sources
+            states, chain, self.layout, self.fixed_blocks, describe, inputs.sources,
+            inputs.progress,
+        )  # fmt: skip
+        self.evaluated, self.solved = self.settle(np.zeros(states.n_columns))
+        self.outliers, self.evaluated, self.solved = _leave_out_outliers(
+            states, self.settle, self.evaluated, self.solved
         )
-        self.blocks, self.solved = self.settle(np.zeros(states.n_columns))
-        self.outliers = _leave_out_outliers(states, self.settle, self.blocks, self.solved)
-        if self.outliers:
-            self.blocks, self.solved = self.settle(self.solved.solution)
-        self.gcv = _gcv(self.instrument_blocks, self.solved)
-
-    @property
-    def instrument_blocks(self) -> list[_Block]:
-        return self.blocks[len(self.fixed_blocks) :]
+        self.correlation = _correlations(states, self.evaluated, len(self.fixed_blocks))
+        self.gcv = _gcv(self.evaluated, len(self.fixed_blocks), self.correlation)
 
 
 def _fit(inputs: _Inputs, knot_spacing_mm: float | None, system: _System | None = None) -> JointFit:
@@ -1462,16 +1620,25 @@ def _fit(inputs: _Inputs, knot_spacing_mm: float | None, system: _System | None 
     layout, setup, states, settle = system.layout, system.setup, system.states, system.settle
     line_block, alone, line_sigma = system.line_block, system.alone, system.line_sigma
     fixed_blocks, outliers, solved = system.fixed_blocks, system.outliers, system.solved
-    sigma0 = _sigma0(solved, states.n_columns)
-    factors = _noise_factors(system.instrument_blocks, solved, _leverage(solved))
-    blocks = system.blocks
-    if np.any(factors > 1.0 + _FACTOR_TOLERANCE):
+    evaluated, first = system.evaluated, len(system.fixed_blocks)
+    sigma0 = _sigma0(evaluated, states.n_columns)
+    correlation = system.correlation
+    factors = _noise_factors(evaluated, first) * np.sqrt(correlation)
+    widened = 1.0
+    if np.any(factors > 1.0 + FACTOR_TOLERANCE):
         states.set_noise_factors(factors)
-        blocks, solved = settle(solved.solution)
-    ratio = np.concatenate([b.ratio for b in blocks])
-    middle = (solved.scaled.T @ scipy.sparse.diags(ratio) @ solved.scaled).toarray()
-    covariance = solved.inverse @ middle @ solved.inverse / np.outer(solved.norms, solved.norms)
-    raw = _raw_residuals(blocks, solved.solution)
+        if len(evaluated.weighted) == 1:  # one instrument alone: weighting it down moves nothing
+            widened = float(factors[0]) ** 2
+        else:
+            evaluated, solved = settle(solved.solution)
+    covariance = (
+        solved.inverse
+        @ evaluated.middle
+        @ solved.inverse
+        / np.outer(solved.norms, solved.norms)
+        * widened
+    )
+    raw = evaluated.raw
     table_set = _tables(layout, solved.solution, covariance, inputs.travel_mm)
     for name in inputs.undetermined:
         table_set.tables[name].u95[:] = np.nan
@@ -1486,7 +1653,7 @@ def _fit(inputs: _Inputs, knot_spacing_mm: float | None, system: _System | None 
             _line_residual(line_block, raw),
         ),
         sigma0=sigma0,
-        n_observations=len(ratio),
+        n_observations=evaluated.n_rows,
         n_parameters=states.n_columns,
         channel_scatter=line_sigma,
         outliers=alone.outliers if alone is not None else [],
@@ -1496,8 +1663,8 @@ def _fit(inputs: _Inputs, knot_spacing_mm: float | None, system: _System | None 
     return JointFit(
         fit=fit,
         trackers=[
-            _tracker_fit(s, r, solved.solution, covariance)
-            for s, r in zip(states.trackers, instrument_raw, strict=False)
+            _tracker_fit(s, r, solved.solution, covariance, c)
+            for s, r, c in zip(states.trackers, instrument_raw, correlation, strict=False)
         ],
         tracers=[
             _tracer_fit(t, r, solved.solution, covariance)
@@ -1531,22 +1698,39 @@ class _Settler:
         fixed_blocks: list[_Block],
         describe: Callable[..., str],
         sources: str,
+        progress: Progress | None = None,
     ) -> None:
         self.states, self.chain, self.layout = states, chain, layout
         self.fixed_blocks, self.describe, self.sources = fixed_blocks, describe, sources
+        self.progress = progress
         self.iterations = 0
 
-    def __call__(self, tables: Vec) -> tuple[list[_Block], _Solved]:
+    def rows(self, states: _States, tables: Vec, what: str) -> Iterator[tuple[int, _Block]]:
+        """Every block's rows, numbered (fixed blocks whole, the instruments in chunks),
+        telling ``progress`` how far the pass ``what`` is."""
+        yield from enumerate(self.fixed_blocks)
+        done = 0
+        for number, points, block in states.chunks(self.chain, self.layout, tables):
+            yield len(self.fixed_blocks) + number, block
+            done += points
+            if self.progress is not None:
+                self.progress(done, states.n_points, what)
+
+    def __call__(self, tables: Vec) -> tuple[_Evaluated, _Solved]:
+        """Settle from ``tables``; the rows at the solution (about the last linearisation)."""
         step = table_step = np.inf
+        n_blocks = len(self.fixed_blocks) + len(self.states.all)
         for _ in range(_MAX_ITERATIONS):
             self.iterations += 1
-            blocks = self.fixed_blocks + self.states.linearise(self.chain, self.layout, tables)
-            solved = _solve(blocks, self.describe)
+            before = self.states.snapshot()
+            rows = self.rows(before, tables, f"iteration {self.iterations}")
+            solved = _solve(_accumulate((b for _, b in rows), self.states.n_columns), self.describe)
             step = self.states.update(solved.solution)
             table_step = float(np.max(np.abs(solved.solution - tables)[: self.layout.n_columns]))
-            tables = solved.solution
             if step < _STEP_TOLERANCE_MM and table_step < _STEP_TOLERANCE_MM:
-                return blocks, solved
+                rows = self.rows(before, tables, "residuals and uncertainty")
+                return _evaluate(rows, n_blocks, solved), solved
+            tables = solved.solution
         raise GeometryError(
             f"{self.sources}: the fit did not settle in {_MAX_ITERATIONS} iterations (a pose or"
             f" pivot still moved {step:.2g} mm, a table value {table_step:.2g}); check the"
@@ -1555,9 +1739,10 @@ class _Settler:
 
 
 def _leave_out_outliers(
-    states: _States, settle: _Settler, blocks: list[_Block], solved: _Solved
-) -> list[InstrumentOutlier]:
-    """Leave out gross outliers one at a time, the worst first, refitting after each.
+    states: _States, settle: _Settler, evaluated: _Evaluated, solved: _Solved
+) -> tuple[list[InstrumentOutlier], _Evaluated, _Solved]:
+    """Leave out gross outliers one at a time, the worst first, refitting after each; the
+    outliers and the last fit.
 
     A reading is one where a whitened residual is more than :data:`OUTLIER_SIGMAS`
     times the larger of 1 (its uncertainty model) and its instrument's robust scatter
@@ -1569,8 +1754,8 @@ def _leave_out_outliers(
         More than :data:`MAX_OUTLIERS` of them: the measurement, not a reading, is wrong.
     """
     outliers: list[InstrumentOutlier] = []
-    first = len(blocks) - len(states.all)
-    while (worst := _worst_reading(states, blocks[first:], solved.solution)) is not None:
+    first = len(evaluated.weighted) - len(states.all)
+    while (worst := _worst_reading(states, evaluated, first)) is not None:
         state, reading, sigmas = worst
         outliers.append(state.outlier(reading, sigmas))
         if len(outliers) > MAX_OUTLIERS:
@@ -1580,21 +1765,19 @@ def _leave_out_outliers(
                 " the measurement is not usable; check units, setups and points"
             )
         state.kept[reading] = False
-        blocks, solved = settle(solved.solution)
-    return outliers
+        evaluated, solved = settle(solved.solution)
+    return outliers, evaluated, solved
 
 
 def _worst_reading(
-    states: _States, blocks: list[_Block], solution: Vec
+    states: _States, evaluated: _Evaluated, first: int
 ) -> tuple[_TrackerState | _TracerState, int, float] | None:
     worst: tuple[_TrackerState | _TracerState, int, float] | None = None
-    for state, block in zip(states.all, blocks, strict=True):
-        assert block.reading is not None
-        whitened = np.abs(block.whitening @ (block.observed - block.design @ solution))
-        kept = block.ratio > 0
+    for number, state in enumerate(states.all, start=first):
+        whitened, kept = np.abs(evaluated.weighted[number]), evaluated.kept[number]
         scale = max(1.0, 1.4826 * float(np.median(whitened[kept])))
         sigmas = np.zeros(len(state.kept))
-        np.maximum.at(sigmas, block.reading[kept], whitened[kept] / scale)
+        np.maximum.at(sigmas, evaluated.reading[number][kept], whitened[kept] / scale)
         reading = int(np.argmax(sigmas))
         if sigmas[reading] > OUTLIER_SIGMAS and (worst is None or sigmas[reading] > worst[2]):
             worst = (state, reading, float(sigmas[reading]))
@@ -1680,16 +1863,47 @@ class _States:
         """The prior rows of the instruments' systematic errors."""
         return [block for state in self.all for block in state.prior(self.n_columns)]
 
-    def linearise(self, chain: Chain, layout: ParameterLayout, tables: Vec) -> list[_Block]:
-        """Each instrument's rows about the current tables, poses and pivots."""
-        blocks = [
-            s.linearise(chain, layout, tables, self.n_columns, self.setting.tracker)
+    @property
+    def n_points(self) -> int:
+        """Tracker points and tracer lengths, all stations and places."""
+        return sum(len(s.station.run) for s in self.trackers) + sum(
+            len(t.place.run) for t in self.tracers
+        )
+
+    def chunks(
+        self, chain: Chain, layout: ParameterLayout, tables: Vec
+    ) -> Iterator[tuple[int, int, _Block]]:
+        """Each instrument's rows about the current tables, poses and pivots, in chunks.
+
+        Yields the instrument's number (trackers, then tracers), the chunk's points
+        and its rows: at most :data:`CHUNK_POINTS` points at once, so a million rows
+        never stand in memory as one design matrix.
+        """
+        linearisers: list[tuple[int, Callable[[slice], _Block]]] = [
+            (
+                len(s.station.run),
+                partial(s.linearise, chain, layout, tables, self.n_columns, self.setting.tracker),
+            )
             for s in self.trackers
         ]
-        return blocks + [
-            t.linearise(chain, layout, tables, self.n_columns, self.setting.tracer)
+        linearisers += [
+            (
+                len(t.place.run),
+                partial(t.linearise, chain, layout, tables, self.n_columns, self.setting.tracer),
+            )
             for t in self.tracers
         ]
+        for number, (n, linearise) in enumerate(linearisers):
+            for first in range(0, n, CHUNK_POINTS):
+                chunk = slice(first, min(first + CHUNK_POINTS, n))
+                yield number, chunk.stop - chunk.start, linearise(chunk)
+
+    def snapshot(self) -> _States:
+        """A copy whose poses and pivots later updates leave as they are now."""
+        copied = copy.copy(self)
+        copied.trackers = [copy.copy(s) for s in self.trackers]
+        copied.tracers = [copy.copy(t) for t in self.tracers]
+        return copied
 
     def update(self, solution: Vec) -> float:
         """Apply a solution's increments; the largest move of a pose or pivot, mm."""
@@ -1726,10 +1940,10 @@ def _describer(layout: ParameterLayout, setup: SetupLayout, states: _States) -> 
     return describe
 
 
-def _sigma0(solved: _Solved, n_columns: int) -> float:
+def _sigma0(evaluated: _Evaluated, n_columns: int) -> float:
     """Square root of the a-posteriori variance factor of a solved system."""
-    squares = float(solved.residual_weighted @ solved.residual_weighted)
-    return float(np.sqrt(squares / max(len(solved.residual_weighted) - n_columns, 1)))
+    squares = sum(float(w @ w) for w in evaluated.weighted)
+    return float(np.sqrt(squares / max(evaluated.n_rows - n_columns, 1)))
 
 
 def _line_block(
@@ -1782,60 +1996,90 @@ def _line_residual(line_block: _Block | None, raw: list[Vec]) -> Vec:
     return np.where(line_block.whitening.diagonal() > 0, raw[0], np.nan)
 
 
-def _leverage(solved: _Solved) -> Vec:
-    """The hat matrix's diagonal ``h_ii`` of every whitened row, (rows,)."""
-    return np.asarray(
-        (solved.scaled @ solved.inverse * solved.scaled.toarray()).sum(axis=1)
-    ).ravel()
-
-
-def _block_rows(blocks: list[_Block], solved: _Solved) -> list[np.ndarray]:
-    """The rows of the solved system (the last blocks') that each block's kept readings fill."""
-    end = len(solved.residual_weighted)
-    starts = end - np.cumsum([len(b.ratio) for b in reversed(blocks)])[::-1]
-    return [
-        start + np.flatnonzero(block.ratio > 0) for start, block in zip(starts, blocks, strict=True)
-    ]
-
-
-def _noise_factors(blocks: list[_Block], solved: _Solved, leverage: Vec) -> Vec:
+def _noise_factors(evaluated: _Evaluated, first: int) -> Vec:
     """Per instrument block, its scatter over its uncertainty model (type A), at least 1.
 
     Each block's weighted residuals over its redundancy (the sum of ``1 - h_ii``
-    of its rows, ``h`` the hat matrix), as the lines' channels get in
+    of its kept rows, ``h`` the hat matrix), as the lines' channels get in
     :func:`xmalign.post.solve.fit_error_tables`; kept at 1 or above, so the u95
     never claims better than the instrument's own uncertainty (the machine's
-    repeatability, for one, adds to every reading).
+    repeatability, for one, adds to every reading). ``first``: the first
+    instrument block (the lines and the priors come before).
     """
     factors = []
-    for rows in _block_rows(blocks, solved):
-        redundancy = max(float(np.sum(1.0 - leverage[rows])), 1.0)
-        squares = float(np.sum(solved.residual_weighted[rows] ** 2))
-        factors.append(max(1.0, np.sqrt(squares / redundancy)))
+    for number in range(first, len(evaluated.weighted)):
+        weighted = evaluated.weighted[number]
+        redundancy = max(float(np.sum(evaluated.kept[number])) - evaluated.leverage[number], 1.0)
+        factors.append(max(1.0, np.sqrt(float(weighted @ weighted) / redundancy)))
     return np.array(factors)
 
 
-def _gcv(blocks: list[_Block], solved: _Solved) -> float:
+def _gcv(evaluated: _Evaluated, first: int, correlation: Vec) -> float:
     """Generalised cross-validation score of the instruments' readings (Craven & Wahba).
 
-    ``N * RSS / (N - tr H)**2`` over the instruments' kept rows (the last
-    ``blocks``), weighted with their uncertainty models: an estimate of the mean
+    ``N * RSS / (N - tau tr H)**2`` over the instruments' kept rows (the blocks from
+    ``first`` on), weighted with their uncertainty models: an estimate of the mean
     squared error with which the fit predicts a reading it was not given, without
-    refitting. ``tr H`` over those rows is the number of unknowns less the
-    leverage of the rows before them (priors, lines), found from the Cholesky
-    factor without the inverse.
+    refitting. ``tr H`` over those rows is the sum of their blocks' leverage;
+    ``tau`` the rows' mean ``correlation`` (per instrument block,
+    :func:`correlation_samples`): with noise correlated along a tracker's paths
+    only ``N / tau`` rows are independent, so each degree of freedom of the tables
+    costs ``tau`` rows (Altman 1990); without it the score keeps falling as ever
+    finer tables follow the correlated noise. 1 for independent readings.
     """
-    rows = np.concatenate(_block_rows(blocks, solved))
-    before = solved.scaled[: len(solved.residual_weighted) - sum(len(b.ratio) for b in blocks)]
-    upper, _ = solved.factor
-    spread = scipy.linalg.solve_triangular(upper, before.T.toarray(), trans="T", lower=False)
-    freedom = len(rows) - (upper.shape[0] - float(np.sum(spread**2)))
-    squares = float(np.sum(solved.residual_weighted[rows] ** 2))
-    return len(rows) * squares / max(freedom, 1.0) ** 2
+    counts = np.array([float(np.sum(kept)) for kept in evaluated.kept[first:]])
+    rows = float(counts.sum())
+    tau = float(counts @ correlation) / max(rows, 1.0)
+    freedom = rows - tau * float(np.sum(evaluated.leverage[first:]))
+    squares = sum(float(w @ w) for w in evaluated.weighted[first:])
+    return rows * squares / max(freedom, 1.0) ** 2
 
 
-def _raw_residuals(blocks: list[_Block], solution: Vec) -> list[Vec]:
-    return [b.observed - b.design @ solution for b in blocks]
+def _correlations(states: _States, evaluated: _Evaluated, first: int) -> Vec:
+    """Per instrument block (trackers, then tracers): :func:`correlation_samples` of its
+    whitened residuals; 1 for tracer places (lengths seconds apart)."""
+    correlation = np.ones(len(states.all))
+    for k, state in enumerate(states.trackers):
+        correlation[k] = correlation_samples(state.station, evaluated.weighted[first + k])
+    return correlation
+
+
+def correlation_samples(station: TrackerStation, weighted: Vec) -> float:
+    """How many consecutive points on the fly one point's noise is worth, at least 1.
+
+    The integrated autocorrelation time ``tau = 1 + 2 sum_k rho_k`` of the
+    whitened residuals across the path, taken per path in the file's order (the
+    order of capture), pooled over the paths and both components; the sum runs
+    over the lags while ``rho_k`` is significant (above ``2 / sqrt(pairs)``).
+    Correlated noise averages out ``tau`` times slower than white noise: the
+    station's weights are divided by ``tau`` (its u95 widened by ``sqrt(tau)``).
+    Points at a standstill (seconds apart) are taken as independent.
+    """
+    fly = station.on_the_fly
+    if fly.sum() < 3:
+        return 1.0
+    height = np.where(fly, 2, 3)
+    first_row = np.concatenate([[0], np.cumsum(height)[:-1]])
+    across = np.stack([weighted[first_row[fly]], weighted[first_row[fly] + 1]], axis=1)
+    paths = np.concatenate([station.machine_mm[fly], station.to_mm[fly]], axis=1)
+    group = np.ravel(np.unique(paths, axis=0, return_inverse=True)[1])
+    order = np.argsort(group, kind="stable")
+    sequence, group = across[order], group[order]
+    variance = float(np.mean(np.sum(sequence**2, axis=1)))
+    if variance == 0.0:
+        return 1.0
+    tau = 1.0
+    for lag in range(1, min(_MAX_LAG, len(sequence) // 4) + 1):
+        same = group[lag:] == group[:-lag]
+        pairs = int(same.sum())
+        if pairs < 2:
+            break
+        products = np.sum(sequence[lag:][same] * sequence[:-lag][same], axis=1)
+        rho = float(np.mean(products)) / variance
+        if rho <= 2.0 / np.sqrt(pairs):
+            break
+        tau += 2.0 * rho
+    return tau
 
 
 def _u95(covariance: Vec) -> Vec:
@@ -1855,17 +2099,18 @@ def _scales(
 
 
 def _tracker_fit(
-    state: _TrackerState, residual: Vec, solution: Vec, covariance: Vec
+    state: _TrackerState, residual: Vec, solution: Vec, covariance: Vec, correlation: float
 ) -> TrackerStationFit:
     s = state.station
+    direction = s.directions()
     columns = state.column + np.arange(6)
     block = covariance[np.ix_(columns, columns)]
     origin = -state.rotation.T @ state.offset  # the tracker's origin in the MCS
     jacobian = np.hstack([skew(origin), -np.eye(3)])
     still = ~s.on_the_fly
     vectors = residual.reshape(-1, 3)
-    along = np.sum(vectors * state.direction, axis=1)  # 0 at a standstill
-    squares = np.sum((vectors - along[:, None] * state.direction) ** 2, axis=1)[state.kept]
+    along = np.sum(vectors * direction, axis=1)  # 0 at a standstill
+    squares = np.sum((vectors - along[:, None] * direction) ** 2, axis=1)[state.kept]
     angles = state.column + _TRACKER_SETUP + np.arange(state.n_angle)
     scale, scale_u95 = _scales(state, state.scale_column, solution, covariance)
     return TrackerStationFit(
@@ -1878,7 +2123,8 @@ def _tracker_fit(
         position_u95_mm=_u95(jacobian @ block @ jacobian.T),
         residual_rms_um=float(np.sqrt(np.mean(squares)) * 1e3),
         covered_mm=_covered(np.concatenate([s.machine_mm, s.to_mm[~still]])),
-        scatter_factor=state.noise_factor,
+        scatter_factor=state.noise_factor / np.sqrt(correlation),
+        correlation_samples=correlation,
         angle_coefficients_urad=solution[angles] * 1e6,
         angle_coefficients_u95_urad=_u95(covariance[np.ix_(angles, angles)]) * 1e6,
         scale_ppm=scale,
