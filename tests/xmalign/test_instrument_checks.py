@@ -49,7 +49,9 @@ def test_a_tracker_file_in_inches_is_refused_before_any_table(reference_machine,
     example = read_tracker_points(ROOT / "examples" / "tracker.csv")
     inches = [replace(p, tracker_mm=p.tracker_mm / 25.4) for p in example.points]
     write_tracker_points(tmp_path / "inches.csv", inches)
-    with pytest.raises(InputError, match=r"inches.csv: line 4: .* in inches, not mm"):
+    lines = (tmp_path / "inches.csv").read_text().splitlines()
+    first_row = 1 + next(n for n, line in enumerate(lines, 1) if not line.startswith("#"))
+    with pytest.raises(InputError, match=rf"inches.csv: line {first_row}: .* in inches, not mm"):
         _post(reference_machine, tmp_path, [read_tracker_points(tmp_path / "inches.csv")])
     assert not (tmp_path / "errors.csv").exists()
 

@@ -21,6 +21,7 @@ from trajectories.instruments import InstrumentProgram, fly_paths, point_list_cs
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text
 from xmalign.formats.instruments import read_tracker_points
+from xmalign.formats.provenance import file_sha256
 from xmalign.formats.tracker_stream import StreamRun, read_tracker_stream, write_tracker_stream
 from xmalign.machine import Machine, default_machine_path
 from xmalign.machine import load_machine as load
@@ -94,7 +95,8 @@ def test_the_import_keeps_each_path_at_its_cruise_speed_and_nothing_else(
     assert len(rows) > 0.85 * cruise_s * OPTIONS.rate_hz
     # history: both inputs' SHA-256
     text = (tmp_path / "tracker.csv").read_text()
-    assert "stream.csv sha256=" in text and "points.csv sha256=" in text
+    for role, name in (("stream", "stream.csv"), ("points", "points.csv")):
+        assert f"# input {role}: {file_sha256(tmp_path / name)}  {name}" in text
     assert "71 paths" in result.stderr
 
 
@@ -149,8 +151,10 @@ def test_a_gap_in_the_stream_names_its_line(tmp_path, machine, program, recorded
     )
     _files(tmp_path, machine, program, gapped)
     result = _import(tmp_path)
-    # line 40 004: the format line, one provenance line and the header come first
-    assert_one_line_error(result, "stream.csv", "line 40004", "gap")
+    # the history lines and the header come first
+    lines = (tmp_path / "stream.csv").read_text().splitlines()
+    first_row = 1 + next(n for n, line in enumerate(lines, 1) if not line.startswith("#"))
+    assert_one_line_error(result, "stream.csv", f"line {first_row + 40_000}", "gap")
     assert not (tmp_path / "tracker.csv").exists()
 
 
@@ -189,7 +193,8 @@ def test_the_dry_run_on_the_fly_goes_through_the_stream_and_the_import(tmp_path)
     assert (out / "tracker-stream.csv").exists() and (out / "points.csv").exists()
     rows = read_tracker_points(out / "tracker.csv")
     assert all(p.index is None for p in rows.points)
-    assert any("tracker-stream.csv sha256=" in c for c in rows.comments)
+    stream_sha256 = file_sha256(out / "tracker-stream.csv")
+    assert any(c.startswith(f"# input stream: {stream_sha256}") for c in rows.comments)
     assert "noise correlated over" in result.stderr
     after = float(result.stdout.split(" after ")[1].split(" um")[0])
     assert after < 2.5  # standstill: about 4 um (bench_tracker_stream.py)
