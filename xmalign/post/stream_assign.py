@@ -282,6 +282,11 @@ def assign_stream(
     ]
     sample = np.concatenate([rows for rows, _ in kept])
     path = np.concatenate([np.full(len(rows), number) for rows, number in kept])
+    if len(sample) < 3:
+        raise InputError(
+            f"{source}: no sample at a path's cruise speed (lines {lines[0]}-{lines[-1]}):"
+            " the tracker samples too slowly for these paths"
+        )
     rotation, offset, off_path = _align(
         tracker_mm[sample], starts_mm[path], ends_mm[path], rotation, offset
     )

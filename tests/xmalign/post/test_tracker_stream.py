@@ -205,3 +205,27 @@ def test_on_the_fly_is_for_the_tracker_dry_run(tmp_path):
         "dry-run", "--instrument", "tracer", "--on-the-fly", "--out", str(tmp_path / "d")
     )
     assert_one_line_error(result, "--on-the-fly", "tracker")
+
+
+def test_each_run_of_a_stream_is_assigned_on_its_own_and_keeps_its_uncertainty(
+    tmp_path, machine, program, recorded
+):
+    second = StreamRun(
+        "T1",
+        1,
+        recorded.time_s + 9000.0,  # the tracker's clock ran on between the runs
+        recorded.tracker_mm,
+        np.full(len(recorded.time_s), 11.0),
+        np.full(len(recorded.time_s), 12.5),
+        recorded.line,
+    )
+    write_tracker_stream(tmp_path / "stream.csv", [recorded, second])
+    atomic_write_text(tmp_path / "points.csv", point_list_csv(program, machine.smr_offset))
+    result = _import(tmp_path)
+    assert result.returncode == 0, result.stderr
+    rows = read_tracker_points(tmp_path / "tracker.csv").points
+    runs = np.array([p.run for p in rows])
+    assert set(runs.tolist()) == {0, 1} and np.sum(runs == 0) == np.sum(runs == 1)
+    assert {(p.u_radial_um, p.u_transverse_um) for p in rows if p.run == 1} == {(11.0, 12.5)}
+    assert all(p.u_radial_um is None for p in rows if p.run == 0)
+    assert "station T1 run 1" in result.stderr
