@@ -80,10 +80,7 @@ def test_tracker_points_round_trip(tmp_path_factory: pytest.TempPathFactory, poi
 
 @settings(max_examples=40, deadline=None)
 @given(
-    st.lists(
-        st.tuples(name, st.integers(0, 3), point, st.floats(-1e4, 1e4).filter(lambda v: v != 0.0)),
-        min_size=1,
-    ),
+    st.lists(st.tuples(name, st.integers(0, 3), point, st.floats(-1e4, 1e4)), min_size=1),
     st.dictionaries(name, point, max_size=3),
 )
 def test_tracer_lengths_round_trip(tmp_path_factory: pytest.TempPathFactory, rows, guesses) -> None:

@@ -142,3 +142,42 @@ def test_the_import_through_the_api_checks_the_same(tmp_path: Path, point_list: 
     )
     file = tracker_file_from_export(machine, export, listed, "T1", units="in")
     assert file.points[0].tracker_mm[0] == pytest.approx(-1225.6882)
+
+
+def test_a_program_with_three_smr_positions_imports_to_the_rows_measured(tmp_path: Path) -> None:
+    """program (three SMR positions) -> virtual tracker -> SpatialAnalyzer export -> import:
+    each row's commanded point and SMR come back from the point list."""
+    from sim.instrument_examples import spatial_analyzer_text
+    from sim.machine import VirtualMachine
+    from sim.tracker import VirtualTracker, measure_tracker
+    from trajectories.instruments import plan_instrument, tracker_place
+
+    machine_file = tmp_path / "three.yaml"
+    offsets = "{A: [0, 0, -100], B: [120, 0, -100], C: [0, 120, -60]}"
+    machine_file.write_text(default_machine_path().read_text() + f"smr_offsets_mm: {offsets}\n")
+    points = tmp_path / "points.csv"
+    result = run_in_process(
+        "program", "--instrument", "tracker", "--points-out", str(points),
+        "--out", str(tmp_path / "t.mpf"), "--machine", str(machine_file),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    machine = load_machine(machine_file)
+    program = plan_instrument(machine, "tracker").program
+    tracker = VirtualTracker(tracker_place(machine), seed=4)
+    rows = measure_tracker(
+        VirtualMachine(machine, seed=4), tracker, program.points_mm, 1, machine.smr_offset,
+        smr_offsets_mm=machine.smr_offsets(), smr_of_point=program.smr_names,
+    )  # fmt: skip
+    export = tmp_path / "sa.txt"
+    export.write_text(spatial_analyzer_text(rows))
+    out = tmp_path / "tracker.csv"
+    imported = run_in_process(
+        "import", "--spatial-analyzer", str(export), "--points", str(points), "--out", str(out),
+        "--machine", str(machine_file),
+    )  # fmt: skip
+    assert imported.returncode == 0, imported.stderr
+    back = read_tracker_points(out).points
+    assert [(p.run, p.index, p.smr) for p in back] == [(p.run, p.index, p.smr) for p in rows]
+    np.testing.assert_allclose(
+        [p.machine_mm for p in back], [p.machine_mm for p in rows], atol=1e-3
+    )

@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
 from xmalign.errors import InputError
+from xmalign.formats.columns import tracer_columns, tracker_columns
 from xmalign.formats.common import line_error
 from xmalign.formats.instruments import TracerFile, TrackerFile
 from xmalign.geometry import Vec
@@ -47,16 +49,71 @@ MIN_SEPARATION_MM = 100.0
 DISTANCE_TOLERANCE = 0.02
 #: The points each row is compared with, per station.
 REFERENCE_ROWS = 60
+#: Rows compared at once (bounds the memory of a million rows' comparisons).
+CHUNK_ROWS = 20_000
 #: A tracer length farther than this from its station's sphere is a wrong reading, mm.
 TRACER_GROSS_MM = 10.0
-#: Spheres tried through random rows, and the rows each is fitted to (seeded RANSAC).
-SPHERE_TRIALS, SPHERE_SAMPLE = 200, 6
+#: Spheres tried through random rows, the rows each is fitted to, and the rows that score
+#: them (seeded RANSAC).
+SPHERE_TRIALS, SPHERE_SAMPLE, SPHERE_SCORED = 200, 6, 2000
 
 
 def _where(source: str, lines: list[int], row: int, problem: str) -> InputError:
     if lines:
         return line_error(source, lines[row], problem)
     return InputError(f"{source}: row {row + 1}: {problem}")
+
+
+@dataclass(frozen=True)
+class _Columns:
+    """One file's rows as the columns the checks read (built in one pass)."""
+
+    source: str
+    lines: list[int]
+    station: list[str]
+    smr: list[str | None]
+    run: npt.NDArray[np.int64]
+    #: -1 for a tracker point on the fly
+    index: npt.NDArray[np.int64]
+    machine_mm: Vec
+    #: the path's end of a point on the fly, else ``machine_mm``
+    end_mm: Vec
+    material_c: Vec
+    #: tracker: ``tracker_mm`` (N, 3), ``u_radial_um``, ``u_transverse_um``; tracer: ``length_mm``
+    readings: dict[str, Vec]
+
+
+def _tracker_columns(file: TrackerFile) -> _Columns:
+    c = tracker_columns(file)  # the reader's own columns where it read the file as columns
+    fly = c["index"] < 0
+    return _Columns(
+        file.source,
+        file.lines,
+        c["station"].tolist(),
+        c["smr"].tolist(),
+        c["run"].astype(np.int64),
+        c["index"].astype(np.int64),
+        c["machine_mm"],
+        np.where(fly[:, None], c["to_mm"], c["machine_mm"]),
+        c["material_c"],
+        {name: c[name] for name in ("tracker_mm", "u_radial_um", "u_transverse_um")},
+    )
+
+
+def _tracer_columns(file: TracerFile) -> _Columns:
+    c = tracer_columns(file)
+    return _Columns(
+        file.source,
+        file.lines,
+        c["station"].tolist(),
+        c["smr"].tolist(),
+        c["run"].astype(np.int64),
+        c["index"].astype(np.int64),
+        c["machine_mm"],
+        c["machine_mm"],
+        c["material_c"],
+        {"length_mm": c["length_mm"]},
+    )
 
 
 def check_instrument_files(
@@ -69,33 +126,26 @@ def check_instrument_files(
     InputError
         Naming the file and the row: see the module's list.
     """
-    for tracker in trackers:
-        _check_tracker_values(tracker)
-    for tracer in tracers:
-        _check_tracer_values(tracer)
-    _check_not_twice([(f.source, _tracker_digest(f)) for f in trackers])
-    _check_not_twice([(f.source, _tracer_digest(f)) for f in tracers])
-    for tracker in trackers:
-        smr = [p.smr for p in tracker.points]
-        for points in (
-            [p.machine_mm for p in tracker.points],
-            [p.machine_mm if p.to_mm is None else p.to_mm for p in tracker.points],
-        ):
-            _check_travel(machine, tracker.source, tracker.lines, points, smr)
-        _check_tracker_units(machine, tracker)
-    for tracer in tracers:
-        commanded = [r.machine_mm for r in tracer.lengths]
-        smr = [r.smr for r in tracer.lengths]
-        _check_travel(machine, tracer.source, tracer.lines, commanded, smr)
-        _check_tracer_units(machine, tracer)
-
-
-def _column(values: Sequence[float | None]) -> Vec:
-    return np.array([np.nan if v is None else v for v in values], dtype=float)
+    tracker_data = [_tracker_columns(f) for f in trackers]
+    tracer_data = [_tracer_columns(f) for f in tracers]
+    for columns in tracker_data:
+        _check_tracker_values(columns)
+    for columns in tracer_data:
+        _check_tracer_values(columns)
+    _check_not_twice([(c.source, _digest(c)) for c in tracker_data])
+    _check_not_twice([(c.source, _digest(c)) for c in tracer_data])
+    for columns in tracker_data + tracer_data:
+        offsets = _smr_offsets(machine, columns)
+        for points in (columns.machine_mm, columns.end_mm):
+            _check_travel(machine, columns, points)
+        if "tracker_mm" in columns.readings:
+            _check_tracker_units(columns, offsets)
+        else:
+            _check_tracer_units(columns, offsets)
 
 
 def _first_outside(
-    file: TrackerFile | TracerFile,
+    columns: _Columns,
     name: str,
     values: Vec,
     inside: npt.NDArray[np.bool_],
@@ -105,50 +155,43 @@ def _first_outside(
     bad = np.flatnonzero(~np.isnan(values) & ~inside)
     if len(bad):
         row = int(bad[0])
-        raise _where(file.source, file.lines, row, f"{name} {values[row]:g} {what}")
+        raise _where(columns.source, columns.lines, row, f"{name} {values[row]:g} {what}")
 
 
-def _check_material(file: TrackerFile | TracerFile, material_c: Vec) -> None:
+def _check_material(columns: _Columns) -> None:
     low, high = MATERIAL_RANGE_C
+    material_c = columns.material_c
     with np.errstate(invalid="ignore"):
         inside = (material_c >= low) & (material_c <= high)
-    _first_outside(
-        file, "material_c", material_c, inside, f"lies outside [{low:g}, {high:g}] deg C"
-    )
+    what = f"lies outside [{low:g}, {high:g}] deg C"
+    _first_outside(columns, "material_c", material_c, inside, what)
 
 
-def _check_tracker_values(file: TrackerFile) -> None:
+def _check_tracker_values(columns: _Columns) -> None:
     """Dead or absurd uncertainties, impossible material temperatures."""
     for name in ("u_radial_um", "u_transverse_um"):
-        values = _column([getattr(p, name) for p in file.points])
+        values = columns.readings[name]
         with np.errstate(invalid="ignore"):
             inside = (values > 0) & (values <= MAX_UNCERTAINTY_UM)
         what = (
             f"is a dead or absurd uncertainty (a tracker's lies in (0, {MAX_UNCERTAINTY_UM:g}] um)"
         )
-        _first_outside(file, name, values, inside, what)
-    _check_material(file, _column([p.material_c for p in file.points]))
+        _first_outside(columns, name, values, inside, what)
+    _check_material(columns)
 
 
-def _check_tracer_values(file: TracerFile) -> None:
+def _check_tracer_values(columns: _Columns) -> None:
     """Dead lengths (exactly 0: no tracer counts that by chance), impossible temperatures."""
-    lengths = np.array([r.length_mm for r in file.lengths])
-    _first_outside(file, "length_mm", lengths, lengths != 0.0, "is a dead reading")
-    _check_material(file, _column([r.material_c for r in file.lengths]))
+    lengths = columns.readings["length_mm"]
+    _first_outside(columns, "length_mm", lengths, lengths != 0.0, "is a dead reading")
+    _check_material(columns)
 
 
-def _tracker_digest(file: TrackerFile) -> str:
-    values = np.array(
-        [
-            [p.run, -1 if p.index is None else p.index, *p.machine_mm, *p.tracker_mm]
-            for p in file.points
-        ]
-    )
-    return hashlib.sha256(np.ascontiguousarray(values).tobytes()).hexdigest()
-
-
-def _tracer_digest(file: TracerFile) -> str:
-    values = np.array([[r.run, r.index, *r.machine_mm, r.length_mm] for r in file.lengths])
+def _digest(columns: _Columns) -> str:
+    """The readings' content (station names aside): runs, indices, points, readings."""
+    parts = [columns.run.astype(float), columns.index.astype(float), columns.machine_mm]
+    parts += [columns.readings["tracker_mm" if "tracker_mm" in columns.readings else "length_mm"]]
+    values = np.column_stack(parts)
     return hashlib.sha256(np.ascontiguousarray(values).tobytes()).hexdigest()
 
 
@@ -167,35 +210,26 @@ def _check_not_twice(files: list[tuple[str, str]]) -> None:
         first[digest] = source
 
 
-def _smr_offsets(
-    machine: Machine, source: str, lines: list[int], names: Sequence[str | None]
-) -> Vec:
+def _smr_offsets(machine: Machine, columns: _Columns) -> Vec:
     """Each row's SMR offset, (N, 3); an unknown ``smr`` names the row."""
-    known = {None: machine.smr_offset} | {
-        name: np.asarray(offset, float) for name, offset in machine.smr_offsets_mm.items()
-    }
-    for row, name in enumerate(names):
+    known = {None: machine.smr_offset} | machine.smr_offsets()
+    for row, name in enumerate(columns.smr):
         if name not in known:
             given = ", ".join(machine.smr_offsets_mm) or "none"
             raise _where(
-                source,
-                lines,
+                columns.source,
+                columns.lines,
                 row,
                 f"smr '{name}' is not a key of the machine file's smr_offsets_mm ({given})",
             )
-    return np.array([known[name] for name in names])
+    names = list(known)
+    which = np.array([names.index(name) for name in columns.smr], dtype=np.int64)
+    return np.array([known[name] for name in names])[which].reshape(-1, 3)
 
 
-def _check_travel(
-    machine: Machine,
-    source: str,
-    lines: list[int],
-    commanded_mm: Sequence[Vec],
-    smr: Sequence[str | None],
-) -> None:
-    points = np.array(commanded_mm, dtype=float).reshape(-1, 3)
+def _check_travel(machine: Machine, columns: _Columns, points: Vec) -> None:
     low, high = machine.travel_min_mm, machine.travel_max_mm
-    outside = np.max(np.maximum(low - points, points - high), axis=1)
+    outside = np.max(np.maximum(low - points, points - high), axis=1, initial=-np.inf)
     bad = np.flatnonzero(outside > TRAVEL_MARGIN_MM)
     if len(bad):
         row = int(bad[0])
@@ -203,14 +237,13 @@ def _check_travel(
             f"{a} [{lo:g}, {hi:g}]" for a, lo, hi in zip("XYZ", low, high, strict=True)
         )
         raise _where(
-            source,
-            lines,
+            columns.source,
+            columns.lines,
             row,
             f"the commanded point {np.round(points[row], 3).tolist()} lies"
             f" {outside[row]:.0f} mm outside the machine's travel ({travel});"
             f" {len(bad)} of {len(points)} rows do",
         )
-    _smr_offsets(machine, source, lines, smr)
 
 
 def _unit_text(factor_mm: float) -> str:
@@ -221,15 +254,14 @@ def _unit_option(factor_mm: float) -> str:
     return next(name for name, mm in UNITS_MM.items() if mm == factor_mm)
 
 
-def _check_tracker_units(machine: Machine, file: TrackerFile) -> None:
+def _check_tracker_units(columns: _Columns, offsets: Vec) -> None:
     """Distances between a station's points against the commanded moves, row by row."""
-    standing = [i for i, p in enumerate(file.points) if p.index is not None]
-    for station in dict.fromkeys(file.points[i].station for i in standing):
-        rows = np.array([i for i in standing if file.points[i].station == station])
-        offsets = _smr_offsets(machine, file.source, file.lines, [file.points[i].smr for i in rows])
-        nominal = np.array([file.points[i].machine_mm for i in rows]) + offsets
-        seen = np.array([file.points[i].tracker_mm for i in rows])
-        _check_distances(file, rows, nominal, seen)
+    stations = np.array(columns.station)
+    standing = columns.index >= 0
+    for station in dict.fromkeys(stations[standing].tolist()):
+        rows = np.flatnonzero(standing & (stations == station))
+        nominal = columns.machine_mm[rows] + offsets[rows]
+        _check_distances(columns, station, rows, nominal, columns.readings["tracker_mm"][rows])
 
 
 def _ratios(nominal: Vec, seen: Vec, ref_nominal: Vec, ref_seen: Vec) -> Vec:
@@ -247,7 +279,20 @@ def _consistent(ratios: Vec) -> Vec:
         return np.array([np.nanmedian(r) if np.any(np.isfinite(r)) else np.nan for r in mismatch])
 
 
-def _check_distances(file: TrackerFile, rows: Vec, nominal: Vec, seen: Vec) -> None:
+def _mismatch(nominal: Vec, seen: Vec, base_nominal: Vec, base_seen: Vec) -> Vec:
+    """:func:`_consistent` of every row against the base rows, a chunk of rows at a time."""
+    return np.concatenate(
+        [
+            _consistent(_ratios(nominal[at : at + CHUNK_ROWS], seen[at : at + CHUNK_ROWS],
+                                base_nominal, base_seen))
+            for at in range(0, len(nominal), CHUNK_ROWS)
+        ]
+    )  # fmt: skip
+
+
+def _check_distances(
+    columns: _Columns, station: str, rows: npt.NDArray[np.intp], nominal: Vec, seen: Vec
+) -> None:
     picks = np.unique(np.linspace(0, len(rows) - 1, min(REFERENCE_ROWS, len(rows))).astype(int))
     ref_nominal, ref_seen = nominal[picks], seen[picks]
     # the unit most reference pairs agree on (mm first on a tie), and the rows that agree
@@ -267,8 +312,8 @@ def _check_distances(file: TrackerFile, rows: Vec, nominal: Vec, seen: Vec) -> N
         if np.sum(np.isfinite(agree)) < 4:
             return  # too few points far enough apart to judge
         raise _where(
-            file.source,
-            file.lines,
+            columns.source,
+            columns.lines,
             int(rows[0]),
             "the distances between the points match the commanded moves in no unit:"
             " the points are not the commanded ones (names shifted or missing?) or not"
@@ -276,16 +321,15 @@ def _check_distances(file: TrackerFile, rows: Vec, nominal: Vec, seen: Vec) -> N
         )
     if unit != 1.0:
         raise _where(
-            file.source,
-            file.lines,
+            columns.source,
+            columns.lines,
             int(rows[picks[good][0]]),
             f"the tracker's distances between points are 1/{unit:g} of the commanded moves:"
             f" the file is in {_unit_text(unit)}, not mm (xmalign import --units"
             f" {_unit_option(unit)} converts an export)",
         )
     base_nominal, base_seen = ref_nominal[good], ref_seen[good]
-    mismatch = _consistent(_ratios(nominal, seen, base_nominal, base_seen))
-    bad = np.flatnonzero(mismatch > DISTANCE_TOLERANCE)
+    bad = np.flatnonzero(_mismatch(nominal, seen, base_nominal, base_seen) > DISTANCE_TOLERANCE)
     if len(bad):
         first = int(bad[0])
         one = nominal[first : first + 1]
@@ -308,11 +352,11 @@ def _check_distances(file: TrackerFile, rows: Vec, nominal: Vec, seen: Vec) -> N
             )
             what = f"{off:.0f} mm from where the commanded moves put it: a wrong reading"
         raise _where(
-            file.source,
-            file.lines,
+            columns.source,
+            columns.lines,
             int(rows[first]),
             f"this point's distances to the others do not match the commanded moves: {what}"
-            f" ({len(bad)} of {len(rows)} rows of station {file.points[int(rows[first])].station})",
+            f" ({len(bad)} of {len(rows)} rows of station {station})",
         )
 
 
@@ -330,39 +374,41 @@ def _sphere_misfit_mm(nominal: Vec, lengths_mm: Vec, fit: Vec) -> Vec:
 
 
 def _robust_misfit_mm(nominal: Vec, lengths_mm: Vec) -> Vec:
-    """:func:`_sphere_misfit_mm` through the largest set of rows that agree (seeded RANSAC)."""
+    """:func:`_sphere_misfit_mm` through the largest set of rows that agree (seeded RANSAC,
+    the trial spheres scored on at most :data:`SPHERE_SCORED` rows spread over the run)."""
     rng = np.random.default_rng(0)
-    best = np.zeros(len(lengths_mm), bool)
+    n = len(lengths_mm)
+    scored = np.unique(np.linspace(0, n - 1, min(n, SPHERE_SCORED)).astype(int))
+    best = np.zeros(len(scored), bool)
     for _ in range(SPHERE_TRIALS):
-        pick = np.zeros(len(lengths_mm), bool)
-        pick[rng.choice(len(lengths_mm), SPHERE_SAMPLE, replace=False)] = True
-        inliers = np.abs(_sphere_misfit_mm(nominal, lengths_mm, pick)) <= TRACER_GROSS_MM
+        pick = np.zeros(len(scored), bool)
+        pick[rng.choice(len(scored), SPHERE_SAMPLE, replace=False)] = True
+        misfit = _sphere_misfit_mm(nominal[scored], lengths_mm[scored], pick)
+        inliers = np.abs(misfit) <= TRACER_GROSS_MM
         if inliers.sum() > best.sum():
             best = inliers
-    return _sphere_misfit_mm(nominal, lengths_mm, best if best.sum() >= SPHERE_SAMPLE else ~best)
+    fit = np.zeros(n, bool)
+    fit[scored[best if best.sum() >= SPHERE_SAMPLE else ~best]] = True
+    return _sphere_misfit_mm(nominal, lengths_mm, fit)
 
 
-def _check_tracer_units(machine: Machine, file: TracerFile) -> None:
+def _check_tracer_units(columns: _Columns, offsets: Vec) -> None:
     """Each station's lengths of a run on a sphere about its pivot, in mm, row by row."""
-    groups = dict.fromkeys((r.station, r.run) for r in file.lengths)
-    for station, run in groups:
-        rows = np.array(
-            [i for i, r in enumerate(file.lengths) if (r.station, r.run) == (station, run)]
-        )
+    stations = np.array(columns.station)
+    for station, run in dict.fromkeys(zip(columns.station, columns.run.tolist(), strict=True)):
+        rows = np.flatnonzero((stations == station) & (columns.run == run))
         if len(rows) < 2 * SPHERE_SAMPLE:
             continue  # the fit says what too few lengths cannot do
-        smr = [file.lengths[i].smr for i in rows]
-        nominal = np.array([file.lengths[i].machine_mm for i in rows])
-        nominal = nominal + _smr_offsets(machine, file.source, file.lines, smr)
-        lengths = np.array([file.lengths[i].length_mm for i in rows])
+        nominal = columns.machine_mm[rows] + offsets[rows]
+        lengths = columns.readings["length_mm"][rows]
         misfit = {mm: _robust_misfit_mm(nominal, lengths * mm) for mm in UNITS_MM.values()}
         fits = {mm: int(np.sum(np.abs(m) <= TRACER_GROSS_MM)) for mm, m in misfit.items()}
         unit = max(fits, key=lambda mm: (fits[mm], mm == 1.0))
         where = f"station {station}, run {run}"
         if unit != 1.0:
             raise _where(
-                file.source,
-                file.lines,
+                columns.source,
+                columns.lines,
                 int(rows[0]),
                 f"the lengths of {where} lie on a sphere about one pivot in {_unit_text(unit)},"
                 f" not in mm ({fits[unit]} of {len(rows)} rows; {fits[1.0]} in mm):"
@@ -372,8 +418,8 @@ def _check_tracer_units(machine: Machine, file: TracerFile) -> None:
         if len(bad):
             first = int(bad[0])
             raise _where(
-                file.source,
-                file.lines,
+                columns.source,
+                columns.lines,
                 int(rows[first]),
                 f"this length lies {abs(misfit[1.0][first]):.0f} mm off the sphere through the"
                 f" other lengths of {where} (the commanded moves): a wrong reading or another"
