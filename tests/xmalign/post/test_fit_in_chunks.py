@@ -9,10 +9,13 @@ the tables' U95 must cover the truth (zero) as often as it says.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 import xmalign.post.instruments as joint
+from sim.instrument_errors import MaterialDrift
 from sim.machine import ErrorAmplitudes, VirtualMachine
 from sim.tracer import VirtualTracer, measure_tracer
 from sim.tracker import VirtualTracker, measure_tracker, measure_tracker_on_the_fly
@@ -188,3 +191,58 @@ def test_the_u95_covers_the_truth_with_noise_correlated_along_the_paths(machine)
             naive += list(error <= table.u95 / widened)
     assert np.mean(covered) >= 0.9
     assert np.mean(naive) < 0.75  # as the fit was before it looked at the correlation
+
+
+def test_the_fit_in_chunks_carries_the_systematic_errors_smr_positions_material_and_outliers(
+    machine, monkeypatch
+):
+    """Issue 30's unknowns through issue 31's chunks: a tracker with angle errors and a
+    scale per run, three SMR positions, a drifting material temperature and one gross
+    outlier, and tracers with a scale per run: the fit in chunks of 13 points is the fit
+    at once (tables, u95, systematic terms, the outlier named)."""
+    offsets = {"A": SMR, "B": SMR + [100.0, 0.0, 0.0], "C": SMR + [0.0, 100.0, 0.0]}
+    priors = machine.model_copy(
+        update={
+            "tracker": machine.tracker.model_copy(
+                update={"angle_systematic_urad": 5.0, "scale_ppm": 1.0}
+            ),
+            "tracer": machine.tracer.model_copy(update={"scale_ppm": 0.5}),
+        }
+    )
+    truth = VirtualMachine(machine, ErrorAmplitudes(scale=0.3), seed=3)
+    low, high = machine.travel_min_mm, machine.travel_max_mm
+    points = grid_and_random_points(low, high, (3, 3, 2), 30, seed=3)
+    names = [("A", "B", "C")[k % 3] for k in range(len(points))]
+    drift = MaterialDrift(20.5, 21.5, machine.thermal.expansion_ppm_per_k)
+    tracker = VirtualTracker(tracker_place(machine), np.array([0.2, -0.4, 20.0]), seed=3)
+    options = {"smr_offsets_mm": offsets, "smr_of_point": names, "material": drift}
+    rows = measure_tracker(
+        truth, tracker, points, 2, SMR, angle_systematic_urad=5.0, scale_ppm=1.0, **options
+    )
+    rows[7] = dataclasses.replace(rows[7], tracker_mm=rows[7].tracker_mm + [0.3, 0.0, 0.0])
+    lengths = []
+    for i, pivot in enumerate([np.array([300.0, 200.0, -700.0]), np.array([1700, 1300, -750.0])]):
+        tracer = VirtualTracer(pivot, seed=i)
+        lengths += measure_tracer(truth, tracer, points, 1, SMR, f"P{i}", scale_ppm=0.5, **options)
+    trackers = tracker_stations([TrackerFile(rows, "t.csv")])
+    tracers = tracer_places([TracerFile(lengths, "l.csv")])
+    extra = {
+        "knot_spacing_mm": 400.0,
+        "smr_offsets_mm": offsets,
+        "expansion_ppm_per_k": machine.thermal.expansion_ppm_per_k,
+    }
+    at_once = _fit(priors, trackers, tracers, **extra)
+    monkeypatch.setattr(joint, "CHUNK_POINTS", 13)
+    chunked = _fit(priors, trackers, tracers, **extra)
+    assert [o.name for o in at_once.outliers] == [o.name for o in chunked.outliers]
+    assert len(at_once.outliers) == 1 and "index" in at_once.outliers[0].name
+    for name, table in at_once.fit.tables.tables.items():
+        other = chunked.fit.tables.tables[name]
+        np.testing.assert_allclose(other.values, table.values, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(other.u95, table.u95, rtol=1e-6, atol=1e-10)
+    for a, b in zip(at_once.trackers, chunked.trackers, strict=True):
+        assert len(a.angle_coefficients_urad) == 16 and len(a.scale_ppm) == 6
+        np.testing.assert_allclose(b.angle_coefficients_urad, a.angle_coefficients_urad, atol=1e-5)
+        assert b.scale_ppm == pytest.approx(a.scale_ppm, abs=1e-5)
+    for a, b in zip(at_once.tracers, chunked.tracers, strict=True):
+        assert a.scale_ppm and b.scale_ppm == pytest.approx(a.scale_ppm, abs=1e-5)
