@@ -817,6 +817,18 @@ _STREAM_CASES = [
         write(STREAM, _STREAM),
     ),
     Case(
+        "stream-units-not-used",
+        (*_IMPORT_STREAM, "--units", "in", "--out", "t.csv"),
+        ("--units is not used with --tracker-stream",),
+        write(STREAM, _STREAM),
+    ),
+    Case(
+        "stream-out-is-the-points",
+        (*_IMPORT_STREAM, "--out", "points.csv"),
+        ("points.csv", "--out", "--points"),
+        write(STREAM, _STREAM),
+    ),
+    Case(
         "stream-and-export",
         (*_IMPORT_STREAM, "--spatial-analyzer", "spatial-analyzer.txt", "--out", "t.csv"),
         ("--spatial-analyzer", "--tracker-stream"),
