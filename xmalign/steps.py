@@ -1080,6 +1080,10 @@ def instrument_program_step(
     machine = _machine(machine)
     if instrument not in INSTRUMENTS:
         raise InputError(f"instrument '{instrument}' is not known (known: tracker, tracer)")
+    if on_the_fly and instrument != "tracker":
+        raise InputError("on_the_fly is for instrument 'tracker' (a tracer measures lengths)")
+    if simultaneous and instrument != "tracer":
+        raise InputError("simultaneous is for instrument 'tracer' (tracers following the SMR)")
     plan = plan_instrument(machine, instrument, on_the_fly, places, simultaneous)
     gcode, time, files = write_instrument_step(
         machine,

@@ -413,6 +413,8 @@ def test_instrument_programs_are_written_by_one_step(
         "points_path",
         "replace=True",
     )
+    _refused(lambda: api.instrument_program_step(machine, "tracker", simultaneous=True), "tracer")
+    _refused(lambda: api.instrument_program_step(machine, "tracer", on_the_fly=True), "tracker")
 
 
 @pytest.mark.parametrize("name", ["b" * 250, "é" * 127])
