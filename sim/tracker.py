@@ -12,16 +12,27 @@ benchmarks.
 The SMR is where the virtual machine really puts it
 (:meth:`sim.machine.VirtualMachine.actual_functional_point`: the same truth model
 of the errors the interferometer simulation measures, with the machine's
-repeatability).
+repeatability). On request the tracker has the systematic errors of
+:mod:`sim.instrument_errors` (angle errors fixed per station, a scale per run),
+the machine a drifting material temperature, and the SMR several positions.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from sim.instrument_errors import (
+    MaterialDrift,
+    actual_smr_points,
+    angle_coefficients,
+    scale_factor,
+    smr_blocks,
+    with_angle_errors,
+)
 from sim.machine import VirtualMachine
 from xmalign.formats.instruments import TrackerPoint
 from xmalign.geometry import Vec
@@ -42,15 +53,28 @@ class VirtualTracker:
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
+        self._angle_coefficients = angle_coefficients(self.seed)
 
     @property
     def rotation(self) -> Vec:
         """``R``: a vector in the MCS is ``R.T @ v`` in the tracker's frame, shape (3, 3)."""
         return Rotation.from_rotvec(np.radians(self.rotation_deg)).as_matrix()
 
-    def observe(self, points_mcs_mm: Vec) -> Vec:
-        """Noisy SMR centres in the tracker's frame for true points in the MCS, (N, 3)."""
+    def observe(
+        self,
+        points_mcs_mm: Vec,
+        run: int = 0,
+        angle_systematic_urad: float = 0.0,
+        scale_ppm: float = 0.0,
+    ) -> Vec:
+        """Noisy SMR centres in the tracker's frame for true points in the MCS, (N, 3).
+
+        ``angle_systematic_urad`` and ``scale_ppm`` as the machine file's ``tracker``
+        keys: the station's angle errors and the scale of its ``run``.
+        """
         frame = (np.atleast_2d(points_mcs_mm) - self.position_mm) @ self.rotation
+        frame = with_angle_errors(frame, self._angle_coefficients, angle_systematic_urad)
+        frame = frame * scale_factor(self.seed, run, scale_ppm)
         distance = np.linalg.norm(frame, axis=1)
         beam = frame / distance[:, None]
         radial = self.uncertainty.radial_sigma_mm(distance)
@@ -68,19 +92,45 @@ def measure_tracker(
     runs: int,
     smr_offset_mm: Vec,
     station: str = "T1",
+    *,
+    angle_systematic_urad: float = 0.0,
+    scale_ppm: float = 0.0,
+    smr_offsets_mm: Mapping[str, Vec] | None = None,
+    smr_of_point: Sequence[str] | None = None,
+    material: MaterialDrift | None = None,
 ) -> list[TrackerPoint]:
     """Tracker points at standstill: every commanded point, ``runs`` times.
 
-    ``smr_offset_mm`` is the SMR from the tool point in the MCS.
+    Parameters
+    ----------
+    smr_offset_mm : ndarray, shape (3,)
+        The SMR from the tool point in the MCS.
+    angle_systematic_urad, scale_ppm : float
+        The tracker's systematic errors (:meth:`VirtualTracker.observe`).
+    smr_offsets_mm : mapping of str to ndarray (3,), optional
+        Several SMR positions instead of ``smr_offset_mm``: each is a run of its
+        own (run ``repeat * len(smr_offsets_mm) + k``), its rows name it in ``smr``.
+    smr_of_point : sequence of str, optional
+        Which SMR position measures each point (default: every one every point).
+    material : MaterialDrift, optional
+        The machine's scale temperature through each run (rows get ``material_c``).
     """
+    cnc = np.asarray(cnc_mm, dtype=float)
+    blocks = smr_blocks(len(cnc), smr_offset_mm, smr_offsets_mm, smr_of_point)
     points = []
-    for run in range(runs):
-        actual, _ = machine.actual_functional_point(cnc_mm, np.ones_like(cnc_mm), smr_offset_mm)
-        seen = tracker.observe(actual)
-        points += [
-            TrackerPoint(station, run, i, np.asarray(cnc_mm[i], float), seen[i])
-            for i in range(len(cnc_mm))
-        ]
+    for repeat in range(runs):
+        for k, block in enumerate(blocks):
+            run = repeat * len(blocks) + k
+            commanded = cnc[block.indices]
+            actual, temperatures = actual_smr_points(machine, commanded, block, material)
+            seen = tracker.observe(actual, run, angle_systematic_urad, scale_ppm)
+            points += [
+                TrackerPoint(
+                    station, run, int(i), commanded[j], seen[j],
+                    smr=block.name, material_c=temperatures[j],
+                )
+                for j, i in enumerate(block.indices)
+            ]  # fmt: skip
     return points
 
 
@@ -93,12 +143,16 @@ def measure_tracker_on_the_fly(
     station: str = "T1",
     run: int = 0,
     feed_mm_min: float = 2000.0,
+    *,
+    angle_systematic_urad: float = 0.0,
+    scale_ppm: float = 0.0,
 ) -> list[TrackerPoint]:
     """Tracker points taken while the machine moves along straight paths (seed 001).
 
     The tracker samples every ``spacing_mm`` of travel (its clock, not the
     CNC's: the rows say where each path starts and ends, not where along it the
     sample was taken). ``time_s`` counts from the run's start at ``feed_mm_min``.
+    ``angle_systematic_urad`` and ``scale_ppm`` as for :func:`measure_tracker`.
     """
     rows = []
     clock_s = 0.0
@@ -109,7 +163,7 @@ def measure_tracker_on_the_fly(
         cnc = start + np.outer(fractions, end - start)
         approach = np.tile(np.sign(end - start) + (end == start), (len(cnc), 1))
         actual, _ = machine.actual_functional_point(cnc, approach, smr_offset_mm)
-        seen = tracker.observe(actual)
+        seen = tracker.observe(actual, run, angle_systematic_urad, scale_ppm)
         times = clock_s + fractions * length / (feed_mm_min / 60.0)
         rows += [
             TrackerPoint(station, run, None, start, seen[i], end, float(times[i]))

@@ -30,7 +30,7 @@ from xmalign.formats.provenance import FileSource, Provenance
 from xmalign.formats.session import Session
 from xmalign.identify import IdentificationResult
 from xmalign.machine import Machine, default_machine_path, load_machine
-from xmalign.post.evaluate import PostResult
+from xmalign.post.evaluate import Instruments, PostResult
 from xmalign.post.iso230_2 import PositioningFigures
 from xmalign.roles import CHANNELS
 from xmalign.steps import (
@@ -43,6 +43,7 @@ from xmalign.steps import (
     design_step,
     following_drive,
     identify_step,
+    import_stream_step,
     import_tracker_step,
     instrument_program_step,
     open_measurements_step,
@@ -94,6 +95,7 @@ __all__ = [
     "FileSource",
     "IdentificationResult",
     "InputError",
+    "Instruments",
     "LaunchPose",
     "Machine",
     "MeasurementFile",
@@ -114,6 +116,7 @@ __all__ = [
     "following_drive",
     "identify",
     "identify_step",
+    "import_stream_step",
     "import_tracker_step",
     "instrument_program_step",
     "iso230_2_frame",

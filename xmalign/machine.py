@@ -66,6 +66,8 @@ Micrometres = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_UM, allow_inf_nan=
 Microradians = Annotated[float, Field(gt=0, le=MAX_UNCERTAINTY_URAD, allow_inf_nan=False)]
 Allowance_um = Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)]
 Allowance_urad = Annotated[float, Field(ge=0, le=100_000, allow_inf_nan=False)]
+Allowance_ppm = Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)]
+SmrName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 Expansion_ppm_per_k = Annotated[float, Field(ge=-5.0, le=50.0, allow_inf_nan=False)]
 Spacing_mm = Annotated[float, Field(gt=0, le=200, allow_inf_nan=False)]
 Seconds = Annotated[float, Field(ge=0, le=3600, allow_inf_nan=False)]
@@ -160,6 +162,11 @@ class TrackerUncertainty(_Strict):
 
     radial_um: DistanceModel_um = [5.0, 0.15]
     transverse_um: DistanceModel_um = [7.5, 3.0]
+    #: RMS over all directions of the angle errors common to every run at a station
+    #: (docs/formats.md "Systematic instrument errors"); 0: none
+    angle_systematic_urad: Allowance_urad = 0.0
+    #: standard uncertainty of one scale factor per station and run (air compensation)
+    scale_ppm: Allowance_ppm = 0.0
 
     def radial_sigma_mm(self, distance_mm: Vec) -> Vec:
         """Standard uncertainty along the beam at distances (N,), mm."""
@@ -174,6 +181,8 @@ class TracerUncertainty(_Strict):
     """Standard uncertainty (k = 1) of one laser-tracer length (default 0.1 um + 0.15 um/m)."""
 
     length_um: DistanceModel_um = [0.1, 0.15]
+    #: standard uncertainty of one scale factor per place and run (air compensation)
+    scale_ppm: Allowance_ppm = 0.0
 
     def length_sigma_mm(self, length_mm: Vec) -> Vec:
         """Standard uncertainty of lengths (N,), mm."""
@@ -293,6 +302,8 @@ class Machine(_Strict):
     measurement: Measurement = Measurement()
     cnc: Cnc = Cnc()
     smr_offset_mm: Vector3 = [0.0, 0.0, 0.0]
+    #: further SMR positions by name (the ``smr`` column of tracker and tracer rows)
+    smr_offsets_mm: dict[SmrName, Vector3] = {}
     tracker: TrackerUncertainty = TrackerUncertainty()
     tracer: TracerUncertainty = TracerUncertainty()
     _source: FileSource | None = PrivateAttr(default=None)
@@ -429,6 +440,10 @@ class Machine(_Strict):
     def smr_offset(self) -> Vec:
         """SMR centre from the CNC tool point, spindle frame, mm, shape (3,)."""
         return np.asarray(self.smr_offset_mm, dtype=float)
+
+    def smr_offsets(self) -> dict[str, Vec]:
+        """The named SMR positions from the CNC tool point, spindle frame, mm, each (3,)."""
+        return {name: np.asarray(v, dtype=float) for name, v in self.smr_offsets_mm.items()}
 
     @property
     def receiver_offset(self) -> Vec:

@@ -49,10 +49,10 @@ from xmalign.formats.common import atomic_write_bytes
 from xmalign.formats.error_tables import ErrorTableSet, file_unit
 from xmalign.formats.error_tables import Table as ErrorTable
 from xmalign.geometry import Vec
+from xmalign.instrument_text import instrument_lines, instrument_notes
 from xmalign.machine import Machine
 from xmalign.post.compare import grid_points, measured_box_mm, tool_point_squareness_rad
 from xmalign.post.evaluate import PostResult
-from xmalign.post.instruments import instrument_lines, instrument_notes
 from xmalign.post.iso230_2 import ISO_230_2_RUNS, VdiFigures, runs_note, vdi3441_figures
 from xmalign.post.lines import UM_PER_MM
 from xmalign.post.ranges import RANGES_HEADER, extrapolated_spans_mm, range_rows

@@ -43,13 +43,9 @@ from trajectories.gcode.program import PROGRAM_MARK, write_program
 from trajectories.identification_design import IdentificationDesign, design_identification
 from trajectories.instruments import (
     InstrumentProgram,
-    fly_paths,
-    information_limit_um,
+    machine_time_note,
+    plan_instrument,
     point_list_files,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
     write_instrument_program,
 )
 from trajectories.lines import LINE_IDS
@@ -85,6 +81,7 @@ from xmalign.formats.common import (
 )
 from xmalign.formats.common import path_argument as _path
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text, read_error_tables
+from xmalign.formats.instrument_checks import UNITS_MM, check_instrument_files
 from xmalign.formats.instruments import TrackerPoint, write_tracker_points
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
@@ -92,11 +89,18 @@ from xmalign.formats.pose import LaunchPose, write_pose
 from xmalign.formats.provenance import FileSource, history_path
 from xmalign.formats.session import NOMINAL_STRAIGHTNESS_RANGE_UM, Session, read_session
 from xmalign.formats.spatial_analyzer import (
+    NAMING,
     read_point_list,
-    read_spatial_analyzer,
-    tracker_points_from_export,
+    tracker_file_from_export,
+    unmeasured,
 )
 from xmalign.formats.studies import write_design
+from xmalign.formats.tracker_stream import (
+    FlyRun,
+    program_paths,
+    read_tracker_stream,
+    write_fly_rows,
+)
 from xmalign.identification_routine import (
     PoseGuess,
     RoutineDevices,
@@ -106,7 +110,8 @@ from xmalign.identification_routine import (
 from xmalign.identify import IdentificationResult, IdentificationUncertainty, identify
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import Instruments, PostResult, Station, post_stations
-from xmalign.post.instruments import MIN_TRACER_PLACES
+from xmalign.post.instruments import MIN_TRACER_PLACES, Progress
+from xmalign.post.stream_assign import StreamAssignment, assign_stream
 from xmalign.rigid_body import ErrorTables
 from xmalign.roles import (
     Clock,
@@ -863,6 +868,7 @@ def post_step(
     more_files: Callable[[PostResult], dict[Path, bytes]] | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    progress: Progress | None = None,
 ) -> PostStepResult:
     """Fit the 21 errors to every station's measurement (and ``instruments``' readings) and
     write the error tables.
@@ -877,6 +883,8 @@ def post_step(
     tables (the report, named in ``caller.written``): all of them, or none. The result's
     ``tables`` are read back from ``errors_path``: given to :func:`comp_step`, the
     controller files' history names that file.
+    ``progress(done, total, what)`` is told how far the instruments' fit is
+    (:func:`xmalign.post.instruments.fit_joint`).
     """
     machine, errors_path = _machine(machine), _path(errors_path, "errors_path")
     pairs = _stations(stations)
@@ -884,9 +892,11 @@ def post_step(
     inputs = _post_inputs(machine, pairs, instrument_files)
     check_outputs({"errors_path": errors_path}, inputs, replace, caller)
     read = [read_station(machine, plan, path) for plan, path in pairs]
+    if instruments is not None:
+        check_instrument_files(machine, instruments.trackers, instruments.tracers)
     if on_fit is not None:
         on_fit(read)
-    post = fit_step(machine, read, instruments)
+    post = fit_step(machine, read, instruments, progress=progress)
     history: list[FileSource] = []
     for plan, path in pairs:
         history += [FileSource.of("measurements", path)]
@@ -1057,11 +1067,13 @@ def fit_step(
     stations: Sequence[Station],
     instruments: Instruments | None = None,
     applied: ErrorTables | None = None,
+    progress: Progress | None = None,
 ) -> PostResult:
     """The fit of :func:`post_step` with nothing read or written: the stations' lines as
     measured (``applied``: the tables loaded while measuring) and ``instruments``'
-    readings. The studies that compare strategies on virtual machines call it."""
-    return post_stations(_machine(machine), list(stations), applied, instruments)
+    readings (``progress``: :func:`xmalign.post.instruments.fit_joint`'s). The studies
+    that compare strategies on virtual machines call it."""
+    return post_stations(_machine(machine), list(stations), applied, instruments, progress)
 
 
 #: The instruments :func:`instrument_program_step` plans for.
@@ -1122,11 +1134,16 @@ TRACER_PLACES = (MIN_TRACER_PLACES, 12, 4)
 
 
 def check_instrument_request(
-    instrument: object, on_the_fly: bool, places: object, caller: Caller | None = None
+    instrument: object,
+    on_the_fly: bool,
+    places: object,
+    caller: Caller | None = None,
+    simultaneous: bool = False,
 ) -> int:
     """The tracer places to plan (:data:`TRACER_PLACES`' default when ``places`` is None);
     one line naming the argument (the command's option) for an unknown instrument,
-    ``on_the_fly`` with a tracer, ``places`` with a tracker or outside 4 to 12."""
+    ``on_the_fly`` with a tracer, ``simultaneous`` or ``places`` with a tracker, or
+    ``places`` outside 4 to 12."""
     name = (caller or SCRIPT).names.get
     if instrument not in INSTRUMENTS:
         raise InputError(
@@ -1137,6 +1154,11 @@ def check_instrument_request(
         raise InputError(
             f"{name('on_the_fly', 'on_the_fly')} is for {name('instrument', 'instrument')}"
             " tracker (a tracer measures lengths)"
+        )
+    if instrument == "tracker" and simultaneous:
+        raise InputError(
+            f"{name('simultaneous', 'simultaneous')} is for {name('instrument', 'instrument')}"
+            " tracer (tracers following the SMR)"
         )
     if places is None:
         return TRACER_PLACES[2]
@@ -1162,48 +1184,25 @@ def instrument_program_step(
     dialect: str | None = None,
     replace: bool = False,
     caller: Caller | None = None,
+    simultaneous: bool = False,
 ) -> InstrumentProgramStepResult:
     """Plan a laser-tracker (points, or paths ``on_the_fly``) or laser-tracer (``places``
-    places, 4 by default, the same points from each) calibration over the whole travel,
+    places, 4 by default, the same points from each; ``simultaneous``: every tracer
+    following the SMR in the same run) calibration over the whole travel with the machine
+    file's SMR positions, or three proposed (:func:`trajectories.instruments.plan_instrument`),
     and write its program and point list (:func:`write_instrument_step`); the request is
     checked first (:func:`check_instrument_request`).
 
-    ``notes`` say where the instrument stands, the machine time and how well the plan
-    determines the volumetric error (the machine file's instrument uncertainties).
+    ``notes`` say where the instrument stands, which SMR to mount when, the machine time
+    and how well the plan determines the volumetric error (the machine file's instrument
+    uncertainties).
     """
     machine = _machine(machine)
-    places = check_instrument_request(instrument, on_the_fly, places, caller)
-    if instrument == "tracker":
-        program = (
-            InstrumentProgram(paths_mm=fly_paths(machine))
-            if on_the_fly
-            else InstrumentProgram(points_mm=tracker_points(machine))
-        )
-        runs = 1 if on_the_fly else 2
-        where = tracker_place(machine)
-        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
-        what = (
-            f"{len(program.paths_mm)} paths on the fly"
-            if on_the_fly
-            else f"{len(program.points_mm)} points, run it twice (runs 0 and 1)"
-        )
-        notes = [
-            f"tracker: {what}; stand it on the table near {_triple(where)} mm (MCS),"
-            " the SMR at the machine file's smr_offset_mm"
-        ]
-    else:
-        pivots = propose_tracer_places(machine, places)
-        program = InstrumentProgram(points_mm=tracer_points(machine))
-        limit = information_limit_um(machine, [program] * len(pivots), pivots_mm=pivots)
-        notes = [
-            f"tracer place P{i + 1}: pivot near {_triple(p)} mm (MCS); run the program once"
-            for i, p in enumerate(pivots)
-        ]
-        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(pivots)} places")
-        runs = len(pivots)
+    places = check_instrument_request(instrument, on_the_fly, places, caller, simultaneous)
+    plan = plan_instrument(machine, instrument, on_the_fly, places, simultaneous)
     gcode, time, files = write_instrument_step(
         machine,
-        program,
+        plan.program,
         program_path,
         points_path,
         dialect,
@@ -1211,17 +1210,22 @@ def instrument_program_step(
         replace,
         caller,
     )
-    notes.append(
-        f"machine time: {time.total_s / 60:.1f} min per run, {runs * time.total_s / 60:.1f} min"
-        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
-        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
-        " travel; the machine's repeatability and the tables' model error come on top)"
-    )
-    return InstrumentProgramStepResult(instrument, program, gcode, time, notes, files)
+    notes = [*plan.notes, machine_time_note(plan, time)]
+    return InstrumentProgramStepResult(instrument, plan.program, gcode, time, notes, files)
 
 
-def _triple(values: np.ndarray) -> str:
-    return ", ".join(f"{v:.0f}" for v in values)
+@dataclass
+class ImportTrackerStepResult:
+    """The tracker points imported (:func:`import_tracker_step`) and the names of the point
+    list's points that no row measured."""
+
+    points: list[TrackerPoint]
+    unmeasured: list[str]
+
+
+#: The export's point names a tracker's software may write (:data:`NAMING`), by default
+#: SpatialAnalyzer's.
+DEFAULT_NAMING = "collection-group-target"
 
 
 def import_tracker_step(
@@ -1232,26 +1236,96 @@ def import_tracker_step(
     station: str = "T1",
     replace: bool = False,
     caller: Caller | None = None,
-) -> list[TrackerPoint]:
-    """A tracker's SpatialAnalyzer export turned into the tracker-points file ``out`` (for
-    :func:`post_step`'s ``instruments``): target names are the indices of the point list
-    at ``points_path`` (:func:`write_instrument_step`), the export's groups the runs.
-    ``out`` never replaces an input, nor an existing file without ``replace``."""
+    naming: str = DEFAULT_NAMING,
+    units: str = "mm",
+) -> ImportTrackerStepResult:
+    """A tracker's export (SpatialAnalyzer's ASCII variants or a plain ``Name,X,Y,Z``
+    list, its point names as ``naming`` says, lengths in ``units``: mm, in or m) turned
+    into the tracker-points file ``out`` (for :func:`post_step`'s ``instruments``):
+    target names are the indices of the point list at ``points_path``
+    (:func:`write_instrument_step`), the export's groups the runs. The distances between
+    the points must be the commanded moves' (another unit, names shifted against the list:
+    refused at the first row that does not fit). ``out`` never replaces an input, nor an
+    existing file without ``replace``."""
+    caller = caller or SCRIPT
     export_path, points_path = _path(export_path, "export_path"), _path(points_path, "points_path")
     out, machine = _path(out, "out"), _machine(machine)
+    for name, value, known in (("naming", naming, NAMING), ("units", units, UNITS_MM)):
+        if value not in known:
+            option = caller.names.get(name, name)
+            raise InputError(f"{option} '{value}' is not known ({', '.join(known)})")
     inputs = {
         "export_path": export_path,
         "points_path": points_path,
         "machine": _machine_path(machine),
     }
     check_outputs({"out": out}, inputs, replace, caller)
-    exported = read_spatial_analyzer(export_path)
-    rows = tracker_points_from_export(
-        exported, read_point_list(points_path), machine.smr_offset, station, str(export_path)
-    )
+    listed = read_point_list(points_path)
+    file = tracker_file_from_export(machine, export_path, listed, station, naming, units)
     made_from = [FileSource.of("export", export_path), FileSource.of("points", points_path)]
-    write_tracker_points(out, rows, made_from)
-    return rows
+    write_tracker_points(out, file.points, made_from)
+    return ImportTrackerStepResult(file.points, unmeasured(listed, file))
+
+
+@dataclass(frozen=True)
+class StreamImportResult:
+    """What :func:`import_stream_step` wrote: the rows kept and dropped per (station, run)."""
+
+    out: Path
+    runs: list[tuple[str, int, StreamAssignment]]
+
+    @property
+    def rows(self) -> int:
+        return sum(len(a.sample) for _, _, a in self.runs)
+
+
+def import_stream_step(
+    stream_path: str | Path,
+    points_path: str | Path,
+    out: str | Path,
+    machine: Machine,
+    replace: bool = False,
+    caller: Caller | None = None,
+) -> StreamImportResult:
+    """A tracker's stream of an on-the-fly program turned into the tracker-points file
+    ``out`` (docs/formats.md).
+
+    Each (station, run) of the stream is assigned to the measuring paths of the point
+    list at ``points_path`` (:func:`xmalign.post.stream_assign.assign_stream`); the rows
+    carry the commanded tool point at the path's start and end (the list's SMR points
+    less the machine's ``smr_offset_mm``) and the SHA-256 of both inputs. ``out`` never
+    replaces an input, nor an existing file without ``replace``.
+    """
+    stream_path, points_path = _path(stream_path, "stream_path"), _path(points_path, "points_path")
+    out, machine = _path(out, "out"), _machine(machine)
+    inputs = {
+        "stream_path": stream_path,
+        "points_path": points_path,
+        "machine": _machine_path(machine),
+    }
+    check_outputs({"out": out}, inputs, replace, caller)
+    stream = read_tracker_stream(stream_path)
+    starts, ends = program_paths(read_point_list(points_path), str(points_path))
+    smr = machine.smr_offset
+    assigned, rows = [], []
+    for run in stream.runs():
+        a = assign_stream(run.time_s, run.tracker_mm, starts, ends, run.line, str(stream_path))
+        assigned.append((run.station, run.run, a))
+        rows.append(
+            FlyRun(
+                station=run.station,
+                run=run.run,
+                start_mm=starts[a.path] - smr,
+                end_mm=ends[a.path] - smr,
+                tracker_mm=run.tracker_mm[a.sample],
+                time_s=run.time_s[a.sample],
+                u_radial_um=run.u_radial_um[a.sample],
+                u_transverse_um=run.u_transverse_um[a.sample],
+            )
+        )
+    made_from = [FileSource.of("stream", stream_path), FileSource.of("points", points_path)]
+    write_fly_rows(out, rows, made_from)
+    return StreamImportResult(out, assigned)
 
 
 # -- one launch-unit station: identify -> program -> run ------------------------------------

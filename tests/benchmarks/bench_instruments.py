@@ -36,7 +36,9 @@ writes (points in nearest-neighbour order, straight moves at the rapid feed, 3 s
 per point; paths at 5000 mm/min), the XM-60 program's own estimate
 (:func:`trajectories.gcode.program.estimate_machine_time`).
 
-Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_instruments.py [--seeds 5]``.
+Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_instruments.py [--seeds 5]``;
+with ``--sizes`` the tracker and tracers across machine sizes with one and three SMR
+positions instead (:mod:`bench_instrument_sizes`).
 Targets (issue 24): tracker alone about 4 um or better; tracers alone <= 1.0 um;
 XM-60 + tracker over the travel <= 0.8 x the XM-60 alone, over the strokes at
 most 0.15 um worse than the XM-60 alone.
@@ -55,6 +57,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))  # bench_accuracy: the strokes' box
 
 from bench_accuracy import _strokes  # noqa: E402
+from bench_instrument_sizes import run as run_sizes  # noqa: E402
 
 from sim.instrument_study import (  # noqa: E402
     station_plan,
@@ -213,4 +216,6 @@ def _summary(results: list[Figures]) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
-    run(parser.parse_args().seeds)
+    parser.add_argument("--sizes", action="store_true", help="across machine sizes and SMRs")
+    arguments = parser.parse_args()
+    (run_sizes if arguments.sizes else run)(arguments.seeds)

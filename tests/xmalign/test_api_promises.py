@@ -483,6 +483,8 @@ def test_instrument_programs_are_written_by_one_step(
     )
     assert (tmp_path / "q.csv.history").read_text() == "the user's notes\n"
     assert not (tmp_path / "q.csv").exists()
+    _refused(lambda: api.instrument_program_step(machine, "tracker", simultaneous=True), "tracer")
+    _refused(lambda: api.instrument_program_step(machine, "tracer", on_the_fly=True), "tracker")
 
 
 def test_the_dry_runs_files_name_the_machine_file(calibrated: Path) -> None:

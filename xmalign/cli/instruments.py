@@ -18,24 +18,35 @@ from xmalign.cli.common import (
     machine_or_default,
     named_by_options,
     output_folder,
+    refuse_unused_options,
 )
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
 from xmalign.formats.instruments import read_tracer_lengths, read_tracker_points
+from xmalign.instrument_text import instrument_lines
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
-from xmalign.post.instruments import instrument_lines
-from xmalign.steps import check_instrument_request, import_tracker_step, instrument_program_step
+from xmalign.steps import (
+    DEFAULT_NAMING,
+    Caller,
+    check_instrument_request,
+    import_stream_step,
+    import_tracker_step,
+    instrument_program_step,
+)
 
 if TYPE_CHECKING:  # the simulator is loaded only by the commands that use it
     from sim.machine import ErrorAmplitudes
 
 
-def read_instruments(tracker: list[Path], tracer: list[Path]) -> Instruments:
+def read_instruments(
+    tracker: list[Path], tracer: list[Path], knot_spacing_mm: float | None = None
+) -> Instruments:
     """The tracker-point and tracer-length files given (each option repeatable)."""
     return Instruments(
         trackers=tuple(read_tracker_points(path) for path in tracker),
         tracers=tuple(read_tracer_lengths(path) for path in tracer),
+        knot_spacing_mm=knot_spacing_mm,
     )
 
 
@@ -70,6 +81,7 @@ class InstrumentRequest:
     out: Path | None
     points_out: Path | None
     dialect: str | None
+    simultaneous: bool = False
 
 
 #: What ``xmalign program --instrument`` calls :func:`~xmalign.steps.instrument_program_step`'s
@@ -78,6 +90,7 @@ INSTRUMENT_OPTIONS = {
     "instrument": "--instrument",
     "on_the_fly": "--on-the-fly",
     "places": "--places",
+    "simultaneous": "--simultaneous",
     "dialect": "--dialect",
     "program_path": "--out",
     "points_path": "--points-out",
@@ -85,15 +98,22 @@ INSTRUMENT_OPTIONS = {
 }
 
 
-def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
+def check_instrument_options(
+    instrument: str | None, on_the_fly: bool, places: int | None, simultaneous: bool = False
+) -> None:
     """One line for an instrument option that does not fit the others (before the machine
     is read; the step's own check, :func:`~xmalign.steps.check_instrument_request`)."""
     if instrument is None:
-        if on_the_fly or places is not None:
-            option = "--on-the-fly" if on_the_fly else "--places"
+        if on_the_fly or places is not None or simultaneous:
+            option = (
+                "--on-the-fly" if on_the_fly else "--places" if places is not None
+                else "--simultaneous"
+            )  # fmt: skip
             raise InputError(f"{option} needs --instrument tracker or tracer")
         return
-    check_instrument_request(instrument, on_the_fly, places, named_by_options(INSTRUMENT_OPTIONS))
+    check_instrument_request(
+        instrument, on_the_fly, places, named_by_options(INSTRUMENT_OPTIONS), simultaneous
+    )
 
 
 def program_instrument(machine: Machine, request: InstrumentRequest, force: bool) -> None:
@@ -102,7 +122,8 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
 
     Writes the G-code (stdout or ``out``), the point list for the instrument's own
     software (``points_out``), and tells on stderr where the instrument stands,
-    the machine time and how well the plan determines the errors.
+    which SMR to mount when, the machine time and how well the plan determines the
+    errors.
     """
     programmed = instrument_program_step(
         machine,
@@ -114,6 +135,7 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         request.dialect,
         replace=force,
         caller=named_by_options(INSTRUMENT_OPTIONS),
+        simultaneous=request.simultaneous,
     )
     for note in programmed.notes:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
@@ -121,48 +143,138 @@ def program_instrument(machine: Machine, request: InstrumentRequest, force: bool
         sys.stdout.write(programmed.gcode)
 
 
+def _export(
+    spatial_analyzer: Path | None, name_xyz: Path | None, tracker_stream: Path | None
+) -> tuple[Path, str, str]:
+    """The export or stream given, its option and an export's default naming; one only."""
+    given = {
+        "--spatial-analyzer": (spatial_analyzer, DEFAULT_NAMING),
+        "--name-xyz": (name_xyz, "target"),
+        "--tracker-stream": (tracker_stream, ""),
+    }
+    named = [(option, path, naming) for option, (path, naming) in given.items() if path]
+    if len(named) != 1:
+        raise InputError(f"import: give one of {', '.join(given)} (each with FILE)")
+    option, path, naming = named[0]
+    return path, option, naming
+
+
+def _import_stream(
+    stream: Path, points: Path, out: Path, machine: Machine, force: bool, caller: Caller
+) -> None:
+    """``import --tracker-stream`` (:func:`~xmalign.steps.import_stream_step`), told per run."""
+    with error_console.status(f"assigning {stream} to the program's paths"):
+        result = import_stream_step(stream, points, out, machine, force, caller)
+    for name, run, a in result.runs:
+        error_console.print(
+            f"station {name} run {run}: {len(a.sample)} samples on {len(set(a.path.tolist()))}"
+            f" paths ({a.off_path_um:.1f} um RMS from them), {a.dropped} dropped (moves"
+            " between paths, accelerations, stops)",
+            highlight=False,
+        )
+    error_console.print(f"wrote {out}: {result.rows} points on the fly", highlight=False)
+
+
 def import_points(
-    spatial_analyzer: Annotated[
-        Path,
-        typer.Option(
-            "--spatial-analyzer",
-            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
-        ),
-    ],
     points: Annotated[
         Path,
         typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
     ],
     out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    spatial_analyzer: Annotated[
+        Path | None,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (point names, X Y Z, optional further columns;"
+            " spaces, commas or tabs).",
+        ),
+    ] = None,
+    name_xyz: Annotated[
+        Path | None,
+        typer.Option(
+            "--name-xyz",
+            help="A plain Name,X,Y,Z export of other tracker software (optional header line).",
+        ),
+    ] = None,
+    tracker_stream: Annotated[
+        Path | None,
+        typer.Option(
+            "--tracker-stream",
+            help="A tracker's stream of an on-the-fly program (station,run,time_s,tx_mm..).",
+        ),
+    ] = None,
+    naming: Annotated[
+        str | None,
+        typer.Option(
+            help="The export's point names: collection-group-target (SpatialAnalyzer's"
+            " default), group-target or target (--name-xyz's).",
+        ),
+    ] = None,
+    units: Annotated[
+        str, typer.Option(help="The export's length unit: mm, in or m (checked).")
+    ] = "mm",
     station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
     ] = None,
     force: ForceOption = False,
 ) -> None:
-    """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
+    """Convert a tracker's export or stream into tracker points for ``xmalign post --tracker``.
 
-    Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear.
+    --spatial-analyzer or --name-xyz: target names are the point indices of the point
+    list; the export's groups are the runs, in the order they first appear (without
+    groups, a name measured again starts the next run). The distances between the
+    points must be the commanded moves': an export in another unit than --units, or
+    with names that do not match the point list, is refused naming the first row
+    that does not.
+
+    --tracker-stream: the samples are assigned to the point list's paths by the
+    stream's own geometry (no clock shared with the CNC); the moves between
+    paths, accelerations and stops are dropped; rows on the fly are written
+    (docs/formats.md). The stream names its stations and runs, in mm.
     """
+    export, option, default_naming = _export(spatial_analyzer, name_xyz, tracker_stream)
     options = {
-        "export_path": "--spatial-analyzer",
+        "export_path": option,
+        "stream_path": option,
         "points_path": "--points",
         "out": "--out",
         "machine": "--machine",
+        "naming": "--naming",
+        "units": "--units",
     }
-    rows = import_tracker_step(
-        spatial_analyzer,
+    caller = named_by_options(options)
+    if tracker_stream is not None:
+        refuse_unused_options(
+            {
+                "--naming": naming is not None,
+                "--units": units != "mm",
+                "--station": station != "T1",
+            },
+            "with --tracker-stream (the stream names its stations and runs, in mm)",
+        )
+        _import_stream(export, points, out, machine_or_default(machine), force, caller)
+        return
+    imported = import_tracker_step(
+        export,
         points,
         out,
         machine_or_default(machine),
         station,
         replace=force,
-        caller=named_by_options(options),
+        caller=caller,
+        naming=naming or default_naming,
+        units=units,
     )
-    runs = len({row.run for row in rows})
+    runs = len({row.run for row in imported.points})
+    missing = imported.unmeasured
     error_console.print(
-        f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
+        f"wrote {out}: {len(imported.points)} points of station {station} in {runs} run(s),"
+        f" read in {units}"
+        + (
+            f"; {len(missing)} listed points not measured (first '{missing[0]}')" if missing else ""
+        ),
+        highlight=False,
     )
 
 
@@ -171,21 +283,53 @@ def register(app: typer.Typer) -> None:
 
 
 def instrument_dry_run(
-    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+    machine: Machine,
+    out: Path,
+    instrument: str,
+    seed: int,
+    dialect: str | None,
+    simultaneous: bool = False,
+    on_the_fly: bool = False,
 ) -> None:
-    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
-    from sim.instrument_dry_run import simulate_instruments
+    """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth.
 
-    with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect)
-    assert report.result.instruments is not None
+    ``on_the_fly``: the tracker logs a stream of the on-the-fly program, which is
+    imported as ``import --tracker-stream`` does.
+    """
+    from sim.instrument_dry_run import MATERIAL_C, simulate_instruments
+
+    what = f"{instrument}{' on the fly' if on_the_fly else ''}"
+    with error_console.status(f"dry run, {what}"):
+        report = simulate_instruments(
+            machine, out, instrument, seed, dialect, simultaneous, on_the_fly
+        )
+    assert report.result.instruments is not None and report.machine is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)
+    tracker, tracer = report.machine.tracker, report.machine.tracer
+    smr = "one" if on_the_fly else ", ".join(report.machine.smr_offsets_mm) or "one"
+    time = f"machine time: {instrument} {report.instrument_min:.0f} min"
+    if report.other_way_min is not None:
+        other = "one place at a time" if report.simultaneous else "all tracers at once"
+        way = "all tracers at once" if report.simultaneous else "one place at a time"
+        time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
+    if report.xm60_after_um is not None:
+        time += f", XM-60 station {report.xm60_min:.0f} min"
+    errors = (
+        f"tracer scale {tracer.scale_ppm:g} ppm per run"
+        if instrument == "tracer"
+        else f"tracker angle errors {tracker.angle_systematic_urad:g} urad, scale"
+        f" {tracker.scale_ppm:g} ppm per run"
+    )
     lines = [
-        f"machine time: {instrument} {report.instrument_min:.0f} min"
+        f"virtual instruments: SMR positions {smr}; {errors}"
         + (
-            f", XM-60 station {report.xm60_min:.0f} min" if report.xm60_after_um is not None else ""
+            "; a stream on the fly, at 20 degC"
+            if on_the_fly
+            else f"; the machine's scales at {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC"
+            " through each run (material_c)"
         ),
+        time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
         f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"
         f" {report.volumetric_after_um:.2f} um"

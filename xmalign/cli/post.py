@@ -8,7 +8,14 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    Progress,
+    SpinnerColumn,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+)
 from rich.table import Table as RichTable
 
 from xmalign.cli.common import (
@@ -26,9 +33,10 @@ from xmalign.formats.common import read_text
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
+from xmalign.instrument_text import instrument_lines, instrument_notes
 from xmalign.machine import Machine, default_machine_path
 from xmalign.post.evaluate import PostResult, Station
-from xmalign.post.instruments import instrument_lines, instrument_notes
+from xmalign.post.instruments import MAX_KNOT_SPACING_MM, MIN_KNOT_SPACING_MM
 from xmalign.rigid_body import ErrorTables
 from xmalign.steps import as_left_step, comp_step, post_step
 
@@ -39,7 +47,12 @@ MachineOption = Annotated[
 
 def _progress() -> Progress:
     return Progress(
-        SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TimeElapsedColumn(),
+        console=console,
     )
 
 
@@ -134,6 +147,16 @@ def post(
             " to these errors (default: the machine file's controller)."
         ),
     ] = None,
+    knot_spacing_mm: Annotated[
+        float | None,
+        typer.Option(
+            min=MIN_KNOT_SPACING_MM,
+            max=MAX_KNOT_SPACING_MM,
+            help="Compensation-point spacing where only --tracker/--tracer measured, mm"
+            " (default: chosen by cross-validation); with lines, of the points beyond them"
+            " (default 400).",
+        ),
+    ] = None,
     force: ForceOption = False,
 ) -> None:
     """Solve the 21 geometric errors (with U95) and the ISO 230-2 figures from the lines.
@@ -154,6 +177,11 @@ def post(
     """
     plan, data, tracker, tracer = plan or [], data or [], tracker or [], tracer or []
     check_inputs(plan, tracker, tracer, verify_data is not None and verify_plan is None)
+    if knot_spacing_mm is not None and not tracker and not tracer:
+        raise InputError(
+            "--knot-spacing-mm is for --tracker/--tracer readings; lines set their own"
+            " compensation points (measurement.target_spacing_mm)"
+        )
     if verify_data is None and (verify_plan or verify_controller):
         option = "--verify-plan" if verify_plan else "--verify-controller"
         raise InputError(f"{option} needs --verify-data (the verification measurement)")
@@ -166,7 +194,7 @@ def post(
     with _progress() as progress:
         task = progress.add_task("reading plans and measurements", total=None)
         machine_, stations = machine_or_default(machine), _stations(plan, data)
-        readings = read_instruments(tracker, tracer)
+        readings = read_instruments(tracker, tracer, knot_spacing_mm)
         verification: list[PostResult] = []
 
         def on_fit(read: list[Station]) -> None:
@@ -202,6 +230,14 @@ def post(
             )
             return {report: report_bytes(report, machine_, result, machine_.controller, info)}
 
+        def fitting(done: int, total: int, what: str) -> None:
+            progress.update(
+                task,
+                description=f"fitting the instruments' rows, {what}",
+                completed=done,
+                total=total,
+            )
+
         # the tables and the report together, or neither (a failed report leaves no tables)
         posted = post_step(
             machine_,
@@ -213,6 +249,7 @@ def post(
             more_files=more_files,
             replace=force,
             caller=caller,
+            progress=fitting,
         )
         result = posted.post
     console.print(_summary(result))

@@ -110,6 +110,13 @@ def program(
         bool, typer.Option("--on-the-fly", help="Tracker: paths on the fly, not points.")
     ] = False,
     places: Annotated[int | None, typer.Option(help="Tracer: how many places (default 4).")] = None,
+    simultaneous: Annotated[
+        bool,
+        typer.Option(
+            "--simultaneous",
+            help="Tracer: a tracer at every place, all following the SMR in the same run.",
+        ),
+    ] = False,
     points_out: Annotated[
         Path | None,
         typer.Option(help="With --instrument: the point list for the instrument's software."),
@@ -129,10 +136,11 @@ def program(
     With all six lines it also proposes a second launch-unit station whose lines
     complete the strokes (docs/post.md); plan that station with --lines.
 
-    With --instrument tracker (--on-the-fly) or tracer (--places N): the points
-    or paths of a laser-tracker or laser-tracer calibration over the whole travel.
+    With --instrument tracker (--on-the-fly) or tracer (--places N, --simultaneous):
+    the points or paths of a laser-tracker or laser-tracer calibration over the
+    whole travel, with the SMR positions of the machine file (or three proposed).
     """
-    check_instrument_options(instrument, on_the_fly, places)
+    check_instrument_options(instrument, on_the_fly, places, simultaneous)
     if instrument is None:
         refuse_unused_options(
             {"--points-out": points_out is not None}, "without --instrument tracker or tracer"
@@ -147,7 +155,9 @@ def program(
             },
             f"with --instrument {instrument} (it plans the whole travel, without a launch unit)",
         )
-        request = InstrumentRequest(instrument, on_the_fly, places, out, points_out, dialect)
+        request = InstrumentRequest(
+            instrument, on_the_fly, places, out, points_out, dialect, simultaneous
+        )
         program_instrument(machine_or_default(machine), request, force)
         return
     pose = DEFAULT_POSE if pose is None else pose

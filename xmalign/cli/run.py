@@ -528,12 +528,28 @@ def dry_run_command(
         str,
         typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
     ] = "xm60",
+    simultaneous: Annotated[
+        bool,
+        typer.Option(
+            "--simultaneous",
+            help="With --instrument tracer: every tracer follows the SMR in the same run.",
+        ),
+    ] = False,
+    on_the_fly: Annotated[
+        bool,
+        typer.Option(
+            "--on-the-fly",
+            help="With --instrument tracker: paths on the fly, the tracker's stream imported.",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
     from trajectories.gcode import resolve_dialect
 
     check_seed(seed)
+    if on_the_fly and instrument != "tracker":
+        raise InputError("--on-the-fly is for --instrument tracker")
     if instrument != "xm60":
         refuse_unused_options(
             {
@@ -544,8 +560,12 @@ def dry_run_command(
             },
             f"with --instrument {instrument} (a launch unit's options)",
         )
-        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        instrument_dry_run(
+            machine_or_default(machine), out, instrument, seed, dialect, simultaneous, on_the_fly
+        )
         return
+    if simultaneous:
+        raise InputError("--simultaneous is for --instrument tracer")
     # the launch unit's options: None until here, so that one given with --instrument is refused
     identification_positions = 6 if identification_positions is None else identification_positions
     stations = 1 if stations is None else stations

@@ -32,6 +32,9 @@ TRACER_COLUMNS = ("station", "run", "index", "x_mm", "y_mm", "z_mm", "length_mm"
 PATH_END_COLUMNS = ("to_x_mm", "to_y_mm", "to_z_mm")
 UNCERTAINTY_COLUMNS = ("u_radial_um", "u_transverse_um")
 TIME_COLUMN = "time_s"
+#: Optional columns of both files: the SMR position's name, the scale temperature.
+SMR_COLUMN = "smr"
+MATERIAL_COLUMN = "material_c"
 GUESS_TAG = "# station "
 #: No machine or tracker reaches farther, mm.
 MAX_COORDINATE_MM = 100_000.0
@@ -54,6 +57,10 @@ class TrackerPoint:
     time_s : float, optional
     u_radial_um, u_transverse_um : float, optional
         The row's own standard uncertainty along and across the beam.
+    smr : str, optional
+        The SMR position (a key of the machine file's ``smr_offsets_mm``).
+    material_c : float, optional
+        The machine's scale temperature, degC.
     """
 
     station: str
@@ -65,6 +72,8 @@ class TrackerPoint:
     time_s: float | None = None
     u_radial_um: float | None = None
     u_transverse_um: float | None = None
+    smr: str | None = None
+    material_c: float | None = None
 
     @property
     def on_the_fly(self) -> bool:
@@ -73,7 +82,10 @@ class TrackerPoint:
 
 @dataclass(frozen=True)
 class TracerLength:
-    """One laser-tracer reading: pivot-to-SMR distance plus the (station, run) constant, mm."""
+    """One laser-tracer reading: pivot-to-SMR distance plus the (station, run) constant, mm.
+
+    ``smr`` and ``material_c`` as for :class:`TrackerPoint`.
+    """
 
     station: str
     run: int
@@ -81,21 +93,29 @@ class TracerLength:
     machine_mm: Vec
     length_mm: float
     time_s: float | None = None
+    smr: str | None = None
+    material_c: float | None = None
 
 
 @dataclass
 class TrackerFile:
+    """Tracker points and where they came from (``lines``: each point's line, when read)."""
+
     points: list[TrackerPoint]
     source: str
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 @dataclass
 class TracerFile:
+    """Tracer lengths and where they came from (``lines``: each length's line, when read)."""
+
     lengths: list[TracerLength]
     source: str
     guesses_mm: dict[str, Vec] = field(default_factory=dict)
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 Row = TypeVar("Row")
@@ -160,8 +180,11 @@ def _parse(
     columns: tuple[str, ...],
     parse_row: Callable[[Mapping[str, str], Callable[[str], InputError]], Row],
     on_comment: Callable[[str, int], None],
-) -> None:
-    """Rows of a CSV with a format line, comments and a header; checks every line."""
+) -> list[int]:
+    """Rows of a CSV with a format line, comments and a header; checks every line.
+
+    Returns the line number of each row, in order.
+    """
     lines = text.splitlines()
     if lines and text and not text.endswith(("\n", "\r")) and not lines[-1].startswith("#"):
         raise line_error(
@@ -172,6 +195,7 @@ def _parse(
         raise line_error(source, 1, f"expected '{preamble}', found '{first}'")
     header: list[str] | None = None
     seen: dict[tuple[object, ...], int] = {}
+    numbers: list[int] = []
     for number, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
@@ -195,17 +219,20 @@ def _parse(
         row = parse_row(dict(zip(header, fields, strict=True)), problem)
         key = _key(row)
         if key in seen:
-            raise problem(f"repeats the reading of line {seen[key]} (station, run, index)")
+            raise problem(f"repeats the reading of line {seen[key]} (station, run, smr, index)")
         seen[key] = number
-    if not seen:
+        numbers.append(number)
+    if not numbers:
         raise InputError(f"{source}: no readings")
+    return numbers
 
 
 def _key(row: object) -> tuple[object, ...]:
     index = getattr(row, "index", None)
     if index is None:  # points on the fly are told apart by their path and order
         return (id(row),)
-    return (getattr(row, "station", None), getattr(row, "run", None), index)
+    fields = ("station", "run", "smr")  # one index may be measured with each SMR position
+    return (*(getattr(row, name, None) for name in fields), index)
 
 
 def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]) -> TrackerPoint:
@@ -232,6 +259,8 @@ def _tracker_row(values: Mapping[str, str], problem: Callable[[str], InputError]
         time_s=_optional(values, TIME_COLUMN, problem),
         u_radial_um=radial,
         u_transverse_um=transverse,
+        smr=values.get(SMR_COLUMN, "").strip() or None,
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
@@ -250,6 +279,8 @@ def _tracer_row(values: Mapping[str, str], problem: Callable[[str], InputError])
         machine_mm=_point(values, ("x_mm", "y_mm", "z_mm"), problem),
         length_mm=length,
         time_s=_optional(values, TIME_COLUMN, problem),
+        smr=values.get(SMR_COLUMN, "").strip() or None,
+        material_c=_optional(values, MATERIAL_COLUMN, problem),
     )
 
 
@@ -263,24 +294,43 @@ def _collect(rows: list[Row], parse_row: Callable[..., Row]) -> Callable[..., Ro
 
 
 def read_tracker_points(path: str | Path) -> TrackerFile:
-    """Read a tracker-points file; InputError naming the file and line on bad input."""
+    """Read a tracker-points file; InputError naming the file and line on bad input.
+
+    A file with nothing wrong in it is read as columns (:mod:`xmalign.formats.columns`:
+    a million rows in seconds); any other is read row by row, which names the line.
+    """
+    from xmalign.formats.columns import fast_tracker_file  # (it builds on this module)
+
     path = Path(path)
+    text = _read_text(path)
+    fast = fast_tracker_file(text, str(path))
+    if fast is not None:
+        return fast
     comments: list[str] = []
     points: list[TrackerPoint] = []
-    _parse(
-        _read_text(path),
+    lines = _parse(
+        text,
         str(path),
         TRACKER_FORMAT,
         TRACKER_COLUMNS,
         _collect(points, _tracker_row),
         lambda text, number: comments.append(text),
     )
-    return TrackerFile(points, str(path), comments)
+    return TrackerFile(points, str(path), comments, lines)
 
 
 def read_tracer_lengths(path: str | Path) -> TracerFile:
-    """Read a tracer-lengths file; InputError naming the file and line on bad input."""
+    """Read a tracer-lengths file; InputError naming the file and line on bad input.
+
+    Read as columns where nothing is wrong in it, as :func:`read_tracker_points`.
+    """
+    from xmalign.formats.columns import fast_tracer_file  # (it builds on this module)
+
     path = Path(path)
+    text = _read_text(path)
+    fast = fast_tracer_file(text, str(path))
+    if fast is not None:
+        return fast
     result = TracerFile([], str(path))
 
     def comment(text: str, number: int) -> None:
@@ -290,8 +340,8 @@ def read_tracer_lengths(path: str | Path) -> TracerFile:
         else:
             result.comments.append(text)
 
-    _parse(
-        _read_text(path),
+    result.lines = _parse(
+        text,
         str(path),
         TRACER_FORMAT,
         TRACER_COLUMNS,
@@ -336,6 +386,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Iterable[FileSource]
         columns.append(TIME_COLUMN)
     if any(p.u_radial_um is not None or p.u_transverse_um is not None for p in points):
         columns += UNCERTAINTY_COLUMNS
+    columns += _optional_columns(points)
     out = io.StringIO()
     history = _provenance(TRACKER_FORMAT, inputs)
     out.write("\n".join([TRACKER_FORMAT, *history, ",".join(columns)]) + "\n")
@@ -357,6 +408,7 @@ def tracker_points_text(points: list[TrackerPoint], inputs: Iterable[FileSource]
         ):
             if value is not None:
                 values[name] = _number_text(value)
+        values.update(_optional_values(p))
         writer.writerow([values.get(name, "") for name in columns])
     return out.getvalue()
 
@@ -370,6 +422,7 @@ def tracer_lengths_text(
     columns = list(TRACER_COLUMNS)
     if any(length.time_s is not None for length in lengths):
         columns.append(TIME_COLUMN)
+    columns += _optional_columns(lengths)
     guesses = [
         f"{GUESS_TAG}{name} guess_mm={','.join(_number_text(v) for v in guess)}"
         for name, guess in (guesses_mm or {}).items()
@@ -385,8 +438,29 @@ def tracer_lengths_text(
         row.append(_number_text(r.length_mm))
         if TIME_COLUMN in columns:
             row.append("" if r.time_s is None else _number_text(r.time_s))
+        extra = _optional_values(r)
+        row += [extra.get(name, "") for name in columns[len(row) :]]
         writer.writerow(row)
     return out.getvalue()
+
+
+def _optional_columns(rows: list[TrackerPoint] | list[TracerLength]) -> list[str]:
+    """The SMR and material columns, where a row uses them."""
+    return [
+        name
+        for name, used in (
+            (SMR_COLUMN, any(r.smr is not None for r in rows)),
+            (MATERIAL_COLUMN, any(r.material_c is not None for r in rows)),
+        )
+        if used
+    ]
+
+
+def _optional_values(row: TrackerPoint | TracerLength) -> dict[str, str]:
+    values = {} if row.smr is None else {SMR_COLUMN: row.smr}
+    if row.material_c is not None:
+        values[MATERIAL_COLUMN] = _number_text(row.material_c)
+    return values
 
 
 def write_tracker_points(

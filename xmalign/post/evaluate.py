@@ -14,7 +14,13 @@ from xmalign.formats.plan import Plan
 from xmalign.geometry import Vec, rot_z
 from xmalign.machine import Machine
 from xmalign.post.datum import datum_warnings
-from xmalign.post.instruments import JointFit, fit_joint, tracer_places, tracker_stations
+from xmalign.post.instruments import (
+    JointFit,
+    Progress,
+    fit_joint,
+    tracer_places,
+    tracker_stations,
+)
 from xmalign.post.iso230_2 import PositioningFigures, positioning_figures
 from xmalign.post.lines import (
     CHANNEL_TO_SI,
@@ -98,10 +104,15 @@ def channel_sigma(machine: Machine) -> Vec:
 
 @dataclass(frozen=True)
 class Instruments:
-    """Tracker-point and tracer-length files for the same fit as the lines."""
+    """Tracker-point and tracer-length files for the same fit as the lines.
+
+    ``knot_spacing_mm``: the compensation points' spacing where no line sets them
+    (None: chosen by cross-validation; :func:`xmalign.post.instruments.fit_joint`).
+    """
 
     trackers: tuple[TrackerFile, ...] = ()
     tracers: tuple[TracerFile, ...] = ()
+    knot_spacing_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -118,6 +129,7 @@ def post_stations(
     stations: list[Station],
     applied: ErrorTables | None = None,
     instruments: Instruments | None = None,
+    progress: Progress | None = None,
 ) -> PostResult:
     """Fit one set of error tables to the measurements of one or more stations.
 
@@ -133,6 +145,7 @@ def post_stations(
 
     ``instruments``: tracker points and tracer lengths fitted together with the
     lines (:func:`xmalign.post.instruments.fit_joint`); ``stations`` may then be empty.
+    ``progress(done, total, what)`` is told how far that fit is.
     """
     for index, station in enumerate(stations):  # the rows as read: checked before any use
         for data in group_by_line(station.plan, station.rows, station.source, index):
@@ -166,16 +179,21 @@ def post_stations(
                 "--applied (a verification run) takes interferometer lines only, not tracker"
                 " points or tracer lengths"
             )
+        spindle = rot_z(machine.spindle_angle_rad)
         joint = fit_joint(
             fitted,
             tracker_stations(list(instruments.trackers)),
             tracer_places(list(instruments.tracers)),
             chain,
             channel_sigma(machine),
-            rot_z(machine.spindle_angle_rad) @ machine.smr_offset,
+            spindle @ machine.smr_offset,
             machine.tracker,
             machine.tracer,
             travel,
+            instruments.knot_spacing_mm,
+            {name: spindle @ offset for name, offset in machine.smr_offsets().items()},
+            machine.thermal.expansion_ppm_per_k,
+            progress,
         )
         fit = joint.fit
     else:
@@ -185,7 +203,11 @@ def post_stations(
         fit=fit,
         positioning=[],
         lines=lines,
-        warnings=dead + datum_warnings(lines) + drift + outlier_warnings(fit, lines, sources),
+        warnings=dead
+        + datum_warnings(lines)
+        + drift
+        + outlier_warnings(fit, lines, sources)
+        + instrument_outlier_warnings(joint),
         compensation=compensation,
         applied=applied,
         instruments=joint,
@@ -244,6 +266,15 @@ def outlier_warnings(fit: TableFit, lines: list[LineData], sources: list[str]) -
             " deviations off the fit, a gross outlier: left out of the fit"
         )
     return warnings
+
+
+def instrument_outlier_warnings(joint: JointFit | None) -> list[str]:
+    """One warning per tracker point or tracer length the joint fit left out."""
+    return [
+        f"{outlier.name}: {outlier.sigmas:.0f} standard deviations off the fit, a gross"
+        " outlier: left out of the fit"
+        for outlier in (joint.outliers if joint is not None else [])
+    ]
 
 
 def _without(data: LineData, chain: Chain, applied: ErrorModel, tool_offset_mm: Vec) -> LineData:

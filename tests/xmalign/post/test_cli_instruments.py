@@ -7,6 +7,7 @@ examples/tracker.csv and examples/tracer.csv were written by the simulator
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,12 @@ from sim.machine import VirtualMachine
 from sim.synthetic import measure, six_line_plan
 from sim.tracker import VirtualTracker, measure_tracker
 from tests.cli_helpers import assert_one_line_error, run_in_process
-from trajectories.instruments import grid_and_random_points
+from trajectories.instruments import (
+    InstrumentProgram,
+    grid_and_random_points,
+    point_list_csv,
+    tracker_points,
+)
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.instruments import (
     read_tracer_lengths,
@@ -26,6 +32,7 @@ from xmalign.formats.instruments import (
 )
 from xmalign.formats.measurements import write_measurements
 from xmalign.formats.plan import write_plan
+from xmalign.machine import default_machine_path, load_machine
 from xmalign.rigid_body import Chain
 
 EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
@@ -52,6 +59,30 @@ def test_post_with_tracers_alone_self_calibrates_four_places(tmp_path: Path) -> 
         assert f"tracer {place}" in result.stdout
         assert f"tracer {place} (" in report.read_text()
     assert out.exists()
+
+
+def test_post_knot_spacing_is_chosen_or_given_and_an_outlier_is_named(tmp_path: Path) -> None:
+    """Without the option the console says which spacing cross-validation chose; with it,
+    the tables' compensation points are that far apart. A tracker point 3 mm off is named
+    as a gross outlier and left out."""
+    points = read_tracker_points(EXAMPLES / "tracker.csv").points
+    bumped = points[:10] + [replace(points[10], tracker_mm=points[10].tracker_mm + 3.0)]
+    damaged = tmp_path / "tracker.csv"
+    write_tracker_points(damaged, bumped + points[11:])
+    chosen = run_in_process("post", "--tracker", str(damaged), "--out", str(tmp_path / "a.csv"))
+    assert chosen.returncode == 0, chosen.stderr
+    assert "apart: the least generalised cross-validation score of" in chosen.stdout
+    run, index = points[10].run, points[10].index
+    assert f"tracker station T1 run {run} index {index}:" in chosen.stdout
+    assert "a gross outlier: left out of the fit" in chosen.stdout
+    out = tmp_path / "b.csv"
+    given = run_in_process(
+        "post", "--tracker", str(damaged), "--out", str(out), "--knot-spacing-mm", "500"
+    )
+    assert given.returncode == 0, given.stderr
+    assert "cross-validation" not in given.stdout
+    table = read_error_tables(out).tables["EXX"]
+    np.testing.assert_allclose(np.diff(table.positions_mm[table.measured_mask()][::4]), 500.0)
 
 
 def test_post_fits_lines_and_tracker_points_together(
@@ -128,10 +159,17 @@ def test_program_for_a_tracker_writes_every_point_and_the_point_list(
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     text = out.read_text()
-    assert "point 249" in text and "point 250" not in text
     rows = points.read_text().splitlines()
-    assert rows[0] == "name,x_mm,y_mm,z_mm" and rows[1].startswith("0,") and len(rows) == 251
+    count = len(rows) - 1
+    assert f"point {count - 1}" in text and f"point {count}" not in text
+    # the reference machine names no SMR positions: three proposed, each measuring the
+    # 5 x 4 x 3 grid and a third of the 190 random points, mounted at a programmed stop
+    assert count == 3 * 60 + 190
+    assert rows[0] == "name,x_mm,y_mm,z_mm,smr" and rows[1].startswith("0,")
+    assert [row.split(",")[-1] for row in rows[1:]] == ["A"] * 124 + ["B"] * 123 + ["C"] * 123
+    assert text.count("mount SMR") == 2 * 3  # a comment and a message at each
     assert "machine time:" in result.stderr and "run it twice" in result.stderr
+    assert "SMR B (100, 0, 0 mm) before point 124" in result.stderr
 
 
 def test_program_for_tracers_proposes_places_and_says_how_good(tmp_path: Path) -> None:
@@ -167,12 +205,12 @@ def test_program_instrument_options_that_do_not_fit(argv, fragment: str) -> None
 
 
 def _point_list(tmp_path: Path) -> Path:
+    """The point list of a tracker program with the one SMR of examples/spatial-analyzer.txt
+    (``program`` itself plans several where the machine file names none)."""
+    machine = load_machine(default_machine_path())
     points = tmp_path / "points.csv"
-    result = run_in_process(
-        "program", "--instrument", "tracker", "--points-out", str(points),
-        "--out", str(tmp_path / "t.mpf"),
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
+    program = InstrumentProgram(points_mm=tracker_points(machine))
+    points.write_text(point_list_csv(program, machine.smr_offset))
     return points
 
 
