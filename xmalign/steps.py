@@ -47,6 +47,7 @@ from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_files, refuse_special
 from xmalign.formats.error_tables import ErrorTableSet, error_tables_text
+from xmalign.formats.instrument_checks import check_instrument_files
 from xmalign.formats.measurements import ChannelLimits, check_recorded_plan, load_measurements
 from xmalign.formats.plan import Plan, read_plan, write_plan
 from xmalign.formats.pose import LaunchPose, write_pose
@@ -516,6 +517,8 @@ def post_step(
     of them, or none.
     """
     read = [read_station(machine, plan, path) for plan, path in stations]
+    if instruments is not None:
+        check_instrument_files(machine, instruments.trackers, instruments.tracers)
     if on_fit is not None:
         on_fit(read)
     post = post_stations(machine, read, instruments=instruments)

@@ -622,7 +622,7 @@ def _with_column(name: str, column: str, first: str) -> Damage:
 
 
 _TRACKER_CASES = [
-    ("unknown-smr", _with_column(T, "smr", "B"), "T1 run 0 index 0: smr 'B' is not in"),
+    ("unknown-smr", _with_column(T, "smr", "B"), "line 4: smr 'B' is not a key"),
     ("material-300", _with_column(T, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(T, "tracker-points/1", "tracker-points/2"), "line 1"),
     ("nan-point", replace(T, "\nT1,0,0,0.0,", "\nT1,0,0,nan,"), "not a finite number"),
@@ -640,12 +640,148 @@ _TRACKER_CASES = [
     ),
 ]
 _TRACER_CASES = [
-    ("unknown-smr", _with_column(R, "smr", "B"), "P1 run 0 index 0: smr 'B' is not in"),
+    ("unknown-smr", _with_column(R, "smr", "B"), "line 8: smr 'B' is not a key"),
     ("material-300", _with_column(R, "material_c", "300"), "material_c 300 lies outside"),
     ("wrong-format", replace(R, "tracer-lengths/1", "tracer-length/1"), "line 1"),
     ("bad-guess", replace(R, "guess_mm=", "guess_mm=x"), "guess_mm"),
     ("inf-length", replace(R, "\nP1,0,0,0.0,", "\nP1,0,0,inf,"), "not a finite number"),
     ("three-places", lambda folder: _keep_tracer_places(folder / R, 3), "3 tracer places"),
+]
+
+
+def _rows(name: str, change: Callable[[dict[str, str], int], None]) -> Damage:
+    """Change the data rows of a tracker or tracer CSV: ``change(row, number)`` (0-based)."""
+
+    def apply(folder: Path) -> None:
+        path = folder / name
+        lines = path.read_text(encoding="utf-8").splitlines()
+        head = [line for line in lines if line.startswith("#")]
+        header, *rows = [line for line in lines if line and not line.startswith("#")]
+        names = header.split(",")
+        changed = []
+        for number, line in enumerate(rows):
+            row = dict(zip(names, line.split(","), strict=True))
+            change(row, number)
+            changed.append(row)
+        columns = list(dict.fromkeys(names + [k for row in changed for k in row]))
+        out = [",".join(columns)] + [",".join(row.get(c, "") for c in columns) for row in changed]
+        path.write_text("\n".join(head + out) + "\n", encoding="utf-8")
+
+    return apply
+
+
+def _scaled(columns: tuple[str, ...], factor: float, rows: Callable[[int], bool]) -> Callable:
+    def change(row: dict[str, str], number: int) -> None:
+        if rows(number):
+            for column in columns:
+                row[column] = repr(float(row[column]) * factor)
+
+    return change
+
+
+def _cell(column: str, value: str, at: int | None = 37) -> Callable:
+    """``column`` set to ``value`` in row ``at`` (None: every row; a new column elsewhere empty)."""
+
+    def change(row: dict[str, str], number: int) -> None:
+        row[column] = value if at is None or number == at else row.get(column, "")
+
+    return change
+
+
+def _shifted(column: str, by: float, at: int = 40) -> Callable:
+    def change(row: dict[str, str], number: int) -> None:
+        if number == at:
+            row[column] = repr(float(row[column]) + by)
+
+    return change
+
+
+_ALL, _ODD = (lambda number: True), (lambda number: number % 2 == 1)
+_TXYZ = ("tx_mm", "ty_mm", "tz_mm")
+_GROSS_TRACKER_CASES = [
+    ("in-inches", _rows(T, _scaled(_TXYZ, 1 / 25.4, _ALL)), "the file is in inches"),
+    ("in-metres", _rows(T, _scaled(_TXYZ, 1e-3, _ALL)), "the file is in metres"),
+    ("half-in-metres", _rows(T, _scaled(_TXYZ, 1e-3, _ODD)), "line 5: this point's"),
+    ("point-99999", _rows(T, _cell("tx_mm", "99999")), "line 41: this point's"),
+    ("outside-travel", _rows(T, _shifted("x_mm", 3000.0)), "line 44: the commanded point"),
+    ("u-radial-1e30", _rows(T, _cell("u_radial_um", "1e30")), "line 41: u_radial_um 1e+30"),
+    ("u-radial-0", _rows(T, _cell("u_radial_um", "0")), "line 41: u_radial_um 0 must be > 0"),
+    ("u-transverse-negative", _rows(T, _cell("u_transverse_um", "-3")), "must be > 0"),
+    ("u-radial-nan", _rows(T, _cell("u_radial_um", "nan")), "line 41: u_radial_um"),
+    ("unknown-smr-row", _rows(T, _cell("smr", "Q")), "line 41: smr 'Q'"),
+    ("material-999", _rows(T, _cell("material_c", "999")), "line 41: material_c 999"),
+]
+_GROSS_TRACER_CASES = [
+    ("in-inches", _rows(R, _scaled(("length_mm",), 1 / 25.4, _ALL)), "in inches, not in mm"),
+    ("in-metres", _rows(R, _scaled(("length_mm",), 1e-3, _ALL)), "in metres, not in mm"),
+    ("half-in-metres", _rows(R, _scaled(("length_mm",), 1e-3, _ODD)), "line 9: this length"),
+    ("length-0", _rows(R, _cell("length_mm", "0")), "line 45: length_mm 0"),
+    ("length-99999", _rows(R, _cell("length_mm", "99999")), "line 45: this length"),
+    ("outside-travel", _rows(R, _shifted("y_mm", 3000.0)), "line 48: the commanded point"),
+]
+_TRACKER_CASES += _GROSS_TRACKER_CASES
+_TRACER_CASES += _GROSS_TRACER_CASES
+
+
+def _same_file_cases() -> list[Case]:
+    """The same readings twice: the same file, a link to it, a copy (by content)."""
+    cases = []
+    for kind, name in (("tracker", T), ("tracer", R)):
+        option = f"--{kind}"
+        for how, damage, fragment in (
+            ("twice", None, "is the same file as"),
+            ("link", lambda f, n=name: (f / "again.csv").symlink_to(n), "is the same file as"),
+            ("copy", lambda f, n=name: shutil.copy(f / n, f / "again.csv"), "the same readings"),
+        ):
+            again = name if damage is None else "again.csv"
+            argv = ("post", option, name, option, again, "--out", "errors-new.csv")
+            cases.append(Case(f"{name}-{how}", argv, (again, fragment, name), damage))
+    return cases
+
+
+def _export_lines(change: Callable[[list[str]], list[str]]) -> Damage:
+    """Change every point line of the SpatialAnalyzer export (fields split on spaces)."""
+
+    def apply(folder: Path) -> None:
+        path = folder / "spatial-analyzer.txt"
+        lines = path.read_text(encoding="utf-8").splitlines()
+        changed = [x if x.startswith("//") else " ".join(change(x.split())) for x in lines]
+        path.write_text("\n".join(changed) + "\n", encoding="utf-8")
+
+    return apply
+
+
+_SA = "spatial-analyzer.txt"
+_IMPORT_CASES = [
+    Case(
+        "import-inches-as-mm",
+        COMMAND[_SA],
+        (_SA, "line 3", "in inches", "--units in"),
+        _export_lines(lambda f: [*f[:3], *(str(float(v) / 25.4) for v in f[3:])]),
+    ),
+    Case(
+        "import-names-shifted",
+        COMMAND[_SA],
+        (_SA, "line 3", "names shifted"),
+        _export_lines(lambda f: [*f[:2], str(int(f[2]) + 1), *f[3:]]),
+    ),
+    Case("import-units-yd", (*COMMAND[_SA], "--units", "yd"), ("--units", "yd")),
+    Case("import-naming-bad", (*COMMAND[_SA], "--naming", "x"), ("--naming", "'x'")),
+    Case(
+        "program-tracker-simultaneous",
+        ("program", "--instrument", "tracker", "--simultaneous"),
+        ("--simultaneous is for --instrument tracer",),
+    ),
+    Case(
+        "dry-run-tracker-simultaneous",
+        ("dry-run", "--instrument", "tracker", "--simultaneous", "--out", "dry"),
+        ("--simultaneous is for --instrument tracer",),
+    ),
+    Case(
+        "import-both-exports",
+        (*COMMAND[_SA], "--name-xyz", _SA),
+        ("--spatial-analyzer", "--name-xyz"),
+    ),
 ]
 
 
@@ -1362,7 +1498,14 @@ _FILES_CASES = [
     # --canopen 999.999.1.1: serve-canopen-not-a-group above (the canopen helper's)
 ]
 
-CASES = _generic_cases() + _kind_cases() + _CLI_CASES + _CARELESS_USER_CASES + _FILES_CASES
+CASES = (
+    _generic_cases()
+    + _kind_cases()
+    + _same_file_cases()
+    + _CLI_CASES
+    + _CARELESS_USER_CASES
+    + _FILES_CASES
+)
 
 
 # -- running a case -----------------------------------------------------------------------

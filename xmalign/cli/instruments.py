@@ -14,30 +14,26 @@ from rich.table import Table as RichTable
 
 from trajectories.gcode import make_dialect, resolve_dialect
 from trajectories.instruments import (
-    InstrumentProgram,
-    fly_paths,
-    information_limit_um,
+    machine_time_note,
+    plan_instrument,
     point_list_csv,
-    propose_tracer_places,
-    tracer_points,
-    tracker_place,
-    tracker_points,
     write_instrument_program,
 )
 from xmalign.cli.common import console, error_console, machine_or_default, output_folder
 from xmalign.errors import InputError
 from xmalign.formats.common import atomic_write_text, refuse_overwriting
+from xmalign.formats.instrument_checks import UNITS_MM
 from xmalign.formats.instruments import (
     read_tracer_lengths,
     read_tracker_points,
     write_tracker_points,
 )
 from xmalign.formats.spatial_analyzer import (
+    NAMING,
     read_point_list,
-    read_spatial_analyzer,
-    tracker_points_from_export,
+    tracker_file_from_export,
+    unmeasured,
 )
-from xmalign.geometry import Vec
 from xmalign.instrument_text import instrument_lines
 from xmalign.machine import Machine
 from xmalign.post.evaluate import Instruments
@@ -78,10 +74,6 @@ def check_inputs(
         raise InputError("post: --verify-data needs --verify-plan when no --plan is given")
 
 
-def _triple(values: Vec, digits: int = 3) -> str:
-    return ", ".join(f"{v:.{digits}f}" for v in values)
-
-
 INSTRUMENTS = ("tracker", "tracer")
 
 
@@ -95,78 +87,55 @@ class InstrumentRequest:
     out: Path | None
     points_out: Path | None
     dialect: str | None
+    simultaneous: bool = False
 
 
-def check_instrument_options(instrument: str | None, on_the_fly: bool, places: int | None) -> None:
+def check_instrument_options(
+    instrument: str | None, on_the_fly: bool, places: int | None, simultaneous: bool = False
+) -> None:
     """One line for an instrument option that does not fit the others."""
     if instrument is None:
-        if on_the_fly or places is not None:
-            option = "--on-the-fly" if on_the_fly else "--places"
+        if on_the_fly or places is not None or simultaneous:
+            option = (
+                "--on-the-fly" if on_the_fly else "--places" if places is not None
+                else "--simultaneous"
+            )  # fmt: skip
             raise InputError(f"{option} needs --instrument tracker or tracer")
         return
     if instrument not in INSTRUMENTS:
         raise InputError(f"--instrument '{instrument}' is not known (known: tracker, tracer)")
     if instrument == "tracer" and on_the_fly:
         raise InputError("--on-the-fly is for --instrument tracker (a tracer measures lengths)")
-    if instrument == "tracker" and places is not None:
-        raise InputError("--places is for --instrument tracer")
+    if instrument == "tracker" and (places is not None or simultaneous):
+        option = "--places" if places is not None else "--simultaneous"
+        raise InputError(f"{option} is for --instrument tracer")
     if places is not None and not MIN_TRACER_PLACES <= places <= 12:
         raise InputError(f"--places {places}: give {MIN_TRACER_PLACES} to 12 tracer places")
 
 
 def program_instrument(machine: Machine, request: InstrumentRequest) -> None:
-    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration.
+    """Plan a tracker (points or paths on the fly) or tracer (places and points) calibration
+    (:func:`trajectories.instruments.plan_instrument`).
 
     Writes the G-code (stdout or ``out``), the point list for the instrument's own
     software (``points_out``), and tells on stderr where the instrument stands,
-    the machine time and how well the plan determines the errors.
+    which SMR to mount when, the machine time and how well the plan determines the
+    errors.
     """
     refuse_overwriting({}, {"--out": request.out, "--points-out": request.points_out})
     dialect_name = resolve_dialect(machine, request.dialect)
     name = request.out.stem if request.out is not None else "XMALIGN"
     dialect = make_dialect(dialect_name, machine, name)
-    if request.instrument == "tracker":
-        program = (
-            InstrumentProgram(paths_mm=fly_paths(machine))
-            if request.on_the_fly
-            else InstrumentProgram(points_mm=tracker_points(machine))
-        )
-        runs = 1 if request.on_the_fly else 2
-        where = tracker_place(machine)
-        limit = information_limit_um(machine, [program], tracker_mm=where, runs=runs)
-        what = (
-            f"{len(program.paths_mm)} paths on the fly"
-            if request.on_the_fly
-            else (f"{len(program.points_mm)} points, run it twice (runs 0 and 1)")
-        )
-        notes = [
-            f"tracker: {what}; stand it on the table near {_triple(where, 0)} mm (MCS),"
-            " the SMR at the machine file's smr_offset_mm"
-        ]
-        minutes = runs
-    else:
-        places = propose_tracer_places(machine, request.places)
-        program = InstrumentProgram(points_mm=tracer_points(machine))
-        limit = information_limit_um(machine, [program] * len(places), pivots_mm=places)
-        notes = [
-            f"tracer place P{i + 1}: pivot near {_triple(p, 0)} mm (MCS); run the program once"
-            for i, p in enumerate(places)
-        ]
-        notes.append(f"tracer: {len(program.points_mm)} points from each of {len(places)} places")
-        minutes = len(places)
+    plan = plan_instrument(
+        machine, request.instrument, request.on_the_fly, request.places, request.simultaneous
+    )
     text, time = write_instrument_program(
-        program, machine, dialect, f"xmalign {request.instrument}"
+        plan.program, machine, dialect, f"xmalign {request.instrument}"
     )
-    notes.append(
-        f"machine time: {time.total_s / 60:.1f} min per run, {minutes * time.total_s / 60:.1f} min"
-        f" in all; the volumetric error over the whole travel to about {limit:.2f} um"
-        " (standard uncertainty from the machine file's instrument uncertainty, RMS over the"
-        " travel; the machine's repeatability and the tables' model error come on top)"
-    )
-    for note in notes:
+    for note in [*plan.notes, machine_time_note(plan, time)]:
         error_console.print(note, highlight=False, markup=False, soft_wrap=True)
     if request.points_out is not None:
-        atomic_write_text(request.points_out, point_list_csv(program, machine.smr_offset))
+        atomic_write_text(request.points_out, point_list_csv(plan.program, machine.smr_offset))
     if request.out is not None:
         atomic_write_text(request.out, text)
     else:
@@ -178,19 +147,47 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _export(spatial_analyzer: Path | None, name_xyz: Path | None) -> tuple[Path, str, str]:
+    """The export given, its option and its default naming; one of the two options."""
+    if (spatial_analyzer is None) == (name_xyz is None):
+        raise InputError("import: give one of --spatial-analyzer FILE and --name-xyz FILE")
+    if spatial_analyzer is not None:
+        return spatial_analyzer, "--spatial-analyzer", "collection-group-target"
+    assert name_xyz is not None
+    return name_xyz, "--name-xyz", "target"
+
+
 def import_points(
-    spatial_analyzer: Annotated[
-        Path,
-        typer.Option(
-            "--spatial-analyzer",
-            help="SpatialAnalyzer ASCII export (Collection Group Target X Y Z, mm).",
-        ),
-    ],
     points: Annotated[
         Path,
         typer.Option(help="The point list of xmalign program --instrument tracker --points-out."),
     ],
     out: Annotated[Path, typer.Option(help="Tracker-points CSV to write (for post --tracker).")],
+    spatial_analyzer: Annotated[
+        Path | None,
+        typer.Option(
+            "--spatial-analyzer",
+            help="SpatialAnalyzer ASCII export (point names, X Y Z, optional further columns;"
+            " spaces, commas or tabs).",
+        ),
+    ] = None,
+    name_xyz: Annotated[
+        Path | None,
+        typer.Option(
+            "--name-xyz",
+            help="A plain Name,X,Y,Z export of other tracker software (optional header line).",
+        ),
+    ] = None,
+    naming: Annotated[
+        str | None,
+        typer.Option(
+            help="The export's point names: collection-group-target (SpatialAnalyzer's"
+            " default), group-target or target (--name-xyz's).",
+        ),
+    ] = None,
+    units: Annotated[
+        str, typer.Option(help="The export's length unit: mm, in or m (checked).")
+    ] = "mm",
     station: Annotated[str, typer.Option(help="The tracker station's name.")] = "T1",
     machine: Annotated[
         Path | None, typer.Option(help="Machine YAML with smr_offset_mm (default: reference).")
@@ -199,22 +196,33 @@ def import_points(
     """Convert a tracker's point export into tracker points for ``xmalign post --tracker``.
 
     Target names are the point indices of the point list; the export's groups
-    are the runs, in the order they first appear.
+    are the runs, in the order they first appear (without groups, a name measured
+    again starts the next run). The distances between the points must be the
+    commanded moves': an export in another unit than --units, or with names that
+    do not match the point list, is refused naming the first row that does not.
     """
-    refuse_overwriting(
-        {"--spatial-analyzer": spatial_analyzer, "--points": points, "--machine": machine},
-        {"--out": out},
-    )
+    export, option, default_naming = _export(spatial_analyzer, name_xyz)
+    if naming is not None and naming not in NAMING:
+        raise InputError(f"--naming '{naming}' is not known ({', '.join(NAMING)})")
+    if units not in UNITS_MM:
+        raise InputError(f"--units '{units}' is not known ({', '.join(UNITS_MM)})")
+    refuse_overwriting({option: export, "--points": points, "--machine": machine}, {"--out": out})
     machine_model = machine_or_default(machine)
-    exported = read_spatial_analyzer(spatial_analyzer)
-    rows = tracker_points_from_export(
-        exported, read_point_list(points), machine_model.smr_offset, station, str(spatial_analyzer)
+    listed = read_point_list(points)
+    file = tracker_file_from_export(
+        machine_model, export, listed, station, naming or default_naming, units
     )
-    inputs = {str(path): file_sha256(path) for path in (spatial_analyzer, points)}
-    write_tracker_points(out, rows, inputs)
-    runs = len({row.run for row in rows})
+    inputs = {str(path): file_sha256(path) for path in (export, points)}
+    write_tracker_points(out, file.points, inputs)
+    runs = len({row.run for row in file.points})
+    missing = unmeasured(listed, file)
     error_console.print(
-        f"wrote {out}: {len(rows)} points of station {station} in {runs} run(s)", highlight=False
+        f"wrote {out}: {len(file.points)} points of station {station} in {runs} run(s),"
+        f" read in {units}"
+        + (
+            f"; {len(missing)} listed points not measured (first '{missing[0]}')" if missing else ""
+        ),
+        highlight=False,
     )
 
 
@@ -223,21 +231,40 @@ def register(app: typer.Typer) -> None:
 
 
 def instrument_dry_run(
-    machine: Machine, out: Path, instrument: str, seed: int, dialect: str | None
+    machine: Machine,
+    out: Path,
+    instrument: str,
+    seed: int,
+    dialect: str | None,
+    simultaneous: bool = False,
 ) -> None:
     """``xmalign dry-run --instrument``: the simulated chain and its figures against the truth."""
-    from sim.instrument_dry_run import simulate_instruments
+    from sim.instrument_dry_run import MATERIAL_C, simulate_instruments
 
     with error_console.status(f"dry run, {instrument}"):
-        report = simulate_instruments(machine, out, instrument, seed, dialect)
-    assert report.result.instruments is not None
+        report = simulate_instruments(machine, out, instrument, seed, dialect, simultaneous)
+    assert report.result.instruments is not None and report.machine is not None
     for line in instrument_lines(report.result.instruments):
         error_console.print(line, highlight=False, markup=False, soft_wrap=True)
+    tracker, tracer = report.machine.tracker, report.machine.tracer
+    smr = ", ".join(report.machine.smr_offsets_mm) or "one"
+    time = f"machine time: {instrument} {report.instrument_min:.0f} min"
+    if report.other_way_min is not None:
+        other = "one place at a time" if report.simultaneous else "all tracers at once"
+        way = "all tracers at once" if report.simultaneous else "one place at a time"
+        time += f" ({way}; {other}: {report.other_way_min:.0f} min)"
+    if report.xm60_after_um is not None:
+        time += f", XM-60 station {report.xm60_min:.0f} min"
+    errors = (
+        f"tracer scale {tracer.scale_ppm:g} ppm per run"
+        if instrument == "tracer"
+        else f"tracker angle errors {tracker.angle_systematic_urad:g} urad, scale"
+        f" {tracker.scale_ppm:g} ppm per run"
+    )
     lines = [
-        f"machine time: {instrument} {report.instrument_min:.0f} min"
-        + (
-            f", XM-60 station {report.xm60_min:.0f} min" if report.xm60_after_um is not None else ""
-        ),
+        f"virtual instruments: SMR positions {smr}; {errors}; the machine's scales at"
+        f" {MATERIAL_C[0]:g} to {MATERIAL_C[1]:g} degC through each run (material_c)",
+        time,
         f"volumetric error over the whole travel (RMS, rigid motion removed, at the"
         f" {report.functional_point}): before {report.volumetric_before_um:.2f} um, after"
         f" {report.volumetric_after_um:.2f} um"

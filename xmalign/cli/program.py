@@ -99,6 +99,13 @@ def program(
         bool, typer.Option("--on-the-fly", help="Tracker: paths on the fly, not points.")
     ] = False,
     places: Annotated[int | None, typer.Option(help="Tracer: how many places (default 4).")] = None,
+    simultaneous: Annotated[
+        bool,
+        typer.Option(
+            "--simultaneous",
+            help="Tracer: a tracer at every place, all following the SMR in the same run.",
+        ),
+    ] = False,
     points_out: Annotated[
         Path | None,
         typer.Option(help="With --instrument: the point list for the instrument's software."),
@@ -110,13 +117,16 @@ def program(
     With all six lines it also proposes a second launch-unit station whose lines
     complete the strokes (docs/post.md); plan that station with --lines.
 
-    With --instrument tracker (--on-the-fly) or tracer (--places N): the points
-    or paths of a laser-tracker or laser-tracer calibration over the whole travel.
+    With --instrument tracker (--on-the-fly) or tracer (--places N, --simultaneous):
+    the points or paths of a laser-tracker or laser-tracer calibration over the
+    whole travel, with the SMR positions of the machine file (or three proposed).
     """
-    check_instrument_options(instrument, on_the_fly, places)
+    check_instrument_options(instrument, on_the_fly, places, simultaneous)
     if instrument is not None:
         refuse_replacing({"--out": out, "--points-out": points_out}, force)
-        request = InstrumentRequest(instrument, on_the_fly, places or 4, out, points_out, dialect)
+        request = InstrumentRequest(
+            instrument, on_the_fly, places or 4, out, points_out, dialect, simultaneous
+        )
         program_instrument(machine_or_default(machine), request)
         return
     if not pose.exists():

@@ -503,6 +503,13 @@ def dry_run_command(
         str,
         typer.Option(help="xm60, or a laser 'tracker', 'tracer' or 'xm60+tracker' (in-process)."),
     ] = "xm60",
+    simultaneous: Annotated[
+        bool,
+        typer.Option(
+            "--simultaneous",
+            help="With --instrument tracer: every tracer follows the SMR in the same run.",
+        ),
+    ] = False,
 ) -> None:
     """The whole calibration on the virtual machine: identify, program, run, post, comp."""
     from sim.dry_run import STAGES, DryRunOptions, check_dry_run_folder, simulate_calibration
@@ -510,8 +517,12 @@ def dry_run_command(
 
     check_seed(seed)
     if instrument != "xm60":
-        instrument_dry_run(machine_or_default(machine), out, instrument, seed, dialect)
+        instrument_dry_run(
+            machine_or_default(machine), out, instrument, seed, dialect, simultaneous
+        )
         return
+    if simultaneous:
+        raise InputError("--simultaneous is for --instrument tracer")
     check_positions(identification_positions, "--identification-positions")
     _check_shop(shop)
     machine_model = machine_or_default(machine)

@@ -100,17 +100,23 @@ class TracerLength:
 
 @dataclass
 class TrackerFile:
+    """Tracker points and where they came from (``lines``: each point's line, when read)."""
+
     points: list[TrackerPoint]
     source: str
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 @dataclass
 class TracerFile:
+    """Tracer lengths and where they came from (``lines``: each length's line, when read)."""
+
     lengths: list[TracerLength]
     source: str
     guesses_mm: dict[str, Vec] = field(default_factory=dict)
     comments: list[str] = field(default_factory=list)
+    lines: list[int] = field(default_factory=list)
 
 
 Row = TypeVar("Row")
@@ -175,8 +181,11 @@ def _parse(
     columns: tuple[str, ...],
     parse_row: Callable[[Mapping[str, str], Callable[[str], InputError]], Row],
     on_comment: Callable[[str, int], None],
-) -> None:
-    """Rows of a CSV with a format line, comments and a header; checks every line."""
+) -> list[int]:
+    """Rows of a CSV with a format line, comments and a header; checks every line.
+
+    Returns the line number of each row, in order.
+    """
     lines = text.splitlines()
     if lines and text and not text.endswith(("\n", "\r")) and not lines[-1].startswith("#"):
         raise line_error(
@@ -187,6 +196,7 @@ def _parse(
         raise line_error(source, 1, f"expected '{preamble}', found '{first}'")
     header: list[str] | None = None
     seen: dict[tuple[object, ...], int] = {}
+    numbers: list[int] = []
     for number, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
@@ -212,8 +222,10 @@ def _parse(
         if key in seen:
             raise problem(f"repeats the reading of line {seen[key]} (station, run, smr, index)")
         seen[key] = number
-    if not seen:
+        numbers.append(number)
+    if not numbers:
         raise InputError(f"{source}: no readings")
+    return numbers
 
 
 def _key(row: object) -> tuple[object, ...]:
@@ -287,7 +299,7 @@ def read_tracker_points(path: str | Path) -> TrackerFile:
     path = Path(path)
     comments: list[str] = []
     points: list[TrackerPoint] = []
-    _parse(
+    lines = _parse(
         _read_text(path),
         str(path),
         TRACKER_FORMAT,
@@ -295,7 +307,7 @@ def read_tracker_points(path: str | Path) -> TrackerFile:
         _collect(points, _tracker_row),
         lambda text, number: comments.append(text),
     )
-    return TrackerFile(points, str(path), comments)
+    return TrackerFile(points, str(path), comments, lines)
 
 
 def read_tracer_lengths(path: str | Path) -> TracerFile:
@@ -310,7 +322,7 @@ def read_tracer_lengths(path: str | Path) -> TracerFile:
         else:
             result.comments.append(text)
 
-    _parse(
+    result.lines = _parse(
         _read_text(path),
         str(path),
         TRACER_FORMAT,

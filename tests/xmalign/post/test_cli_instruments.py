@@ -17,7 +17,12 @@ from sim.machine import VirtualMachine
 from sim.synthetic import measure, six_line_plan
 from sim.tracker import VirtualTracker, measure_tracker
 from tests.cli_helpers import assert_one_line_error, run_in_process
-from trajectories.instruments import grid_and_random_points
+from trajectories.instruments import (
+    InstrumentProgram,
+    grid_and_random_points,
+    point_list_csv,
+    tracker_points,
+)
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.instruments import (
     read_tracer_lengths,
@@ -27,6 +32,7 @@ from xmalign.formats.instruments import (
 )
 from xmalign.formats.measurements import write_measurements
 from xmalign.formats.plan import write_plan
+from xmalign.machine import default_machine_path, load_machine
 from xmalign.rigid_body import Chain
 
 EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
@@ -153,10 +159,17 @@ def test_program_for_a_tracker_writes_every_point_and_the_point_list(
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     text = out.read_text()
-    assert "point 249" in text and "point 250" not in text
     rows = points.read_text().splitlines()
-    assert rows[0] == "name,x_mm,y_mm,z_mm" and rows[1].startswith("0,") and len(rows) == 251
+    count = len(rows) - 1
+    assert f"point {count - 1}" in text and f"point {count}" not in text
+    # the reference machine names no SMR positions: three proposed, each measuring the
+    # 5 x 4 x 3 grid and a third of the 190 random points, mounted at a programmed stop
+    assert count == 3 * 60 + 190
+    assert rows[0] == "name,x_mm,y_mm,z_mm,smr" and rows[1].startswith("0,")
+    assert [row.split(",")[-1] for row in rows[1:]] == ["A"] * 124 + ["B"] * 123 + ["C"] * 123
+    assert text.count("mount SMR") == 2 * 3  # a comment and a message at each
     assert "machine time:" in result.stderr and "run it twice" in result.stderr
+    assert "SMR B (100, 0, 0 mm) before point 124" in result.stderr
 
 
 def test_program_for_tracers_proposes_places_and_says_how_good(tmp_path: Path) -> None:
@@ -192,12 +205,12 @@ def test_program_instrument_options_that_do_not_fit(argv, fragment: str) -> None
 
 
 def _point_list(tmp_path: Path) -> Path:
+    """The point list of a tracker program with the one SMR of examples/spatial-analyzer.txt
+    (``program`` itself plans several where the machine file names none)."""
+    machine = load_machine(default_machine_path())
     points = tmp_path / "points.csv"
-    result = run_in_process(
-        "program", "--instrument", "tracker", "--points-out", str(points),
-        "--out", str(tmp_path / "t.mpf"),
-    )  # fmt: skip
-    assert result.returncode == 0, result.stderr
+    program = InstrumentProgram(points_mm=tracker_points(machine))
+    points.write_text(point_list_csv(program, machine.smr_offset))
     return points
 
 
