@@ -1360,7 +1360,7 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
 
     Candidates from coarse to fine (:func:`knot_spacing_candidates`), every one
     scored (a score can stay flat or rise over several spacings and fall again,
-    by a factor of five, where the tables first follow an error's wavelength:
+    tenfold and more, where the tables first follow an error's wavelength:
     the least score so far is no minimum of the curve); the search stops where
     the data cannot determine a finer table, or where the tables would have more
     than a :data:`MAX_COLUMNS_PER_READING` share of the readings' components

@@ -100,7 +100,7 @@ def test_the_knot_spacing_follows_a_small_machine() -> None:
 
 def test_a_score_that_rises_before_it_falls_does_not_end_the_search(tmp_path: Path) -> None:
     """The tracer dry run on the reference machine, seed 2 (issue 30): the score rises
-    from 400 to 333 mm knots (7 % above the best so far) and falls five-fold at 250 mm,
+    from 400 to 333 mm knots (7 % above the best so far) and falls twelvefold at 250 mm,
     where the tables first follow the errors' wavelength. The search that stopped 5 %
     above the best kept 400 mm: 3.56 um from the truth; over every candidate, 0.43 um."""
     machine = load_machine(default_machine_path())
