@@ -101,8 +101,6 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
 
 #: The chosen tables have at most this many values per reading component (docs/post.md).
 MAX_COLUMNS_PER_READING = 0.25
-#: The search for the knot spacing stops where the score rises this much above the best.
-_GCV_RISE = 1.05
 #: The compensation-point spacings ``post`` tries or accepts where no line sets them, mm.
 MIN_KNOT_SPACING_MM = 20.0
 MAX_KNOT_SPACING_MM = 2000.0
@@ -472,7 +470,8 @@ def instrument_knots(
         low, high = points_mm[:, k].min(), points_mm[:, k].max()
         if high - low < 1.0:
             raise GeometryError(f"{sources}: the points do not move the {axis} axis")
-        n = int(min(max(3, np.ceil((high - low) / spacing_mm) + 1), standing[k]))
+        intervals = np.ceil(round((high - low) / spacing_mm, 6))  # range / n: n, not n + 1
+        n = int(min(max(3, intervals + 1), standing[k]))
         if n < 3:
             raise GeometryError(
                 f"{sources}: the {axis} axis stood at {int(standing[k])} coordinate(s) only;"
@@ -1519,13 +1518,14 @@ def knot_spacing_candidates(reach_mm: Vec) -> list[float]:
 def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
     """The fit at the knot spacing with the least generalised cross-validation score.
 
-    Candidates from coarse to fine (:func:`knot_spacing_candidates`); the search
-    stops where a score rises :data:`_GCV_RISE` above the best (a score can stay
-    flat over several spacings and fall again where the tables first follow an
-    error's wavelength), where the data cannot determine a finer table, or where
-    the tables would have more than a :data:`MAX_COLUMNS_PER_READING` share of
-    the readings' components (noise-free or sparse data would otherwise go on to
-    ever finer tables that interpolate the readings and swing between them).
+    Candidates from coarse to fine (:func:`knot_spacing_candidates`), every one
+    scored (a score can stay flat or rise over several spacings and fall again,
+    tenfold and more, where the tables first follow an error's wavelength:
+    the least score so far is no minimum of the curve); the search stops where
+    the data cannot determine a finer table, or where the tables would have more
+    than a :data:`MAX_COLUMNS_PER_READING` share of the readings' components
+    (noise-free or sparse data would otherwise go on to ever finer tables that
+    interpolate the readings and swing between them).
     """
     reach = _instrument_points(inputs.trackers, inputs.tracers)
     standing = _standing_positions(inputs.trackers, inputs.tracers)
@@ -1556,8 +1556,6 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
         scores.append((spacing, system.gcv))
         if best is None or system.gcv < best[1].gcv:
             best = (spacing, system)
-        elif system.gcv > _GCV_RISE * best[1].gcv:
-            break
     assert best is not None  # the coarsest candidate either fitted or raised
     joint = _fit(inputs, best[0], best[1])
     joint.spacing_scores = scores
