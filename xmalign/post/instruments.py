@@ -147,6 +147,11 @@ _ROTATION_ABOUT = {"EA": 0, "EB": 1, "EC": 2}
 _ANGLE_COEFFICIENTS = 16
 
 
+def _given(values: np.ndarray, rows: slice | np.ndarray) -> np.ndarray:
+    """These rows of an optional per-row column (empty: none given, stays empty)."""
+    return values[rows] if len(values) else values
+
+
 @dataclass(frozen=True)
 class TrackerStation:
     """The points of one tracker station (mm).
@@ -183,9 +188,9 @@ class TrackerStation:
             to_mm=self.to_mm[rows],
             u_radial_mm=self.u_radial_mm[rows],
             u_transverse_mm=self.u_transverse_mm[rows],
-            index=self.index[rows],
-            smr=self.smr[rows],
-            material_c=self.material_c[rows],
+            index=_given(self.index, rows),
+            smr=_given(self.smr, rows),
+            material_c=_given(self.material_c, rows),
         )
 
     def directions(self) -> Vec:
@@ -225,9 +230,9 @@ class TracerPlace:
             run=self.run[rows],
             machine_mm=self.machine_mm[rows],
             length_mm=self.length_mm[rows],
-            index=self.index[rows],
-            smr=self.smr[rows],
-            material_c=self.material_c[rows],
+            index=_given(self.index, rows),
+            smr=_given(self.smr, rows),
+            material_c=_given(self.material_c, rows),
         )
 
 
@@ -1583,7 +1588,7 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
     """
     reach = _instrument_points(inputs.trackers, inputs.tracers)
     standing = _standing_positions(inputs.trackers, inputs.tracers)
-    trackers, tracers = spacing_sample(inputs.trackers, inputs.tracers)
+    trackers, tracers = spacing_sample(inputs.trackers, inputs.tracers, SPACING_SAMPLE_POINTS)
     thinned = trackers is not inputs.trackers or tracers is not inputs.tracers
     scored = inputs
     if thinned:
