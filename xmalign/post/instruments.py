@@ -374,7 +374,8 @@ class JointFit:
     Gauss-Newton steps it took to settle; ``knot_spacing_mm`` the spacing of the
     compensation points where no line set them (None: the lines' default),
     ``spacing_scores`` each spacing tried with its generalised cross-validation
-    score (empty when the spacing was given) and ``gcv`` this fit's;
+    score (empty when the spacing was given; above :data:`SPACING_SAMPLE_POINTS`
+    rows, of :func:`spacing_sample`'s copy) and ``gcv`` this fit's (of all rows);
     ``outliers`` the readings left out.
     """
 
