@@ -69,7 +69,7 @@ def run_xmalign(args: list[str], cwd: Path) -> tuple[float, float, float]:
             [sys.executable, "-m", "xmalign", *args],
             cwd=cwd,
             env=env,
-            stdout=subprocess.DEVNULL,
+            stdout=stderr,
             stderr=stderr,
         )
         _, status, usage = os.wait4(process.pid, 0)
@@ -139,6 +139,9 @@ def main() -> None:
                     f"{imported[2]:>6.2f}{wall:>9.1f}{cpu:>8.1f}{rss:>6.2f}",
                     flush=True,
                 )
+                said = (folder / "stderr.txt").read_text().splitlines()
+                chosen = [line.strip() for line in said if "mm apart" in line]
+                print("\n".join(f"    {line}" for line in chosen), flush=True)
 
 
 if __name__ == "__main__":

@@ -101,13 +101,16 @@ from xmalign.rigid_body import AXES, AXIS_INDEX, Chain, squareness_deviation
 
 #: The chosen tables have at most this many values per reading component (docs/post.md).
 MAX_COLUMNS_PER_READING = 0.25
-#: The search for the knot spacing stops where the score rises this much above the best.
-_GCV_RISE = 1.05
 #: The compensation-point spacings ``post`` tries or accepts where no line sets them, mm.
 MIN_KNOT_SPACING_MM = 20.0
 MAX_KNOT_SPACING_MM = 2000.0
 #: Candidate spacings: the longest range the instruments measured over these (docs/post.md).
 _CANDIDATE_INTERVALS = (2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 20, 24, 28, 32, 40, 50, 64)
+#: Above this many tracker points and tracer lengths the knot spacing is chosen on a
+#: thinned copy of them (:func:`spacing_sample`), then all are fitted once at it.
+SPACING_SAMPLE_POINTS = 50_000
+#: Seed of the thinned copy's start within each run.
+_SPACING_SAMPLE_SEED = 0
 #: Spacing of the knots that continue the lines' tables where only instruments reach, mm.
 EXTENSION_SPACING_MM = 400.0
 #: Gauss-Newton stops when no pose or pivot moves more than this, mm.
@@ -144,6 +147,11 @@ _ROTATION_ABOUT = {"EA": 0, "EB": 1, "EC": 2}
 _ANGLE_COEFFICIENTS = 16
 
 
+def _given(values: np.ndarray, rows: slice | np.ndarray) -> np.ndarray:
+    """These rows of an optional per-row column (empty: none given, stays empty)."""
+    return values[rows] if len(values) else values
+
+
 @dataclass(frozen=True)
 class TrackerStation:
     """The points of one tracker station (mm).
@@ -170,7 +178,7 @@ class TrackerStation:
     def on_the_fly(self) -> np.ndarray:
         return ~np.isnan(self.to_mm[:, 0])
 
-    def rows(self, rows: slice) -> TrackerStation:
+    def rows(self, rows: slice | np.ndarray) -> TrackerStation:
         """The station with only these rows (a chunk of the fit)."""
         return dataclasses.replace(
             self,
@@ -180,9 +188,9 @@ class TrackerStation:
             to_mm=self.to_mm[rows],
             u_radial_mm=self.u_radial_mm[rows],
             u_transverse_mm=self.u_transverse_mm[rows],
-            index=self.index[rows],
-            smr=self.smr[rows],
-            material_c=self.material_c[rows],
+            index=_given(self.index, rows),
+            smr=_given(self.smr, rows),
+            material_c=_given(self.material_c, rows),
         )
 
     def directions(self) -> Vec:
@@ -215,16 +223,16 @@ class TracerPlace:
     def runs(self) -> list[int]:
         return sorted({int(r) for r in self.run})
 
-    def rows(self, rows: slice) -> TracerPlace:
+    def rows(self, rows: slice | np.ndarray) -> TracerPlace:
         """The place with only these lengths (a chunk of the fit)."""
         return dataclasses.replace(
             self,
             run=self.run[rows],
             machine_mm=self.machine_mm[rows],
             length_mm=self.length_mm[rows],
-            index=self.index[rows],
-            smr=self.smr[rows],
-            material_c=self.material_c[rows],
+            index=_given(self.index, rows),
+            smr=_given(self.smr, rows),
+            material_c=_given(self.material_c, rows),
         )
 
 
@@ -366,7 +374,8 @@ class JointFit:
     Gauss-Newton steps it took to settle; ``knot_spacing_mm`` the spacing of the
     compensation points where no line set them (None: the lines' default),
     ``spacing_scores`` each spacing tried with its generalised cross-validation
-    score (empty when the spacing was given) and ``gcv`` this fit's;
+    score (empty when the spacing was given; above :data:`SPACING_SAMPLE_POINTS`
+    rows, of :func:`spacing_sample`'s copy) and ``gcv`` this fit's (of all rows);
     ``outliers`` the readings left out.
     """
 
@@ -472,7 +481,8 @@ def instrument_knots(
         low, high = points_mm[:, k].min(), points_mm[:, k].max()
         if high - low < 1.0:
             raise GeometryError(f"{sources}: the points do not move the {axis} axis")
-        n = int(min(max(3, np.ceil((high - low) / spacing_mm) + 1), standing[k]))
+        intervals = np.ceil(round((high - low) / spacing_mm, 6))  # range / n: n, not n + 1
+        n = int(min(max(3, intervals + 1), standing[k]))
         if n < 3:
             raise GeometryError(
                 f"{sources}: the {axis} axis stood at {int(standing[k])} coordinate(s) only;"
@@ -1473,6 +1483,9 @@ class _Inputs:
     sources: str
     undetermined: list[str]
     progress: Progress | None = None
+    #: The reach (each axis's least and greatest coordinate, (2, 3)) and standing counts
+    #: the knots are spread by, where not these rows' own (a thinned copy's: all rows').
+    knot_basis: tuple[Vec, Vec] | None = None
 
 
 def _smr_positions(
@@ -1516,23 +1529,76 @@ def knot_spacing_candidates(reach_mm: Vec) -> list[float]:
     return spacings or [float(np.clip(longest / 2, MIN_KNOT_SPACING_MM, MAX_KNOT_SPACING_MM))]
 
 
+def spacing_sample(
+    trackers: list[TrackerStation],
+    tracers: list[TracerPlace],
+    points: int = SPACING_SAMPLE_POINTS,
+) -> tuple[list[TrackerStation], list[TracerPlace]]:
+    """The rows the knot spacing is chosen on: all, or about ``points`` spread over all.
+
+    Above ``points`` tracker points and tracer lengths in all, every station and
+    place keeps every ``k``-th row of each of its runs in capture order
+    (``k = ceil(total / points)``, the same for all), from a start drawn within
+    the run's first ``k`` rows (seeded: the same copy every time; a run that
+    repeats the last one's points keeps other ones). Every run keeps a row.
+    """
+    total = sum(len(s.run) for s in trackers) + sum(len(p.run) for p in tracers)
+    if total <= points:
+        return trackers, tracers
+    stride = -(-total // points)
+    rng = np.random.default_rng(_SPACING_SAMPLE_SEED)
+    return (
+        [s.rows(_every(s.run, stride, rng)) for s in trackers],
+        [p.rows(_every(p.run, stride, rng)) for p in tracers],
+    )
+
+
+def _every(run: np.ndarray, stride: int, rng: np.random.Generator) -> np.ndarray:
+    """Every ``stride``-th row of each run, from a random start within its first ``stride``."""
+    _, group, sizes = np.unique(run, return_inverse=True, return_counts=True)
+    order = np.argsort(group, kind="stable")  # each run's rows in capture order
+    first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    start = rng.integers(0, np.minimum(stride, sizes))
+    within = np.arange(len(run)) - np.repeat(first, sizes)
+    offset = within - np.repeat(start, sizes)
+    return np.sort(order[(offset >= 0) & (offset % stride == 0)])
+
+
+def _knot_basis(inputs: _Inputs) -> tuple[Vec, Vec]:
+    """The reach ((N, 3) points, or their least and greatest) and standing counts (3,)."""
+    if inputs.knot_basis is not None:
+        return inputs.knot_basis
+    reach = _instrument_points(inputs.trackers, inputs.tracers)
+    return reach, _standing_positions(inputs.trackers, inputs.tracers)
+
+
 def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
     """The fit at the knot spacing with the least generalised cross-validation score.
 
-    Candidates from coarse to fine (:func:`knot_spacing_candidates`); the search
-    stops where a score rises :data:`_GCV_RISE` above the best (a score can stay
-    flat over several spacings and fall again where the tables first follow an
-    error's wavelength), where the data cannot determine a finer table, or where
-    the tables would have more than a :data:`MAX_COLUMNS_PER_READING` share of
-    the readings' components (noise-free or sparse data would otherwise go on to
-    ever finer tables that interpolate the readings and swing between them).
+    Candidates from coarse to fine (:func:`knot_spacing_candidates`), every one
+    scored (a score can stay flat or rise over several spacings and fall again,
+    tenfold and more, where the tables first follow an error's wavelength:
+    the least score so far is no minimum of the curve); the search stops where
+    the data cannot determine a finer table, or where the tables would have more
+    than a :data:`MAX_COLUMNS_PER_READING` share of the readings' components
+    (noise-free or sparse data would otherwise go on to ever finer tables that
+    interpolate the readings and swing between them). Above
+    :data:`SPACING_SAMPLE_POINTS` rows the candidates are scored on
+    :func:`spacing_sample` (knots spread over all rows' reach), and all rows are
+    then fitted once at the chosen spacing.
     """
     reach = _instrument_points(inputs.trackers, inputs.tracers)
     standing = _standing_positions(inputs.trackers, inputs.tracers)
-    components = sum(
-        2 * int(s.on_the_fly.sum()) + 3 * int((~s.on_the_fly).sum()) for s in inputs.trackers
-    )
-    components += sum(len(p.run) for p in inputs.tracers)
+    trackers, tracers = spacing_sample(inputs.trackers, inputs.tracers, SPACING_SAMPLE_POINTS)
+    thinned = trackers is not inputs.trackers or tracers is not inputs.tracers
+    scored = inputs
+    if thinned:
+        bounds = np.stack([reach.min(axis=0), reach.max(axis=0)])
+        scored = dataclasses.replace(
+            inputs, trackers=trackers, tracers=tracers, knot_basis=(bounds, standing)
+        )
+    components = sum(2 * int(s.on_the_fly.sum()) + 3 * int((~s.on_the_fly).sum()) for s in trackers)
+    components += sum(len(p.run) for p in tracers)
     best: tuple[float, _System] | None = None
     previous: _System | None = None
     scores: list[tuple[float, float]] = []
@@ -1543,11 +1609,11 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
         if counts in knots_tried:
             continue
         knots_tried.add(counts)
-        layout, _ = _joint_layout(inputs, spacing)
+        layout, _ = _joint_layout(scored, spacing)
         if best is not None and layout.n_columns > MAX_COLUMNS_PER_READING * components:
             break
         try:
-            system = _System(inputs, spacing, start=previous)
+            system = _System(scored, spacing, start=previous)
         except GeometryError:
             if best is None:
                 raise
@@ -1556,10 +1622,9 @@ def _fit_chosen_spacing(inputs: _Inputs) -> JointFit:
         scores.append((spacing, system.gcv))
         if best is None or system.gcv < best[1].gcv:
             best = (spacing, system)
-        elif system.gcv > _GCV_RISE * best[1].gcv:
-            break
     assert best is not None  # the coarsest candidate either fitted or raised
-    joint = _fit(inputs, best[0], best[1])
+    chosen = _System(inputs, best[0], start=best[1]) if thinned else best[1]
+    joint = _fit(inputs, best[0], chosen)
     joint.spacing_scores = scores
     return joint
 
@@ -1816,7 +1881,7 @@ def _joint_layout(
     where the lines measured it. Without: points spread over the instruments'
     range at ``knot_spacing_mm``, and the rotations no reading can see left out.
     """
-    reach = _instrument_points(inputs.trackers, inputs.tracers)
+    reach, standing = _knot_basis(inputs)
     if inputs.lines:
         line_knots = compensation_points(inputs.lines)
         spacing = EXTENSION_SPACING_MM if knot_spacing_mm is None else knot_spacing_mm
@@ -1826,7 +1891,6 @@ def _joint_layout(
         layout = ParameterLayout(knots, bidirectional_axes(inputs.lines))
         return _reversal_within(layout, line_knots), line_knots
     assert knot_spacing_mm is not None  # chosen by _fit_chosen_spacing
-    standing = _standing_positions(inputs.trackers, inputs.tracers)
     knots = instrument_knots(reach, knot_spacing_mm, standing, inputs.sources)
     return _without_tables(ParameterLayout(knots, set()), inputs.undetermined), knots
 
