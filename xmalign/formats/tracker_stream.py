@@ -219,14 +219,20 @@ def tracker_stream_text(runs: list[StreamRun], inputs: Iterable[FileSource] = ()
     out.write("\n")
     for r in runs:
         table = np.column_stack([r.time_s, r.tracker_mm])
-        row = f"{r.station.replace('%', '%%')},{r.run},%.5f,%.5f,%.5f,%.5f"
-        if with_u:
-            table = np.column_stack([table, r.u_radial_um, r.u_transverse_um])
-            row += ",%.4f,%.4f"
-        text = io.StringIO()
-        np.savetxt(text, table, fmt=row, comments="")
-        out.write(text.getvalue().replace(",nan", ","))
+        out.write(_run_rows(r, table, "%.5f,%.5f,%.5f,%.5f", with_u))
     return out.getvalue()
+
+
+def _run_rows(run: StreamRun | FlyRun, table: Vec, row_format: str, with_u: bool) -> str:
+    """One (station, run)'s rows: ``station,run,`` then ``table`` (n, k) in ``row_format``,
+    and the uncertainty columns where ``with_u`` (an empty field where a value is NaN)."""
+    row = f"{run.station.replace('%', '%%')},{run.run},{row_format}"
+    if with_u:
+        table = np.column_stack([table, run.u_radial_um, run.u_transverse_um])
+        row += ",%.4f,%.4f"
+    text = io.StringIO()
+    np.savetxt(text, table, fmt=row, comments="")
+    return text.getvalue().replace(",nan", ",")
 
 
 @dataclass(frozen=True)
@@ -251,16 +257,11 @@ def fly_rows_text(runs: list[FlyRun], inputs: Iterable[FileSource] = ()) -> str:
     out = io.StringIO()
     out.write("\n".join([TRACKER_FORMAT, *_provenance(TRACKER_FORMAT, inputs), ",".join(columns)]))
     out.write("\n")
+    # the index is empty on the fly: ``,`` before the commanded start
+    row_format = "," + ",".join(["%.4f"] * 3 + ["%.5f"] * 3 + ["%.4f"] * 3) + ",%.5f"
     for r in runs:
         table = np.column_stack([r.start_mm, r.tracker_mm, r.end_mm, r.time_s])
-        row = f"{r.station.replace('%', '%%')},{r.run},," + ",".join(["%.4f"] * 3 + ["%.5f"] * 3)
-        row += "," + ",".join(["%.4f"] * 3) + ",%.5f"
-        if with_u:
-            table = np.column_stack([table, r.u_radial_um, r.u_transverse_um])
-            row += ",%.4f,%.4f"
-        text = io.StringIO()
-        np.savetxt(text, table, fmt=row, comments="")
-        out.write(text.getvalue().replace(",nan", ","))
+        out.write(_run_rows(r, table, row_format, with_u))
     return out.getvalue()
 
 
