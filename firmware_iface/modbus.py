@@ -45,9 +45,10 @@ ILLEGAL_DATA_VALUE = 3
 #: Modbus exception code "server device busy": another host controls the unit.
 SERVER_DEVICE_BUSY = 6
 #: After its own reconnect the host may still be the unit's owner on the connection it
-#: dropped, until the unit sees that one closed (or 500 ms without a heartbeat change): a
-#: "busy" answer in this time is asked again, not taken as another host's.
-BUSY_AFTER_RECONNECT_S = 0.7
+#: dropped, until the unit sees that one closed (or 500 ms without a heartbeat change,
+#: counted from the dropped request, which can reach a slow unit late): a "busy" answer
+#: in this time is asked again, not taken as another host's (docs/registers.md).
+BUSY_AFTER_RECONNECT_S = 2.0
 BUSY_RETRY_S = 0.05
 #: Modbus exception code "illegal data address": no such (writable, whole) register.
 ILLEGAL_DATA_ADDRESS = 2
