@@ -677,7 +677,12 @@ def controlled_drive(
     program at ``program_path`` as the controller opens it (:func:`write_controller_program`
     wrote it); a point only with the machine at rest within ``tolerance_mm`` of the plan's."""
     program = ControlledProgram(
-        controller, program_path, program_way(machine), tolerance_mm, timeout_s
+        controller,
+        program_path,
+        program_way(machine),
+        tolerance_mm,
+        timeout_s,
+        slowest_feed_mm_min=min(machine.feed_mm_min.measure, machine.transit_feed_mm_min),
     )
     return lambda run: control_program(run, program, tell)
 

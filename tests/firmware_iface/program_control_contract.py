@@ -114,11 +114,24 @@ def _at_first_stop(stand: ControlStand, text: str = PROGRAM) -> str:
     return program
 
 
-def _settles_at(control: ProgramControl, point_mm: list[float]) -> None:
+def settles_at(control: ProgramControl, point_mm: list[float]) -> None:
     """The actual position reaches ``point_mm`` exactly (1e-6 mm). At rest means within the
     driver's ``in_position_mm`` of the command: a real LinuxCNC's drives may still report
     the last servo period's step of the deceleration (some 0.5 um) when it says so."""
     _wait(lambda: np.allclose(control.position_mm(), point_mm, atol=1e-6), 1.0)
+
+
+def settled_mm(control: ProgramControl) -> np.ndarray:
+    """The actual position once two reads 10 ms (ten servo periods) apart agree: at rest,
+    the last servo period's step may still come (see :func:`settles_at`), mm, shape (3,)."""
+    reads = [control.position_mm()]
+
+    def same() -> bool:
+        reads.append(control.position_mm())
+        return bool(np.array_equal(reads[-2], reads[-1]))
+
+    _wait(same, 1.0)
+    return reads[-1]
 
 
 def _on_the_way(stand: ControlStand) -> None:
@@ -130,7 +143,7 @@ def _on_the_way(stand: ControlStand) -> None:
 
 
 def _stays_put(stand: ControlStand) -> np.ndarray:
-    at = stand.control.position_mm()
+    at = settled_mm(stand.control)
     time.sleep(0.2)
     assert np.allclose(stand.control.position_mm(), at, atol=1e-9)
     return at
@@ -144,12 +157,12 @@ def test_is_a_program_control(control_stand: ControlStand) -> None:
 def test_a_start_runs_the_program_to_its_stop_at_rest(control_stand: ControlStand) -> None:
     control = control_stand.control
     program = _at_first_stop(control_stand)
-    _settles_at(control, FIRST_STOP_MM)
+    settles_at(control, FIRST_STOP_MM)
     assert control.loaded_program() == program
     control.resume()  # the state lags the command: paused again once at the second stop
     _wait(lambda: control.position_mm()[0] > FIRST_STOP_MM[0] + 1.0)
     _wait(lambda: control.program_state() == "paused" and control.is_standstill())
-    _settles_at(control, SECOND_STOP_MM)
+    settles_at(control, SECOND_STOP_MM)
     control.stop_program()
     _wait(lambda: control.program_state() == "idle")
 
@@ -181,7 +194,7 @@ def test_a_stop_ends_the_program_mid_move_and_a_start_begins_at_the_top(
     stopped = _stays_put(control_stand)
     assert stopped[0] < SECOND_STOP_MM[0]
     _at_first_stop(control_stand)  # from the top: back at the first stop
-    _settles_at(control, FIRST_STOP_MM)
+    settles_at(control, FIRST_STOP_MM)
     control.stop_program()
 
 
@@ -211,7 +224,7 @@ def test_a_feed_hold_in_the_braking_distance_stops_at_the_stop_and_needs_two_res
     _wait(lambda: control.position_mm()[0] >= 28.5)
     control.hold()
     _wait(lambda: _paused_at_rest(control))
-    _settles_at(control, [30.0, 20.0, -30.0])
+    settles_at(control, [30.0, 20.0, -30.0])
     control.resume()
     time.sleep(1.0)
     assert _paused_at_rest(control)

@@ -91,6 +91,13 @@ def run_as_user() -> str | None:
     return USER
 
 
+def halcmd(*words: str) -> None:
+    """``halcmd`` as the user LinuxCNC runs as (its HAL belongs to that user)."""
+    user = run_as_user()
+    command = [*(["runuser", "-u", user, "--"] if user else []), "halcmd", *words]
+    subprocess.run(command, check=True, capture_output=True, timeout=30)
+
+
 @dataclass(frozen=True)
 class SimMachine:
     """A simulated trivkins machine: joints loop their command back as feedback.
@@ -139,6 +146,29 @@ class SimMachine:
     def units_per_mm(self) -> float:
         """LinuxCNC's ``linear_units``: machine units per mm."""
         return 1.0 if self.linear_units == "mm" else 1.0 / 25.4
+
+
+@contextmanager
+def braking_at(machine: SimMachine, acceleration_mm_s2: float) -> Iterator[None]:
+    """The running LinuxCNC of ``machine`` plans its moves with ``acceleration_mm_s2``
+    meanwhile (trajectory, axes, joints), its own after: LinuxCNC's ``ini.*`` HAL pins,
+    which G-code and MDI commands take as each is processed (milltask(1))."""
+
+    def set_to(mm_s2: float) -> None:
+        pins = [
+            "ini.traj_default_acceleration",
+            "ini.traj_max_acceleration",
+            *(f"ini.{axis.lower()}.max_acceleration" for axis in AXES),
+            *(f"ini.{joint}.max_acceleration" for joint in range(machine.joints)),
+        ]
+        for pin in pins:
+            halcmd("setp", pin, f"{mm_s2 * machine.units_per_mm}")
+
+    set_to(acceleration_mm_s2)
+    try:
+        yield
+    finally:
+        set_to(machine.max_acceleration_mm_s2)
 
 
 def _ini_text(machine: SimMachine, halfile: str, display: str = "./display.py") -> str:

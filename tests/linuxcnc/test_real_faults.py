@@ -22,7 +22,14 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import free_port
-from harness import SimMachine, bring_up, linuxcnc_serving, run_as_user, write_sim_config
+from harness import (
+    SimMachine,
+    bring_up,
+    halcmd,
+    linuxcnc_serving,
+    run_as_user,
+    write_sim_config,
+)
 
 from firmware_iface.linuxcncrsh import open_linuxcnc
 from tests.firmware_iface.program_control_contract import (  # noqa: F401 (the contract's tests, run here)
@@ -34,13 +41,6 @@ from tests.firmware_iface.program_control_contract import (  # noqa: F401 (the c
 )
 
 pytestmark = pytest.mark.linuxcnc
-
-
-def halcmd(*words: str) -> None:
-    """``halcmd`` as the user LinuxCNC runs as (its HAL belongs to that user)."""
-    user = run_as_user()
-    command = [*(["runuser", "-u", user, "--"] if user else []), "halcmd", *words]
-    subprocess.run(command, check=True, capture_output=True, timeout=30)
 
 
 def press_estop() -> None:

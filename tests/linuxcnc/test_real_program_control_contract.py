@@ -7,9 +7,10 @@ positions are in mm, so the driver converts (``abs_act_pos`` is in inches). An
 operator session brings the machine up (E-stop reset, machine on, home); each
 test then controls it through a session of its own. Through LinuxCNC's Python
 module the contract runs in test_real_linuxcnc_module.py, on that file's LinuxCNC
-(inches too): the module's channels do not survive a restart of LinuxCNC within
-one process. The simulated LinuxCNC passes the same contract over both channels
-in tests/firmware_iface/test_program_control_contract.py.
+(inches too, braking at the contract's rate while the contract runs): the
+module's channels do not survive a restart of LinuxCNC within one process. The
+simulated LinuxCNC passes the same contract over both channels in
+tests/firmware_iface/test_program_control_contract.py.
 
 The machine brakes at the contract's 100 mm/s^2. The E-stop and the dead task
 run in test_real_faults.py, each on a LinuxCNC of its own (seen with 2.9: after

@@ -110,6 +110,12 @@ class ScriptedCnc:
     #: xmalign's feed hold takes effect this long after it is sent, s; one that finds the
     #: program at a stop by then merges with the stop's pause (LinuxCNC 2.9).
     hold_lag_s: float = 0.0
+    #: Each leg at this speed, mm/s (None: each in ``LEG_S``); a test may change it at a stop.
+    speed_mm_s: float | None = None
+    #: The actual position read jitters by up to this much on each axis (encoder counts,
+    #: servo noise), mm; seeded.
+    jitter_mm: float = 0.0
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(33))
     stops_reached: int = 0
     _leg: int = 0
     _leg_from: Vec = field(default_factory=lambda: np.zeros(3))
@@ -118,6 +124,7 @@ class ScriptedCnc:
     _release_at_s: float = math.inf
     _stale: tuple[float, ProgramState, Vec] | None = None
     _hold_on_its_way: bool = False
+    _leg_s: float = LEG_S
 
     # -- the role -----------------------------------------------------------------
     def check_ready(self) -> None:
@@ -136,6 +143,9 @@ class ScriptedCnc:
         return stale[1] if stale else self.state
 
     def position_mm(self) -> Vec:
+        return self._position() + self.rng.uniform(-self.jitter_mm, self.jitter_mm, 3)
+
+    def _position(self) -> Vec:
         if self._dead():
             return self._along(self.dead_at_s)
         self._advance()
@@ -193,7 +203,7 @@ class ScriptedCnc:
         return None
 
     def _along(self, t_s: float) -> Vec:
-        fraction = min(max((t_s - self._leg_start_s) / LEG_S, 0.0), 1.0)
+        fraction = min(max((t_s - self._leg_start_s) / self._leg_s, 0.0), 1.0)
         target = self.route[self._leg][0]
         return self._leg_from + fraction * (target - self._leg_from)
 
@@ -202,6 +212,8 @@ class ScriptedCnc:
             self.state = "idle"
             return
         self.state, self._leg_from, self._leg_start_s = "running", self.position.copy(), t_s
+        distance_mm = float(np.linalg.norm(self.route[self._leg][0] - self._leg_from))
+        self._leg_s = LEG_S if self.speed_mm_s is None else max(distance_mm / self.speed_mm_s, 1e-9)
 
     def _freeze(self, t_s: float) -> None:
         self.position = self._along(t_s)
@@ -229,7 +241,7 @@ class ScriptedCnc:
             self.state = "idle"
         while True:
             if self.state == "running":
-                end_s = self._leg_start_s + LEG_S
+                end_s = self._leg_start_s + self._leg_s
                 if self.operator_hold_at_s <= min(end_s, now):
                     held_s = max(self.operator_hold_at_s, self._leg_start_s)
                     self._freeze(held_s)

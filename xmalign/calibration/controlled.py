@@ -22,9 +22,17 @@ from xmalign.safety import like
 RESUME_AGAIN_S = 1.0
 #: Resumes sent at one stop before the run stops with one line.
 RESUMES = 3
-#: A program shown running while the machine's position does not change for this long: the
-#: controller's task has stopped (or its feed override is at 0 %), s.
+#: A program shown running while the machine stands this long: the controller's task has
+#: stopped (or its feed override is at 0 %), s. Longer when the program's slowest feed
+#: would take less than ``CREEP_MARGIN`` times this to cross the standing band.
 STILL_RUNNING_S = 5.0
+#: The machine "stands" while its actual position stays within this many times the capture
+#: tolerance of where it stood: a machine at rest that is captured at a point jitters by
+#: encoder counts and servo noise within the tolerance of it, so by twice it end to end.
+STANDING_BAND = 2.0
+#: The program's slowest feed crosses the standing band at least this many times within the
+#: time a machine must stand: a slow approach is never taken for a standing machine.
+CREEP_MARGIN = 10.0
 
 
 class MachineStoppedError(DriveFaultError):
@@ -47,9 +55,29 @@ class ControlledProgram:
     tolerance_mm: float = 0.005
     timeout_s: float = 600.0
     poll_s: float = 0.05
-    #: The position last seen while the program ran, and since when (s): a program shown
-    #: running whose machine does not move for ``STILL_RUNNING_S`` has stopped.
+    #: The slowest feed the program moves at, mm/min (None: not known, ``STILL_RUNNING_S``).
+    slowest_feed_mm_min: float | None = None
+    #: Where the machine stood while the program ran, and since when (s): a program shown
+    #: running whose machine stays within ``standing_band_mm`` of it for ``standing_s``
+    #: has stopped.
     _running_at: tuple[Vec, float] | None = field(default=None, init=False, repr=False)
+
+    @property
+    def standing_band_mm(self) -> float:
+        """How far the machine may jitter and still stand: ``STANDING_BAND`` tolerances, mm."""
+        return STANDING_BAND * self.tolerance_mm
+
+    @property
+    def standing_s(self) -> float:
+        """How long a machine shown running must stand to be taken for stopped, s.
+
+        ``STILL_RUNNING_S``, or longer when the slowest feed would cross
+        ``standing_band_mm`` less than ``CREEP_MARGIN`` times in it.
+        """
+        if self.slowest_feed_mm_min is None:
+            return STILL_RUNNING_S
+        crossing_s = self.standing_band_mm / (self.slowest_feed_mm_min / 60.0)
+        return max(STILL_RUNNING_S, CREEP_MARGIN * crossing_s)
 
 
 def control_program(
@@ -73,8 +101,9 @@ def control_program(
     beam is watched: lost, the feed is held until it comes back (at most
     ``BEAM_WAIT_S``), and the next point is captured as after a beam lost there.
     A program still paused where it stood after a resume is resumed again
-    (:func:`_resume`); one shown running while its machine stands still for
-    ``STILL_RUNNING_S`` stops the run (the controller's task has stopped).
+    (:func:`_resume`); one shown running while its machine stands (within
+    ``standing_band_mm``) for ``standing_s`` stops the run (the controller's task has
+    stopped).
 
     Every fault ends in one line naming it and the way on (``--resume``): a
     machine gone into E-stop or off (its controller has ended the program), a
@@ -171,8 +200,8 @@ def _state(
 ) -> ProgramState:
     """The program's state; ``idle`` with the machine in E-stop or off raises
     MachineStoppedError (unless the program is ``ending``), ``running`` with the
-    machine standing still for ``STILL_RUNNING_S`` a DeviceError (the controller's
-    task has stopped)."""
+    machine standing (within ``standing_band_mm`` of where it stood) for
+    ``standing_s`` a DeviceError (the controller's task has stopped)."""
     controller = program.controller
     state = controller.program_state()
     if state == "idle" and not ending:
@@ -182,13 +211,14 @@ def _state(
         return state
     position, now_s = controller.position_mm(), run.clock.now()
     seen = program._running_at
-    if seen is None or not np.array_equal(seen[0], position):
+    band_mm = program.standing_band_mm
+    if seen is None or float(np.linalg.norm(position - seen[0])) > band_mm:
         program._running_at = (position, now_s)
-    elif now_s - seen[1] >= STILL_RUNNING_S:
+    elif now_s - seen[1] >= program.standing_s:
         raise DeviceError(
             f"the controller has shown the program running for {now_s - seen[1]:.0f} s on"
-            f" the way to {what} with the machine standing at"
-            f" {np.round(position, 3).tolist()} mm: its task has stopped (LinuxCNC: milltask"
+            f" the way to {what} with the machine standing (within {band_mm:g} mm) at"
+            f" {np.round(seen[0], 3).tolist()} mm: its task has stopped (LinuxCNC: milltask"
             " died; restart LinuxCNC) or its feed override is at 0 %; go on with --resume"
             " once it runs"
         )
