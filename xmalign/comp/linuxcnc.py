@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from xmalign.comp.common import Comment, Loading, check_count, has_reversal, with_history
 from xmalign.comp.fit import PITCH, CompensationFit, CompModel
 from xmalign.errors import InputError
+from xmalign.formats.common import read_text
 from xmalign.formats.provenance import FileSource
 from xmalign.machine import AXES, Machine
 
@@ -173,6 +175,98 @@ def absolute_path(value: str, folder: Path) -> str:
     return str(candidate.resolve()) if candidate.exists() else value
 
 
+def check_joint_sections(
+    lines: list[str], joints: list[str], source: str
+) -> dict[str, tuple[int, int]]:
+    """The INI's sections (:func:`_sections`), refused unless each joint has its own.
+
+    Raises
+    ------
+    InputError
+        Naming ``source``: ``[KINS] JOINTS`` is not the number of ``joints``, or a
+        ``[JOINT_n]`` section is missing.
+    """
+    sections = _sections(lines)
+    count = ini_value(lines, "KINS", "JOINTS")
+    if count is not None and count.strip().isdigit() and int(count) != len(joints):
+        raise InputError(
+            f"{source}: [KINS] JOINTS = {count} but {len(joints)} joints are mapped"
+            f" ({''.join(joints)})"
+        )
+    missing = [n for n in range(len(joints)) if f"JOINT_{n}" not in sections]
+    if missing:
+        raise InputError(f"{source}: no [JOINT_{missing[0]}] section to put COMP_FILE into")
+    return sections
+
+
+@dataclass(frozen=True)
+class MachineIni:
+    """A LinuxCNC INI read for ``comp --ini``: its text and the axis of each joint."""
+
+    path: Path
+    text: str
+    joints: list[str]
+
+    @property
+    def merged_name(self) -> str:
+        """The merged copy's file name: ``MACHINE.ini`` -> ``MACHINE-xmalign.ini``."""
+        return f"{self.path.stem}-xmalign{self.path.suffix}"
+
+
+def read_machine_ini(machine: Machine, path: Path) -> MachineIni:
+    """The INI at ``path`` with its joints resolved and checked (before any fit).
+
+    Raises
+    ------
+    InputError
+        Naming the INI: unreadable, joints that are not X, Y and Z or that differ from
+        ``cnc.joints``, a missing ``[JOINT_n]`` section (:func:`check_joint_sections`).
+    """
+    text = read_text(path)
+    lines = text.splitlines()
+    joints = resolve_joints(machine, lines, str(path))
+    check_joint_sections(lines, joints, str(path))
+    return MachineIni(path, text, joints)
+
+
+def ini_files(
+    fit: CompensationFit, machine: Machine, ini: MachineIni, out_dir: Path
+) -> dict[str, str]:
+    """File name -> text: the comp files for ``ini``'s joints and its merged copy, whose
+    ``COMP_FILE`` keys name the comp files in ``out_dir`` (history: the tables and the INI)."""
+    files = render(fit, machine, ini.joints)
+    inputs = (*fit.sources, FileSource.of("ini", ini.path))
+    files[ini.merged_name] = merge_ini(
+        ini.text, ini.joints, out_dir, str(ini.path), ini.path.resolve().parent, inputs
+    )
+    return files
+
+
+def backlash_joints(text: str, joints: list[str]) -> list[int]:
+    """Joints whose section sets a non-zero BACKLASH (a COMP_FILE replaces it)."""
+    lines = text.splitlines()
+    found = []
+    for number in range(len(joints)):
+        value = ini_value(lines, f"JOINT_{number}", "BACKLASH")
+        try:
+            if value is not None and float(value) != 0.0:
+                found.append(number)
+        except ValueError:
+            continue
+    return found
+
+
+def backlash_warnings(ini: MachineIni) -> list[str]:
+    """One warning per joint whose section sets a non-zero ``BACKLASH``: LinuxCNC does not
+    use it once a ``COMP_FILE`` is loaded (``compute_screw_comp`` in motion/control.c)."""
+    return [
+        f"{ini.path}: [JOINT_{joint}] BACKLASH is set: LinuxCNC ignores it once COMP_FILE"
+        " is loaded (the table's reverse column carries the reversal); if it was active"
+        " while measuring, give cnc.backlash_um so that the tables carry it too"
+        for joint in backlash_joints(ini.text, ini.joints)
+    ]
+
+
 def merge_ini(
     text: str,
     joints: list[str],
@@ -192,16 +286,7 @@ def merge_ini(
     INI and the error tables, hashed).
     """
     lines = text.splitlines()
-    sections = _sections(lines)
-    count = ini_value(lines, "KINS", "JOINTS")
-    if count is not None and count.strip().isdigit() and int(count) != len(joints):
-        raise InputError(
-            f"{source}: [KINS] JOINTS = {count} but {len(joints)} joints are mapped"
-            f" ({''.join(joints)})"
-        )
-    missing = [n for n in range(len(joints)) if f"JOINT_{n}" not in sections]
-    if missing:
-        raise InputError(f"{source}: no [JOINT_{missing[0]}] section to put COMP_FILE into")
+    sections = check_joint_sections(lines, joints, source)
     inserts: dict[int, list[str]] = {}
     dropped: set[int] = set()
     for number, axis in enumerate(joints):
@@ -232,17 +317,3 @@ def _absolute_line(line: str, folder: Path) -> str:
         return line
     absolute = absolute_path(match.group(2), folder)
     return line if absolute == match.group(2) else f"{match.group(1)} = {absolute}"
-
-
-def backlash_joints(text: str, joints: list[str]) -> list[int]:
-    """Joints whose section sets a non-zero BACKLASH (a COMP_FILE replaces it)."""
-    lines = text.splitlines()
-    found = []
-    for number in range(len(joints)):
-        value = ini_value(lines, f"JOINT_{number}", "BACKLASH")
-        try:
-            if value is not None and float(value) != 0.0:
-                found.append(number)
-        except ValueError:
-            continue
-    return found
