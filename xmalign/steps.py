@@ -1025,7 +1025,7 @@ def comp_step(
             merged_ini=out_dir / machine_ini.merged_name,
             joints=tuple(machine_ini.joints),
         )
-        notes += linuxcnc.backlash_warnings(machine_ini)
+        notes += linuxcnc.backlash_warnings(machine_ini, machine)
     inputs = _comp_inputs(machine, tables) | {"ini": ini_path}
     _write_controller_files(out_dir, compensation.files, inputs, replace, caller)
     for note in notes:

@@ -1677,6 +1677,12 @@ _LINK_CASES = [
         ("bare.ini", "[JOINT_0]"),
         write("bare.ini", "[EMC]\nMACHINE = bare\n"),
     ),
+    Case(
+        "comp-ini-linear-units-unknown",
+        (*LINUXCNC_INI, "furlong.ini", "--out", "lc"),
+        ("furlong.ini", "[TRAJ] LINEAR_UNITS = furlong"),
+        write("furlong.ini", "[TRAJ]\nLINEAR_UNITS = furlong\n\n" + MILL_INI),
+    ),
 ]
 
 
