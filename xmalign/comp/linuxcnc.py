@@ -13,7 +13,12 @@ sample file ``screwcompX.dat`` LinuxCNC ships (kept in tests):
 
 So LinuxCNC takes measured positions, not corrections: ``nominal + E+`` and
 ``nominal + E-`` of the fitted per-axis pitch table (bidirectional where the
-error file is). Nominal positions are joint (machine) coordinates. Joints map
+error file is). Nominal positions are joint (machine) coordinates, in the
+INI's ``[TRAJ] LINEAR_UNITS`` (mm without an INI). LinuxCNC ignores a joint's
+``BACKLASH`` once it has a COMP_FILE (``compute_screw_comp`` in
+src/emc/motion/control.c, v2.9.4), so the BACKLASH active while measuring
+(``cnc.backlash_um``) goes into the columns as LinuxCNC applied it: ``-B/2``
+forward, ``+B/2`` reverse (docs/controllers.md; tests/linuxcnc/test_comp_backlash.py). Joints map
 to axes as the machine file's ``cnc.joints`` says, else as the INI's trivkins
 ``coordinates=`` / ``[TRAJ] COORDINATES``, else X, Y, Z: every joint of an axis
 (both Y joints of a gantry) gets that axis's table.
