@@ -27,6 +27,7 @@ starts and resumes its program on is :func:`controlled_run_step`.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -65,7 +66,7 @@ from xmalign.calibration import (
     step_through,
 )
 from xmalign.calibration.controller_lock import ControllerLock, new_run_id, run_id_comment
-from xmalign.comp import Compensation, compensate
+from xmalign.comp import Compensation, compensate, linuxcnc
 from xmalign.comp.linuxcnc_volumetric import MergedConfig, merge_config
 from xmalign.environment import EnvironmentMonitor
 from xmalign.errors import InputError
@@ -991,7 +992,7 @@ def comp_step(
     tables: ErrorTableSet,
     out_dir: str | Path,
     controller: str | None = None,
-    more_files: Callable[[Compensation], dict[str, str]] | None = None,
+    ini: str | Path | None = None,
     replace: bool = False,
     caller: Caller | None = None,
     on_warning: Callable[[str], None] | None = None,
@@ -1000,26 +1001,51 @@ def comp_step(
 
     The tables must have been measured on ``machine`` (:func:`check_tables_machine`:
     another chain or travel refused, another name or machine file told to
-    ``on_warning``, by default a Python warning). ``more_files(compensation)`` adds
-    files made from the fit (a merged LinuxCNC INI). No file replaces the tables' or
-    the machine's file (or the caller's inputs), nor an existing file without
-    ``replace`` (:func:`check_outputs`). The returned compensation's ``files`` are all
-    that was written. LinuxCNC's volumetric component has no fitted tables:
+    ``on_warning``, by default a Python warning). ``ini`` (LinuxCNC only): the
+    machine's INI, read and checked before the fit; its joints' comp files and a
+    merged copy ``<ini stem>-xmalign<suffix>`` are written too (the returned
+    ``merged_ini`` and ``joints``), and a ``BACKLASH`` LinuxCNC would ignore is told
+    to ``on_warning``. No file replaces the tables', the machine's or the INI's file
+    (or the caller's inputs), nor an existing file without ``replace``
+    (:func:`check_outputs`). The returned compensation's ``files`` are all that was
+    written. LinuxCNC's volumetric component has no fitted tables:
     :func:`volumetric_comp_step`.
     """
     machine, out_dir = _machine(machine), _path(out_dir, "out_dir")
+    ini_path = _optional_path(ini, "ini")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
-    check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
+    names = (caller or SCRIPT).names
+    check_output_folder(out_dir, names.get("out_dir", "out_dir"))
+    controller = controller or machine.controller
+    machine_ini = None if ini_path is None else _machine_ini(machine, ini_path, controller, names)
     notes = check_tables_machine(tables, machine)
-    compensation = compensate(machine, tables, controller or machine.controller)
-    if more_files is not None:
-        compensation.files.update(more_files(compensation))
-    _write_controller_files(
-        out_dir, compensation.files, _comp_inputs(machine, tables), replace, caller
-    )
+    compensation = compensate(machine, tables, controller)
+    if machine_ini is not None:
+        files = compensation.files | linuxcnc.ini_files(
+            compensation.fit, machine, machine_ini, out_dir
+        )
+        compensation = dataclasses.replace(
+            compensation,
+            files=files,
+            merged_ini=out_dir / machine_ini.merged_name,
+            joints=tuple(machine_ini.joints),
+        )
+        notes += linuxcnc.backlash_warnings(machine_ini, machine)
+    inputs = _comp_inputs(machine, tables) | {"ini": ini_path}
+    _write_controller_files(out_dir, compensation.files, inputs, replace, caller)
     for note in notes:
         (on_warning or _python_warning)(note)
     return compensation
+
+
+def _machine_ini(
+    machine: Machine, path: Path, controller: str, names: Mapping[str, str]
+) -> linuxcnc.MachineIni:
+    if controller != linuxcnc.NAME:
+        raise InputError(
+            f"{names.get('ini', 'ini')} is for the linuxcnc controller, not '{controller}'"
+        )
+    return linuxcnc.read_machine_ini(machine, path)
 
 
 def volumetric_comp_step(
@@ -1033,7 +1059,8 @@ def volumetric_comp_step(
 ) -> MergedConfig:
     """``linuxcnc-volumetric``: the component's table file and the merged copies of the
     machine's INI and HAL files, written into ``out_dir`` (all or none) as
-    :func:`comp_step` writes a controller's tables, with its checks (the INI an input)."""
+    :func:`comp_step` writes a controller's tables, with its checks (the INI an input);
+    what the merge warns about (``MergedConfig.warnings``) goes to ``on_warning`` too."""
     machine, out_dir, ini = _machine(machine), _path(out_dir, "out_dir"), _path(ini, "ini")
     tables = check_argument(tables, ErrorTableSet, "tables", "an ErrorTableSet (read_error_tables)")
     check_output_folder(out_dir, (caller or SCRIPT).names.get("out_dir", "out_dir"))
@@ -1041,7 +1068,7 @@ def volumetric_comp_step(
     merged = merge_config(ini, tables, machine, out_dir)
     inputs = _comp_inputs(machine, tables) | {"ini": ini}
     _write_controller_files(out_dir, dict(merged.files), inputs, replace, caller)
-    for note in notes:
+    for note in [*notes, *merged.warnings]:
         (on_warning or _python_warning)(note)
     return merged
 

@@ -1573,6 +1573,10 @@ def link(name: str, target: str) -> Damage:
 
 
 LOOP = "symbolic link that loops"
+#: ``xmalign comp --controller linuxcnc --ini`` with the INI (the argument) still to give.
+LINUXCNC_INI = (*ERRORS[:3], "--controller", "linuxcnc", "--ini")
+#: A LinuxCNC INI with the three joints' sections.
+MILL_INI = "[KINS]\nJOINTS = 3\n\n[JOINT_0]\n\n[JOINT_1]\n\n[JOINT_2]\n"
 #: Issue 32: data the commands damaged, and symlink loops that ended in a traceback.
 _LINK_CASES = [
     Case(
@@ -1649,6 +1653,35 @@ _LINK_CASES = [
         (*SESSION[:3], "--out", "loop"),
         ("loop", "--out", LOOP),
         link("loop", "loop"),
+    ),
+    # comp --ini: the merged INI or a comp file in the INI's own place, even with --force
+    Case(
+        "comp-merged-ini-is-the-ini",
+        (*LINUXCNC_INI, "cfg/mill.ini", "--out", "lc", "--force"),
+        ("lc/mill-xmalign.ini", "is also the --ini file"),
+        lambda folder: (
+            write("cfg/mill.ini", MILL_INI)(folder),
+            write("lc/.keep", "")(folder),
+            link("lc/mill-xmalign.ini", "../cfg/mill.ini")(folder),
+        ),
+    ),
+    Case(
+        "comp-ini-named-like-a-comp-output",
+        (*LINUXCNC_INI, "lc/joints.ini", "--out", "lc", "--force"),
+        ("lc/joints.ini", "is also the --ini file"),
+        write("lc/joints.ini", MILL_INI),
+    ),
+    Case(
+        "comp-ini-without-the-joints",
+        (*LINUXCNC_INI, "bare.ini", "--out", "lc"),
+        ("bare.ini", "[JOINT_0]"),
+        write("bare.ini", "[EMC]\nMACHINE = bare\n"),
+    ),
+    Case(
+        "comp-ini-linear-units-unknown",
+        (*LINUXCNC_INI, "furlong.ini", "--out", "lc"),
+        ("furlong.ini", "[TRAJ] LINEAR_UNITS = furlong"),
+        write("furlong.ini", "[TRAJ]\nLINEAR_UNITS = furlong\n\n" + MILL_INI),
     ),
 ]
 

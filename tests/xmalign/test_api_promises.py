@@ -163,6 +163,65 @@ def test_comp_step_keeps_a_users_table_and_refuses_another_machines_tables(
     assert a_file.read_text() == "kept\n"
 
 
+#: A LinuxCNC INI with the three joints' sections; joint 1 keeps a backlash compensation.
+MILL_INI = "[KINS]\nJOINTS = 3\n\n[JOINT_0]\n\n[JOINT_1]\nBACKLASH = 0.01\n\n[JOINT_2]\n"
+
+
+def test_comp_step_writes_the_merged_linuxcnc_ini_and_never_over_the_ini(
+    folder: Path, tmp_path: Path
+) -> None:
+    """``comp --ini`` through the API: the joints, the merged copy with its history and the
+    BACKLASH warning; the INI itself never written over, whatever the names or links."""
+    machine = api.load_machine(REFERENCE)
+    tables = api.read_error_tables(folder / "errors.csv")
+    ini = tmp_path / "cfg" / "mill.ini"
+    ini.parent.mkdir()
+    ini.write_text(MILL_INI)
+    out, told = tmp_path / "comp", []
+    done = api.comp_step(machine, tables, out, "linuxcnc", ini=ini, on_warning=told.append)
+    assert done.merged_ini == out / "mill-xmalign.ini" and done.joints == ("X", "Y", "Z")
+    assert sorted(done.files) == sorted(path.name for path in out.iterdir())
+    merged = done.merged_ini.read_text()
+    assert f"COMP_FILE = {(out / 'y.comp').resolve()}" in merged
+    assert any(line.startswith("# input ini: ") for line in merged.splitlines())
+    assert len(told) == 1 and "[JOINT_1] BACKLASH" in told[0] and str(ini) in told[0]
+    again = tmp_path / "again"
+    again.mkdir()
+    (again / "mill-xmalign.ini").symlink_to(ini)  # the merged copy's name is the INI itself
+    _refused(
+        lambda: api.comp_step(machine, tables, again, "linuxcnc", ini=ini, replace=True),
+        "mill-xmalign.ini",
+        "is also the ini file",
+    )
+    named_like_an_output = again / "joints.ini"
+    named_like_an_output.write_text(MILL_INI)
+    _refused(
+        lambda: api.comp_step(
+            machine, tables, again, "linuxcnc", ini=named_like_an_output, replace=True
+        ),
+        "joints.ini",
+        "is also the ini file",
+    )
+    assert ini.read_text() == named_like_an_output.read_text() == MILL_INI
+    assert sorted(path.name for path in again.iterdir()) == ["joints.ini", "mill-xmalign.ini"]
+    _refused(
+        lambda: api.comp_step(machine, tables, tmp_path / "s", "sinumerik", ini=ini),
+        "ini is for the linuxcnc controller, not 'sinumerik'",
+    )
+    _refused(  # the machine file's controller (sinumerik) when none is given
+        lambda: api.comp_step(machine, tables, tmp_path / "s", ini=ini), "not 'sinumerik'"
+    )
+    bare = tmp_path / "bare.ini"
+    bare.write_text("[EMC]\nMACHINE = bare\n")
+    _refused(
+        lambda: api.comp_step(machine, tables, tmp_path / "b", "linuxcnc", ini=bare),
+        "bare.ini",
+        "no [JOINT_0] section",
+    )
+    _refused(lambda: api.comp_step(machine, tables, tmp_path / "b", "linuxcnc", ini=3), "ini")
+    assert not (tmp_path / "s").exists() and not (tmp_path / "b").exists()
+
+
 def test_another_file_of_the_same_machine_is_a_warning(folder: Path, tmp_path: Path) -> None:
     """Name, chain and travel the same, the file edited (feeds): a warning, not a refusal."""
     edited = api.load_machine(_machine_file(tmp_path, "rapid: ", "rapid: 1"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from xmalign.cli.common import console, error_console, output_folder, warn
+from xmalign.cli.common import console, warn
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import ErrorTableSet
 from xmalign.machine import Machine
@@ -23,10 +23,7 @@ def volumetric_comp(
     the step layer (:func:`~xmalign.steps.volumetric_comp_step`), and what to do next."""
     if ini is None:
         raise InputError("--controller linuxcnc-volumetric needs --ini MACHINE.ini")
-    output_folder(out, "--out")
     merged = volumetric_comp_step(machine, tables, out, ini, force, caller, warn)
-    for warning in merged.warnings:
-        error_console.print(f"xmalign: warning: {warning}", highlight=False)
     console.print(
         f"linuxcnc-volumetric: wrote {', '.join(sorted(merged.files))} in {out}; build the"
         f" component once with 'halcompile --install linuxcnc/xmalign_volcomp.comp', then start"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from functools import partial
 from pathlib import Path
 from typing import Annotated
 
@@ -27,9 +26,8 @@ from xmalign.cli.common import (
     warn,
 )
 from xmalign.cli.instruments import check_inputs, count_readings, read_instruments
-from xmalign.comp import WRITERS, Compensation, fit_for, linuxcnc
+from xmalign.comp import WRITERS, fit_for
 from xmalign.errors import InputError, MachineKeyError
-from xmalign.formats.common import read_text
 from xmalign.formats.error_tables import read_error_tables
 from xmalign.formats.plan import Plan, read_plan
 from xmalign.formats.provenance import FileSource
@@ -332,27 +330,21 @@ def comp(
     machine_ = machine_or_default(machine)
     name = controller or machine_.controller
     tables = read_error_tables(errors)
-    caller = named_by_options(COMP_OPTIONS, read={"--ini": ini})
+    caller = named_by_options(COMP_OPTIONS)
     if name == "linuxcnc-volumetric":
         from xmalign.cli.linuxcnc_volumetric import volumetric_comp
 
         volumetric_comp(tables, machine_, ini, out, force, caller)
         return
     try:
-        result = comp_step(
-            machine_,
-            tables,
-            out,
-            name,
-            more_files=None
-            if ini is None
-            else partial(_linuxcnc_ini, name, machine_, ini=ini, out=out),
-            replace=force,
-            caller=caller,
-            on_warning=warn,
-        )
+        result = comp_step(machine_, tables, out, name, ini, force, caller, warn)
     except MachineKeyError as error:
         raise error.in_file(str(machine or default_machine_path())) from error
+    if result.merged_ini is not None:
+        console.print(
+            f"joints {' '.join(result.joints)}; start LinuxCNC with {result.merged_ini}",
+            highlight=False,
+        )
     fit = result.fit
     console.print(
         f"{name}: wrote {', '.join(sorted(result.files))} in {out}\n"
@@ -385,26 +377,6 @@ def comp(
 
 #: What ``xmalign comp`` calls :func:`~xmalign.steps.comp_step`'s files.
 COMP_OPTIONS = {"out_dir": "--out", "tables": "--errors", "machine": "--machine", "ini": "--ini"}
-
-
-def _linuxcnc_ini(name: str, machine: Machine, result: Compensation, ini: Path, out: Path) -> dict:
-    """The LinuxCNC comp files for the INI\x27s joints and the merged INI (file name -> text)."""
-    if name != linuxcnc.NAME:
-        raise InputError(f"--ini is for the linuxcnc controller, not \x27{name}\x27")
-    text = read_text(ini)
-    joints = linuxcnc.resolve_joints(machine, text.splitlines(), str(ini))
-    files = linuxcnc.render(result.fit, machine, joints)
-    merged = f"{ini.stem}-xmalign{ini.suffix}"
-    inputs = (*result.fit.sources, FileSource.of("ini", ini))
-    files[merged] = linuxcnc.merge_ini(text, joints, out, str(ini), ini.resolve().parent, inputs)
-    for joint in linuxcnc.backlash_joints(text, joints):
-        error_console.print(
-            f"[yellow]warning:[/] {ini}: [JOINT_{joint}] BACKLASH is set; the COMP_FILE\x27s"
-            " reverse column already carries the reversal",
-            highlight=False,
-        )
-    console.print(f"joints {' '.join(joints)}; start LinuxCNC with {out / merged}")
-    return files
 
 
 def register(app: typer.Typer) -> None:

@@ -11,6 +11,7 @@ over the machine's whole travel at its tool point; a writer only formats them.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 from types import ModuleType
 
 from xmalign.comp import fanuc, heidenhain, isg, linuxcnc, sinumerik
@@ -69,6 +70,9 @@ class Compensation:
     fit: CompensationFit
     files: dict[str, str]
     loading: Loading
+    #: LinuxCNC with an INI (``comp --ini``): the merged copy written and each joint's axis
+    merged_ini: Path | None = None
+    joints: tuple[str, ...] = ()
 
 
 def compensate(machine: Machine, tables: ErrorTableSet, controller: str) -> Compensation:

@@ -13,7 +13,12 @@ sample file ``screwcompX.dat`` LinuxCNC ships (kept in tests):
 
 So LinuxCNC takes measured positions, not corrections: ``nominal + E+`` and
 ``nominal + E-`` of the fitted per-axis pitch table (bidirectional where the
-error file is). Nominal positions are joint (machine) coordinates. Joints map
+error file is). Nominal positions are joint (machine) coordinates, in the
+INI's ``[TRAJ] LINEAR_UNITS`` (mm without an INI). LinuxCNC ignores a joint's
+``BACKLASH`` once it has a COMP_FILE (``compute_screw_comp`` in
+src/emc/motion/control.c, v2.9.4), so the BACKLASH active while measuring
+(``cnc.backlash_um``) goes into the columns as LinuxCNC applied it: ``-B/2``
+forward, ``+B/2`` reverse (docs/controllers.md; tests/linuxcnc/test_comp_backlash.py). Joints map
 to axes as the machine file's ``cnc.joints`` says, else as the INI's trivkins
 ``coordinates=`` / ``[TRAJ] COORDINATES``, else X, Y, Z: every joint of an axis
 (both Y joints of a gantry) gets that axis's table.
@@ -28,11 +33,15 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from xmalign.comp.common import Comment, Loading, check_count, has_reversal, with_history
 from xmalign.comp.fit import PITCH, CompensationFit, CompModel
 from xmalign.errors import InputError
+from xmalign.formats.common import read_text
 from xmalign.formats.provenance import FileSource
 from xmalign.machine import AXES, Machine
 
@@ -47,15 +56,25 @@ _SECTION = re.compile(r"^\s*\[([^\]]+)\]")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(.*?)\s*$")
 
 
-def render_axis(fit: CompensationFit, axis: str) -> str:
-    """The comp file of the joints of ``axis``: ``nominal forward reverse`` per line, mm."""
+def render_axis(
+    fit: CompensationFit, axis: str, backlash_um: float = 0.0, units_per_mm: float = 1.0
+) -> str:
+    """The comp file of the joints of ``axis``: ``nominal forward reverse`` per line.
+
+    In machine units (``units_per_mm``, [TRAJ] LINEAR_UNITS). ``backlash_um``: the
+    control's BACKLASH active during the measurement (``cnc.backlash_um``), which
+    LinuxCNC applied as +B/2 moving + and -B/2 moving - and ignores once a COMP_FILE
+    is loaded: the columns carry it (actual - B/2 forward, actual + B/2 reverse).
+    """
     positions, forward = fit.table(axis, axis, "+")
     _, reverse = fit.table(axis, axis, "-")
     check_count(len(positions), MAX_TRIPLETS, f"the {axis} joints", "LinuxCNC")
-    lines = [
-        f"{p:.6f} {p + f:.6f} {p + r:.6f}"
-        for p, f, r in zip(positions, forward, reverse, strict=True)
-    ]
+    half_mm = backlash_um * 1e-3 / 2
+    digits = 6 if units_per_mm >= 1.0 else 8  # 1e-8 inch = 0.25 nm
+    rows = np.column_stack(
+        [positions, positions + forward - half_mm, positions + reverse + half_mm]
+    )
+    lines = [" ".join(f"{value:.{digits}f}" for value in row) for row in rows * units_per_mm]
     return "\n".join(lines) + "\n"
 
 
@@ -64,10 +83,17 @@ def comp_file(axis: str) -> str:
 
 
 def render(
-    fit: CompensationFit, machine: Machine, joints: list[str] | None = None
+    fit: CompensationFit,
+    machine: Machine,
+    joints: list[str] | None = None,
+    units_per_mm: float = 1.0,
 ) -> dict[str, str]:
-    """File name -> text of one comp file per axis and the keys for each joint."""
-    files = {comp_file(axis): render_axis(fit, axis) for axis in AXES}
+    """File name -> text of one comp file per axis (machine units, ``units_per_mm``) and
+    the keys for each joint."""
+    files = {
+        comp_file(axis): render_axis(fit, axis, machine.cnc.backlash(axis) or 0.0, units_per_mm)
+        for axis in AXES
+    }
     keys = render_keys(list(joints or machine.cnc.joints or AXES))
     notes = "\n".join(loading(fit, machine).lines("# "))
     files["joints.ini"] = keys.replace("\n\n", f"\n{notes}\n\n", 1)
@@ -77,15 +103,24 @@ def render(
 def loading(fit: CompensationFit, machine: Machine) -> Loading:
     """Reversal and the check on the machine (the format is LinuxCNC's own, tested live)."""
     carried = [axis for axis in AXES if has_reversal(fit, axis)]
-    reversal = (
-        f"the COMP_FILE reverse column carries the reversal of {', '.join(carried)}: set"
-        " BACKLASH = 0 in their [JOINT_n] sections"
+    folded = {axis: um for axis in AXES if (um := machine.cnc.backlash(axis))}
+    reversal = [
+        f"the COMP_FILE reverse column carries the reversal of {', '.join(carried)}"
         if carried
-        else "no direction data: forward and reverse columns are equal; keep BACKLASH as it was"
-        " during the measurement"
+        else "no direction data: forward and reverse columns are equal"
+    ]
+    if folded:
+        reversal.append(
+            "the columns carry the BACKLASH active while measuring (cnc.backlash_um "
+            + ", ".join(f"{axis} {um:g} um" for axis, um in folded.items())
+            + ") as LinuxCNC applied it, +B/2 moving + and -B/2 moving -"
+        )
+    reversal.append(
+        "LinuxCNC ignores BACKLASH in a [JOINT_n] section with a COMP_FILE: set it to 0"
+        " there (one that was active while measuring belongs in cnc.backlash_um)"
     )
     return Loading(
-        reversal=reversal,
+        reversal="; ".join(reversal),
         check=(
             "after homing, move each joint to a table point in both directions and read"
             " joint.N.backlash-filt (halcmd getp): it must equal nominal minus actual of the"
@@ -173,6 +208,144 @@ def absolute_path(value: str, folder: Path) -> str:
     return str(candidate.resolve()) if candidate.exists() else value
 
 
+def check_joint_sections(
+    lines: list[str], joints: list[str], source: str
+) -> dict[str, tuple[int, int]]:
+    """The INI's sections (:func:`_sections`), refused unless each joint has its own.
+
+    Raises
+    ------
+    InputError
+        Naming ``source``: ``[KINS] JOINTS`` is not the number of ``joints``, or a
+        ``[JOINT_n]`` section is missing.
+    """
+    sections = _sections(lines)
+    count = ini_value(lines, "KINS", "JOINTS")
+    if count is not None and count.strip().isdigit() and int(count) != len(joints):
+        raise InputError(
+            f"{source}: [KINS] JOINTS = {count} but {len(joints)} joints are mapped"
+            f" ({''.join(joints)})"
+        )
+    missing = [n for n in range(len(joints)) if f"JOINT_{n}" not in sections]
+    if missing:
+        raise InputError(f"{source}: no [JOINT_{missing[0]}] section to put COMP_FILE into")
+    return sections
+
+
+#: [TRAJ] LINEAR_UNITS by name: machine units per mm (LinuxCNC 2.9, src/emc/ini/emcIniFile.cc;
+#: a number is taken as units per mm, as ``loadTraj`` in src/emc/ini/initraj.cc reads it)
+LINEAR_UNITS = {"mm": 1.0, "metric": 1.0, "in": 1 / 25.4, "inch": 1 / 25.4, "imperial": 1 / 25.4}
+
+
+def units_per_mm(lines: list[str], source: str) -> float:
+    """Machine units per mm of the INI's ``[TRAJ] LINEAR_UNITS`` (mm when it is not given).
+
+    Raises
+    ------
+    InputError
+        Naming the INI: neither a name LinuxCNC knows nor a positive number.
+    """
+    value = ini_value(lines, "TRAJ", "LINEAR_UNITS")
+    if value is None:
+        return 1.0
+    if value.lower() in LINEAR_UNITS:
+        return LINEAR_UNITS[value.lower()]
+    try:
+        number = float(value)
+    except ValueError:
+        number = 0.0
+    if not 0.0 < number < float("inf"):
+        raise InputError(
+            f"{source}: [TRAJ] LINEAR_UNITS = {value}: not one of {', '.join(LINEAR_UNITS)}"
+            " nor a number of units per mm"
+        )
+    return number
+
+
+@dataclass(frozen=True)
+class MachineIni:
+    """A LinuxCNC INI read for ``comp --ini``: its text, the axis of each joint and its
+    machine units (the COMP_FILE's and BACKLASH's), units per mm."""
+
+    path: Path
+    text: str
+    joints: list[str]
+    units_per_mm: float
+
+    @property
+    def merged_name(self) -> str:
+        """The merged copy's file name: ``MACHINE.ini`` -> ``MACHINE-xmalign.ini``."""
+        return f"{self.path.stem}-xmalign{self.path.suffix}"
+
+
+def read_machine_ini(machine: Machine, path: Path) -> MachineIni:
+    """The INI at ``path`` with its joints and units resolved and checked (before any fit).
+
+    Raises
+    ------
+    InputError
+        Naming the INI: unreadable, joints that are not X, Y and Z or that differ from
+        ``cnc.joints``, a missing ``[JOINT_n]`` section (:func:`check_joint_sections`),
+        unknown ``LINEAR_UNITS``.
+    """
+    text = read_text(path)
+    lines = text.splitlines()
+    joints = resolve_joints(machine, lines, str(path))
+    check_joint_sections(lines, joints, str(path))
+    return MachineIni(path, text, joints, units_per_mm(lines, str(path)))
+
+
+def ini_files(
+    fit: CompensationFit, machine: Machine, ini: MachineIni, out_dir: Path
+) -> dict[str, str]:
+    """File name -> text: the comp files for ``ini``'s joints in its machine units and its
+    merged copy, whose ``COMP_FILE`` keys name the comp files in ``out_dir`` (history: the
+    tables and the INI)."""
+    files = render(fit, machine, ini.joints, ini.units_per_mm)
+    inputs = (*fit.sources, FileSource.of("ini", ini.path))
+    files[ini.merged_name] = merge_ini(
+        ini.text, ini.joints, out_dir, str(ini.path), ini.path.resolve().parent, inputs
+    )
+    return files
+
+
+def backlash_joints(text: str, joints: list[str]) -> dict[int, float]:
+    """Joint number -> the non-zero ``BACKLASH`` its section sets (machine units)."""
+    lines = text.splitlines()
+    found = {}
+    for number in range(len(joints)):
+        value = ini_value(lines, f"JOINT_{number}", "BACKLASH")
+        try:
+            if value is not None and float(value) != 0.0:
+                found[number] = float(value)
+        except ValueError:
+            continue
+    return found
+
+
+def backlash_warnings(ini: MachineIni, machine: Machine) -> list[str]:
+    """A warning per joint whose non-zero ``BACKLASH`` (which LinuxCNC ignores once a
+    ``COMP_FILE`` is loaded, ``compute_screw_comp`` in src/emc/motion/control.c) is not
+    the machine file's ``cnc.backlash_um`` the tables carry."""
+    warnings = []
+    for joint, value in backlash_joints(ini.text, ini.joints).items():
+        axis, um = ini.joints[joint], value / ini.units_per_mm * 1e3
+        given = machine.cnc.backlash(axis)
+        where = f"{ini.path}: [JOINT_{joint}] BACKLASH = {value:g} ({um:g} um)"
+        if given is None:
+            warnings.append(
+                f"{where}: LinuxCNC ignores it once COMP_FILE is loaded; if it was active while"
+                f" measuring, give cnc.backlash_um {{{axis}: {um:g}}} and run comp again so that"
+                " the tables carry it"
+            )
+        elif abs(given - um) > 1e-3:  # 1 nm: an inch INI rounds
+            warnings.append(
+                f"{where} is not cnc.backlash_um {axis} {given:g} um, which the tables carry:"
+                " give the one that was active while measuring"
+            )
+    return warnings
+
+
 def merge_ini(
     text: str,
     joints: list[str],
@@ -192,16 +365,7 @@ def merge_ini(
     INI and the error tables, hashed).
     """
     lines = text.splitlines()
-    sections = _sections(lines)
-    count = ini_value(lines, "KINS", "JOINTS")
-    if count is not None and count.strip().isdigit() and int(count) != len(joints):
-        raise InputError(
-            f"{source}: [KINS] JOINTS = {count} but {len(joints)} joints are mapped"
-            f" ({''.join(joints)})"
-        )
-    missing = [n for n in range(len(joints)) if f"JOINT_{n}" not in sections]
-    if missing:
-        raise InputError(f"{source}: no [JOINT_{missing[0]}] section to put COMP_FILE into")
+    sections = check_joint_sections(lines, joints, source)
     inserts: dict[int, list[str]] = {}
     dropped: set[int] = set()
     for number, axis in enumerate(joints):
@@ -232,17 +396,3 @@ def _absolute_line(line: str, folder: Path) -> str:
         return line
     absolute = absolute_path(match.group(2), folder)
     return line if absolute == match.group(2) else f"{match.group(1)} = {absolute}"
-
-
-def backlash_joints(text: str, joints: list[str]) -> list[int]:
-    """Joints whose section sets a non-zero BACKLASH (a COMP_FILE replaces it)."""
-    lines = text.splitlines()
-    found = []
-    for number in range(len(joints)):
-        value = ini_value(lines, f"JOINT_{number}", "BACKLASH")
-        try:
-            if value is not None and float(value) != 0.0:
-                found.append(number)
-        except ValueError:
-            continue
-    return found

@@ -415,11 +415,17 @@ def merge_config(
     """The table file, the merged INI and HAL copies and the wiring file for ``out_dir``.
 
     The chain, the tool offset (``cnc.tool_offset_mm``), the bound
-    (``cnc.max_correction_um``) and the joints come from the machine file.
+    (``cnc.max_correction_um``) and the joints come from the machine file. An INI whose
+    ``[TRAJ] LINEAR_UNITS`` is not mm is refused (the component's table is in mm).
     """
     lines = read_ini(ini_path)
     folder = ini_path.resolve().parent
     coordinates = joint_coordinates(lines, ini_path, machine)
+    if linuxcnc.units_per_mm([line.text for line in lines], str(ini_path)) != 1.0:
+        raise InputError(
+            f"{ini_path}: [TRAJ] LINEAR_UNITS is not mm; the volumetric component works in mm"
+            " (--controller linuxcnc writes its comp files in the INI's units)"
+        )
     halfiles = ini_values(lines, "HAL", "HALFILE")
     if not halfiles:
         raise InputError(f"{ini_path}: [HAL] HALFILE is missing")

@@ -2,13 +2,24 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_helpers import assert_one_line_error, run_cli
 
 from tests.xmalign.comp.conftest import make_machine, make_tables
-from xmalign.comp.linuxcnc import ini_value, merge_ini, resolve_joints
+from xmalign.comp import compensate
+from xmalign.comp.linuxcnc import (
+    backlash_warnings,
+    ini_files,
+    ini_value,
+    merge_ini,
+    read_machine_ini,
+    resolve_joints,
+    units_per_mm,
+)
 from xmalign.errors import InputError
 from xmalign.formats.error_tables import write_error_tables
 
@@ -130,3 +141,47 @@ def test_the_merged_ini_starts_with_its_history(tmp_path):
     assert lines[0] == "# format: xmalign.comp.linuxcnc/1"
     assert any(line.startswith("# input ini: ") and line.endswith(f"  {ini}") for line in lines)
     assert merged.endswith(merge_ini(_ini(), ["X", "Y", "Z"], OUT, str(ini)).split("\n", 3)[3])
+
+
+def test_linear_units_as_linuxcnc_reads_them():
+    """Names and numbers (units per mm) of src/emc/ini/emcIniFile.cc; mm when not given."""
+    with_units = lambda value: _ini().replace("[TRAJ]\n", f"[TRAJ]\nLINEAR_UNITS = {value}\n")  # noqa: E731
+    assert units_per_mm(_ini().splitlines(), "m.ini") == 1.0
+    for value, expected in [("mm", 1.0), ("metric", 1.0), ("inch", 1 / 25.4), ("IN", 1 / 25.4)]:
+        assert units_per_mm(with_units(value).splitlines(), "m.ini") == expected
+    assert units_per_mm(with_units("0.5").splitlines(), "m.ini") == 0.5
+    for bad in ("furlong", "-1", "0", "nan", "inf"):
+        with pytest.raises(InputError, match=r"m\.ini: \[TRAJ\] LINEAR_UNITS"):
+            units_per_mm(with_units(bad).splitlines(), "m.ini")
+
+
+def test_an_inch_ini_gets_its_comp_files_in_inches_and_the_backlash_folded_in(tmp_path):
+    """X's table in inches for an inch INI; cnc.backlash_um as LinuxCNC's BACKLASH applied
+    it: +B/2 added to the correction moving + (actual - B/2), -B/2 moving -."""
+    tables = make_tables({"EXX": [4.0, -2.0, 0.0, 6.0, 1.0]})
+    plain = compensate(make_machine(), tables, "linuxcnc")
+    folded = compensate(make_machine(backlash_um={"X": 8.0}), tables, "linuxcnc")
+    rows = np.loadtxt(io.StringIO(plain.files["x.comp"]))
+    # the error as measured, up to the constant the fit leaves free
+    np.testing.assert_allclose(
+        np.diff(rows[:, 1] - rows[:, 0]), [-6e-3, 2e-3, 6e-3, -5e-3], atol=1e-9
+    )
+    shifted = np.loadtxt(io.StringIO(folded.files["x.comp"])) - rows
+    np.testing.assert_allclose(shifted[:, 1:], np.tile([-4e-3, 4e-3], (len(rows), 1)), atol=2e-9)
+    assert "cnc.backlash_um X 8 um" in folded.loading.reversal
+    ini = tmp_path / "mill.ini"
+    ini.write_text(_ini().replace("[TRAJ]\n", "[TRAJ]\nLINEAR_UNITS = inch\n"))
+    machine_ini = read_machine_ini(make_machine(), ini)
+    inch = ini_files(plain.fit, make_machine(), machine_ini, tmp_path / "out")
+    np.testing.assert_allclose(np.loadtxt(io.StringIO(inch["x.comp"])) * 25.4, rows, atol=2e-7)
+
+
+def test_a_backlash_in_the_ini_is_told_unless_the_tables_carry_that_one(tmp_path):
+    ini = tmp_path / "mill.ini"
+    ini.write_text(_ini(joint_keys={0: ["BACKLASH = 0.008"], 2: ["BACKLASH = 0"]}))
+    machine_ini = read_machine_ini(make_machine(), ini)
+    (told,) = backlash_warnings(machine_ini, make_machine())
+    assert "[JOINT_0] BACKLASH = 0.008 (8 um)" in told and "cnc.backlash_um {X: 8}" in told
+    assert backlash_warnings(machine_ini, make_machine(backlash_um={"X": 8.0})) == []
+    (other,) = backlash_warnings(machine_ini, make_machine(backlash_um={"X": 5.0}))
+    assert "is not cnc.backlash_um X 5 um" in other

@@ -227,6 +227,10 @@ def test_merge_warns_where_the_joint_limits_pass_the_tables(tmp_path):
         (lambda ini, hal: (ini, hal.replace("joint.3.motor-pos-fb", "x")), "joint.3.motor-pos-fb"),
         (lambda ini, hal: (ini, hal + "loadrt xmalign_volcomp table=x\n"), "already"),
         (lambda ini, hal: (ini, hal + "linkps motion.is-all-homed s\n"), "line 10: motion.is-all"),
+        (
+            lambda ini, hal: (ini + "[TRAJ]\nLINEAR_UNITS = inch\n", hal),
+            "[TRAJ] LINEAR_UNITS is not mm",
+        ),
     ],
 )
 def test_merge_refuses_what_it_cannot_wire(tmp_path, edit, message):
