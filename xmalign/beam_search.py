@@ -52,6 +52,10 @@ WHAT_TO_CHECK = (
 
 #: At most this many passes of centring on a1..a4 (:func:`_centred`).
 CENTRING_PASSES = 6
+#: From the nearest place the search points from, the beam lands within the first
+#: fraction of the capture radius, and the receiver faces the true place within the
+#: second of its capture angle (the simulated signal there at least 18 %).
+CAPTURE_FRACTION = (0.7, 0.8)
 
 
 @dataclass(frozen=True)
@@ -305,6 +309,61 @@ def search_first_beam(
     )
 
 
+def search_pointings(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    targets_rad: Vec,
+    distances_mm: Vec,
+    ranges: InterferometerRanges,
+    settings: BeamSearchSettings | None = None,
+) -> int | None:
+    """Point both units at each row of ``targets_rad`` in turn until the receiver sees the
+    beam, then centre it as :func:`search_first_beam` does (the azimuth known this time:
+    one pointing per place of the launch unit, no turn).
+
+    Parameters
+    ----------
+    launch, receiver : PositioningUnit
+    interferometer : Interferometer
+    clock : Clock
+    targets_rad : ndarray, shape (N, n_axes)
+        Launch then receiver angles, one row per place the launch unit may stand,
+        the likeliest first.
+    distances_mm : ndarray, shape (N,)
+        The distance from each place to the receiver (sizes the centring's steps).
+    ranges : InterferometerRanges
+    settings : BeamSearchSettings, optional
+        ``timeout_s`` bounds the whole; ``move_timeout_s``, ``settle_s`` each pointing.
+
+    Returns
+    -------
+    int or None
+        The row where the beam was seen (and is now centred); None when no row saw it,
+        the units then back at the first row.
+
+    Raises
+    ------
+    DeviceTimeoutError
+        Not found and centred within ``settings.timeout_s``.
+    """
+    settings = settings or BeamSearchSettings()
+    search = _Search(launch, receiver, interferometer, clock, settings, clock.now())
+    axes = [*launch.axes, *receiver.axes]
+    for row, (targets, distance_mm) in enumerate(zip(targets_rad, distances_mm, strict=True)):
+        search.check_time()
+        search.move(axes, targets)
+        search.clock.sleep(settings.settle_s)
+        if search.sees():
+            aperture_rad = ranges.capture_radius_mm / distance_mm
+            cos_e = max(abs(math.cos(targets[1])), 0.05)
+            _centred(search, aperture_rad / cos_e, aperture_rad, ranges.capture_angle_mrad * 1e-3)
+            return row
+    search.move(axes, targets_rad[0])
+    return None
+
+
 def _candidate_places_mm(
     launch2mcs_mm: Vec,
     receiver_cp_mm: Vec,
@@ -329,8 +388,9 @@ def _candidate_places_mm(
     level = np.cross(line, [0.0, 0.0, 1.0])
     u = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array([1.0, 0, 0])
     v = np.cross(u, line)
-    facing_mm = 0.8 * ranges.capture_angle_mrad * 1e-3 * nearest_mm
-    spacing_v = min(1.4 * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
+    of_radius, of_angle = CAPTURE_FRACTION
+    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
+    spacing_v = min(2.0 * of_radius * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
     spacing_u = 2.0 * math.sqrt(facing_mm**2 - (0.5 * spacing_v) ** 2)
     reach_mm = uncertainty_mm * math.sqrt(2.0)
     n_u, n_v = (math.ceil(reach_mm / spacing - 0.5) for spacing in (spacing_u, spacing_v))

@@ -24,11 +24,16 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
-from xmalign.beam_search import BeamSearchSettings, search_first_beam
+from xmalign.beam_search import (
+    CAPTURE_FRACTION,
+    BeamSearchSettings,
+    search_first_beam,
+    search_pointings,
+)
 from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
 from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
-from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
+from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_axis, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit, move_axes
 from xmalign.safety import units_locked_on_exit
@@ -39,6 +44,9 @@ logger = logging.getLogger(__name__)
 SAME_POSITION_MM = 0.5
 #: Distance assumed by the first fine alignment when no pose guess gives one, mm.
 DEFAULT_DISTANCE_MM = 1000.0
+#: How weakly the rough place holds the launch place where the beam lines leave it open
+#: (:func:`launch_place_from_alignments`; against 1 per line), 1.
+ROUGH_PLACE_WEIGHT = 1e-6
 
 
 @dataclass(frozen=True)
@@ -149,18 +157,80 @@ def _pointing_bias(
     return EncoderOffsets(float(c2), float(c3), float(c4)), roll
 
 
-def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None:
-    """The guess completed from the recorded alignments (gamma, offsets, roll), if usable."""
-    if guess is None or (guess.gamma_rad is None and not session.alignments):
-        return guess if guess is None or guess.gamma_rad is not None else None
-    gamma_rad = guess.gamma_rad
-    if gamma_rad is None:
-        gamma_rad = gamma_from_alignments(guess.launch2mcs_mm, session)
-        guess = replace(guess, gamma_rad=gamma_rad)
-    if not session.alignments:
-        return guess
+def launch_place_from_alignments(rough_mm: Vec, session: Session) -> tuple[Vec, Vec]:
+    """Where the recorded alignments put the launch unit, and the direction they leave open.
+
+    Each alignment puts the launch unit on the beam's line through the receiver cp,
+    along the receiver's reported axis (a3, a4 and the spindle angle; their zero
+    offsets, tens of microradians, neglected). The place is the point nearest all
+    the lines (least squares), held weakly at the rough place where they leave it
+    open: one alignment moves the rough place onto its line, two lines that cross
+    give their crossing.
+
+    Parameters
+    ----------
+    rough_mm : ndarray, shape (3,)
+        The machine file's place of the launch unit, MCS mm.
+    session : Session
+        At least one recorded alignment.
+
+    Returns
+    -------
+    place_mm : ndarray, shape (3,)
+        MCS mm.
+    open_direction : ndarray, shape (3,)
+        Unit vector along which the lines fix the place least (the line itself
+        after one alignment).
+    """
+    normal, rhs = np.zeros((3, 3)), np.zeros(3)
+    for a in session.alignments:
+        cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+        axis = receiver_axis(session.spindle_angle_rad, a.receiver_rad[0], a.receiver_rad[1])
+        across = np.eye(3) - np.outer(axis, axis)
+        normal, rhs = normal + across, rhs + across @ cp
+    held = normal + ROUGH_PLACE_WEIGHT * np.eye(3)
+    pulled = rhs + ROUGH_PLACE_WEIGHT * np.asarray(rough_mm, dtype=float)
+    place = np.asarray(np.linalg.solve(held, pulled), dtype=float)
+    open_direction: Vec = np.linalg.eigh(normal)[1][:, 0]
+    return place, open_direction
+
+
+def _guess_at(guess: PoseGuess, place_mm: Vec, session: Session) -> PoseGuess:
+    """The guess with the launch unit at ``place_mm`` and the azimuth the recorded
+    alignments give from there, with the offsets and roll they show."""
+    gamma_rad = gamma_from_alignments(place_mm, session)
+    guess = replace(guess, launch2mcs_mm=place_mm, gamma_rad=gamma_rad)
     offsets, roll = _pointing_bias(guess, gamma_rad, session)
     return replace(guess, offsets=offsets, receiver_roll_rad=roll)
+
+
+def _usable_guess(guess: PoseGuess | None, session: Session, onto_lines: bool) -> PoseGuess | None:
+    """The guess completed from the recorded alignments (azimuth, offsets, roll), if
+    usable; ``onto_lines``: its place first moved to :func:`launch_place_from_alignments`
+    (a coarse guess with no one at the machine: the rough place may be centimetres off,
+    the lines hold to tenths of a millimetre; with an operator the guess stays, the jog
+    corrects it)."""
+    if guess is None or not session.alignments:
+        return guess if guess is not None and guess.gamma_rad is not None else None
+    if onto_lines:
+        place_mm, _ = launch_place_from_alignments(guess.launch2mcs_mm, session)
+        return _guess_at(guess, place_mm, session)
+    if guess.gamma_rad is None:
+        return _guess_at(guess, guess.launch2mcs_mm, session)
+    offsets, roll = _pointing_bias(guess, guess.gamma_rad, session)
+    return replace(guess, offsets=offsets, receiver_roll_rad=roll)
+
+
+def _pointing(guess: PoseGuess, cp_mm: Vec, session: Session, n_axes: int) -> tuple[Vec, float]:
+    """The launch and receiver angles the guess predicts, shape (``n_axes``,) rad, and the
+    predicted distance, mm."""
+    assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
+    predicted = aligned_angles(
+        guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
+    )
+    receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
+    targets = np.concatenate([predicted.launch_rad, receiver_target])[:n_axes]
+    return targets, predicted.distance_mm
 
 
 def _point_units(
@@ -168,15 +238,92 @@ def _point_units(
 ) -> float:
     """Move both units at once to the angles predicted by the guess (``timeout_s`` for all
     axes together); returns the predicted distance."""
-    assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
-    predicted = aligned_angles(
-        guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
-    )
-    receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
     axes = [*devices.launch.axes, *devices.receiver.axes]
-    targets = np.concatenate([predicted.launch_rad, receiver_target])[: len(axes)]
+    targets, distance_mm = _pointing(guess, cp_mm, session, len(axes))
     move_axes(axes, targets, timeout_s, "positioning units", devices.clock)
-    return predicted.distance_mm
+    return distance_mm
+
+
+def _places_along(
+    place_mm: Vec, open_direction: Vec, cp_mm: Vec, machine: Machine, reach_mm: float
+) -> Vec:
+    """Places of the launch unit along ``open_direction`` out to ``reach_mm`` either side,
+    nearest first, shape (N, 3), MCS mm: close enough that from the nearest the beam
+    lands on the receiver and the receiver faces the true place, each within
+    :data:`~xmalign.beam_search.CAPTURE_FRACTION` of its capture."""
+    line = cp_mm - place_mm
+    distance_mm = float(np.linalg.norm(line))
+    across = float(np.linalg.norm(np.cross(open_direction, line / distance_mm)))
+    ranges = machine.interferometer
+    nearest_mm = max(distance_mm - reach_mm, 1.0)
+    of_radius, of_angle = CAPTURE_FRACTION
+    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
+    miss_mm = min(of_radius * ranges.capture_radius_mm, facing_mm)
+    spacing_mm = 2.0 * miss_mm / max(across, 1e-3)
+    count = math.ceil(reach_mm / spacing_mm)
+    steps = np.array(sorted(range(-count, count + 1), key=lambda k: (abs(k), k)), dtype=float)
+    return place_mm + np.outer(np.clip(steps * spacing_mm, -reach_mm, reach_mm), open_direction)
+
+
+def _search_place(
+    guess: PoseGuess,
+    cp_mm: Vec,
+    session: Session,
+    machine: Machine,
+    devices: RoutineDevices,
+    settings: BeamSearchSettings,
+) -> float | None:
+    """Pointing from the recorded alignments missed: point again from other places of the
+    launch unit along the direction they leave open (each with the azimuth they give
+    from there), nearest first, out to the rough place's uncertainty
+    (:func:`~xmalign.beam_search.search_pointings`); the distance to the place where the
+    beam was found and centred, or None (the units back at the first pointing)."""
+    place_mm, open_direction = launch_place_from_alignments(guess.launch2mcs_mm, session)
+    reach_mm = settings.position_uncertainty_mm * math.sqrt(3.0)
+    places = _places_along(place_mm, open_direction, cp_mm, machine, reach_mm)
+    n_axes = len(devices.launch.axes) + len(devices.receiver.axes)
+    pointings = [
+        _pointing(_guess_at(guess, place, session), cp_mm, session, n_axes) for place in places
+    ]
+    logger.info(
+        "the beam missed: pointing again from %d places of the launch unit along the line"
+        " the recorded alignments leave open",
+        len(places),
+    )
+    found = search_pointings(
+        devices.launch,
+        devices.receiver,
+        devices.interferometer,
+        devices.clock,
+        np.array([targets for targets, _ in pointings]),
+        np.array([distance for _, distance in pointings]),
+        machine.interferometer,
+        settings,
+    )
+    return None if found is None else pointings[found][1]
+
+
+def _pointed(
+    usable: PoseGuess,
+    coarse: PoseGuess | None,
+    cp_mm: Vec,
+    session: Session,
+    machine: Machine,
+    devices: RoutineDevices,
+    timeout_s: float,
+    search: BeamSearchSettings | None,
+) -> float:
+    """Point the units from ``usable`` (:func:`_point_units`); the distance. Where that
+    comes from a ``coarse`` guess moved onto the recorded beam lines, which may leave the
+    place open, and misses with no one there (``search``), point again from along them
+    (:func:`_search_place`)."""
+    distance_mm = _point_units(usable, cp_mm, session, devices, timeout_s)
+    if coarse is None or search is None or not session.alignments:
+        return distance_mm
+    if devices.interferometer.read().beam_ok:
+        return distance_mm
+    found_mm = _search_place(coarse, cp_mm, session, machine, devices, search)
+    return distance_mm if found_mm is None else found_mm
 
 
 def _search(
@@ -204,6 +351,29 @@ def _search(
         lambda _: on_sweep(),
     )
     return float(np.linalg.norm(cp_mm - guess.launch2mcs_mm))
+
+
+def visiting_order(
+    positions_mm: Vec,
+    guess: PoseGuess | None,
+    session: Session,
+    machine: Machine,
+    search: BeamSearchSettings | None,
+) -> list[int]:
+    """The positions' indices in the order the routine takes them: as given, except that
+    a first alignment to be searched (no azimuth, nothing recorded) is taken first at the
+    position farthest from the launch unit's rough place within the interferometer's
+    range, where the place's uncertainty is the smallest angle and the search turns
+    the launch unit the fewest times."""
+    order = list(range(len(positions_mm)))
+    if search is None or guess is None or guess.gamma_rad is not None or session.alignments:
+        return order
+    cps = receiver_cp(positions_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+    distances_mm = np.linalg.norm(cps - guess.launch2mcs_mm, axis=1)
+    reach_mm = machine.interferometer.max_range_mm - search.position_uncertainty_mm * math.sqrt(3)
+    distances_mm[distances_mm > reach_mm] = -np.inf
+    farthest = int(np.argmax(distances_mm))
+    return [farthest, *(i for i in order if i != farthest)]
 
 
 def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual_um: Vec) -> None:
@@ -268,7 +438,7 @@ def run_identification(
     Parameters
     ----------
     positions_mm : array_like, shape (N, 3)
-        CNC tool points to align at, in order.
+        CNC tool points to align at, in order (but see ``search``).
     machine : Machine
         Travel, feeds, receiver offset and spindle angle.
     devices : RoutineDevices
@@ -294,7 +464,12 @@ def run_identification(
         Timeout of each coarse unit move.
     search : BeamSearchSettings, optional
         Bounds of the first alignment's search; None: no search (an operator aligns
-        the first position, ``manual_align``).
+        the first position, ``manual_align``). Given, no one is assumed at the
+        machine: the first alignment is taken at the position farthest from the rough
+        place (:func:`visiting_order`), the next ones are pointed from the recorded
+        beam lines (:func:`launch_place_from_alignments`) until a refined guess
+        exists, and where such a pointing misses, from places along the line they
+        leave open; ``manual_align`` only when fine alignment then fails.
 
     Returns
     -------
@@ -321,9 +496,12 @@ def run_identification(
     path = Path(session_path)
     session = open_session(path, machine)
     distance_mm = DEFAULT_DISTANCE_MM
-    refined = False
+    # resumed: the recorded alignments refine the guess as they did before the stop
+    better = refine_guess(session) if refine_guess is not None and session.alignments else None
+    guess, refined = (better, True) if better is not None else (guess, False)
+    order = visiting_order(positions, guess, session, machine, search)
     with units_locked_on_exit(devices.launch, devices.receiver):
-        for index, target in enumerate(positions, start=1):
+        for index, target in ((i + 1, positions[i]) for i in order):
 
             def event(stage: Stage, where: Vec, index: int = index) -> None:
                 if on_event is not None:
@@ -336,11 +514,14 @@ def run_identification(
             devices.mover.move_to(target, machine.feed_mm_min.rapid)
             machine_mm = np.asarray(devices.mover.position_mm(), dtype=float)
             cp_mm = receiver_cp(machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-            usable = _usable_guess(guess, session)
+            usable = _usable_guess(guess, session, search is not None and not refined)
             searched = usable is None and guess is not None and search is not None
             if usable is not None:
                 event("pointing", machine_mm)
-                distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
+                coarse = None if refined else guess
+                distance_mm = _pointed(
+                    usable, coarse, cp_mm, session, machine, devices, unit_timeout_s, search
+                )
             elif searched:
                 assert guess is not None and search is not None  # see searched
                 distance_mm = _search(
