@@ -191,39 +191,55 @@ def _back_to_beam(search: _Search, seen_rad: float, step_rad: float) -> bool:
 
 
 def _edge(
-    search: _Search, axis: RotaryAxis, inside_rad: float, step_rad: float, precision_rad: float
+    search: _Search,
+    go: Callable[[float], None],
+    inside: float,
+    step: float,
+    precision: float,
 ) -> float:
-    """The angle of ``axis`` where the signal ends beyond ``inside_rad`` in the direction
-    of ``step_rad`` (the beam is seen at ``inside_rad``), within ``precision_rad``."""
-    outside = inside_rad + step_rad
+    """The value of what ``go`` sets (an axis angle, a place along a line) where the signal
+    ends beyond ``inside`` in the direction of ``step`` (the beam is seen at
+    ``inside``), within ``precision``."""
+    outside = inside + step
     while True:
         search.check_time()
-        search.move([axis], np.array([outside]))
+        go(outside)
         search.clock.sleep(search.settings.settle_s)
         if not search.sees():
             break
-        inside_rad, outside = outside, outside + step_rad
-    while abs(outside - inside_rad) > precision_rad:
+        inside, outside = outside, outside + step
+    while abs(outside - inside) > precision:
         search.check_time()
-        middle = 0.5 * (inside_rad + outside)
-        search.move([axis], np.array([middle]))
+        middle = 0.5 * (inside + outside)
+        go(middle)
         search.clock.sleep(search.settings.settle_s)
         if search.sees():
-            inside_rad = middle
+            inside = middle
         else:
             outside = middle
-    return 0.5 * (inside_rad + outside)
+    return 0.5 * (inside + outside)
+
+
+def _middle(search: _Search, go: Callable[[float], None], here: float, half_width: float) -> float:
+    """Set what ``go`` sets to the middle of the values where the beam is seen (seen at
+    ``here``); that middle."""
+    step, precision = 0.25 * half_width, search.settings.edge_precision * half_width
+    middle = 0.5 * (
+        _edge(search, go, here, step, precision) + _edge(search, go, here, -step, precision)
+    )
+    go(middle)
+    search.clock.sleep(search.settings.settle_s)
+    return middle
 
 
 def _centre(search: _Search, axis: RotaryAxis, half_width_rad: float) -> None:
     """Move ``axis`` to the middle of the angles where the beam is seen (seen where it is)."""
-    here = axis.position_rad()
-    step = 0.25 * half_width_rad
-    precision = search.settings.edge_precision * half_width_rad
-    upper = _edge(search, axis, here, step, precision)
-    lower = _edge(search, axis, here, -step, precision)
-    search.move([axis], np.array([0.5 * (upper + lower)]))
-    search.clock.sleep(search.settings.settle_s)
+    _middle(
+        search,
+        lambda angle: search.move([axis], np.array([angle])),
+        axis.position_rad(),
+        half_width_rad,
+    )
 
 
 def search_first_beam(
@@ -309,39 +325,45 @@ def search_first_beam(
     )
 
 
-def search_pointings(
+def search_along(
     launch: PositioningUnit,
     receiver: PositioningUnit,
     interferometer: Interferometer,
     clock: Clock,
-    targets_rad: Vec,
-    distances_mm: Vec,
+    pointing: Callable[[float], Vec],
+    offsets_mm: Vec,
+    distance_mm: float,
     ranges: InterferometerRanges,
     settings: BeamSearchSettings | None = None,
-) -> int | None:
-    """Point both units at each row of ``targets_rad`` in turn until the receiver sees the
-    beam, then centre it as :func:`search_first_beam` does (the azimuth known this time:
-    one pointing per place of the launch unit, no turn).
+) -> float | None:
+    """Point both units from places of the launch unit along a line, each of
+    ``offsets_mm`` in turn, until the receiver sees the beam; then point from the middle
+    of the offsets where it is seen (edges found as the centring finds them) and centre
+    as :func:`search_first_beam` does. The azimuth is known here: one pointing per
+    place, no turn.
 
     Parameters
     ----------
     launch, receiver : PositioningUnit
     interferometer : Interferometer
     clock : Clock
-    targets_rad : ndarray, shape (N, n_axes)
-        Launch then receiver angles, one row per place the launch unit may stand,
-        the likeliest first.
-    distances_mm : ndarray, shape (N,)
-        The distance from each place to the receiver (sizes the centring's steps).
+    pointing : callable
+        The launch then receiver angles, shape (n_axes,) rad, that point the units
+        from the place ``offset_mm`` along the line.
+    offsets_mm : ndarray, shape (N,)
+        The places to point from, the likeliest first, evenly ``offsets_mm[1] -
+        offsets_mm[0]`` apart or one.
+    distance_mm : float
+        About the distance to the receiver (sizes the centring's steps).
     ranges : InterferometerRanges
     settings : BeamSearchSettings, optional
         ``timeout_s`` bounds the whole; ``move_timeout_s``, ``settle_s`` each pointing.
 
     Returns
     -------
-    int or None
-        The row where the beam was seen (and is now centred); None when no row saw it,
-        the units then back at the first row.
+    float or None
+        The offset where the beam is now centred; None when no place saw it, the units
+        then pointed from the first.
 
     Raises
     ------
@@ -351,16 +373,22 @@ def search_pointings(
     settings = settings or BeamSearchSettings()
     search = _Search(launch, receiver, interferometer, clock, settings, clock.now())
     axes = [*launch.axes, *receiver.axes]
-    for row, (targets, distance_mm) in enumerate(zip(targets_rad, distances_mm, strict=True)):
+
+    def go(offset_mm: float) -> None:
+        search.move(axes, pointing(offset_mm))
+
+    spacing_mm = float(np.ptp(offsets_mm[:2])) if len(offsets_mm) > 1 else 1.0
+    for offset_mm in offsets_mm:
         search.check_time()
-        search.move(axes, targets)
+        go(float(offset_mm))
         search.clock.sleep(settings.settle_s)
         if search.sees():
+            middle_mm = _middle(search, go, float(offset_mm), spacing_mm)
             aperture_rad = ranges.capture_radius_mm / distance_mm
-            cos_e = max(abs(math.cos(targets[1])), 0.05)
+            cos_e = max(abs(math.cos(float(launch.angles_rad()[1]))), 0.05)
             _centred(search, aperture_rad / cos_e, aperture_rad, ranges.capture_angle_mrad * 1e-3)
-            return row
-    search.move(axes, targets_rad[0])
+            return middle_mm
+    go(float(offsets_mm[0]))
     return None
 
 

@@ -27,8 +27,8 @@ from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_a
 from xmalign.beam_search import (
     CAPTURE_FRACTION,
     BeamSearchSettings,
+    search_along,
     search_first_beam,
-    search_pointings,
 )
 from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
@@ -244,12 +244,12 @@ def _point_units(
     return distance_mm
 
 
-def _places_along(
+def _offsets_along(
     place_mm: Vec, open_direction: Vec, cp_mm: Vec, machine: Machine, reach_mm: float
 ) -> Vec:
-    """Places of the launch unit along ``open_direction`` out to ``reach_mm`` either side,
-    nearest first, shape (N, 3), MCS mm: close enough that from the nearest the beam
-    lands on the receiver and the receiver faces the true place, each within
+    """Offsets of the launch unit's place along ``open_direction`` out to ``reach_mm``
+    either side, nearest first, shape (N,), mm: close enough that from the nearest the
+    beam lands on the receiver and the receiver faces the true place, each within
     :data:`~xmalign.beam_search.CAPTURE_FRACTION` of its capture."""
     line = cp_mm - place_mm
     distance_mm = float(np.linalg.norm(line))
@@ -259,10 +259,10 @@ def _places_along(
     of_radius, of_angle = CAPTURE_FRACTION
     facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
     miss_mm = min(of_radius * ranges.capture_radius_mm, facing_mm)
-    spacing_mm = 2.0 * miss_mm / max(across, 1e-3)
+    spacing_mm = min(2.0 * miss_mm / max(across, 1e-3), reach_mm)
     count = math.ceil(reach_mm / spacing_mm)
     steps = np.array(sorted(range(-count, count + 1), key=lambda k: (abs(k), k)), dtype=float)
-    return place_mm + np.outer(np.clip(steps * spacing_mm, -reach_mm, reach_mm), open_direction)
+    return steps * spacing_mm
 
 
 def _search_place(
@@ -276,31 +276,37 @@ def _search_place(
     """Pointing from the recorded alignments missed: point again from other places of the
     launch unit along the direction they leave open (each with the azimuth they give
     from there), nearest first, out to the rough place's uncertainty
-    (:func:`~xmalign.beam_search.search_pointings`); the distance to the place where the
+    (:func:`~xmalign.beam_search.search_along`); the distance to the place where the
     beam was found and centred, or None (the units back at the first pointing)."""
     place_mm, open_direction = launch_place_from_alignments(guess.launch2mcs_mm, session)
     reach_mm = settings.position_uncertainty_mm * math.sqrt(3.0)
-    places = _places_along(place_mm, open_direction, cp_mm, machine, reach_mm)
+    offsets_mm = _offsets_along(place_mm, open_direction, cp_mm, machine, reach_mm)
     n_axes = len(devices.launch.axes) + len(devices.receiver.axes)
-    pointings = [
-        _pointing(_guess_at(guess, place, session), cp_mm, session, n_axes) for place in places
-    ]
+
+    def pointing(offset_mm: float) -> Vec:
+        place = place_mm + offset_mm * open_direction
+        return _pointing(_guess_at(guess, place, session), cp_mm, session, n_axes)[0]
+
     logger.info(
-        "the beam missed: pointing again from %d places of the launch unit along the line"
-        " the recorded alignments leave open",
-        len(places),
+        "the beam missed: pointing again from up to %d places of the launch unit along the"
+        " line the recorded alignments leave open",
+        len(offsets_mm),
     )
-    found = search_pointings(
+    distance_mm = float(np.linalg.norm(cp_mm - place_mm))
+    found_mm = search_along(
         devices.launch,
         devices.receiver,
         devices.interferometer,
         devices.clock,
-        np.array([targets for targets, _ in pointings]),
-        np.array([distance for _, distance in pointings]),
+        pointing,
+        offsets_mm,
+        distance_mm,
         machine.interferometer,
         settings,
     )
-    return None if found is None else pointings[found][1]
+    if found_mm is None:
+        return None
+    return float(np.linalg.norm(cp_mm - place_mm - found_mm * open_direction))
 
 
 def _pointed(

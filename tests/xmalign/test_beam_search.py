@@ -285,6 +285,42 @@ class _InterruptedError(Exception):
     """Ctrl-C at the routine's second move (the session then holds one alignment)."""
 
 
+def _seed3_routine(machine: Machine) -> tuple[World, RoutineDevices]:
+    """The dry run's seed-3 setup (launch unit 28 mm off the machine file's place) with a
+    simulated CNC, in-process."""
+    world = virtual_setup(machine, 3).world
+    cnc = SimulatedCnc(machine, world.clock, world.interferometer.position.position_mm())
+    world.interferometer.position = cnc
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    return world, RoutineDevices(cnc, launch, receiver, world.interferometer, world.clock)
+
+
+def test_the_jog_is_the_last_resort_after_the_search_along_the_line(
+    machine: Machine, tmp_path
+) -> None:
+    """One alignment recorded, then the beam blocked: the pointing from the beam line and
+    the search along it find nothing, fine alignment neither; only then the operator is
+    asked (once), and a beam still blocked ends in the one-line error."""
+    world, devices = _seed3_routine(machine)
+    positions = design_step(machine, 3).machine_mm
+    assert machine.launch_unit is not None
+    guess = PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
+    path, jogs, stages = tmp_path / "session.json", [], []
+
+    def run(where: np.ndarray) -> Session:
+        return run_identification(
+            where, machine, devices, path, guess, manual_align=lambda: jogs.append(1),
+            on_event=lambda e: stages.append(e.stage), search=BeamSearchSettings(),
+        )  # fmt: skip
+
+    run(positions[1:2])
+    world.interferometer.interrupt(1e9)
+    with pytest.raises(BeamLostError):
+        run(positions)
+    assert jogs == [1] and stages.count("searching") > 0 and stages[-1] == "manual"
+    assert len(read_session(path).alignments) == 1  # nothing recorded is lost
+
+
 @pytest.mark.parametrize("resumed", [False, True])
 def test_no_jog_at_near_positions_after_the_search_straight_or_resumed(
     machine: Machine, tmp_path, resumed: bool
@@ -294,12 +330,7 @@ def test_no_jog_at_near_positions_after_the_search_straight_or_resumed(
     routine searches at the farthest position, then points the near ones from that
     alignment's beam line (searching along it where it misses), straight through or
     resumed after a stop; no jog."""
-    setup = virtual_setup(machine, 3)
-    world = setup.world
-    cnc = SimulatedCnc(machine, world.clock, world.interferometer.position.position_mm())
-    world.interferometer.position = cnc
-    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
-    devices = RoutineDevices(cnc, launch, receiver, world.interferometer, world.clock)
+    world, devices = _seed3_routine(machine)
     assert machine.launch_unit is not None
     positions = design_step(machine, 3).machine_mm
     stages: list[tuple[int, str]] = []
