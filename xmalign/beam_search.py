@@ -56,6 +56,11 @@ CENTRING_PASSES = 6
 #: fraction of the capture radius, and the receiver faces the true place within the
 #: second of its capture angle (the simulated signal there at least 18 %).
 CAPTURE_FRACTION = (0.7, 0.8)
+#: A turning a1 crosses the aperture, the beam at most ``CAPTURE_FRACTION[0]`` of the
+#: capture radius above or below its centre, along a chord of ``2 sqrt(1 - 0.7^2)``
+#: = 1.43 capture radii, 2.86 steps of half a radius: readings at most 0.9 of that
+#: apart see the beam on it; only a longer stretch between two is stepped through again.
+LATE_STEPS = 0.9 * 4.0 * math.sqrt(1.0 - CAPTURE_FRACTION[0] ** 2)
 
 
 @dataclass(frozen=True)
@@ -137,8 +142,9 @@ def _sweep(
     seen (a1 then stops), or None.
 
     a1 runs at its own speed, read every ``step_rad`` at the units' top speed; where a
-    reading came late (a slow host) and a1 moved more than twice ``step_rad`` since the
-    one before, that stretch is stepped through again.
+    reading came late (a slow host) and a1 moved farther since the one before than the
+    beam's path across the receiver's aperture (:data:`LATE_STEPS`), that stretch is
+    stepped through again.
     """
     azimuth, elevation = search.launch.axes[:2]
     search.move([azimuth, elevation], np.array([start_rad, elevation_rad]))
@@ -156,7 +162,7 @@ def _sweep(
         if seen:
             azimuth.stop()
             return here_rad
-        if abs(here_rad - last_rad) > 2.0 * abs(step_rad):
+        if abs(here_rad - last_rad) > LATE_STEPS * abs(step_rad):
             gaps.append((last_rad, here_rad))
         last_rad = here_rad
     for gap in gaps:
