@@ -359,29 +359,6 @@ def _search(
     return float(np.linalg.norm(cp_mm - guess.launch2mcs_mm))
 
 
-def visiting_order(
-    positions_mm: Vec,
-    guess: PoseGuess | None,
-    session: Session,
-    machine: Machine,
-    search: BeamSearchSettings | None,
-) -> list[int]:
-    """The positions' indices in the order the routine takes them: as given, except that
-    a first alignment to be searched (no azimuth, nothing recorded) is taken first at the
-    position farthest from the launch unit's rough place within the interferometer's
-    range, where the place's uncertainty is the smallest angle and the search turns
-    the launch unit the fewest times."""
-    order = list(range(len(positions_mm)))
-    if search is None or guess is None or guess.gamma_rad is not None or session.alignments:
-        return order
-    cps = receiver_cp(positions_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-    distances_mm = np.linalg.norm(cps - guess.launch2mcs_mm, axis=1)
-    reach_mm = machine.interferometer.max_range_mm - search.position_uncertainty_mm * math.sqrt(3)
-    distances_mm[distances_mm > reach_mm] = -np.inf
-    farthest = int(np.argmax(distances_mm))
-    return [farthest, *(i for i in order if i != farthest)]
-
-
 def _record(session: Session, machine_mm: Vec, devices: RoutineDevices, residual_um: Vec) -> None:
     devices.launch.lock()
     devices.receiver.lock()
@@ -444,7 +421,7 @@ def run_identification(
     Parameters
     ----------
     positions_mm : array_like, shape (N, 3)
-        CNC tool points to align at, in order (but see ``search``).
+        CNC tool points to align at, in order.
     machine : Machine
         Travel, feeds, receiver offset and spindle angle.
     devices : RoutineDevices
@@ -471,8 +448,7 @@ def run_identification(
     search : BeamSearchSettings, optional
         Bounds of the first alignment's search; None: no search (an operator aligns
         the first position, ``manual_align``). Given, no one is assumed at the
-        machine: the first alignment is taken at the position farthest from the rough
-        place (:func:`visiting_order`), the next ones are pointed from the recorded
+        machine: after the first alignment the units are pointed from the recorded
         beam lines (:func:`launch_place_from_alignments`) until a refined guess
         exists, and where such a pointing misses, from places along the line they
         leave open; ``manual_align`` only when fine alignment then fails.
@@ -505,9 +481,8 @@ def run_identification(
     # resumed: the recorded alignments refine the guess as they did before the stop
     better = refine_guess(session) if refine_guess is not None and session.alignments else None
     guess, refined = (better, True) if better is not None else (guess, False)
-    order = visiting_order(positions, guess, session, machine, search)
     with units_locked_on_exit(devices.launch, devices.receiver):
-        for index, target in ((i + 1, positions[i]) for i in order):
+        for index, target in enumerate(positions, start=1):
 
             def event(stage: Stage, where: Vec, index: int = index) -> None:
                 if on_event is not None:

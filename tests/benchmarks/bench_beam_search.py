@@ -1,14 +1,11 @@
 """Benchmark: the first alignment by itself (xmalign.beam_search), the launch azimuth unknown.
 
-Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_beam_search.py [--trials 20]
-[--alignments 6] [--at-first]``
+Run: ``PYTHONPATH=$PWD python tests/benchmarks/bench_beam_search.py [--trials 20] [--alignments 6]``
 
 Each trial is one seeded virtual setup of the reference machine as the dry run
 places it (sim.dry_run.placement: the launch unit up to 25 mm from the machine
 file's place along each axis, its azimuth anywhere on the circle), the CNC at
-the designed identification position where the routine searches (the farthest
-from the machine file's place, :func:`visiting_order`; ``--at-first``: the
-design's first), in-process on the virtual clock.
+the first designed identification position, in-process on the virtual clock.
 The search starts from the machine file's place alone; a trial succeeds when
 fine alignment converges from where the search left the units. Reported: the
 success rate, the search's simulated time (median, max) and sweeps, the wall
@@ -26,10 +23,8 @@ from sim.dry_run import placement
 from sim.units import SimPositioningUnit
 from sim.world import FixedPosition, build_world
 from xmalign.alignment import fine_align
-from xmalign.beam_search import BeamSearchSettings, search_first_beam
+from xmalign.beam_search import search_first_beam
 from xmalign.errors import BeamLostError, DeviceTimeoutError
-from xmalign.formats.session import Session
-from xmalign.identification_routine import PoseGuess, visiting_order
 from xmalign.kinematics import receiver_cp
 from xmalign.machine import default_machine_path, load_machine
 from xmalign.steps import design_step
@@ -41,18 +36,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=20)
     parser.add_argument("--alignments", type=int, default=6)
-    parser.add_argument(
-        "--at-first", action="store_true", help="search at the design's first position"
-    )
     args = parser.parse_args()
     trials = args.trials
     machine = load_machine(default_machine_path())
     assert machine.launch_unit is not None
     rough = np.asarray(machine.launch_unit.position_mm, dtype=float)
-    design = design_step(machine, args.alignments).machine_mm
-    session = Session(machine.receiver_offset, machine.spindle_angle_rad)
-    order = visiting_order(design, PoseGuess(rough), session, machine, BeamSearchSettings())
-    position = design[0 if args.at_first else order[0]]
+    position = design_step(machine, args.alignments).machine_mm[0]
     cp = receiver_cp(position, machine.receiver_offset, machine.spindle_angle_rad)
     print(f"searching at {position.tolist()} mm, {np.linalg.norm(cp - rough):.0f} mm away")
     found, times_s, sweeps, walls = 0, [], [], []

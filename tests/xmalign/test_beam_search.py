@@ -326,10 +326,9 @@ def test_no_jog_at_near_positions_after_the_search_straight_or_resumed(
     machine: Machine, tmp_path, resumed: bool
 ) -> None:
     """The launch unit 28 mm off its place in the machine file (the dry run's seed 3), the
-    3-alignment design (its first position 201 mm away, the others 2412 and 150 mm): the
-    routine searches at the farthest position, then points the near ones from that
-    alignment's beam line (searching along it where it misses), straight through or
-    resumed after a stop; no jog."""
+    3-alignment design (its positions 201, 2412 and 150 mm away): the routine searches at
+    the first, then points the others from that alignment's beam line (searching along
+    it where it misses), straight through or resumed after a stop; no jog."""
     world, devices = _seed3_routine(machine)
     assert machine.launch_unit is not None
     positions = design_step(machine, 3).machine_mm
@@ -356,7 +355,7 @@ def test_no_jog_at_near_positions_after_the_search_straight_or_resumed(
         assert len(read_session(tmp_path / "session.json").alignments) == 1
     session = run()
     assert len(session.alignments) == 3 and not jogs
-    assert (2, "searching") in stages and not any(i != 2 and s == "searching" for i, s in stages)
-    assert [i for i, s in stages if s == "recorded"] == [2, 1, 3]
+    assert (1, "searching") in stages and not any(i != 1 and s == "searching" for i, s in stages)
+    assert [i for i, s in stages if s == "recorded"] == [1, 2, 3]
     solved = identify(session, "intersection")
     assert np.linalg.norm(solved.position_mm - world.launch2mcs_mm) < 0.5

@@ -460,10 +460,10 @@ def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
     reference_machine, tmp_path
 ):
     """No azimuth in the machine file and the launch unit 28 mm from its place there
-    (seed 3): the first alignment is the search's, at the position farthest from that
-    place (2412 mm; the design's first is 201 mm away); Ctrl-C at the next position,
-    then the routine resumes and points the two near positions from the first
-    alignment's beam line, searching along it: no one jogs, before or after Ctrl-C."""
+    (seed 3, 201 mm from the first position): the first alignment is the search's;
+    Ctrl-C at the second position, then the routine resumes and points positions 2 and
+    3 from the first alignment's beam line, searching along it: no one jogs, before or
+    after Ctrl-C."""
     session, pose = tmp_path / "session.json", tmp_path / "pose.json"
     with served(reference_machine, tmp_path) as world:
         first = IdentifyingOperator(world, reference_machine, ctrl_c_at_move=2)
@@ -472,14 +472,14 @@ def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
         assert all(axis.is_locked() for axis in world.axes())
         assert len(json.loads(session.read_text())["alignments"]) == 1
         assert first.manual == 0  # no azimuth guess: the first alignment is the search's
-        assert "position 2: searching the beam" in " ".join(stopped.stdout.split())
+        assert "position 1: searching the beam" in " ".join(stopped.stdout.split())
         second = IdentifyingOperator(world, reference_machine)
         result = _identify(Terminal(second), world, session, "--out", str(pose))
         assert result.returncode == 0, result.stderr
         assert all(axis.is_locked() for axis in world.axes())
         truth = world.setup.world
     assert second.moves == 2  # the recorded alignment is not repeated
-    assert second.manual == 0  # positions 1 and 3 pointed from the beam line, no jog
+    assert second.manual == 0  # positions 2 and 3 pointed from the beam line, no jog
     assert len(json.loads(session.read_text())["alignments"]) == 3
     shown = " ".join(result.stdout.split())
     assert "Launch-unit pose (joint, 3 of 3 alignments" in shown

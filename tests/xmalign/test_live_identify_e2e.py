@@ -26,12 +26,10 @@ from sim.alignment_setup import point_by_truth
 from sim.units import SimPositioningUnit
 from sim.world import FixedPosition, build_world
 from tests.xmalign.test_live_e2e import GAMMA_DEG, SEED, Process, World
-from xmalign.beam_search import BeamSearchSettings
 from xmalign.formats.pose import read_pose
-from xmalign.formats.session import Session, read_session
-from xmalign.identification_routine import visiting_order
+from xmalign.formats.session import read_session
 from xmalign.machine import Machine, load_machine
-from xmalign.steps import design_step, machine_guess
+from xmalign.steps import design_step
 
 
 def _identification_program(positions_mm: np.ndarray) -> str:
@@ -151,14 +149,7 @@ def test_identify_live_with_a_cnc_and_an_operator_against_sim_serve(
     uncertainty."""
     machine = quick_machine(tmp_path, reference_machine_path)
     positions = design_step(machine, 4).machine_mm
-    # the program goes where identify --live asks, in its order: the farthest position
-    # from the launch unit's rough place first (the search's), then the design's order
-    session = Session(machine.receiver_offset, machine.spindle_angle_rad)
-    order = visiting_order(
-        positions, machine_guess(machine), session, machine, BeamSearchSettings()
-    )
-    assert order[0] != 0  # the design's first position is 164 mm from the launch unit
-    (tmp_path / "ident.nc").write_text(_identification_program(positions[order]))
+    (tmp_path / "ident.nc").write_text(_identification_program(positions))
     served = World(tmp_path, tmp_path / "ident.nc")
     identify, operator = identify_live(served, Operator, machine, tmp_path)
     said = "".join(identify.lines)
