@@ -23,7 +23,12 @@ circle. :func:`search_first_beam`
 
 Bounded in angle (one turn per place, the places above) and in time
 (``timeout_s``); when it finds nothing it raises a :class:`BeamLostError`
-saying what to check. Pure control logic on roles (core code).
+saying what to check.
+
+Once an alignment is recorded the azimuth is known and the launch unit lies on
+a line: :func:`search_along` points both units from places along it (no turn),
+finds where along it the signal ends either side and points from the middle,
+then centres as above. Pure control logic on roles (core code).
 """
 
 from __future__ import annotations

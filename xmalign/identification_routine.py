@@ -6,8 +6,11 @@ move and the displayed position), coarse-points the units at the angles
 predicted from a pose guess, fine-aligns them on the interferometer, locks
 them, reads the encoders and appends the alignment to the session file at
 once. Started again with the same session file it resumes after the last
-recorded position. Solving the session is :func:`xmalign.identify.identify`'s
-job. Only roles are used here (core code).
+recorded position. With no one at the machine the first alignment searches the
+beam (:mod:`xmalign.beam_search`), and until a quick identification can point, the
+next ones are pointed from the recorded beam lines, searching along the line they
+leave open where that misses. Solving the session is
+:func:`xmalign.identify.identify`'s job. Only roles are used here (core code).
 """
 
 from __future__ import annotations
