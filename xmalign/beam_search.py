@@ -23,7 +23,12 @@ circle. :func:`search_first_beam`
 
 Bounded in angle (one turn per place, the places above) and in time
 (``timeout_s``); when it finds nothing it raises a :class:`BeamLostError`
-saying what to check. Pure control logic on roles (core code).
+saying what to check.
+
+Once an alignment is recorded the azimuth is known and the launch unit lies on
+a line: :func:`search_along` points both units from places along it (no turn),
+finds where along it the signal ends either side and points from the middle,
+then centres as above. Pure control logic on roles (core code).
 """
 
 from __future__ import annotations
@@ -52,6 +57,15 @@ WHAT_TO_CHECK = (
 
 #: At most this many passes of centring on a1..a4 (:func:`_centred`).
 CENTRING_PASSES = 6
+#: From the nearest place the search points from, the beam lands within the first
+#: fraction of the capture radius, and the receiver faces the true place within the
+#: second of its capture angle (the simulated signal there at least 18 %).
+CAPTURE_FRACTION = (0.7, 0.8)
+#: A turning a1 crosses the aperture, the beam at most ``CAPTURE_FRACTION[0]`` of the
+#: capture radius above or below its centre, along a chord of ``2 sqrt(1 - 0.7^2)``
+#: = 1.43 capture radii, 2.86 steps of half a radius: readings at most 0.9 of that
+#: apart see the beam on it; only a longer stretch between two is stepped through again.
+LATE_STEPS = 0.9 * 4.0 * math.sqrt(1.0 - CAPTURE_FRACTION[0] ** 2)
 
 
 @dataclass(frozen=True)
@@ -65,7 +79,8 @@ class BeamSearchSettings:
         ``launch_unit.position_mm`` along each axis: sets how far the rows and
         the receiver's aims reach.
     timeout_s : float
-        The whole search, clock time.
+        The whole search, clock time: enough for every place at 200 mm from the
+        launch unit with 25 mm of uncertainty (121 turns of some 14 s).
     max_speed_rad_s : float
         The fastest a1 turns (the units' 30 °/s, docs/registers.md): while it
         turns, the signal is read every half capture aperture at this speed.
@@ -81,7 +96,7 @@ class BeamSearchSettings:
     """
 
     position_uncertainty_mm: float = 25.0
-    timeout_s: float = 600.0
+    timeout_s: float = 1800.0
     max_speed_rad_s: float = math.radians(30.0)
     min_signal_pct: float = 1.0
     edge_precision: float = 0.01
@@ -133,8 +148,9 @@ def _sweep(
     seen (a1 then stops), or None.
 
     a1 runs at its own speed, read every ``step_rad`` at the units' top speed; where a
-    reading came late (a slow host) and a1 moved more than twice ``step_rad`` since the
-    one before, that stretch is stepped through again.
+    reading came late (a slow host) and a1 moved farther since the one before than the
+    beam's path across the receiver's aperture (:data:`LATE_STEPS`), that stretch is
+    stepped through again.
     """
     azimuth, elevation = search.launch.axes[:2]
     search.move([azimuth, elevation], np.array([start_rad, elevation_rad]))
@@ -152,7 +168,7 @@ def _sweep(
         if seen:
             azimuth.stop()
             return here_rad
-        if abs(here_rad - last_rad) > 2.0 * abs(step_rad):
+        if abs(here_rad - last_rad) > LATE_STEPS * abs(step_rad):
             gaps.append((last_rad, here_rad))
         last_rad = here_rad
     for gap in gaps:
@@ -187,39 +203,55 @@ def _back_to_beam(search: _Search, seen_rad: float, step_rad: float) -> bool:
 
 
 def _edge(
-    search: _Search, axis: RotaryAxis, inside_rad: float, step_rad: float, precision_rad: float
+    search: _Search,
+    go: Callable[[float], None],
+    inside: float,
+    step: float,
+    precision: float,
 ) -> float:
-    """The angle of ``axis`` where the signal ends beyond ``inside_rad`` in the direction
-    of ``step_rad`` (the beam is seen at ``inside_rad``), within ``precision_rad``."""
-    outside = inside_rad + step_rad
+    """The value of what ``go`` sets (an axis angle, a place along a line) where the signal
+    ends beyond ``inside`` in the direction of ``step`` (the beam is seen at
+    ``inside``), within ``precision``."""
+    outside = inside + step
     while True:
         search.check_time()
-        search.move([axis], np.array([outside]))
+        go(outside)
         search.clock.sleep(search.settings.settle_s)
         if not search.sees():
             break
-        inside_rad, outside = outside, outside + step_rad
-    while abs(outside - inside_rad) > precision_rad:
+        inside, outside = outside, outside + step
+    while abs(outside - inside) > precision:
         search.check_time()
-        middle = 0.5 * (inside_rad + outside)
-        search.move([axis], np.array([middle]))
+        middle = 0.5 * (inside + outside)
+        go(middle)
         search.clock.sleep(search.settings.settle_s)
         if search.sees():
-            inside_rad = middle
+            inside = middle
         else:
             outside = middle
-    return 0.5 * (inside_rad + outside)
+    return 0.5 * (inside + outside)
+
+
+def _middle(search: _Search, go: Callable[[float], None], here: float, half_width: float) -> float:
+    """Set what ``go`` sets to the middle of the values where the beam is seen (seen at
+    ``here``); that middle."""
+    step, precision = 0.25 * half_width, search.settings.edge_precision * half_width
+    middle = 0.5 * (
+        _edge(search, go, here, step, precision) + _edge(search, go, here, -step, precision)
+    )
+    go(middle)
+    search.clock.sleep(search.settings.settle_s)
+    return middle
 
 
 def _centre(search: _Search, axis: RotaryAxis, half_width_rad: float) -> None:
     """Move ``axis`` to the middle of the angles where the beam is seen (seen where it is)."""
-    here = axis.position_rad()
-    step = 0.25 * half_width_rad
-    precision = search.settings.edge_precision * half_width_rad
-    upper = _edge(search, axis, here, step, precision)
-    lower = _edge(search, axis, here, -step, precision)
-    search.move([axis], np.array([0.5 * (upper + lower)]))
-    search.clock.sleep(search.settings.settle_s)
+    _middle(
+        search,
+        lambda angle: search.move([axis], np.array([angle])),
+        axis.position_rad(),
+        half_width_rad,
+    )
 
 
 def search_first_beam(
@@ -305,6 +337,73 @@ def search_first_beam(
     )
 
 
+def search_along(
+    launch: PositioningUnit,
+    receiver: PositioningUnit,
+    interferometer: Interferometer,
+    clock: Clock,
+    pointing: Callable[[float], Vec],
+    offsets_mm: Vec,
+    distance_mm: float,
+    ranges: InterferometerRanges,
+    settings: BeamSearchSettings | None = None,
+) -> float | None:
+    """Point both units from places of the launch unit along a line, each of
+    ``offsets_mm`` in turn, until the receiver sees the beam; then point from the middle
+    of the offsets where it is seen (edges found as the centring finds them) and centre
+    as :func:`search_first_beam` does. The azimuth is known here: one pointing per
+    place, no turn.
+
+    Parameters
+    ----------
+    launch, receiver : PositioningUnit
+    interferometer : Interferometer
+    clock : Clock
+    pointing : callable
+        The launch then receiver angles, shape (n_axes,) rad, that point the units
+        from the place ``offset_mm`` along the line.
+    offsets_mm : ndarray, shape (N,)
+        The places to point from, the likeliest first, evenly ``offsets_mm[1] -
+        offsets_mm[0]`` apart or one.
+    distance_mm : float
+        About the distance to the receiver (sizes the centring's steps).
+    ranges : InterferometerRanges
+    settings : BeamSearchSettings, optional
+        ``timeout_s`` bounds the whole; ``move_timeout_s``, ``settle_s`` each pointing.
+
+    Returns
+    -------
+    float or None
+        The offset where the beam is now centred; None when no place saw it, the units
+        then pointed from the first.
+
+    Raises
+    ------
+    DeviceTimeoutError
+        Not found and centred within ``settings.timeout_s``.
+    """
+    settings = settings or BeamSearchSettings()
+    search = _Search(launch, receiver, interferometer, clock, settings, clock.now())
+    axes = [*launch.axes, *receiver.axes]
+
+    def go(offset_mm: float) -> None:
+        search.move(axes, pointing(offset_mm))
+
+    spacing_mm = float(np.ptp(offsets_mm[:2])) if len(offsets_mm) > 1 else 1.0
+    for offset_mm in offsets_mm:
+        search.check_time()
+        go(float(offset_mm))
+        search.clock.sleep(settings.settle_s)
+        if search.sees():
+            middle_mm = _middle(search, go, float(offset_mm), spacing_mm)
+            aperture_rad = ranges.capture_radius_mm / distance_mm
+            cos_e = max(abs(math.cos(float(launch.angles_rad()[1]))), 0.05)
+            _centred(search, aperture_rad / cos_e, aperture_rad, ranges.capture_angle_mrad * 1e-3)
+            return middle_mm
+    go(float(offsets_mm[0]))
+    return None
+
+
 def _candidate_places_mm(
     launch2mcs_mm: Vec,
     receiver_cp_mm: Vec,
@@ -329,8 +428,9 @@ def _candidate_places_mm(
     level = np.cross(line, [0.0, 0.0, 1.0])
     u = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array([1.0, 0, 0])
     v = np.cross(u, line)
-    facing_mm = 0.8 * ranges.capture_angle_mrad * 1e-3 * nearest_mm
-    spacing_v = min(1.4 * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
+    of_radius, of_angle = CAPTURE_FRACTION
+    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
+    spacing_v = min(2.0 * of_radius * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
     spacing_u = 2.0 * math.sqrt(facing_mm**2 - (0.5 * spacing_v) ** 2)
     reach_mm = uncertainty_mm * math.sqrt(2.0)
     n_u, n_v = (math.ceil(reach_mm / spacing - 0.5) for spacing in (spacing_u, spacing_v))

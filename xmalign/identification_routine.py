@@ -6,8 +6,11 @@ move and the displayed position), coarse-points the units at the angles
 predicted from a pose guess, fine-aligns them on the interferometer, locks
 them, reads the encoders and appends the alignment to the session file at
 once. Started again with the same session file it resumes after the last
-recorded position. Solving the session is :func:`xmalign.identify.identify`'s
-job. Only roles are used here (core code).
+recorded position. With no one at the machine the first alignment searches the
+beam (:mod:`xmalign.beam_search`), and until a quick identification can point, the
+next ones are pointed from the recorded beam lines, searching along the line they
+leave open where that misses. Solving the session is
+:func:`xmalign.identify.identify`'s job. Only roles are used here (core code).
 """
 
 from __future__ import annotations
@@ -24,11 +27,16 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
-from xmalign.beam_search import BeamSearchSettings, search_first_beam
+from xmalign.beam_search import (
+    CAPTURE_FRACTION,
+    BeamSearchSettings,
+    search_along,
+    search_first_beam,
+)
 from xmalign.errors import BeamLostError, GeometryError, InputError, OutOfRangeError
 from xmalign.formats.session import Alignment, Session, read_session, write_session
 from xmalign.geometry import Vec, azimuth_elevation, circular_mean, wrap_angle
-from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_cp
+from xmalign.kinematics import EncoderOffsets, aligned_angles, receiver_axis, receiver_cp
 from xmalign.machine import Machine
 from xmalign.roles import Clock, Interferometer, MachineMover, PositioningUnit, move_axes
 from xmalign.safety import units_locked_on_exit
@@ -39,6 +47,9 @@ logger = logging.getLogger(__name__)
 SAME_POSITION_MM = 0.5
 #: Distance assumed by the first fine alignment when no pose guess gives one, mm.
 DEFAULT_DISTANCE_MM = 1000.0
+#: How weakly the rough place holds the launch place where the beam lines leave it open
+#: (:func:`launch_place_from_alignments`; against 1 per line), 1.
+ROUGH_PLACE_WEIGHT = 1e-6
 
 
 @dataclass(frozen=True)
@@ -149,18 +160,80 @@ def _pointing_bias(
     return EncoderOffsets(float(c2), float(c3), float(c4)), roll
 
 
-def _usable_guess(guess: PoseGuess | None, session: Session) -> PoseGuess | None:
-    """The guess completed from the recorded alignments (gamma, offsets, roll), if usable."""
-    if guess is None or (guess.gamma_rad is None and not session.alignments):
-        return guess if guess is None or guess.gamma_rad is not None else None
-    gamma_rad = guess.gamma_rad
-    if gamma_rad is None:
-        gamma_rad = gamma_from_alignments(guess.launch2mcs_mm, session)
-        guess = replace(guess, gamma_rad=gamma_rad)
-    if not session.alignments:
-        return guess
+def launch_place_from_alignments(rough_mm: Vec, session: Session) -> tuple[Vec, Vec]:
+    """Where the recorded alignments put the launch unit, and the direction they leave open.
+
+    Each alignment puts the launch unit on the beam's line through the receiver cp,
+    along the receiver's reported axis (a3, a4 and the spindle angle; their zero
+    offsets, tens of microradians, neglected). The place is the point nearest all
+    the lines (least squares), held weakly at the rough place where they leave it
+    open: one alignment moves the rough place onto its line, two lines that cross
+    give their crossing.
+
+    Parameters
+    ----------
+    rough_mm : ndarray, shape (3,)
+        The machine file's place of the launch unit, MCS mm.
+    session : Session
+        At least one recorded alignment.
+
+    Returns
+    -------
+    place_mm : ndarray, shape (3,)
+        MCS mm.
+    open_direction : ndarray, shape (3,)
+        Unit vector along which the lines fix the place least (the line itself
+        after one alignment).
+    """
+    normal, rhs = np.zeros((3, 3)), np.zeros(3)
+    for a in session.alignments:
+        cp = receiver_cp(a.machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
+        axis = receiver_axis(session.spindle_angle_rad, a.receiver_rad[0], a.receiver_rad[1])
+        across = np.eye(3) - np.outer(axis, axis)
+        normal, rhs = normal + across, rhs + across @ cp
+    held = normal + ROUGH_PLACE_WEIGHT * np.eye(3)
+    pulled = rhs + ROUGH_PLACE_WEIGHT * np.asarray(rough_mm, dtype=float)
+    place = np.asarray(np.linalg.solve(held, pulled), dtype=float)
+    open_direction: Vec = np.linalg.eigh(normal)[1][:, 0]
+    return place, open_direction
+
+
+def _guess_at(guess: PoseGuess, place_mm: Vec, session: Session) -> PoseGuess:
+    """The guess with the launch unit at ``place_mm`` and the azimuth the recorded
+    alignments give from there, with the offsets and roll they show."""
+    gamma_rad = gamma_from_alignments(place_mm, session)
+    guess = replace(guess, launch2mcs_mm=place_mm, gamma_rad=gamma_rad)
     offsets, roll = _pointing_bias(guess, gamma_rad, session)
     return replace(guess, offsets=offsets, receiver_roll_rad=roll)
+
+
+def _usable_guess(guess: PoseGuess | None, session: Session, onto_lines: bool) -> PoseGuess | None:
+    """The guess completed from the recorded alignments (azimuth, offsets, roll), if
+    usable; ``onto_lines``: its place first moved to :func:`launch_place_from_alignments`
+    (a coarse guess with no one at the machine: the rough place may be centimetres off,
+    the lines hold to tenths of a millimetre; with an operator the guess stays, the jog
+    corrects it)."""
+    if guess is None or not session.alignments:
+        return guess if guess is not None and guess.gamma_rad is not None else None
+    if onto_lines:
+        place_mm, _ = launch_place_from_alignments(guess.launch2mcs_mm, session)
+        return _guess_at(guess, place_mm, session)
+    if guess.gamma_rad is None:
+        return _guess_at(guess, guess.launch2mcs_mm, session)
+    offsets, roll = _pointing_bias(guess, guess.gamma_rad, session)
+    return replace(guess, offsets=offsets, receiver_roll_rad=roll)
+
+
+def _pointing(guess: PoseGuess, cp_mm: Vec, session: Session, n_axes: int) -> tuple[Vec, float]:
+    """The launch and receiver angles the guess predicts, shape (``n_axes``,) rad, and the
+    predicted distance, mm."""
+    assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
+    predicted = aligned_angles(
+        guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
+    )
+    receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
+    targets = np.concatenate([predicted.launch_rad, receiver_target])[:n_axes]
+    return targets, predicted.distance_mm
 
 
 def _point_units(
@@ -168,15 +241,98 @@ def _point_units(
 ) -> float:
     """Move both units at once to the angles predicted by the guess (``timeout_s`` for all
     axes together); returns the predicted distance."""
-    assert guess.gamma_rad is not None, "_usable_guess completes gamma before any pointing"
-    predicted = aligned_angles(
-        guess.launch2mcs_mm, guess.gamma_rad, cp_mm, session.spindle_angle_rad, guess.offsets
-    )
-    receiver_target = np.array([*predicted.receiver_rad[:2], guess.receiver_roll_rad])
     axes = [*devices.launch.axes, *devices.receiver.axes]
-    targets = np.concatenate([predicted.launch_rad, receiver_target])[: len(axes)]
+    targets, distance_mm = _pointing(guess, cp_mm, session, len(axes))
     move_axes(axes, targets, timeout_s, "positioning units", devices.clock)
-    return predicted.distance_mm
+    return distance_mm
+
+
+def _offsets_along(
+    place_mm: Vec, open_direction: Vec, cp_mm: Vec, machine: Machine, reach_mm: float
+) -> Vec:
+    """Offsets of the launch unit's place along ``open_direction`` out to ``reach_mm``
+    either side, nearest first, shape (N,), mm: close enough that from the nearest the
+    beam lands on the receiver and the receiver faces the true place, each within
+    :data:`~xmalign.beam_search.CAPTURE_FRACTION` of its capture."""
+    line = cp_mm - place_mm
+    distance_mm = float(np.linalg.norm(line))
+    across = float(np.linalg.norm(np.cross(open_direction, line / distance_mm)))
+    ranges = machine.interferometer
+    nearest_mm = max(distance_mm - reach_mm, 1.0)
+    of_radius, of_angle = CAPTURE_FRACTION
+    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
+    miss_mm = min(of_radius * ranges.capture_radius_mm, facing_mm)
+    spacing_mm = min(2.0 * miss_mm / max(across, 1e-3), reach_mm)
+    count = math.ceil(reach_mm / spacing_mm)
+    steps = np.array(sorted(range(-count, count + 1), key=lambda k: (abs(k), k)), dtype=float)
+    return steps * spacing_mm
+
+
+def _search_place(
+    guess: PoseGuess,
+    cp_mm: Vec,
+    session: Session,
+    machine: Machine,
+    devices: RoutineDevices,
+    settings: BeamSearchSettings,
+) -> float | None:
+    """Pointing from the recorded alignments missed: point again from other places of the
+    launch unit along the direction they leave open (each with the azimuth they give
+    from there), nearest first, out to the rough place's uncertainty
+    (:func:`~xmalign.beam_search.search_along`); the distance to the place where the
+    beam was found and centred, or None (the units back at the first pointing)."""
+    place_mm, open_direction = launch_place_from_alignments(guess.launch2mcs_mm, session)
+    reach_mm = settings.position_uncertainty_mm * math.sqrt(3.0)
+    offsets_mm = _offsets_along(place_mm, open_direction, cp_mm, machine, reach_mm)
+    n_axes = len(devices.launch.axes) + len(devices.receiver.axes)
+
+    def pointing(offset_mm: float) -> Vec:
+        place = place_mm + offset_mm * open_direction
+        return _pointing(_guess_at(guess, place, session), cp_mm, session, n_axes)[0]
+
+    logger.info(
+        "the beam missed: pointing again from up to %d places of the launch unit along the"
+        " line the recorded alignments leave open",
+        len(offsets_mm),
+    )
+    distance_mm = float(np.linalg.norm(cp_mm - place_mm))
+    found_mm = search_along(
+        devices.launch,
+        devices.receiver,
+        devices.interferometer,
+        devices.clock,
+        pointing,
+        offsets_mm,
+        distance_mm,
+        machine.interferometer,
+        settings,
+    )
+    if found_mm is None:
+        return None
+    return float(np.linalg.norm(cp_mm - place_mm - found_mm * open_direction))
+
+
+def _pointed(
+    usable: PoseGuess,
+    coarse: PoseGuess | None,
+    cp_mm: Vec,
+    session: Session,
+    machine: Machine,
+    devices: RoutineDevices,
+    timeout_s: float,
+    search: BeamSearchSettings | None,
+) -> float:
+    """Point the units from ``usable`` (:func:`_point_units`); the distance. Where that
+    comes from a ``coarse`` guess moved onto the recorded beam lines, which may leave the
+    place open, and misses with no one there (``search``), point again from along them
+    (:func:`_search_place`)."""
+    distance_mm = _point_units(usable, cp_mm, session, devices, timeout_s)
+    if coarse is None or search is None or not session.alignments:
+        return distance_mm
+    if devices.interferometer.read().beam_ok:
+        return distance_mm
+    found_mm = _search_place(coarse, cp_mm, session, machine, devices, search)
+    return distance_mm if found_mm is None else found_mm
 
 
 def _search(
@@ -294,7 +450,11 @@ def run_identification(
         Timeout of each coarse unit move.
     search : BeamSearchSettings, optional
         Bounds of the first alignment's search; None: no search (an operator aligns
-        the first position, ``manual_align``).
+        the first position, ``manual_align``). Given, no one is assumed at the
+        machine: after the first alignment the units are pointed from the recorded
+        beam lines (:func:`launch_place_from_alignments`) until a refined guess
+        exists, and where such a pointing misses, from places along the line they
+        leave open; ``manual_align`` only when fine alignment then fails.
 
     Returns
     -------
@@ -321,7 +481,9 @@ def run_identification(
     path = Path(session_path)
     session = open_session(path, machine)
     distance_mm = DEFAULT_DISTANCE_MM
-    refined = False
+    # resumed: the recorded alignments refine the guess as they did before the stop
+    better = refine_guess(session) if refine_guess is not None and session.alignments else None
+    guess, refined = (better, True) if better is not None else (guess, False)
     with units_locked_on_exit(devices.launch, devices.receiver):
         for index, target in enumerate(positions, start=1):
 
@@ -336,11 +498,14 @@ def run_identification(
             devices.mover.move_to(target, machine.feed_mm_min.rapid)
             machine_mm = np.asarray(devices.mover.position_mm(), dtype=float)
             cp_mm = receiver_cp(machine_mm, session.receiver_offset_mm, session.spindle_angle_rad)
-            usable = _usable_guess(guess, session)
+            usable = _usable_guess(guess, session, search is not None and not refined)
             searched = usable is None and guess is not None and search is not None
             if usable is not None:
                 event("pointing", machine_mm)
-                distance_mm = _point_units(usable, cp_mm, session, devices, unit_timeout_s)
+                coarse = None if refined else guess
+                distance_mm = _pointed(
+                    usable, coarse, cp_mm, session, machine, devices, unit_timeout_s, search
+                )
             elif searched:
                 assert guess is not None and search is not None  # see searched
                 distance_mm = _search(

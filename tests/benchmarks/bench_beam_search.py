@@ -43,6 +43,7 @@ def main() -> None:
     rough = np.asarray(machine.launch_unit.position_mm, dtype=float)
     position = design_step(machine, args.alignments).machine_mm[0]
     cp = receiver_cp(position, machine.receiver_offset, machine.spindle_angle_rad)
+    print(f"searching at {position.tolist()} mm, {np.linalg.norm(cp - rough):.0f} mm away")
     found, times_s, sweeps, walls = 0, [], [], []
     for seed in range(trials):
         placed = placement(machine, seed)

@@ -18,15 +18,25 @@ import pytest
 from sim.alignment_setup import point_by_truth
 from sim.clock import LockstepClock
 from sim.cnc import SimulatedCnc
+from sim.dry_run import virtual_setup
 from sim.units import SimPositioningUnit
 from sim.world import FixedPosition, World, build_world
 from xmalign.alignment import fine_align
 from xmalign.beam_search import WHAT_TO_CHECK, BeamSearchSettings, search_first_beam
 from xmalign.errors import BeamLostError, DeviceTimeoutError
-from xmalign.identification_routine import PoseGuess, RoutineDevices, run_identification
-from xmalign.kinematics import receiver_cp
+from xmalign.formats.session import Alignment, Session, read_session
+from xmalign.identification_routine import (
+    PoseGuess,
+    RoutineDevices,
+    RoutineEvent,
+    gamma_from_alignments,
+    launch_place_from_alignments,
+    run_identification,
+)
+from xmalign.identify import identify
+from xmalign.kinematics import aligned_angles, receiver_cp
 from xmalign.machine import Machine, load_machine
-from xmalign.steps import design_step
+from xmalign.steps import design_step, refine_guess
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 #: The launch unit stands where the machine file says within this, per axis (tests).
@@ -235,3 +245,117 @@ def test_over_the_served_protocols(machine: Machine, seed: int) -> None:
         reading = devices.interferometer.read()
     assert reading.signal_pct is not None and reading.signal_pct > 90.0
     assert result.sweeps <= 3
+
+
+def _session_at(machine: Machine, place_mm: np.ndarray, gamma_rad: float, count: int) -> Session:
+    """A session of ``count`` exact alignments at the 3-alignment design's positions for a
+    launch unit at ``place_mm`` with azimuth ``gamma_rad`` (no offsets)."""
+    session = Session(machine.receiver_offset, machine.spindle_angle_rad)
+    for position in design_step(machine, 3).machine_mm[:count]:
+        cp = receiver_cp(position, machine.receiver_offset, machine.spindle_angle_rad)
+        aligned = aligned_angles(place_mm, gamma_rad, cp, machine.spindle_angle_rad)
+        session.alignments.append(
+            Alignment(
+                position, aligned.launch_rad, aligned.receiver_rad, straightness_um=np.zeros(2)
+            )
+        )
+    return session
+
+
+def test_one_alignment_puts_the_launch_unit_on_its_beam_line_two_fix_it(machine: Machine) -> None:
+    """One alignment: the rough place moves onto the beam's line (the receiver's axis
+    through its cp), what is left open is along that line, and the azimuth from there is
+    the true one; two alignments at positions seen in other directions: the true place."""
+    assert machine.launch_unit is not None
+    rough = np.asarray(machine.launch_unit.position_mm, dtype=float)
+    true_mm, gamma_rad = rough + np.array([-20.7, -13.2, 15.1]), 0.7
+    one = _session_at(machine, true_mm, gamma_rad, 1)
+    place, open_direction = launch_place_from_alignments(rough, one)
+    line = true_mm - receiver_cp(one.alignments[0].machine_mm, machine.receiver_offset, 0.0)
+    line /= np.linalg.norm(line)
+    assert np.linalg.norm(np.cross(place - true_mm, line)) < 1e-3  # on the line
+    assert abs(np.dot(place - rough, line)) < 1e-3  # the rough place moved across it only
+    assert abs(abs(np.dot(open_direction, line)) - 1.0) < 1e-9
+    assert abs(gamma_from_alignments(place, one) - gamma_rad) < 1e-6
+    place, _ = launch_place_from_alignments(rough, _session_at(machine, true_mm, gamma_rad, 2))
+    assert np.linalg.norm(place - true_mm) < 1e-3
+
+
+class _InterruptedError(Exception):
+    """Ctrl-C at the routine's second move (the session then holds one alignment)."""
+
+
+def _seed3_routine(machine: Machine) -> tuple[World, RoutineDevices]:
+    """The dry run's seed-3 setup (launch unit 28 mm off the machine file's place) with a
+    simulated CNC, in-process."""
+    world = virtual_setup(machine, 3).world
+    cnc = SimulatedCnc(machine, world.clock, world.interferometer.position.position_mm())
+    world.interferometer.position = cnc
+    launch, receiver = SimPositioningUnit(world.launch), SimPositioningUnit(world.receiver)
+    return world, RoutineDevices(cnc, launch, receiver, world.interferometer, world.clock)
+
+
+def test_the_jog_is_the_last_resort_after_the_search_along_the_line(
+    machine: Machine, tmp_path
+) -> None:
+    """One alignment recorded, then the beam blocked: the pointing from the beam line and
+    the search along it find nothing, fine alignment neither; only then the operator is
+    asked (once), and a beam still blocked ends in the one-line error."""
+    world, devices = _seed3_routine(machine)
+    positions = design_step(machine, 3).machine_mm
+    assert machine.launch_unit is not None
+    guess = PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float))
+    path, jogs, stages = tmp_path / "session.json", [], []
+
+    def run(where: np.ndarray) -> Session:
+        return run_identification(
+            where, machine, devices, path, guess, manual_align=lambda: jogs.append(1),
+            on_event=lambda e: stages.append(e.stage), search=BeamSearchSettings(),
+        )  # fmt: skip
+
+    run(positions[1:2])
+    world.interferometer.interrupt(1e9)
+    with pytest.raises(BeamLostError):
+        run(positions)
+    assert jogs == [1] and stages.count("searching") > 0 and stages[-1] == "manual"
+    assert len(read_session(path).alignments) == 1  # nothing recorded is lost
+
+
+@pytest.mark.parametrize("resumed", [False, True])
+def test_no_jog_at_near_positions_after_the_search_straight_or_resumed(
+    machine: Machine, tmp_path, resumed: bool
+) -> None:
+    """The launch unit 28 mm off its place in the machine file (the dry run's seed 3), the
+    3-alignment design (its positions 201, 2412 and 150 mm away): the routine searches at
+    the first, then points the others from that alignment's beam line (searching along
+    it where it misses), straight through or resumed after a stop; no jog."""
+    world, devices = _seed3_routine(machine)
+    assert machine.launch_unit is not None
+    positions = design_step(machine, 3).machine_mm
+    stages: list[tuple[int, str]] = []
+    jogs: list[int] = []
+
+    def event(e: RoutineEvent) -> None:
+        stages.append((e.index, e.stage))
+        moves = sum(stage == "moving" for _, stage in stages)
+        if resumed and e.stage == "moving" and moves == 2:
+            raise _InterruptedError
+
+    def run() -> Session:
+        return run_identification(
+            positions, machine, devices, tmp_path / "session.json",
+            guess=PoseGuess(np.asarray(machine.launch_unit.position_mm, dtype=float)),
+            manual_align=lambda: jogs.append(1), refine_guess=refine_guess,
+            on_event=event, search=BeamSearchSettings(),
+        )  # fmt: skip
+
+    if resumed:
+        with pytest.raises(_InterruptedError):
+            run()
+        assert len(read_session(tmp_path / "session.json").alignments) == 1
+    session = run()
+    assert len(session.alignments) == 3 and not jogs
+    assert (1, "searching") in stages and not any(i != 1 and s == "searching" for i, s in stages)
+    assert [i for i, s in stages if s == "recorded"] == [1, 2, 3]
+    solved = identify(session, "intersection")
+    assert np.linalg.norm(solved.position_mm - world.launch2mcs_mm) < 0.5

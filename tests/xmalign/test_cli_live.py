@@ -151,7 +151,7 @@ def served(
             launch: {{transport: modbus-tcp, host: 127.0.0.1, port: {launch.port}}}
             receiver: {{transport: modbus-tcp, host: 127.0.0.1, port: {receiver.port}}}
             interferometer: {{port: {pty.port}, rate_hz: 200}}
-            timeouts: {{io_s: 0.5, move_s: 10.0}}
+            timeouts: {{io_s: 0.5, move_s: 15.0}}
             """)
         )
         yield Served(setup, position, launch, receiver, pty, config)
@@ -460,8 +460,10 @@ def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
     reference_machine, tmp_path
 ):
     """No azimuth in the machine file and the launch unit 28 mm from its place there
-    (seed 3, 201 mm from the first position): the first alignment is the search's, no
-    one jogs; Ctrl-C at the second position, then the routine resumes."""
+    (seed 3, 201 mm from the first position): the first alignment is the search's;
+    Ctrl-C at the second position, then the routine resumes and points positions 2 and
+    3 from the first alignment's beam line, searching along it: no one jogs, before or
+    after Ctrl-C."""
     session, pose = tmp_path / "session.json", tmp_path / "pose.json"
     with served(reference_machine, tmp_path) as world:
         first = IdentifyingOperator(world, reference_machine, ctrl_c_at_move=2)
@@ -477,10 +479,7 @@ def test_identify_live_searching_the_first_beam_then_resumed_after_ctrl_c(
         assert all(axis.is_locked() for axis in world.axes())
         truth = world.setup.world
     assert second.moves == 2  # the recorded alignment is not repeated
-    # Pointed from the rough place (28 mm off) and the first alignment's azimuth, the
-    # beam misses positions 2 and 3 beyond fine alignment's own search: there the
-    # operator still jogs (the path the operator's jog keeps in identify --live).
-    assert second.manual == 2
+    assert second.manual == 0  # positions 2 and 3 pointed from the beam line, no jog
     assert len(json.loads(session.read_text())["alignments"]) == 3
     shown = " ".join(result.stdout.split())
     assert "Launch-unit pose (joint, 3 of 3 alignments" in shown
