@@ -38,6 +38,11 @@ class Standstills:
     read the same values, the joints have settled: one sample ``[[pos_cmd,
     motor_pos_cmd, motor_offset, direction], ...]`` per joint is kept (direction
     +1, -1, or 0 before the joint was seen moving), unless it repeats the last.
+    Nothing is recorded while the program is paused: LinuxCNC's ramp of the
+    COMP_FILE correction halts with the feed scale at 0 (``compute_screw_comp``
+    in src/emc/motion/control.c, ``v_max = 0.5 * vel_limit * net_feed_scale``),
+    so at an M0 the motor may stand nanometres short of the correction until the
+    resume, by design.
     """
 
     NAMES = ("pos-cmd", "vel-cmd", "motor-pos-cmd", "motor-offset")
@@ -48,8 +53,11 @@ class Standstills:
         self.previous = None
         self.samples = []
 
-    def poll(self):
+    def poll(self, paused):
         if not self.joints:
+            return
+        if paused:
+            self.previous = None
             return
         read = [
             [float(hal.get_value(f"joint.{j}.{name}")) for name in self.NAMES]
@@ -199,7 +207,7 @@ class Display:
             for name in watch:
                 value = abs(float(hal.get_value(name)))
                 extremes[name] = max(extremes[name], value)
-            standstills.poll()
+            standstills.poll(s.paused)
             if s.task_state != linuxcnc.STATE_ON:
                 raise ActionFailedError(f"the machine went off during the program: {self.messages}")
             if s.interp_state == linuxcnc.INTERP_IDLE and not s.queue:
