@@ -313,8 +313,7 @@ def search_first_beam(
     places = _candidate_places_mm(
         launch2mcs_mm, receiver_cp_mm, settings.position_uncertainty_mm, distance_mm, ranges
     )
-    cos_e = max(abs(math.cos(nominal.launch_rad[1])), 0.05)
-    step_rad = 0.5 * aperture_rad / cos_e
+    step_rad = 0.5 * _across_azimuth(aperture_rad, nominal.launch_rad[1])
     logger.info(
         "searching the beam: up to %d turns of a1 (rough places), a1 read every %.2f mrad",
         len(places),
@@ -329,7 +328,7 @@ def search_first_beam(
         seen_rad = _sweep(search, aimed.launch_rad[1], start, direction * step_rad)
         start = -start
         if seen_rad is not None and _back_to_beam(search, seen_rad, step_rad):
-            return _centred(search, aperture_rad / cos_e, aperture_rad, capture_angle_rad)
+            return _centred(search, aperture_rad, nominal.launch_rad[1], capture_angle_rad)
     raise BeamLostError(
         f"no beam found: the launch azimuth swept once round for {len(places)} place(s) of the"
         f" launch unit within {settings.position_uncertainty_mm:g} mm of the machine file's"
@@ -397,11 +396,23 @@ def search_along(
         if search.sees():
             middle_mm = _middle(search, go, float(offset_mm), spacing_mm)
             aperture_rad = ranges.capture_radius_mm / distance_mm
-            cos_e = max(abs(math.cos(float(launch.angles_rad()[1]))), 0.05)
-            _centred(search, aperture_rad / cos_e, aperture_rad, ranges.capture_angle_mrad * 1e-3)
+            elevation_rad = float(launch.angles_rad()[1])
+            _centred(search, aperture_rad, elevation_rad, ranges.capture_angle_mrad * 1e-3)
             return middle_mm
     go(float(offsets_mm[0]))
     return None
+
+
+def capture_reach_mm(ranges: InterferometerRanges, distance_mm: float) -> tuple[float, float]:
+    """How far the launch unit may stand from a place the units point from and the
+    receiver still see the beam: the beam lands within ``CAPTURE_FRACTION[0]`` of the
+    capture radius (mm), and the receiver, ``distance_mm`` away, faces the true place
+    within ``CAPTURE_FRACTION[1]`` of its capture angle (that angle's reach there, mm)."""
+    of_radius, of_angle = CAPTURE_FRACTION
+    return (
+        of_radius * ranges.capture_radius_mm,
+        of_angle * ranges.capture_angle_mrad * 1e-3 * distance_mm,
+    )
 
 
 def _candidate_places_mm(
@@ -428,9 +439,8 @@ def _candidate_places_mm(
     level = np.cross(line, [0.0, 0.0, 1.0])
     u = level / np.linalg.norm(level) if np.linalg.norm(level) > 1e-6 else np.array([1.0, 0, 0])
     v = np.cross(u, line)
-    of_radius, of_angle = CAPTURE_FRACTION
-    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
-    spacing_v = min(2.0 * of_radius * ranges.capture_radius_mm, math.sqrt(2.0) * facing_mm)
+    landing_mm, facing_mm = capture_reach_mm(ranges, nearest_mm)
+    spacing_v = min(2.0 * landing_mm, math.sqrt(2.0) * facing_mm)
     spacing_u = 2.0 * math.sqrt(facing_mm**2 - (0.5 * spacing_v) ** 2)
     reach_mm = uncertainty_mm * math.sqrt(2.0)
     n_u, n_v = (math.ceil(reach_mm / spacing - 0.5) for spacing in (spacing_u, spacing_v))
@@ -448,11 +458,18 @@ def _candidate_places_mm(
     return launch2mcs_mm + grid[:, :1] * u + grid[:, 1:] * v
 
 
+def _across_azimuth(half_width_rad: float, elevation_rad: float) -> float:
+    """The turn of an azimuth axis that moves the beam ``half_width_rad`` across at
+    ``elevation_rad`` (by cos(elevation) of the turn; at most 20 times the width)."""
+    return half_width_rad / max(abs(math.cos(elevation_rad)), 0.05)
+
+
 def _centred(
-    search: _Search, azimuth_rad: float, elevation_rad: float, capture_angle_rad: float
+    search: _Search, aperture_rad: float, launch_elevation_rad: float, capture_angle_rad: float
 ) -> BeamSearchResult:
     """Centre the seen beam on a1, a2, a3, a4 in turn, again until the beam is in range
-    (at most ``CENTRING_PASSES`` times); the result.
+    (at most ``CENTRING_PASSES`` times); the result. ``aperture_rad``: the receiver's
+    capture radius seen from the launch unit, which stands at ``launch_elevation_rad``.
 
     Close to the launch unit, a turn of a1 or a2 also tilts the beam on the receiver, so
     the middle of where the beam is seen lies between centred and faced; each pass,
@@ -463,10 +480,12 @@ def _centred(
     for _ in range(CENTRING_PASSES):
         if search.interferometer.read().beam_ok:
             break
-        for axis, half_width in ((a1, azimuth_rad), (a2, elevation_rad)):
+        azimuth_rad = _across_azimuth(aperture_rad, launch_elevation_rad)
+        for axis, half_width in ((a1, azimuth_rad), (a2, aperture_rad)):
             _centre(search, axis, half_width)
-        cos_e = max(abs(math.cos(float(search.receiver.angles_rad()[1]))), 0.05)
-        for axis, half_width in ((a3, capture_angle_rad / cos_e), (a4, capture_angle_rad)):
+        receiver_elevation_rad = float(search.receiver.angles_rad()[1])
+        receiver_azimuth_rad = _across_azimuth(capture_angle_rad, receiver_elevation_rad)
+        for axis, half_width in ((a3, receiver_azimuth_rad), (a4, capture_angle_rad)):
             _centre(search, axis, half_width)
     logger.info("beam found and centred after %d sweep(s)", search.sweeps)
     return BeamSearchResult(

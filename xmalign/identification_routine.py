@@ -28,8 +28,8 @@ from numpy.typing import ArrayLike
 
 from xmalign.alignment import FineAlignmentResult, FineAlignmentSettings, fine_align
 from xmalign.beam_search import (
-    CAPTURE_FRACTION,
     BeamSearchSettings,
+    capture_reach_mm,
     search_along,
     search_first_beam,
 )
@@ -253,15 +253,12 @@ def _offsets_along(
     """Offsets of the launch unit's place along ``open_direction`` out to ``reach_mm``
     either side, nearest first, shape (N,), mm: close enough that from the nearest the
     beam lands on the receiver and the receiver faces the true place, each within
-    :data:`~xmalign.beam_search.CAPTURE_FRACTION` of its capture."""
+    its capture (:func:`~xmalign.beam_search.capture_reach_mm`)."""
     line = cp_mm - place_mm
     distance_mm = float(np.linalg.norm(line))
     across = float(np.linalg.norm(np.cross(open_direction, line / distance_mm)))
-    ranges = machine.interferometer
     nearest_mm = max(distance_mm - reach_mm, 1.0)
-    of_radius, of_angle = CAPTURE_FRACTION
-    facing_mm = of_angle * ranges.capture_angle_mrad * 1e-3 * nearest_mm
-    miss_mm = min(of_radius * ranges.capture_radius_mm, facing_mm)
+    miss_mm = min(capture_reach_mm(machine.interferometer, nearest_mm))
     spacing_mm = min(2.0 * miss_mm / max(across, 1e-3), reach_mm)
     count = math.ceil(reach_mm / spacing_mm)
     steps = np.array(sorted(range(-count, count + 1), key=lambda k: (abs(k), k)), dtype=float)
